@@ -1,0 +1,162 @@
+"""Configuration: frozen dataclasses with documented defaults, one place for units and bounds.
+
+Units: metres, kilograms, seconds, radians. World frame: z up, table top at z = 0, the workspace a square bin
+centred at the origin. Every field can be overridden by name (``dataclasses.replace`` or a CLI flag).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+
+GEOMS = ("sphere", "capsule", "box")
+
+
+@dataclass(frozen=True)
+class PieceKind:
+    """One kind of object in a pile.
+
+    geom: MuJoCo primitive ("sphere", "capsule" lying flat, "box" lying flat).
+    size: sphere (radius,), capsule (radius, half_length of the cylinder part), box (hx, hy, hz) half-sizes, metres.
+    size_spread: relative spread of every size, drawn per piece once when the scene is built (granola: mixed sizes).
+    mass: kilograms per piece.  friction: sliding friction coefficient against the table, other pieces and walls.
+    rolling: rolling resistance. Free joints: rotational damping (N·m·s/rad); planar joints: the table's dry friction
+      is multiplied by ``rolling_planar`` instead (M&M roll, so they coast further).
+    rgb: colour in [0, 1], used by the renderer.
+    """
+
+    name: str
+    geom: str
+    size: tuple[float, ...]
+    mass: float
+    friction: float
+    rolling: float
+    rgb: tuple[float, float, float]
+    size_spread: float = 0.0
+    rolling_planar: float = 1.0
+
+    def __post_init__(self):
+        if self.geom not in GEOMS:
+            raise ValueError(f"piece kind {self.name!r}: geom {self.geom!r} is not one of {GEOMS}")
+        expected = {"sphere": 1, "capsule": 2, "box": 3}[self.geom]
+        if len(self.size) != expected or min(self.size) <= 0:
+            raise ValueError(f"piece kind {self.name!r}: a {self.geom} needs {expected} positive sizes, got {self.size}")
+
+
+# The paper's object variety (its Fig. 3b and 6c): round, elongated, rolling, irregular and large square pieces.
+KINDS: dict[str, PieceKind] = {
+    k.name: k
+    for k in (
+        PieceKind("coffee", "sphere", (0.007,), 0.002, 0.5, 1e-5, (0.36, 0.22, 0.12)),
+        PieceKind("almond", "capsule", (0.006, 0.008), 0.003, 0.5, 1e-5, (0.76, 0.55, 0.36)),
+        PieceKind("rice", "capsule", (0.004, 0.006), 0.001, 0.6, 1e-5, (0.93, 0.91, 0.84)),
+        PieceKind("mnm", "sphere", (0.0075,), 0.002, 0.3, 1e-7, (0.85, 0.15, 0.15), rolling_planar=0.3),
+        PieceKind("granola", "sphere", (0.008,), 0.002, 0.7, 1e-4, (0.80, 0.65, 0.35), size_spread=0.35),
+        PieceKind("candy", "box", (0.011, 0.011, 0.006), 0.005, 0.6, 1e-5, (0.20, 0.45, 0.85)),
+    )
+}
+
+
+@dataclass(frozen=True)
+class SceneConfig:
+    """What is on the table and how MuJoCo simulates it.
+
+    kinds / pieces: piece kind names and how many of each (two kinds for Sort). joints: "planar" pieces slide on the
+    table (x, y, yaw; table friction as joint dry friction, no table contacts: 3 degrees of freedom a piece, the fast
+    choice) or "free" (6 degrees of freedom, real table contacts, pieces can tip and stack).
+    contact_cap: MJX keeps at most ``contact_cap * n_pieces`` contacts and candidate pairs per group.
+    """
+
+    kinds: tuple[str, ...] = ("coffee",)
+    pieces: tuple[int, ...] = (100,)
+    joints: str = "planar"
+    bin_half_width: float = 0.2
+    wall_height: float = 0.04
+    wall_thickness: float = 0.01
+    plate_half_width: float = 0.04
+    plate_thickness: float = 0.01
+    plate_half_height: float = 0.02
+    timestep: float = 0.002
+    solver_iterations: int = 12
+    ls_iterations: int = 6
+    solref: float = 0.005
+    contact_cap: float = 1.5
+    size_seed: int = 0
+
+    def __post_init__(self):
+        if len(self.kinds) != len(self.pieces) or not self.kinds:
+            raise ValueError(f"kinds {self.kinds} and pieces {self.pieces} must be non-empty and of equal length")
+        for k in self.kinds:
+            if k not in KINDS:
+                raise ValueError(f"unknown piece kind {k!r}; known kinds: {sorted(KINDS)}")
+        if min(self.pieces) < 1:
+            raise ValueError(f"every kind needs at least one piece, got pieces={self.pieces}")
+        if self.joints not in ("planar", "free"):
+            raise ValueError(f"joints must be 'planar' or 'free', got {self.joints!r}")
+
+    @property
+    def n_pieces(self) -> int:
+        return sum(self.pieces)
+
+
+@dataclass(frozen=True)
+class PushConfig:
+    """One push: the plate lowers at the start, moves at constant ``speed`` along the line, lifts, the pile settles.
+
+    The move phase lasts ``max_length / speed`` seconds for every push (the plate waits at the end of a shorter one),
+    so a push is a fixed number of simulator steps and batches without padding.
+    """
+
+    speed: float = 0.25
+    max_length: float = 0.25
+    min_length: float = 0.01
+    lower_time: float = 0.04
+    lift_time: float = 0.04
+    settle_time: float = 0.1
+    clearance: float = 0.002
+    lift_height: float = 0.08
+
+
+@dataclass(frozen=True)
+class PileConfig:
+    """Initial piles. layout: "blob" (one pile), "two_blobs" (two piles; with two kinds, one kind each),
+    "spread" (uniform over the bin). blob_radius bounds the pile centres' distance from the bin centre."""
+
+    layout: str = "blob"
+    centre_margin: float = 0.06
+    jitter: float = 0.4
+    settle_time: float = 0.2
+
+    def __post_init__(self):
+        if self.layout not in ("blob", "two_blobs", "spread"):
+            raise ValueError(f"pile layout must be 'blob', 'two_blobs' or 'spread', got {self.layout!r}")
+
+
+@dataclass(frozen=True)
+class CameraConfig:
+    """Top-down pinhole camera above the bin centre, looking down; image rows run along -y, columns along +x.
+
+    view_half_width: half the side of the square the image covers on the table plane (metres).
+    """
+
+    width: int = 128
+    height: int = 128
+    distance: float = 1.0
+    view_half_width: float = 0.23
+
+
+@dataclass(frozen=True)
+class SimConfig:
+    scene: SceneConfig = field(default_factory=SceneConfig)
+    push: PushConfig = field(default_factory=PushConfig)
+    pile: PileConfig = field(default_factory=PileConfig)
+    camera: CameraConfig = field(default_factory=CameraConfig)
+
+
+def replace(cfg, **overrides):
+    """``dataclasses.replace`` that names the field when it does not exist."""
+    names = {f.name for f in dataclasses.fields(cfg)}
+    unknown = set(overrides) - names
+    if unknown:
+        raise ValueError(f"{type(cfg).__name__} has no field(s) {sorted(unknown)}; fields: {sorted(names)}")
+    return dataclasses.replace(cfg, **overrides)

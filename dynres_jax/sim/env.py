@@ -1,0 +1,301 @@
+"""PileEnv: pure ``reset(key) -> State`` and ``push(state, action) -> State`` over one MJCF, two engines.
+
+backend "mjx": MuJoCo XLA; ``reset`` and ``push`` are pure JAX, so ``jax.jit`` and ``jax.vmap`` over worlds work.
+backend "mujoco": the C engine, one world, fast on CPU; same MJCF, same State, same plate trajectory.
+
+An action is ``(x_start, y_start, x_end, y_end)`` in metres: the plate (perpendicular to the push) lowers at the
+start, moves to the end at ``PushConfig.speed``, lifts, and is parked out of view while the pile settles.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import functools
+import io
+import math
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+
+from dynres_jax.config import SimConfig
+from dynres_jax.sim.camera import Camera, Observation, Renderer
+from dynres_jax.sim.scene import build_scene
+
+with contextlib.redirect_stdout(io.StringIO()):  # mujoco.mjx prints a notice when the optional Warp is missing
+    from mujoco import mjx
+
+PARK = (0.0, 0.0, 3.0)  # plate parking spot, above the camera (out of view, touches nothing)
+SINK_LIMIT = 0.005  # a piece whose centre is this far below its rest height went through the table
+ESCAPE_MARGIN = 0.02  # a piece this far outside the bin's walls escaped
+
+
+class State(NamedTuple):
+    """One world. qpos [nq], qvel [nv]: MuJoCo state; pos [N, 3], mat [N, 3, 3]: piece geom poses (world, metres);
+    obs: the top-down Observation (None when the env renders nothing); broken []: True once a step produced NaN,
+    a piece went through the table, or a piece left the bin. Sticky: it stays True."""
+
+    qpos: jax.Array
+    qvel: jax.Array
+    pos: jax.Array
+    mat: jax.Array
+    obs: Observation | None
+    broken: jax.Array
+
+
+def _yaw_quat(yaw):
+    return jnp.stack([jnp.cos(yaw / 2), jnp.zeros_like(yaw), jnp.zeros_like(yaw), jnp.sin(yaw / 2)], -1)
+
+
+class PileEnv:
+    """Object piles pushed by a flat plate. ``PileEnv(SimConfig(), backend="mjx" | "mujoco", render=True)``."""
+
+    def __init__(self, config: SimConfig | None = None, backend: str = "mjx", render: bool = True):
+        if backend not in ("mjx", "mujoco"):
+            raise ValueError(f"backend must be 'mjx' or 'mujoco', got {backend!r}")
+        self.config = config = config or SimConfig()
+        self.backend = backend
+        self.scene = build_scene(config.scene)
+        self.camera = Camera.top_down(config.camera)
+        self.renderer = Renderer(self.scene, self.camera) if render else None
+        dt, p = config.scene.timestep, config.push
+        self.n_lower = max(1, round(p.lower_time / dt))
+        self.n_move = max(1, math.ceil(p.max_length / p.speed / dt))
+        self.n_lift = max(1, round(p.lift_time / dt))
+        self.n_settle = max(1, round(p.settle_time / dt))
+        self.n_reset = max(1, round(config.pile.settle_time / dt))
+        self.plate_z = p.clearance + config.scene.plate_half_height
+        self._sites = self._layout_sites()
+        model = self.scene.model
+        if backend == "mjx":
+            self.mx = mjx.put_model(model, impl="jax")
+            self._data0 = mjx.make_data(self.mx, impl="jax")
+            self._reset = jax.jit(self._reset_mjx)
+            self._push = jax.jit(self._push_mjx)
+        else:
+            self._data = mujoco.MjData(model)
+            self._layout = jax.jit(self._initial_qpos)
+            self._reset = self._reset_c
+            self._push = self._push_c
+            self._finish_jit = jax.jit(self._finish)
+
+    @property
+    def steps_per_push(self) -> int:
+        return self.n_lower + self.n_move + self.n_lift + self.n_settle
+
+    # ----------------------------------------------------------------------------------------------------------
+    # Initial piles
+    # ----------------------------------------------------------------------------------------------------------
+    def _layout_sites(self) -> np.ndarray:
+        """[S, 2] grid of candidate piece centres, spaced so pieces on distinct sites never overlap."""
+        foot = float(self.scene.footprint.max())
+        self._spacing = 2 * foot * 1.08
+        edge = self.config.scene.bin_half_width - foot - 0.002
+        ticks = np.arange(-edge, edge + 1e-9, self._spacing)
+        sites = np.stack(np.meshgrid(ticks, ticks), -1).reshape(-1, 2)
+        n = self.scene.n_pieces
+        if len(sites) < n:
+            raise ValueError(f"{n} pieces do not fit in a bin of half-width {self.config.scene.bin_half_width} m "
+                             f"(room for {len(sites)}); use fewer pieces or a larger bin")
+        return sites
+
+    def _initial_qpos(self, key):
+        """Pieces on distinct grid sites chosen by the pile layout, jittered, with random yaw -> qpos [nq]."""
+        cfg, scene, sites = self.config, self.scene, jnp.asarray(self._sites)
+        k_centre, k_rough, k_jit, k_yaw = jax.random.split(key, 4)
+        lim = cfg.scene.bin_half_width - cfg.pile.centre_margin
+        centres = jax.random.uniform(k_centre, (2, 2), minval=-lim, maxval=lim)
+        dist = jnp.linalg.norm(sites[None] - centres[:, None], axis=-1)  # [2, S]
+        rough = cfg.pile.jitter * self._spacing * jax.random.uniform(k_rough, (len(cfg.scene.kinds), len(sites)))
+        taken = jnp.zeros(len(sites), bool)
+        chosen = []
+        for i, n in enumerate(cfg.scene.pieces):
+            if cfg.pile.layout == "spread":
+                score = jax.random.uniform(jax.random.fold_in(k_rough, i), (len(sites),))
+            elif cfg.pile.layout == "blob":
+                score = dist[0] + rough[i]
+            elif len(cfg.scene.kinds) > 1:
+                score = dist[i % 2] + rough[i]
+            else:
+                score = dist.min(0) + rough[i]
+            _, idx = jax.lax.top_k(-jnp.where(taken, jnp.inf, score), n)
+            taken = taken.at[idx].set(True)
+            chosen.append(idx)
+        xy = sites[jnp.concatenate(chosen)]
+        room = jnp.asarray(self._spacing / 2 - scene.footprint * 1.02)
+        xy = xy + jax.random.uniform(k_jit, xy.shape, minval=-1, maxval=1) * room[:, None]
+        yaw = jax.random.uniform(k_yaw, (scene.n_pieces,), minval=-jnp.pi, maxval=jnp.pi)
+        adr = scene.qpos_adr
+        qpos = jnp.asarray(scene.model.qpos0, jnp.float32)
+        if cfg.scene.joints == "planar":
+            return qpos.at[adr].set(xy[:, 0]).at[adr + 1].set(xy[:, 1]).at[adr + 2].set(yaw)
+        z = jnp.asarray(scene.rest_height) + 0.0005
+        qpos = qpos.at[adr].set(xy[:, 0]).at[adr + 1].set(xy[:, 1]).at[adr + 2].set(z)
+        quat = _yaw_quat(yaw)
+        for j in range(4):
+            qpos = qpos.at[adr + 3 + j].set(quat[:, j])
+        return qpos
+
+    # ----------------------------------------------------------------------------------------------------------
+    # Plate trajectory, shared by both backends
+    # ----------------------------------------------------------------------------------------------------------
+    def plate_trajectory(self, action):
+        """action [4] -> plate (pos [K, 3], quat [K, 4]) for each of the K = steps_per_push simulator steps."""
+        p, dt = self.config.push, self.config.scene.timestep
+        start, end = action[:2], action[2:]
+        delta = end - start
+        length = jnp.linalg.norm(delta)
+        direction = delta / jnp.maximum(length, 1e-9)
+        z_up = self.plate_z + p.lift_height
+        k_low = (jnp.arange(self.n_lower) + 1) / self.n_lower
+        k_lift = (jnp.arange(self.n_lift) + 1) / self.n_lift
+        travel = jnp.minimum((jnp.arange(self.n_move) + 1) * p.speed * dt, length)
+        xy = jnp.concatenate([jnp.broadcast_to(start, (self.n_lower, 2)), start + travel[:, None] * direction,
+                              jnp.broadcast_to(end, (self.n_lift, 2))])
+        z = jnp.concatenate([z_up + (self.plate_z - z_up) * k_low, jnp.full(self.n_move, self.plate_z),
+                             self.plate_z + (z_up - self.plate_z) * k_lift])
+        pos = jnp.concatenate([xy, z[:, None]], axis=1)
+        pos = jnp.concatenate([pos, jnp.broadcast_to(jnp.asarray(PARK), (self.n_settle, 3))])
+        quat = jnp.broadcast_to(_yaw_quat(jnp.arctan2(direction[1], direction[0])), (self.steps_per_push, 4))
+        return pos.astype(jnp.float32), quat.astype(jnp.float32)
+
+    def _parked(self, n):
+        return (jnp.broadcast_to(jnp.asarray(PARK, jnp.float32), (n, 3)),
+                jnp.broadcast_to(jnp.array([1.0, 0, 0, 0], jnp.float32), (n, 4)))
+
+    # ----------------------------------------------------------------------------------------------------------
+    # Actions
+    # ----------------------------------------------------------------------------------------------------------
+    def check_action(self, action) -> np.ndarray:
+        """Raise ValueError naming the problem with a concrete action; returns it as float32 [4]."""
+        a = np.asarray(action, dtype=np.float64)
+        if a.shape != (4,):
+            raise ValueError(f"an action is (x_start, y_start, x_end, y_end), shape (4,); got shape {a.shape}")
+        if not np.all(np.isfinite(a)):
+            raise ValueError(f"action has NaN or infinite entries: {a}")
+        b = self.config.scene.bin_half_width
+        if np.any(np.abs(a) > b):
+            raise ValueError(f"action {a} leaves the bin: every coordinate must lie within +-{b} m")
+        length = float(np.hypot(a[2] - a[0], a[3] - a[1]))
+        p = self.config.push
+        if not p.min_length <= length <= p.max_length + 1e-6:
+            raise ValueError(f"push length {length:.4f} m is outside [{p.min_length}, {p.max_length}] m "
+                             "(PushConfig.min_length / max_length)")
+        return a.astype(np.float32)
+
+    def _sanitise(self, action):
+        """Traced actions cannot raise: NaN makes the push a no-op and flags the world broken; the rest is clipped
+        into the bin and to the maximum length."""
+        bad = ~jnp.all(jnp.isfinite(action))
+        b, p = self.config.scene.bin_half_width, self.config.push
+        a = jnp.clip(jnp.where(bad, jnp.array([0.0, 0.0, p.min_length, 0.0]), action), -b, b)
+        delta = a[2:] - a[:2]
+        length = jnp.linalg.norm(delta)
+        a = a.at[2:].set(a[:2] + delta * jnp.minimum(1.0, p.max_length / jnp.maximum(length, 1e-9)))
+        return a, bad
+
+    # ----------------------------------------------------------------------------------------------------------
+    # Public API
+    # ----------------------------------------------------------------------------------------------------------
+    def reset(self, key) -> State:
+        """A new settled pile drawn from ``key``."""
+        return self._reset(key)
+
+    def push(self, state: State, action) -> State:
+        """Execute one push. Concrete actions are checked (ValueError naming the problem); traced ones (inside
+        jit / vmap) are sanitised and a NaN action flags the world broken."""
+        if not isinstance(action, jax.core.Tracer):
+            action = jnp.asarray(self.check_action(action))
+        return self._push(state, action)
+
+    def observe(self, state: State, plate=None) -> Observation:
+        """Render a state's pieces, and the plate if given as (centre [3], quat [4])."""
+        if self.renderer is None:
+            raise ValueError("this PileEnv was built with render=False")
+        if plate is not None:
+            rot = np.zeros(9)
+            mujoco.mju_quat2Mat(rot, np.asarray(plate[1], np.float64))
+            cfg = self.config.scene
+            plate = (jnp.asarray(plate[0], jnp.float32), jnp.asarray(rot.reshape(3, 3), jnp.float32),
+                     jnp.array([cfg.plate_thickness / 2, cfg.plate_half_width, cfg.plate_half_height]))
+        return self._render_jit(state.pos, state.mat, plate)
+
+    @functools.cached_property
+    def _render_jit(self):
+        return jax.jit(self.renderer.__call__)
+
+    def _finish(self, qpos, qvel, pos, mat, broken) -> State:
+        """Piece poses -> State with observation and the broken flag."""
+        b = self.config.scene.bin_half_width + ESCAPE_MARGIN
+        sunk = jnp.any(pos[:, 2] < jnp.asarray(self.scene.rest_height) - SINK_LIMIT)
+        escaped = jnp.any(jnp.abs(pos[:, :2]) > b)
+        nan = ~(jnp.all(jnp.isfinite(qpos)) & jnp.all(jnp.isfinite(qvel)))
+        obs = self.renderer(pos, mat) if self.renderer is not None else None
+        return State(qpos, qvel, pos, mat, obs, broken | sunk | escaped | nan)
+
+    # --- MJX ---
+    def _run_mjx(self, d, plate_pos, plate_quat):
+        def step(d, plate):
+            d = d.replace(mocap_pos=plate[0][None], mocap_quat=plate[1][None])
+            return mjx.step(self.mx, d), None
+
+        d, _ = jax.lax.scan(step, d, (plate_pos, plate_quat))
+        return mjx.kinematics(self.mx, d)
+
+    def _state_mjx(self, d, broken) -> State:
+        gid = self.scene.geom_id
+        return self._finish(d.qpos, d.qvel, d.geom_xpos[gid], d.geom_xmat[gid], broken)
+
+    def _reset_mjx(self, key) -> State:
+        d = self._data0.replace(qpos=self._initial_qpos(key))
+        d = self._run_mjx(d, *self._parked(self.n_reset))
+        return self._state_mjx(d, jnp.array(False))
+
+    def _push_mjx(self, state: State, action) -> State:
+        action, bad = self._sanitise(action)
+        d = self._data0.replace(qpos=state.qpos, qvel=state.qvel)
+        d = self._run_mjx(d, *self.plate_trajectory(action))
+        return self._state_mjx(d, state.broken | bad)
+
+    # --- C MuJoCo ---
+    def _run_c(self, qpos, qvel, plate_pos, plate_quat, frame_every: int = 0):
+        """Step the C engine along a plate trajectory. Returns (qpos, qvel, pos, mat) as float32 arrays and, when
+        frame_every > 0, (piece pos, piece mat, plate pos, plate quat) every frame_every steps."""
+        m, d = self.scene.model, self._data
+        mujoco.mj_resetData(m, d)
+        d.qpos[:], d.qvel[:] = np.asarray(qpos, np.float64), np.asarray(qvel, np.float64)
+        plate_pos, plate_quat = np.asarray(plate_pos, np.float64), np.asarray(plate_quat, np.float64)
+        k, gid, frames = self.scene.plate_mocap, self.scene.geom_id, []
+        for i in range(len(plate_pos)):
+            d.mocap_pos[k], d.mocap_quat[k] = plate_pos[i], plate_quat[i]
+            mujoco.mj_step(m, d)
+            if frame_every and i % frame_every == 0:
+                mujoco.mj_kinematics(m, d)
+                frames.append((d.geom_xpos[gid].copy(), d.geom_xmat[gid].reshape(-1, 3, 3).copy(),
+                               plate_pos[i], plate_quat[i]))
+        mujoco.mj_kinematics(m, d)
+        f32 = lambda x: jnp.asarray(x, jnp.float32)  # noqa: E731
+        arrays = (f32(d.qpos), f32(d.qvel), f32(d.geom_xpos[gid]), f32(d.geom_xmat[gid].reshape(-1, 3, 3)))
+        return arrays, frames
+
+    def _reset_c(self, key) -> State:
+        (arrays, _) = self._run_c(self._layout(key), np.zeros(self.scene.model.nv), *self._parked(self.n_reset))
+        return self._finish_jit(*arrays, jnp.array(False))
+
+    def _push_c(self, state: State, action) -> State:
+        arrays, _ = self._run_c(state.qpos, state.qvel, *self.plate_trajectory(action))
+        return self._finish_jit(*arrays, state.broken)
+
+    def push_frames(self, state: State, action, n_frames: int = 12) -> tuple[State, list[Observation]]:
+        """Like ``push`` (backend "mujoco" only) but also renders ``n_frames`` frames with the plate drawn."""
+        if self.backend != "mujoco":
+            raise ValueError("push_frames needs backend='mujoco' (MJX pushes run as one compiled scan)")
+        action = jnp.asarray(self.check_action(action))
+        every = max(1, (self.steps_per_push - self.n_settle) // n_frames)
+        arrays, frames = self._run_c(state.qpos, state.qvel, *self.plate_trajectory(action), frame_every=every)
+        frames = [self.observe(State(None, None, jnp.asarray(p, jnp.float32), jnp.asarray(r, jnp.float32), None,
+                                     None), plate=(pp, pq) if pp[2] < PARK[2] else None)
+                  for p, r, pp, pq in frames]
+        return self._finish_jit(*arrays, state.broken), frames
