@@ -40,7 +40,8 @@ class PieceKind:
             raise ValueError(f"piece kind {self.name!r}: geom {self.geom!r} is not one of {GEOMS}")
         expected = {"sphere": 1, "capsule": 2, "box": 3}[self.geom]
         if len(self.size) != expected or min(self.size) <= 0:
-            raise ValueError(f"piece kind {self.name!r}: a {self.geom} needs {expected} positive sizes, got {self.size}")
+            raise ValueError(f"piece kind {self.name!r}: a {self.geom} needs {expected} positive sizes, "
+                             f"got {self.size}")
 
 
 # The paper's object variety (its Fig. 3b and 6c): round, elongated, rolling, irregular and large square pieces.

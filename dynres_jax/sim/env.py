@@ -19,6 +19,7 @@ import jax
 import jax.numpy as jnp
 import mujoco
 import numpy as np
+from mujoco import rollout
 
 from dynres_jax.config import SimConfig
 from dynres_jax.sim.camera import Camera, Observation, Renderer
@@ -30,6 +31,20 @@ with contextlib.redirect_stdout(io.StringIO()):  # mujoco.mjx prints a notice wh
 PARK = (0.0, 0.0, 3.0)  # plate parking spot, above the camera (out of view, touches nothing)
 SINK_LIMIT = 0.005  # a piece whose centre is this far below its rest height went through the table
 ESCAPE_MARGIN = 0.02  # a piece this far outside the bin's walls escaped
+
+
+FULL_STATE = mujoco.mjtState.mjSTATE_FULLPHYSICS
+PLATE_CONTROL = mujoco.mjtState.mjSTATE_MOCAP_POS | mujoco.mjtState.mjSTATE_MOCAP_QUAT
+
+
+def c_rollout(model, data, plate, nthread_data=None):
+    """C MuJoCo along plate trajectories: plate [B, K, 7] (mocap pos, quat per step), starting from ``data``'s
+    state for every world. Returns full physics states [B, K, nstate]. ``nthread_data``: a list of MjData, one per
+    thread, to run the B worlds on several cores."""
+    state0 = np.empty(mujoco.mj_stateSize(model, FULL_STATE))
+    mujoco.mj_getState(model, data, state0, FULL_STATE)
+    states, _ = rollout.rollout(model, nthread_data or data, state0[None], plate, control_spec=PLATE_CONTROL)
+    return states
 
 
 class State(NamedTuple):
@@ -67,18 +82,19 @@ class PileEnv:
         self.n_settle = max(1, round(p.settle_time / dt))
         self.n_reset = max(1, round(config.pile.settle_time / dt))
         self.plate_z = p.clearance + config.scene.plate_half_height
+        # Action coordinates stay this far inside the walls, so the plate never squeezes a piece against a wall.
+        self.action_bound = (config.scene.bin_half_width - config.scene.plate_thickness / 2
+                             - 2 * float(self.scene.footprint.max()))
         self._sites = self._layout_sites()
+        self._layout = jax.jit(self._initial_qpos)
         model = self.scene.model
         if backend == "mjx":
             self.mx = mjx.put_model(model, impl="jax")
             self._data0 = mjx.make_data(self.mx, impl="jax")
-            self._reset = jax.jit(self._reset_mjx)
-            self._push = jax.jit(self._push_mjx)
+            self._simulate = jax.jit(self._simulate_mjx)
         else:
             self._data = mujoco.MjData(model)
-            self._layout = jax.jit(self._initial_qpos)
-            self._reset = self._reset_c
-            self._push = self._push_c
+            self._simulate = self._simulate_c
             self._finish_jit = jax.jit(self._finish)
 
     @property
@@ -127,9 +143,14 @@ class PileEnv:
         room = jnp.asarray(self._spacing / 2 - scene.footprint * 1.02)
         xy = xy + jax.random.uniform(k_jit, xy.shape, minval=-1, maxval=1) * room[:, None]
         yaw = jax.random.uniform(k_yaw, (scene.n_pieces,), minval=-jnp.pi, maxval=jnp.pi)
+        return self._qpos_from(xy, yaw)
+
+    def _qpos_from(self, xy, yaw):
+        """Piece centres xy [N, 2] (metres) and yaw [N] (radians), lying at rest on the table -> qpos [nq]."""
+        scene = self.scene
         adr = scene.qpos_adr
         qpos = jnp.asarray(scene.model.qpos0, jnp.float32)
-        if cfg.scene.joints == "planar":
+        if self.config.scene.joints == "planar":
             return qpos.at[adr].set(xy[:, 0]).at[adr + 1].set(xy[:, 1]).at[adr + 2].set(yaw)
         z = jnp.asarray(scene.rest_height) + 0.0005
         qpos = qpos.at[adr].set(xy[:, 0]).at[adr + 1].set(xy[:, 1]).at[adr + 2].set(z)
@@ -161,6 +182,20 @@ class PileEnv:
         quat = jnp.broadcast_to(_yaw_quat(jnp.arctan2(direction[1], direction[0])), (self.steps_per_push, 4))
         return pos.astype(jnp.float32), quat.astype(jnp.float32)
 
+    def sample_push(self, key, pos):
+        """A random push through the pile: it passes a random piece of ``pos`` [N, 3] at a random angle, starting
+        behind it and ending past it, length uniform in [min_length, max_length], kept inside ``action_bound``.
+        Returns action [4]; pure JAX (vmap it over worlds)."""
+        p, b = self.config.push, self.action_bound
+        k_piece, k_angle, k_len, k_before = jax.random.split(key, 4)
+        target = pos[jax.random.randint(k_piece, (), 0, pos.shape[0]), :2]
+        angle = jax.random.uniform(k_angle, (), minval=-jnp.pi, maxval=jnp.pi)
+        direction = jnp.stack([jnp.cos(angle), jnp.sin(angle)])
+        length = jax.random.uniform(k_len, (), minval=max(p.min_length, 0.03), maxval=p.max_length)
+        start = jnp.clip(target - direction * length * jax.random.uniform(k_before, (), minval=0.2, maxval=0.6), -b, b)
+        end = jnp.clip(start + direction * length, -b, b)
+        return jnp.concatenate([start, end])
+
     def _parked(self, n):
         return (jnp.broadcast_to(jnp.asarray(PARK, jnp.float32), (n, 3)),
                 jnp.broadcast_to(jnp.array([1.0, 0, 0, 0], jnp.float32), (n, 4)))
@@ -175,9 +210,10 @@ class PileEnv:
             raise ValueError(f"an action is (x_start, y_start, x_end, y_end), shape (4,); got shape {a.shape}")
         if not np.all(np.isfinite(a)):
             raise ValueError(f"action has NaN or infinite entries: {a}")
-        b = self.config.scene.bin_half_width
-        if np.any(np.abs(a) > b):
-            raise ValueError(f"action {a} leaves the bin: every coordinate must lie within +-{b} m")
+        b = self.action_bound
+        if np.any(np.abs(a) > b + 1e-6):
+            raise ValueError(f"action {a} leaves the workspace: every coordinate must lie within +-{b:.4f} m "
+                             "(the bin less the plate and a piece's width, PileEnv.action_bound)")
         length = float(np.hypot(a[2] - a[0], a[3] - a[1]))
         p = self.config.push
         if not p.min_length <= length <= p.max_length + 1e-6:
@@ -189,7 +225,7 @@ class PileEnv:
         """Traced actions cannot raise: NaN makes the push a no-op and flags the world broken; the rest is clipped
         into the bin and to the maximum length."""
         bad = ~jnp.all(jnp.isfinite(action))
-        b, p = self.config.scene.bin_half_width, self.config.push
+        b, p = self.action_bound, self.config.push
         a = jnp.clip(jnp.where(bad, jnp.array([0.0, 0.0, p.min_length, 0.0]), action), -b, b)
         delta = a[2:] - a[:2]
         length = jnp.linalg.norm(delta)
@@ -201,14 +237,33 @@ class PileEnv:
     # ----------------------------------------------------------------------------------------------------------
     def reset(self, key) -> State:
         """A new settled pile drawn from ``key``."""
-        return self._reset(key)
+        zero = jnp.zeros(self.scene.model.nv, jnp.float32)
+        return self.simulate(State(self._layout(key), zero, None, None, None, jnp.array(False)),
+                             *self._parked(self.n_reset))
+
+    def place(self, xy, yaw=None) -> State:
+        """A settled world with pieces placed by hand: xy [N, 2] centres (metres), yaw [N] (radians, default 0)."""
+        xy = jnp.asarray(xy, jnp.float32)
+        if xy.shape != (self.scene.n_pieces, 2):
+            raise ValueError(f"place needs xy of shape ({self.scene.n_pieces}, 2), got {xy.shape}")
+        yaw = jnp.zeros(len(xy)) if yaw is None else jnp.asarray(yaw, jnp.float32)
+        zero = jnp.zeros(self.scene.model.nv, jnp.float32)
+        settled = State(self._qpos_from(xy, yaw), zero, None, None, None, jnp.array(False))
+        return self.simulate(settled, *self._parked(self.n_reset))
 
     def push(self, state: State, action) -> State:
         """Execute one push. Concrete actions are checked (ValueError naming the problem); traced ones (inside
         jit / vmap) are sanitised and a NaN action flags the world broken."""
-        if not isinstance(action, jax.core.Tracer):
+        if isinstance(action, jax.core.Tracer):
+            action, bad = self._sanitise(action)
+            state = state._replace(broken=state.broken | bad)
+        else:
             action = jnp.asarray(self.check_action(action))
-        return self._push(state, action)
+        return self._simulate(state, *self.plate_trajectory(action))
+
+    def simulate(self, state: State, plate_pos, plate_quat) -> State:
+        """Step the world along any plate trajectory: plate_pos [K, 3], plate_quat [K, 4], one row per step."""
+        return self._simulate(state, plate_pos, plate_quat)
 
     def observe(self, state: State, plate=None) -> Observation:
         """Render a state's pieces, and the plate if given as (centre [3], quat [4])."""
@@ -248,44 +303,35 @@ class PileEnv:
         gid = self.scene.geom_id
         return self._finish(d.qpos, d.qvel, d.geom_xpos[gid], d.geom_xmat[gid], broken)
 
-    def _reset_mjx(self, key) -> State:
-        d = self._data0.replace(qpos=self._initial_qpos(key))
-        d = self._run_mjx(d, *self._parked(self.n_reset))
-        return self._state_mjx(d, jnp.array(False))
-
-    def _push_mjx(self, state: State, action) -> State:
-        action, bad = self._sanitise(action)
+    def _simulate_mjx(self, state: State, plate_pos, plate_quat) -> State:
         d = self._data0.replace(qpos=state.qpos, qvel=state.qvel)
-        d = self._run_mjx(d, *self.plate_trajectory(action))
-        return self._state_mjx(d, state.broken | bad)
+        return self._state_mjx(self._run_mjx(d, plate_pos, plate_quat), state.broken)
 
     # --- C MuJoCo ---
     def _run_c(self, qpos, qvel, plate_pos, plate_quat, frame_every: int = 0):
-        """Step the C engine along a plate trajectory. Returns (qpos, qvel, pos, mat) as float32 arrays and, when
-        frame_every > 0, (piece pos, piece mat, plate pos, plate quat) every frame_every steps."""
+        """Step the C engine along a plate trajectory (one ``mujoco.rollout`` call, no Python per step). Returns
+        (qpos, qvel, pos, mat) as float32 arrays and, when frame_every > 0, (piece pos, piece mat, plate pos,
+        plate quat) every frame_every steps."""
         m, d = self.scene.model, self._data
         mujoco.mj_resetData(m, d)
         d.qpos[:], d.qvel[:] = np.asarray(qpos, np.float64), np.asarray(qvel, np.float64)
-        plate_pos, plate_quat = np.asarray(plate_pos, np.float64), np.asarray(plate_quat, np.float64)
-        k, gid, frames = self.scene.plate_mocap, self.scene.geom_id, []
-        for i in range(len(plate_pos)):
-            d.mocap_pos[k], d.mocap_quat[k] = plate_pos[i], plate_quat[i]
-            mujoco.mj_step(m, d)
-            if frame_every and i % frame_every == 0:
-                mujoco.mj_kinematics(m, d)
-                frames.append((d.geom_xpos[gid].copy(), d.geom_xmat[gid].reshape(-1, 3, 3).copy(),
-                               plate_pos[i], plate_quat[i]))
-        mujoco.mj_kinematics(m, d)
+        plate = np.concatenate([plate_pos, plate_quat], axis=1).astype(np.float64)
+        states = c_rollout(m, d, plate[None])[0]
+        gid, frames = self.scene.geom_id, []
+
+        def poses(state):
+            mujoco.mj_setState(m, d, state, FULL_STATE)
+            mujoco.mj_kinematics(m, d)
+            return d.geom_xpos[gid].copy(), d.geom_xmat[gid].reshape(-1, 3, 3).copy()
+
+        if frame_every:
+            frames = [(*poses(states[i]), plate[i, :3], plate[i, 3:]) for i in range(0, len(plate), frame_every)]
+        pos, mat = poses(states[-1])
         f32 = lambda x: jnp.asarray(x, jnp.float32)  # noqa: E731
-        arrays = (f32(d.qpos), f32(d.qvel), f32(d.geom_xpos[gid]), f32(d.geom_xmat[gid].reshape(-1, 3, 3)))
-        return arrays, frames
+        return (f32(d.qpos), f32(d.qvel), f32(pos), f32(mat)), frames
 
-    def _reset_c(self, key) -> State:
-        (arrays, _) = self._run_c(self._layout(key), np.zeros(self.scene.model.nv), *self._parked(self.n_reset))
-        return self._finish_jit(*arrays, jnp.array(False))
-
-    def _push_c(self, state: State, action) -> State:
-        arrays, _ = self._run_c(state.qpos, state.qvel, *self.plate_trajectory(action))
+    def _simulate_c(self, state: State, plate_pos, plate_quat) -> State:
+        arrays, _ = self._run_c(state.qpos, state.qvel, plate_pos, plate_quat)
         return self._finish_jit(*arrays, state.broken)
 
     def push_frames(self, state: State, action, n_frames: int = 12) -> tuple[State, list[Observation]]:

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 import mujoco
 import numpy as np
 
-from dynres_jax.config import KINDS, GEOMS, SceneConfig
+from dynres_jax.config import GEOMS, KINDS, SceneConfig
 
 GRAVITY = 9.81
 GROUP_TABLE, GROUP_PIECES, GROUP_WALLS, GROUP_PLATE = 0, 1, 2, 3
@@ -55,7 +55,7 @@ def _piece_sizes(cfg: SceneConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Per-piece kind index, geom type and [N, 3] half-sizes, with each kind's size spread drawn once."""
     rng = np.random.default_rng(cfg.size_seed)
     kind, gtype, size = [], [], []
-    for i, (name, n) in enumerate(zip(cfg.kinds, cfg.pieces)):
+    for i, (name, n) in enumerate(zip(cfg.kinds, cfg.pieces, strict=True)):
         k = KINDS[name]
         s = np.zeros((n, 3))
         s[:, : len(k.size)] = k.size

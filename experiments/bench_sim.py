@@ -1,0 +1,120 @@
+"""Simulator benchmark: MJX world-steps/s and pushes/s against the number of worlds, and in the same run the C
+MuJoCo reference on the same scene, one world per core on every host core (``mujoco.rollout``'s C thread pool).
+
+Steps/s are timed on the first ``steps`` steps of real pushes (plate lowering then moving through the pile), which
+is where the contacts are; pushes/s is steps/s divided by the simulator steps of one whole push, and is also timed
+directly on whole pushes for the chosen variant.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+
+from dynres_jax.config import SceneConfig, SimConfig, replace
+from dynres_jax.sim.env import PileEnv, c_rollout
+
+# Scene variants compared (all 100 coffee beans unless --pieces says otherwise).
+VARIANTS = {
+    "free-3N": dict(joints="free", contact_cap=3.0),
+    "free-2N": dict(joints="free", contact_cap=2.0),
+    "planar-1.5N": dict(joints="planar", contact_cap=1.5),
+    "planar-1.5N-8it": dict(joints="planar", contact_cap=1.5, solver_iterations=8),
+}
+
+
+def _timed(fn, *args, repeats: int):
+    """(first call seconds, median of ``repeats`` further calls in seconds)."""
+    t0 = time.perf_counter()
+    jax.block_until_ready(fn(*args))
+    first = time.perf_counter() - t0
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        jax.block_until_ready(fn(*args))
+        times.append(time.perf_counter() - t0)
+    return first, float(np.median(times))
+
+
+def _batch(env: PileEnv, worlds: int, seed: int = 0):
+    """Settled piles for ``worlds`` worlds (8 distinct piles, tiled) and one random push each."""
+    reset = jax.jit(jax.vmap(env.reset))
+    base = reset(jax.random.split(jax.random.PRNGKey(seed), 8))
+    states = jax.tree.map(lambda x: jnp.resize(x, (worlds,) + x.shape[1:]), base)
+    actions = jax.jit(jax.vmap(env.sample_push))(jax.random.split(jax.random.PRNGKey(seed + 1), worlds), states.pos)
+    return states, actions
+
+
+def mjx_rates(cfg: SimConfig, worlds: list[int], steps: int, repeats: int, whole_push_at: int | None) -> dict:
+    env = PileEnv(cfg, backend="mjx", render=False)
+    per_push = env.steps_per_push
+    rows = []
+    for w in worlds:
+        states, actions = _batch(env, w)
+        plate_pos, plate_quat = jax.vmap(env.plate_trajectory)(actions)
+        plate_pos, plate_quat = plate_pos[:, :steps], plate_quat[:, :steps]
+        run = jax.jit(jax.vmap(env.simulate))
+        first, t = _timed(run, states, plate_pos, plate_quat, repeats=repeats)
+        rate = w * steps / t
+        rows.append(dict(worlds=w, world_steps_per_s=rate, pushes_per_s=rate / per_push, compile_s=first - t))
+        print(f"  MJX {w:5d} worlds: {rate:10.0f} world-steps/s  {rate / per_push:8.1f} pushes/s", flush=True)
+    out = dict(steps_per_push=per_push, rows=rows)
+    if whole_push_at:
+        states, actions = _batch(env, whole_push_at)
+        push = jax.jit(jax.vmap(env.push))
+        first, t = _timed(push, states, actions, repeats=1)
+        out["whole_push"] = dict(worlds=whole_push_at, pushes_per_s=whole_push_at / t, seconds=t)
+        print(f"  MJX whole pushes at {whole_push_at} worlds: {whole_push_at / t:.1f} pushes/s", flush=True)
+    return out
+
+
+def c_reference(cfg: SimConfig, seconds: float, threads: int | None = None) -> dict:
+    """C MuJoCo, one world per thread on every core, whole pushes; returns pushes/s and world-steps/s."""
+    threads = threads or os.cpu_count()
+    env = PileEnv(cfg, backend="mujoco", render=False)
+    m = env.scene.model
+    state = env.reset(jax.random.PRNGKey(0))
+    d = mujoco.MjData(m)
+    d.qpos[:], d.qvel[:] = np.asarray(state.qpos, np.float64), np.asarray(state.qvel, np.float64)
+    keys = jax.random.split(jax.random.PRNGKey(1), threads)
+    actions = jax.vmap(env.sample_push, in_axes=(0, None))(keys, state.pos)
+    pp, pq = jax.vmap(env.plate_trajectory)(actions)
+    plate = np.concatenate([np.asarray(pp), np.asarray(pq)], axis=2).astype(np.float64)
+    pool = [mujoco.MjData(m) for _ in range(threads)]
+    c_rollout(m, d, plate[:1], pool)  # warm-up
+    n, t0 = 0, time.perf_counter()
+    while time.perf_counter() - t0 < seconds:
+        c_rollout(m, d, plate, pool)
+        n += threads
+    t = time.perf_counter() - t0
+    rate = n * env.steps_per_push / t
+    print(f"  C MuJoCo, {threads} threads: {rate:10.0f} world-steps/s  {n / t:8.1f} pushes/s", flush=True)
+    return dict(threads=threads, world_steps_per_s=rate, pushes_per_s=n / t)
+
+
+def run(quick: bool = False, pieces: int = 100, variants: list[str] | None = None, worlds: list[int] | None = None,
+        full_sweep: list[str] | None = None, c_seconds: float = 5.0, steps: int = 100) -> dict:
+    """Benchmark every variant; ``full_sweep`` variants over all ``worlds``, the rest at the largest only."""
+    if quick:
+        pieces, worlds, steps, c_seconds = 6, [1, 4], 10, 0.5
+        variants = variants or ["planar-1.5N"]
+    variants = variants or list(VARIANTS)
+    worlds = worlds or [1, 16, 256, 1024, 4096]
+    full_sweep = full_sweep if full_sweep is not None else variants[:1]
+    result = dict(device=jax.devices()[0].device_kind, host_cores=os.cpu_count(), pieces=pieces, variants={})
+    for name in variants:
+        cfg = SimConfig(scene=replace(SceneConfig(pieces=(pieces,)), **VARIANTS[name]))
+        print(f"{name}: {cfg.scene}", flush=True)
+        sizes = worlds if name in full_sweep else worlds[-1:]
+        mjx = mjx_rates(cfg, sizes, steps, repeats=2, whole_push_at=sizes[-1] // 4 if name in full_sweep else None)
+        c = c_reference(cfg, c_seconds)
+        best = max(r["pushes_per_s"] for r in mjx["rows"])
+        result["variants"][name] = dict(scene=VARIANTS[name], mjx=mjx, c_mujoco=c,
+                                        mjx_over_c=best / c["pushes_per_s"])
+        print(f"  best MJX / C MuJoCo pushes/s: {best / c['pushes_per_s']:.2f}x", flush=True)
+    return result
