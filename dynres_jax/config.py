@@ -65,6 +65,7 @@ class SceneConfig:
     kinds / pieces: piece kind names and how many of each (two kinds for Sort). joints: "planar" pieces slide on the
     table (x, y, yaw; table friction as joint dry friction, no table contacts: 3 degrees of freedom a piece, the fast
     choice) or "free" (6 degrees of freedom, real table contacts, pieces can tip and stack).
+    sphere_yaw: planar spheres get a yaw joint too (invisible for a sphere; off: 2 degrees of freedom, faster).
     contact_cap: MJX keeps at most ``contact_cap * n_pieces`` contacts and candidate pairs per group.
     """
 
@@ -82,6 +83,7 @@ class SceneConfig:
     ls_iterations: int = 6
     solref: float = 0.005
     contact_cap: float = 1.5
+    sphere_yaw: bool = False
     size_seed: int = 0
 
     def __post_init__(self):

@@ -23,8 +23,11 @@ from dynres_jax.sim.env import PileEnv, c_rollout
 VARIANTS = {
     "free-3N": dict(joints="free", contact_cap=3.0),
     "free-2N": dict(joints="free", contact_cap=2.0),
+    "planar-yaw-1.5N": dict(joints="planar", contact_cap=1.5, sphere_yaw=True),
     "planar-1.5N": dict(joints="planar", contact_cap=1.5),
     "planar-1.5N-8it": dict(joints="planar", contact_cap=1.5, solver_iterations=8),
+    "planar-1.5N-8it-3ls": dict(joints="planar", contact_cap=1.5, solver_iterations=8, ls_iterations=3),
+    "planar-1N-8it": dict(joints="planar", contact_cap=1.0, solver_iterations=8),
 }
 
 

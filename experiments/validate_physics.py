@@ -87,17 +87,20 @@ def main(argv=None):
     parser.add_argument("--pieces", type=int, default=100)
     parser.add_argument("--kinds", nargs="*", default=list(KINDS))
     parser.add_argument("--joints", default="planar", choices=["planar", "free"])
+    parser.add_argument("--solver-iterations", type=int, default=12)
     parser.add_argument("--json")
     args = parser.parse_args(argv)
     rounds = max(1, -(-args.pushes // args.worlds))
     results = []
     for kind in tqdm(args.kinds, desc="kinds"):
         t0 = time.perf_counter()
-        res = validate_kind(kind, args.pieces, args.worlds, rounds, dict(joints=args.joints))
+        overrides = dict(joints=args.joints, solver_iterations=args.solver_iterations)
+        res = validate_kind(kind, args.pieces, args.worlds, rounds, overrides)
         res["seconds"] = time.perf_counter() - t0
         tqdm.write(str(res))
         results.append(res)
-    out = dict(device=jax.devices()[0].device_kind, joints=args.joints, pieces=args.pieces, kinds=results)
+    out = dict(device=jax.devices()[0].device_kind, joints=args.joints, solver_iterations=args.solver_iterations,
+               pieces=args.pieces, kinds=results)
     if args.json:
         from experiments.benchmark import _write_json
 

@@ -151,7 +151,8 @@ class PileEnv:
         adr = scene.qpos_adr
         qpos = jnp.asarray(scene.model.qpos0, jnp.float32)
         if self.config.scene.joints == "planar":
-            return qpos.at[adr].set(xy[:, 0]).at[adr + 1].set(xy[:, 1]).at[adr + 2].set(yaw)
+            yawed = scene.has_yaw
+            return qpos.at[adr].set(xy[:, 0]).at[adr + 1].set(xy[:, 1]).at[adr[yawed] + 2].set(yaw[yawed])
         z = jnp.asarray(scene.rest_height) + 0.0005
         qpos = qpos.at[adr].set(xy[:, 0]).at[adr + 1].set(xy[:, 1]).at[adr + 2].set(z)
         quat = _yaw_quat(yaw)

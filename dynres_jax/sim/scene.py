@@ -24,6 +24,7 @@ class Scene:
 
     kind: index into ``config.kinds``; geom_type: index into ``GEOMS``; size: [N, 3] geom half-sizes (unused
     entries 0); rest_height: z of a piece's centre lying on the table; qpos_adr: first qpos of each piece;
+    has_yaw: planar pieces with a yaw joint (qpos_adr + 2);
     geom_id: each piece's geom in ``model``.
     """
 
@@ -36,6 +37,7 @@ class Scene:
     rest_height: np.ndarray
     rgb: np.ndarray
     qpos_adr: np.ndarray
+    has_yaw: np.ndarray
     geom_id: np.ndarray
     plate_mocap: int
 
@@ -87,9 +89,10 @@ def _piece_xml(i: int, name: str, gtype: int, size: np.ndarray, rest: float, cfg
         f_slide = k.friction * k.rolling_planar * k.mass * GRAVITY
         f_yaw = f_slide * 0.5 * float(size[0] + (size[1] if geom == "capsule" else 0.0))
         joints = (f'<joint name="piece{i}_x" type="slide" axis="1 0 0" frictionloss="{f_slide:.6g}" damping="1e-4"/>'
-                  f'<joint name="piece{i}_y" type="slide" axis="0 1 0" frictionloss="{f_slide:.6g}" damping="1e-4"/>'
-                  f'<joint name="piece{i}_yaw" type="hinge" axis="0 0 1" frictionloss="{f_yaw:.6g}" '
-                  f'damping="1e-7" armature="1e-7"/>')
+                  f'<joint name="piece{i}_y" type="slide" axis="0 1 0" frictionloss="{f_slide:.6g}" damping="1e-4"/>')
+        if geom != "sphere" or cfg.sphere_yaw:  # a sphere's yaw is invisible: without it, a third fewer dofs
+            joints += (f'<joint name="piece{i}_yaw" type="hinge" axis="0 0 1" frictionloss="{f_yaw:.6g}" '
+                       f'damping="1e-7" armature="1e-7"/>')
     else:
         joints = f'<freejoint name="piece{i}"/>' if k.rolling <= 0 else \
             f'<joint name="piece{i}" type="free" damping="{k.rolling:.6g}"/>'
@@ -143,5 +146,6 @@ def build_scene(cfg: SceneConfig) -> Scene:
                                          f"piece{i}_x" if cfg.joints == "planar" else f"piece{i}") for i in range(n)])
     geom_id = np.array([mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, f"piece{i}") for i in range(n)])
     body = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, "pusher")
-    return Scene(cfg, xml, model, kind, gtype, size, rest, rgb, model.jnt_qposadr[joint0], geom_id,
+    has_yaw = (gtype != 0) | cfg.sphere_yaw if cfg.joints == "planar" else np.zeros(n, bool)
+    return Scene(cfg, xml, model, kind, gtype, size, rest, rgb, model.jnt_qposadr[joint0], has_yaw, geom_id,
                  int(model.body_mocapid[body]))
