@@ -67,6 +67,7 @@ class SceneConfig:
     choice) or "free" (6 degrees of freedom, real table contacts, pieces can tip and stack).
     sphere_yaw: planar spheres get a yaw joint too (invisible for a sphere; off: 2 degrees of freedom, faster).
     contact_cap: MJX keeps at most ``contact_cap * n_pieces`` contacts and candidate pairs per group.
+    cone: friction cone, "pyramidal" (4 constraint rows a contact) or "elliptic" (3).
     """
 
     kinds: tuple[str, ...] = ("coffee",)
@@ -84,6 +85,7 @@ class SceneConfig:
     solref: float = 0.005
     contact_cap: float = 1.5
     sphere_yaw: bool = False
+    cone: str = "pyramidal"
     size_seed: int = 0
 
     def __post_init__(self):
@@ -94,6 +96,8 @@ class SceneConfig:
                 raise ValueError(f"unknown piece kind {k!r}; known kinds: {sorted(KINDS)}")
         if min(self.pieces) < 1:
             raise ValueError(f"every kind needs at least one piece, got pieces={self.pieces}")
+        if self.cone not in ("pyramidal", "elliptic"):
+            raise ValueError(f"cone must be 'pyramidal' or 'elliptic', got {self.cone!r}")
         if self.joints not in ("planar", "free"):
             raise ValueError(f"joints must be 'planar' or 'free', got {self.joints!r}")
 

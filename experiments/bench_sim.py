@@ -1,5 +1,6 @@
 """Simulator benchmark: MJX world-steps/s and pushes/s against the number of worlds, and in the same run the C
-MuJoCo reference on the same scene, one world per core on every host core (``mujoco.rollout``'s C thread pool).
+MuJoCo reference on the same scene, one world per core on every host core (one process per core, and
+``mujoco.rollout``'s C thread pool; the faster is the peer).
 
 Steps/s are timed on the first ``steps`` steps of real pushes (plate lowering then moving through the pile), which
 is where the contacts are; pushes/s is steps/s divided by the simulator steps of one whole push, and is also timed
@@ -8,6 +9,7 @@ directly on whole pushes for the chosen variant.
 
 from __future__ import annotations
 
+import multiprocessing
 import os
 import time
 
@@ -17,7 +19,7 @@ import mujoco
 import numpy as np
 
 from dynres_jax.config import SceneConfig, SimConfig, replace
-from dynres_jax.sim.env import PileEnv, c_rollout
+from dynres_jax.sim.env import FULL_STATE, PileEnv, c_rollout
 
 # Scene variants compared (all 100 coffee beans unless --pieces says otherwise).
 VARIANTS = {
@@ -28,6 +30,8 @@ VARIANTS = {
     "planar-1.5N-8it": dict(joints="planar", contact_cap=1.5, solver_iterations=8),
     "planar-1.5N-8it-3ls": dict(joints="planar", contact_cap=1.5, solver_iterations=8, ls_iterations=3),
     "planar-1N-8it": dict(joints="planar", contact_cap=1.0, solver_iterations=8),
+    "planar-1N-3ls": dict(joints="planar", contact_cap=1.0, ls_iterations=3),
+    "planar-1.5N-8it-elliptic": dict(joints="planar", contact_cap=1.5, solver_iterations=8, cone="elliptic"),
 }
 
 
@@ -76,28 +80,52 @@ def mjx_rates(cfg: SimConfig, worlds: list[int], steps: int, repeats: int, whole
     return out
 
 
-def c_reference(cfg: SimConfig, seconds: float, threads: int | None = None) -> dict:
-    """C MuJoCo, one world per thread on every core, whole pushes; returns pushes/s and world-steps/s."""
-    threads = threads or os.cpu_count()
+def _c_worker(job) -> tuple[int, float]:
+    """One process: rebuild the model from XML and run whole pushes in C for ``seconds``; (pushes, seconds)."""
+    xml, state0, plate, seconds = job
+    m = mujoco.MjModel.from_xml_string(xml)
+    d = mujoco.MjData(m)
+    mujoco.mj_setState(m, d, state0, FULL_STATE)
+    c_rollout(m, d, plate[:1])  # warm-up
+    n, t0 = 0, time.perf_counter()
+    while time.perf_counter() - t0 < seconds:
+        c_rollout(m, d, plate[n % len(plate)][None])
+        n += 1
+    return n, time.perf_counter() - t0
+
+
+def c_reference(cfg: SimConfig, seconds: float, cores: int | None = None) -> dict:
+    """C MuJoCo on whole pushes, one world per core on every core, two ways: one process per core, and one
+    ``mujoco.rollout`` call on a pool of C threads. The faster of the two is the peer MJX is compared with."""
+    cores = cores or os.cpu_count()
     env = PileEnv(cfg, backend="mujoco", render=False)
     m = env.scene.model
     state = env.reset(jax.random.PRNGKey(0))
     d = mujoco.MjData(m)
     d.qpos[:], d.qvel[:] = np.asarray(state.qpos, np.float64), np.asarray(state.qvel, np.float64)
-    keys = jax.random.split(jax.random.PRNGKey(1), threads)
-    actions = jax.vmap(env.sample_push, in_axes=(0, None))(keys, state.pos)
+    state0 = np.empty(mujoco.mj_stateSize(m, FULL_STATE))
+    mujoco.mj_getState(m, d, state0, FULL_STATE)
+    actions = jax.vmap(env.sample_push, in_axes=(0, None))(jax.random.split(jax.random.PRNGKey(1), cores), state.pos)
     pp, pq = jax.vmap(env.plate_trajectory)(actions)
     plate = np.concatenate([np.asarray(pp), np.asarray(pq)], axis=2).astype(np.float64)
-    pool = [mujoco.MjData(m) for _ in range(threads)]
-    c_rollout(m, d, plate[:1], pool)  # warm-up
+
+    with multiprocessing.get_context("spawn").Pool(cores) as pool:
+        done = pool.map(_c_worker, [(env.scene.xml, state0, np.roll(plate, i, 0), seconds) for i in range(cores)])
+    per_process = sum(n / t for n, t in done)
+
+    threads = [mujoco.MjData(m) for _ in range(cores)]
+    c_rollout(m, d, plate[:1], threads)  # warm-up
     n, t0 = 0, time.perf_counter()
     while time.perf_counter() - t0 < seconds:
-        c_rollout(m, d, plate, pool)
-        n += threads
-    t = time.perf_counter() - t0
-    rate = n * env.steps_per_push / t
-    print(f"  C MuJoCo, {threads} threads: {rate:10.0f} world-steps/s  {n / t:8.1f} pushes/s", flush=True)
-    return dict(threads=threads, world_steps_per_s=rate, pushes_per_s=n / t)
+        c_rollout(m, d, plate, threads)
+        n += cores
+    per_thread = n / (time.perf_counter() - t0)
+    best = max(per_process, per_thread)
+    steps = env.steps_per_push
+    print(f"  C MuJoCo, {cores} cores: {per_process:8.1f} pushes/s in processes, {per_thread:8.1f} in threads "
+          f"({best * steps:,.0f} world-steps/s)", flush=True)
+    return dict(cores=cores, pushes_per_s_processes=per_process, pushes_per_s_threads=per_thread,
+                pushes_per_s=best, world_steps_per_s=best * steps)
 
 
 def run(quick: bool = False, pieces: int = 100, variants: list[str] | None = None, worlds: list[int] | None = None,

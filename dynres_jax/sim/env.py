@@ -317,7 +317,10 @@ class PileEnv:
         mujoco.mj_resetData(m, d)
         d.qpos[:], d.qvel[:] = np.asarray(qpos, np.float64), np.asarray(qvel, np.float64)
         plate = np.concatenate([plate_pos, plate_quat], axis=1).astype(np.float64)
-        states = c_rollout(m, d, plate[None])[0]
+        try:
+            states = c_rollout(m, d, plate[None])[0]
+        except mujoco.FatalError:  # an unstable world overflowed MuJoCo's arena: report it as NaN (broken)
+            states = np.full((len(plate), mujoco.mj_stateSize(m, FULL_STATE)), np.nan)
         gid, frames = self.scene.geom_id, []
 
         def poses(state):

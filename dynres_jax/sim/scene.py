@@ -114,7 +114,7 @@ def scene_xml(cfg: SceneConfig) -> str:
     cap = max(1, int(round(cfg.contact_cap * n)))
     return f"""<mujoco model="pile">
   <option timestep="{cfg.timestep:.6g}" iterations="{cfg.solver_iterations}" ls_iterations="{cfg.ls_iterations}"
-          solver="CG" cone="pyramidal"/>
+          solver="CG" cone="{cfg.cone}"/>
   <custom>
     <numeric name="max_contact_points" data="{cap}"/>
     <numeric name="max_geom_pairs" data="{cap}"/>
