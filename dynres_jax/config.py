@@ -68,6 +68,12 @@ class SceneConfig:
     sphere_yaw: planar spheres get a yaw joint too (invisible for a sphere; off: 2 degrees of freedom, faster).
     contact_cap: MJX keeps at most ``contact_cap * n_pieces`` contacts and candidate pairs per group.
     cone: friction cone, "pyramidal" (4 constraint rows a contact) or "elliptic" (3).
+    solver: "CG", "Newton", or "auto": Newton when any piece is a capsule or a box, CG for spheres only. Under MJX
+      (float32) CG let piles of 80 almonds or candies diverge within a push where C MuJoCo did not; Newton holds.
+    plate_geom: "capsule" (default: a rod of diameter ``plate_thickness`` and length ``2 plate_half_width``
+      perpendicular to the push, its axis at the pieces' height) or "box" (a plate ``plate_half_height`` tall). MJX
+      turned box and capsule pieces to NaN against the box plate (H100 and CPU, MuJoCo 3.17); the rod collides
+      through MJX's sphere/capsule primitives and looks the same from above.
     """
 
     kinds: tuple[str, ...] = ("coffee",)
@@ -79,6 +85,7 @@ class SceneConfig:
     plate_half_width: float = 0.04
     plate_thickness: float = 0.01
     plate_half_height: float = 0.02
+    plate_geom: str = "capsule"
     timestep: float = 0.002
     solver_iterations: int = 12
     ls_iterations: int = 6
@@ -86,6 +93,7 @@ class SceneConfig:
     contact_cap: float = 1.5
     sphere_yaw: bool = False
     cone: str = "pyramidal"
+    solver: str = "auto"
     size_seed: int = 0
 
     def __post_init__(self):
@@ -96,6 +104,10 @@ class SceneConfig:
                 raise ValueError(f"unknown piece kind {k!r}; known kinds: {sorted(KINDS)}")
         if min(self.pieces) < 1:
             raise ValueError(f"every kind needs at least one piece, got pieces={self.pieces}")
+        if self.plate_geom not in ("capsule", "box"):
+            raise ValueError(f"plate_geom must be 'capsule' or 'box', got {self.plate_geom!r}")
+        if self.solver not in ("auto", "CG", "Newton"):
+            raise ValueError(f"solver must be 'auto', 'CG' or 'Newton', got {self.solver!r}")
         if self.cone not in ("pyramidal", "elliptic"):
             raise ValueError(f"cone must be 'pyramidal' or 'elliptic', got {self.cone!r}")
         if self.joints not in ("planar", "free"):
@@ -104,6 +116,12 @@ class SceneConfig:
     @property
     def n_pieces(self) -> int:
         return sum(self.pieces)
+
+    @property
+    def resolved_solver(self) -> str:
+        if self.solver != "auto":
+            return self.solver
+        return "CG" if all(KINDS[k].geom == "sphere" for k in self.kinds) else "Newton"
 
 
 @dataclass(frozen=True)

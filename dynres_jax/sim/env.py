@@ -81,7 +81,8 @@ class PileEnv:
         self.n_lift = max(1, round(p.lift_time / dt))
         self.n_settle = max(1, round(p.settle_time / dt))
         self.n_reset = max(1, round(config.pile.settle_time / dt))
-        self.plate_z = p.clearance + config.scene.plate_half_height
+        sc = config.scene
+        self.plate_z = p.clearance + (sc.plate_thickness / 2 if sc.plate_geom == "capsule" else sc.plate_half_height)
         # Action coordinates stay this far inside the walls, so the plate never squeezes a piece against a wall.
         self.action_bound = (config.scene.bin_half_width - config.scene.plate_thickness / 2
                              - 2 * float(self.scene.footprint.max()))
@@ -275,7 +276,7 @@ class PileEnv:
             mujoco.mju_quat2Mat(rot, np.asarray(plate[1], np.float64))
             cfg = self.config.scene
             plate = (jnp.asarray(plate[0], jnp.float32), jnp.asarray(rot.reshape(3, 3), jnp.float32),
-                     jnp.array([cfg.plate_thickness / 2, cfg.plate_half_width, cfg.plate_half_height]))
+                     jnp.array([cfg.plate_thickness / 2, cfg.plate_half_width, self.plate_z - cfg.plate_thickness / 2]))
         return self._render_jit(state.pos, state.mat, plate)
 
     @functools.cached_property

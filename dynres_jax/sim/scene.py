@@ -112,9 +112,14 @@ def scene_xml(cfg: SceneConfig) -> str:
                      f'friction="0.1" rgba="0.6 0.6 0.6 1"/>')
     pieces = "\n    ".join(_piece_xml(i, cfg.kinds[kind[i]], gtype[i], size[i], rest[i], cfg) for i in range(n))
     cap = max(1, int(round(cfg.contact_cap * n)))
+    if cfg.plate_geom == "capsule":  # a rod along the body's y axis, perpendicular to the push
+        plate = f'type="capsule" size="{cfg.plate_thickness / 2:.6g} {cfg.plate_half_width:.6g}" euler="90 0 0"'
+    else:
+        plate = (f'type="box" size="{cfg.plate_thickness / 2:.6g} {cfg.plate_half_width:.6g} '
+                 f'{cfg.plate_half_height:.6g}"')
     return f"""<mujoco model="pile">
   <option timestep="{cfg.timestep:.6g}" iterations="{cfg.solver_iterations}" ls_iterations="{cfg.ls_iterations}"
-          solver="CG" cone="{cfg.cone}"/>
+          solver="{cfg.resolved_solver}" cone="{cfg.cone}"/>
   <custom>
     <numeric name="max_contact_points" data="{cap}"/>
     <numeric name="max_geom_pairs" data="{cap}"/>
@@ -125,8 +130,8 @@ def scene_xml(cfg: SceneConfig) -> str:
           group="{GROUP_TABLE}" friction="0.1" rgba="0.9 0.9 0.88 1"/>
     {"".join(walls)}
     <body name="pusher" mocap="true" pos="0 0 1">
-      <geom name="plate" type="box" size="{cfg.plate_thickness / 2:.6g} {cfg.plate_half_width:.6g} \
-{cfg.plate_half_height:.6g}" contype="4" conaffinity="0" group="{GROUP_PLATE}" friction="0.3" rgba="0.2 0.2 0.2 1"/>
+      <geom name="plate" {plate} contype="4" conaffinity="0" group="{GROUP_PLATE}" friction="0.3"
+            rgba="0.2 0.2 0.2 1"/>
     </body>
     {pieces}
   </worldbody>
