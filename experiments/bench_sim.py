@@ -23,15 +23,12 @@ from dynres_jax.sim.env import FULL_STATE, PileEnv, c_rollout
 
 # Scene variants compared (all 100 coffee beans unless --pieces says otherwise).
 VARIANTS = {
-    "free-3N": dict(joints="free", contact_cap=3.0),
-    "free-2N": dict(joints="free", contact_cap=2.0),
-    "planar-yaw-1.5N": dict(joints="planar", contact_cap=1.5, sphere_yaw=True),
-    "planar-1.5N": dict(joints="planar", contact_cap=1.5),
-    "planar-1.5N-8it": dict(joints="planar", contact_cap=1.5, solver_iterations=8),
-    "planar-1.5N-8it-3ls": dict(joints="planar", contact_cap=1.5, solver_iterations=8, ls_iterations=3),
-    "planar-1N-8it": dict(joints="planar", contact_cap=1.0, solver_iterations=8),
-    "planar-1N-3ls": dict(joints="planar", contact_cap=1.0, ls_iterations=3),
-    "planar-1.5N-8it-elliptic": dict(joints="planar", contact_cap=1.5, solver_iterations=8, cone="elliptic"),
+    "free-CG-3N": dict(joints="free", solver="CG", contact_cap=3.0),  # the plain MJX set-up of DESIGN.md
+    "planar-Newton-3N": dict(joints="planar", solver="Newton", contact_cap=3.0),  # the default scene
+    "planar-Newton-1.5N": dict(joints="planar", solver="Newton", contact_cap=1.5),
+    "planar-Newton-3N-4it": dict(joints="planar", solver="Newton", contact_cap=3.0, solver_iterations=4),
+    "planar-CG-3N": dict(joints="planar", solver="CG", contact_cap=3.0),
+    "planar-CG-1.5N-yaw": dict(joints="planar", solver="CG", contact_cap=1.5, sphere_yaw=True),
 }
 
 
@@ -133,7 +130,7 @@ def run(quick: bool = False, pieces: int = 100, variants: list[str] | None = Non
     """Benchmark every variant; ``full_sweep`` variants over all ``worlds``, the rest at the largest only."""
     if quick:
         pieces, worlds, steps, c_seconds = 6, [1, 4], 10, 0.5
-        variants = variants or ["planar-1.5N"]
+        variants = variants or ["planar-Newton-3N"]
     variants = variants or list(VARIANTS)
     worlds = worlds or [1, 16, 256, 1024, 4096]
     full_sweep = full_sweep if full_sweep is not None else variants[:1]

@@ -102,28 +102,27 @@ def main(argv=None):
     parser.add_argument("--pieces", type=int, default=100)
     parser.add_argument("--kinds", nargs="*", default=list(KINDS))
     parser.add_argument("--joints", default="planar", choices=["planar", "free"])
+    parser.add_argument("--solver", default="Newton", choices=["Newton", "CG"])
     parser.add_argument("--solver-iterations", type=int, default=12)
     parser.add_argument("--ls-iterations", type=int, default=6)
-    parser.add_argument("--contact-cap", type=float, default=1.5)
+    parser.add_argument("--contact-cap", type=float, default=3.0)
     parser.add_argument("--json")
     args = parser.parse_args(argv)
     rounds = max(1, -(-args.pushes // args.worlds))
-    results = []
+    from experiments.benchmark import _write_json
+
+    overrides = dict(joints=args.joints, solver=args.solver, solver_iterations=args.solver_iterations,
+                     ls_iterations=args.ls_iterations, contact_cap=args.contact_cap)
+    out = dict(device=jax.devices()[0].device_kind, pieces=args.pieces, scene=overrides, kinds=[])
     for kind in tqdm(args.kinds, desc="kinds"):
         t0 = time.perf_counter()
-        overrides = dict(joints=args.joints, solver_iterations=args.solver_iterations,
-                         ls_iterations=args.ls_iterations, contact_cap=args.contact_cap)
         res = validate_kind(kind, args.pieces, args.worlds, rounds, overrides)
         res["seconds"] = time.perf_counter() - t0
         tqdm.write(str(res))
-        results.append(res)
-    out = dict(device=jax.devices()[0].device_kind, pieces=args.pieces, scene=overrides, kinds=results)
-    if args.json:
-        from experiments.benchmark import _write_json
-
-        _write_json(args.json, out)
+        out["kinds"].append(res)
+        if args.json:  # after every kind, so a stopped run keeps what it finished
+            _write_json(args.json, out)
     return out
-
 
 if __name__ == "__main__":
     main()

@@ -119,7 +119,7 @@ def scene_xml(cfg: SceneConfig) -> str:
                  f'{cfg.plate_half_height:.6g}"')
     return f"""<mujoco model="pile">
   <option timestep="{cfg.timestep:.6g}" iterations="{cfg.solver_iterations}" ls_iterations="{cfg.ls_iterations}"
-          solver="{cfg.resolved_solver}" cone="{cfg.cone}"/>
+          solver="{cfg.solver}" cone="{cfg.cone}"/>
   <custom>
     <numeric name="max_contact_points" data="{cap}"/>
     <numeric name="max_geom_pairs" data="{cap}"/>
