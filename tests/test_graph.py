@@ -1,0 +1,134 @@
+"""The particle graph: radius + kNN edges against a brute-force NumPy version, the sweep heuristic, masks inert."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from dynres_jax.graph import SWEEP_END_OFFSET, SWEEP_FALLOFF, build_edges, sweep_displacement
+
+PLATE = 0.04
+
+
+def brute_force_edges(positions, mask, radius, k):
+    """Set of (i, j): j != i both valid, |p_i - p_j| < radius, j among i's k nearest valid (lowest index on ties)."""
+    positions = np.asarray(positions, np.float32)
+    edges = set()
+    for i in range(len(positions)):
+        if not mask[i]:
+            continue
+        candidates = []
+        for j in range(len(positions)):
+            if j != i and mask[j]:
+                candidates.append((float(np.sum(np.square(positions[i] - positions[j]))), j))
+        for d2, j in sorted(candidates)[:k]:
+            if d2 < np.float32(radius) ** 2:
+                edges.add((i, j))
+    return edges
+
+
+def edge_set(neighbours, edge_mask):
+    neighbours, edge_mask = np.asarray(neighbours), np.asarray(edge_mask)
+    return {(i, int(neighbours[i, c])) for i, c in zip(*np.nonzero(edge_mask), strict=True)}
+
+
+def random_particles(seed, n=60, invalid_fraction=0.25):
+    rng = np.random.default_rng(seed)
+    positions = np.concatenate([rng.uniform(-0.1, 0.1, (n, 2)), rng.uniform(0.005, 0.01, (n, 1))], 1)
+    return positions.astype(np.float32), rng.uniform(size=n) > invalid_fraction
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Edges
+# ----------------------------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("seed,radius,k", [(0, 0.032, 10), (1, 0.05, 4), (2, 0.02, 10), (3, 1.0, 70)])
+def test_edges_match_brute_force(seed, radius, k):
+    positions, mask = random_particles(seed)
+    neighbours, edge_mask = build_edges(positions, mask, radius, k)
+    assert neighbours.shape == (60, k) and edge_mask.shape == (60, k) and neighbours.dtype == jnp.int32
+    expected = brute_force_edges(positions, mask, radius, k)
+    assert len(expected) > 0
+    assert edge_set(neighbours, edge_mask) == expected
+    # rows nearest first; entries without an edge hold the receiver itself
+    d = np.linalg.norm(positions[:, None] - positions[np.asarray(neighbours)], axis=-1)
+    assert np.all(np.diff(np.where(np.asarray(edge_mask), d, 1e9), axis=1) >= 0)
+    np.testing.assert_array_equal(np.asarray(neighbours)[~np.asarray(edge_mask)],
+                                  np.nonzero(~np.asarray(edge_mask))[0])
+
+
+def test_edges_padding_inert():
+    positions, mask = random_particles(4)
+    garbage = np.where(mask[:, None], positions, np.float32(3e5)).astype(np.float32)
+    garbage[~mask, 0] = np.linspace(-1e4, 1e4, (~mask).sum())  # masked particles anywhere, even on top of others
+    garbage[np.flatnonzero(~mask)[0]] = positions[np.flatnonzero(mask)[0]]
+    for a, b in zip(build_edges(positions, mask, 0.04, 10), build_edges(garbage, mask, 0.04, 10), strict=True):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    neighbours, edge_mask = build_edges(garbage, mask, 0.04, 10)
+    assert not np.asarray(edge_mask)[~mask].any()
+    assert not np.isin(np.asarray(neighbours)[np.asarray(edge_mask)], np.flatnonzero(~mask)).any()
+
+
+def test_edges_vmap_over_scenes_equals_loop():
+    scenes = [random_particles(s) for s in range(3)]
+    positions, mask = (jnp.stack(x) for x in zip(*scenes, strict=True))
+    batched = jax.vmap(lambda p, m: build_edges(p, m, 0.04, 8))(positions, mask)
+    for i, (p, m) in enumerate(scenes):
+        for a, b in zip(build_edges(p, m, 0.04, 8), batched, strict=True):
+            np.testing.assert_array_equal(np.asarray(a), np.asarray(b)[i])
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Sweep heuristic
+# ----------------------------------------------------------------------------------------------------------------
+def along_side(positions, action):
+    """(s, t): distance along the push from its start and sideways from its line, for positions [N, 3]."""
+    start, end = np.asarray(action[:2]), np.asarray(action[2:])
+    along = (end - start) / np.linalg.norm(end - start)
+    side = np.array([-along[1], along[0]])
+    rel = np.asarray(positions)[:, :2] - start
+    return rel @ along, rel @ side
+
+
+@pytest.mark.parametrize("action", [(-0.1, 0.02, 0.08, 0.02), (0.05, 0.1, -0.03, -0.05)])
+def test_sweep_moves_the_band_past_the_end_line(action):
+    action = np.array(action, np.float32)
+    rng = np.random.default_rng(0)
+    positions = np.concatenate([rng.uniform(-0.19, 0.19, (400, 2)), np.full((400, 1), 0.007)], 1).astype(np.float32)
+    mask = rng.uniform(size=400) > 0.1
+    disp = np.asarray(sweep_displacement(positions, mask, action, PLATE))
+    length = np.linalg.norm(action[2:] - action[:2])
+    s, t = along_side(positions, action)
+    s_new, t_new = along_side(positions + disp, action)
+    band = mask & (s >= 0) & (s <= length) & (np.abs(t) <= PLATE)
+    assert band.sum() > 10
+    np.testing.assert_allclose(s_new[band], length + SWEEP_END_OFFSET, atol=1e-5)  # just past the end line
+    np.testing.assert_allclose(t_new, t, atol=1e-5)  # nothing moves sideways
+    far = (np.abs(t) >= PLATE + SWEEP_FALLOFF) | (s <= -SWEEP_FALLOFF) | (s >= length + SWEEP_END_OFFSET)
+    assert far.sum() > 100 and np.all(disp[far] == 0)
+    assert np.all(disp[~mask] == 0) and np.all(disp[:, 2] == 0)
+    # soft fall-off: partial moves only in the fringe, never past the end line
+    fringe = mask & ~band & ~far
+    assert np.all(s_new[fringe] <= length + SWEEP_END_OFFSET + 1e-5) and np.all(s_new >= s - 1e-6)
+
+
+def test_sweep_fall_off_is_monotone_sideways():
+    action = jnp.array([0.0, 0.0, 0.1, 0.0])
+    t = np.linspace(0, PLATE + 2 * SWEEP_FALLOFF, 50)
+    positions = np.stack([np.full_like(t, 0.05), t, np.zeros_like(t)], 1)
+    push = np.asarray(sweep_displacement(positions, np.ones(50, bool), action, PLATE))[:, 0]
+    assert np.all(np.diff(push) <= 1e-7) and push[0] == pytest.approx(0.05 + SWEEP_END_OFFSET, abs=1e-6)
+    assert push[-1] == 0
+
+
+def test_sweep_padding_inert_and_gradients_finite():
+    positions, mask = random_particles(5)
+    action = jnp.array([-0.05, 0.0, 0.05, 0.01])
+    garbage = np.where(mask[:, None], positions, np.float32(-7e4)).astype(np.float32)
+    a = np.asarray(sweep_displacement(positions, mask, action, PLATE))
+    b = np.asarray(sweep_displacement(garbage, mask, action, PLATE))
+    np.testing.assert_array_equal(a, b)
+    assert np.all(a[~mask] == 0) and np.any(a[mask] != 0)
+    for act in (action, jnp.array([0.02, 0.02, 0.02, 0.02])):  # a zero-length push moves nothing
+        grad = jax.jit(jax.grad(lambda u: jnp.sum(sweep_displacement(positions, mask, u, PLATE) ** 2)))(act)
+        assert np.all(np.isfinite(np.asarray(grad)))
+    assert np.all(np.asarray(sweep_displacement(positions, mask, jnp.full(4, 0.02), PLATE)) == 0)
