@@ -169,6 +169,8 @@ def test_camera_json_round_trip():
     cam = Camera.top_down(CameraConfig())
     back = Camera.from_json(cam.to_json())
     np.testing.assert_array_equal(back.K, cam.K)
+    assert back == cam and hash(back) == hash(cam)  # so jit reuses what it compiled for an equal camera
+    assert back != Camera.top_down(CameraConfig(width=64))
     with pytest.raises(ValueError, match="lacks"):
         Camera.from_json('{"K": [[1,0,0],[0,1,0],[0,0,1]]}')
 

@@ -45,6 +45,16 @@ class Camera:
         rotation = np.array([[1.0, 0, 0], [0, -1.0, 0], [0, 0, -1.0]])
         return cls(K, rotation, np.array([0.0, 0.0, cfg.distance]), cfg.width, cfg.height)
 
+    # Equal cameras compare and hash equal, so a camera loaded twice reuses compiled functions (jit static args).
+    def _key(self):
+        return (self.K.tobytes(), self.rotation.tobytes(), self.centre.tobytes(), self.width, self.height)
+
+    def __eq__(self, other):
+        return isinstance(other, Camera) and self._key() == other._key()
+
+    def __hash__(self):
+        return hash(self._key())
+
     # --- serialisation for real cameras: {"K": 3x3, "rotation": 3x3, "centre": 3, "width", "height"} ---
     def to_json(self) -> str:
         return json.dumps({"K": self.K.tolist(), "rotation": self.rotation.tolist(), "centre": self.centre.tolist(),
