@@ -1,0 +1,158 @@
+"""The dynamics f(z, u, ω) of the paper: one PropNet-style graph network for every resolution ω.
+
+A state z is a padded particle set: positions [N, 3] (metres, world frame) with a mask [N]; an action u is a push
+(x_start, y_start, x_end, y_end) in metres. One call predicts the positions after the push:
+
+1. Sweep heuristic (``graph.sweep_displacement``): every particle gets a guessed displacement from the action.
+2. Edges (``graph.build_edges``) on the guessed positions: j -> i when |p_i - p_j| < r_edge and j is among i's k
+   nearest particles.
+3. Encoders. Node: [guessed displacement (3), attribute (1), resolution code (1)] -> MLP 5 -> H -> H. Edge:
+   [attribute of receiver, attribute of sender, p_r - p_s (3, on the current, un-displaced positions), resolution
+   code (1)] -> MLP 6 -> H -> H -> H. The attribute is 1 for a particle. ReLU after every encoder layer.
+4. Propagation, ``steps`` times (PropNet): edge effect = ReLU(W_e [edge code, receiver effect, sender effect, code]);
+   node effect = ReLU(W_n [node code, sum of incoming edge effects, code] + node effect), starting from the node code.
+5. Predictor H -> H -> 3: a displacement added to the current position.
+
+Defaults (H = 64, 3 steps) give 38,403 parameters, the reference's "about 38k".
+
+Resolution code. Like the reference, the model is conditioned on the particle density 1/r², r the FPS covering radius
+of the sample (``perception.Particles.radius``): it says how much material one particle stands for, which the
+particle count ω alone does not (ω particles over a spread-out pile are sparser than over a compact one). The code is
+the normalised log-density ``resolution_code(r) = log(R_REF / r) = ½ log(ρ / ρ_ref)``, ρ = 1/r², ρ_ref = 1/R_REF²,
+with R_REF = 2 cm. Piles in the 0.4 m bin at ω in [2, 100] have r from about 5 mm to 20 cm, so codes lie in about
+[-2.3, 1.4]. The code is a scalar per scene, fed to every encoder and propagator.
+
+Normalisation: fixed scales only. Guessed displacements and relative positions are divided by ``length_scale``
+(5 cm, about a plate half-width; the pushes of up to 25 cm give inputs of at most about 5) and the predicted
+displacement is multiplied by it. No data statistics are stored.
+
+Masks: masked particles are inert. Their positions are replaced by zeros before anything is computed (so garbage, even
+NaN, goes nowhere), they have no edges, masked edge effects are excluded from the sums, and their output equals their
+input.
+
+Evaluation: the propagators are linear layers on concatenated inputs, as in PropNet, but evaluated by splitting their
+kernels: the terms that do not change across steps (edge code, node code, resolution code, bias) are computed once,
+and the receiver and sender terms per node before gathering, so propagation does no per-edge matrix product.
+
+For hot loops use the pure functions ``predict`` and ``rollout`` of ``nnx.split(model)``; both jit and vmap over
+scenes, actions and resolution codes.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import jax
+import jax.numpy as jnp
+from flax import nnx
+
+from dynres_jax.config import SceneConfig
+from dynres_jax.graph import K_NEIGHBOURS, R_EDGE, build_edges, sweep_displacement
+
+LENGTH_SCALE = 0.05  # m: displacements and relative positions are divided by this inside the model
+R_REF = 0.02  # m: covering radius whose resolution code is 0
+R_MIN = 1e-3  # m: radii below this (including the 0 of bad perception input) are clipped in ``resolution_code``
+NODE_IN = 5  # guessed displacement (3), attribute (1), resolution code (1)
+EDGE_IN = 6  # receiver attribute (1), sender attribute (1), p_r - p_s (3), resolution code (1)
+
+
+@dataclass(frozen=True)
+class DynamicsConfig:
+    """Static configuration of f. hidden: width H of every layer; steps: propagation steps; plate_half_width (m):
+    the sweep heuristic's plate; edge_radius (m) and k: the graph; length_scale (m): the model's unit of length."""
+
+    hidden: int = 64
+    steps: int = 3
+    plate_half_width: float = SceneConfig.plate_half_width
+    edge_radius: float = R_EDGE
+    k: int = K_NEIGHBOURS
+    length_scale: float = LENGTH_SCALE
+
+
+def resolution_code(radius):
+    """FPS covering radius r (m, any shape) -> resolution code log(R_REF / r) (same shape, float32): half the log of
+    the density 1/r² relative to 1/R_REF². Radii below R_MIN are clipped, so the code is always finite."""
+    radius = jnp.asarray(radius, jnp.float32)
+    return jnp.log(R_REF / jnp.maximum(radius, R_MIN))
+
+
+def _mlp(sizes, rngs, *, final_relu):
+    """Linear layers of the given sizes with ReLU between them (and after the last when final_relu)."""
+    layers = []
+    for i, (n_in, n_out) in enumerate(zip(sizes[:-1], sizes[1:], strict=True)):
+        layers.append(nnx.Linear(n_in, n_out, rngs=rngs))
+        if final_relu or i < len(sizes) - 2:
+            layers.append(nnx.relu)
+    return nnx.Sequential(*layers)
+
+
+class Dynamics(nnx.Module):
+    """f(z, u, ω) as a flax NNX module; see the module docstring for the architecture."""
+
+    def __init__(self, config: DynamicsConfig = DynamicsConfig(), *, rngs: nnx.Rngs):
+        h = config.hidden
+        self.config = config
+        self.node_encoder = _mlp((NODE_IN, h, h), rngs, final_relu=True)
+        self.edge_encoder = _mlp((EDGE_IN, h, h, h), rngs, final_relu=True)
+        self.edge_propagator = nnx.Linear(3 * h + 1, h, rngs=rngs)  # [edge code, receiver, sender, code]
+        self.node_propagator = nnx.Linear(2 * h + 1, h, rngs=rngs)  # [node code, summed edge effects, code]
+        self.predictor = _mlp((h, h, 3), rngs, final_relu=False)
+
+    def __call__(self, positions, mask, action, code):
+        """positions [N, 3] m, mask [N] bool, action [4] m, code [] (``resolution_code``) -> next positions [N, 3] m.
+        Masked rows are returned unchanged."""
+        cfg, h = self.config, self.config.hidden
+        positions = jnp.asarray(positions, jnp.float32)
+        mask = jnp.asarray(mask, bool)
+        code = jnp.asarray(code, jnp.float32)
+        n = positions.shape[0]
+        clean = jnp.where(mask[:, None], positions, 0.0)
+        guess = sweep_displacement(clean, mask, action, cfg.plate_half_width)
+        neighbours, edge_mask = build_edges(clean + guess, mask, cfg.edge_radius, cfg.k)
+
+        attr = mask.astype(jnp.float32)[:, None]  # [N, 1]: 1 for a particle
+        node_code = self.node_encoder(
+            jnp.concatenate([guess / cfg.length_scale, attr, jnp.broadcast_to(code, (n, 1))], axis=-1))
+        rel = (clean[:, None, :] - clean[neighbours]) / cfg.length_scale  # [N, k, 3]: receiver i minus sender j
+        edge_code = self.edge_encoder(jnp.concatenate(
+            [jnp.broadcast_to(attr[:, None], rel.shape[:2] + (1,)), attr[neighbours], rel,
+             jnp.broadcast_to(code, rel.shape[:2] + (1,))], axis=-1))  # [N, k, H]
+
+        w_e, b_e = self.edge_propagator.kernel[...], self.edge_propagator.bias[...]
+        w_n, b_n = self.node_propagator.kernel[...], self.node_propagator.bias[...]
+        edge_const = edge_code @ w_e[:h] + code * w_e[3 * h] + b_e  # [N, k, H]
+        node_const = node_code @ w_n[:h] + code * w_n[2 * h] + b_n  # [N, H]
+        effect = node_code
+        for _ in range(cfg.steps):
+            receiver, sender = effect @ w_e[h:2 * h], effect @ w_e[2 * h:3 * h]  # [N, H] each
+            edge_effect = nnx.relu(edge_const + receiver[:, None, :] + sender[neighbours])  # [N, k, H]
+            incoming = jnp.sum(jnp.where(edge_mask[..., None], edge_effect, 0.0), axis=1)  # [N, H]
+            effect = nnx.relu(node_const + incoming @ w_n[h:2 * h] + effect)
+
+        displacement = self.predictor(effect) * cfg.length_scale
+        return jnp.where(mask[:, None], positions + displacement, positions)
+
+    def rollout(self, positions, mask, actions, code):
+        """positions [N, 3] m, mask [N], actions [T, 4] m, code [] -> positions after each action [T, N, 3] m."""
+        return rollout(*nnx.split(self), positions, mask, actions, code)
+
+
+def predict(graphdef, state, positions, mask, action, code):
+    """Pure f of ``nnx.split(model)``: positions [N, 3] m, mask [N], action [4] m, code [] -> next positions [N, 3]."""
+    return nnx.merge(graphdef, state)(positions, mask, action, code)
+
+
+def rollout(graphdef, state, positions, mask, actions, code):
+    """Pure multi-step f (``lax.scan``): positions [N, 3] m, mask [N], actions [T, 4] m, code [] -> [T, N, 3] m,
+    the positions after each action (the initial positions not included)."""
+
+    def step(current, action):
+        nxt = predict(graphdef, state, current, mask, action, code)
+        return nxt, nxt
+
+    return jax.lax.scan(step, jnp.asarray(positions, jnp.float32), actions)[1]
+
+
+def count_params(model: nnx.Module) -> int:
+    """Number of trainable scalars in the model."""
+    return sum(x.size for x in jax.tree.leaves(nnx.state(model, nnx.Param)))

@@ -1,0 +1,232 @@
+"""The dynamics f(z, u, ω): shapes and size, masks inert, permutation equivariance, vmap/scan consistency, the pure
+split/merge API, gradients through edges and a tiny training run. Small sizes (N = 24, H = 16) keep it fast on CPU."""
+
+import functools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+import pytest
+from flax import nnx
+
+from dynres_jax.dynamics import R_REF, Dynamics, DynamicsConfig, count_params, predict, resolution_code, rollout
+from dynres_jax.graph import build_edges, sweep_displacement
+
+N, N_VALID, H = 24, 18, 16
+PUSH = np.array([-0.06, 0.0, 0.02, 0.01], np.float32)
+
+
+def scene(seed=0, n=N, n_valid=N_VALID, half_width=0.04):
+    """A compact pile (dense enough for edges) in the first n_valid slots; the padding holds zeros."""
+    rng = np.random.default_rng(seed)
+    positions = np.zeros((n, 3), np.float32)
+    positions[:n_valid, :2] = rng.uniform(-half_width, half_width, (n_valid, 2))
+    positions[:n_valid, 2] = 0.007
+    return positions, np.arange(n) < n_valid
+
+
+@pytest.fixture(scope="module")
+def split():
+    return nnx.split(Dynamics(DynamicsConfig(hidden=H), rngs=nnx.Rngs(0)))
+
+
+@pytest.fixture(scope="module")
+def f(split):
+    """Jitted single-scene f with the test model's parameters bound."""
+    return jax.jit(functools.partial(predict, *split))
+
+
+def expected_params(h):
+    node_encoder = (5 * h + h) + (h * h + h)
+    edge_encoder = (6 * h + h) + 2 * (h * h + h)
+    propagators = (3 * h + 1) * h + h + (2 * h + 1) * h + h
+    predictor = (h * h + h) + (3 * h + 3)
+    return node_encoder + edge_encoder + propagators + predictor
+
+
+def test_shapes_and_parameter_count(f):
+    positions, mask = scene()
+    out = f(positions, mask, PUSH, resolution_code(0.01))
+    assert out.shape == (N, 3) and out.dtype == jnp.float32
+    assert np.all(np.isfinite(np.asarray(out)))
+    default = count_params(Dynamics(rngs=nnx.Rngs(0)))
+    assert default == expected_params(64) == 38_403
+    assert 30_000 <= default <= 50_000
+    assert count_params(Dynamics(DynamicsConfig(hidden=H), rngs=nnx.Rngs(0))) == expected_params(H)
+
+
+def naive_propnet(model, positions, mask, action, code):
+    """The architecture written out plainly: concatenated propagator inputs, per-edge products, a loop over nodes'
+    incoming edges as a masked sum."""
+    cfg = model.config
+    clean = jnp.where(mask[:, None], positions, 0.0)
+    guess = sweep_displacement(clean, mask, action, cfg.plate_half_width)
+    neighbours, edge_mask = build_edges(clean + guess, mask, cfg.edge_radius, cfg.k)
+    n, k = neighbours.shape
+    ones_n, ones_e = jnp.ones((n, 1)), jnp.ones((n, k, 1))
+    node_code = model.node_encoder(jnp.concatenate([guess / cfg.length_scale, ones_n, code * ones_n], -1))
+    rel = (clean[:, None] - clean[neighbours]) / cfg.length_scale
+    edge_code = model.edge_encoder(jnp.concatenate([ones_e, ones_e, rel, code * ones_e], -1))
+    effect = node_code
+    for _ in range(cfg.steps):
+        receiver = jnp.broadcast_to(effect[:, None], (n, k, cfg.hidden))
+        edge_effect = nnx.relu(model.edge_propagator(
+            jnp.concatenate([edge_code, receiver, effect[neighbours], code * ones_e], -1)))
+        incoming = jnp.sum(edge_effect * edge_mask[..., None], axis=1)
+        effect = nnx.relu(model.node_propagator(jnp.concatenate([node_code, incoming, code * ones_n], -1)) + effect)
+    return jnp.where(mask[:, None], positions + model.predictor(effect) * cfg.length_scale, positions)
+
+
+def test_matches_naive_propnet(split, f):
+    """The split-kernel evaluation equals the plain PropNet formulation (a check on the kernel slices' order)."""
+    positions, mask = scene(6)
+    expected = naive_propnet(nnx.merge(*split), positions, mask, PUSH, 0.7)
+    np.testing.assert_allclose(f(positions, mask, PUSH, 0.7), expected, atol=1e-5)
+
+
+def test_resolution_code():
+    radii = jnp.array([0.005, R_REF, 0.1])
+    codes = resolution_code(radii)
+    assert codes.dtype == jnp.float32 and float(codes[1]) == 0.0
+    assert np.all(np.diff(np.asarray(codes)) < 0)  # denser sample (smaller r) -> larger code
+    np.testing.assert_allclose(codes, 0.5 * np.log((1 / radii**2) / (1 / R_REF**2)), rtol=1e-5)
+    assert np.isfinite(float(resolution_code(0.0)))  # the radius of bad perception input
+
+
+def test_padding_inert(f):
+    positions, mask = scene()
+    code = resolution_code(0.01)
+    reference = np.asarray(f(positions, mask, PUSH, code))
+    np.testing.assert_array_equal(reference[~mask], positions[~mask])
+    rng = np.random.default_rng(1)
+    for garbage in (rng.uniform(-1e3, 1e3, (N - N_VALID, 3)), np.zeros((N - N_VALID, 3)) + PUSH[2],
+                    np.full((N - N_VALID, 3), np.nan)):
+        noisy = positions.copy()
+        noisy[~mask] = garbage
+        out = np.asarray(f(noisy, mask, PUSH, code))
+        np.testing.assert_array_equal(out[mask], reference[mask])
+        np.testing.assert_array_equal(out[~mask], noisy[~mask])
+
+
+def test_masked_particles_get_no_gradient(split):
+    positions, mask = scene()
+    loss = lambda p: jnp.sum(predict(*split, p, mask, PUSH, 0.0)[mask] ** 2)
+    grad = np.asarray(jax.jit(jax.grad(loss))(jnp.asarray(positions)))
+    assert np.all(grad[~mask] == 0) and np.all(np.isfinite(grad)) and np.any(grad[mask] != 0)
+
+
+def test_permutation_equivariance(f):
+    positions, mask = scene(2)
+    positions[~mask] = 5.0
+    perm = np.random.default_rng(3).permutation(N)
+    out = np.asarray(f(positions, mask, PUSH, 0.5))
+    out_perm = np.asarray(f(positions[perm], mask[perm], PUSH, 0.5))
+    np.testing.assert_allclose(out_perm, out[perm], atol=1e-6)
+
+
+def test_vmap_over_scenes_equals_loop(split, f):
+    scenes = [scene(seed) for seed in range(3)]
+    positions = np.stack([s[0] for s in scenes])
+    masks = np.stack([s[1] for s in scenes])
+    masks[1, 10:] = False  # different resolutions in one batch
+    actions = np.stack([PUSH, PUSH[[2, 3, 0, 1]], np.array([0.0, -0.05, 0.0, 0.03], np.float32)])
+    codes = resolution_code(jnp.array([0.01, 0.03, 0.02]))
+    batched = jax.jit(jax.vmap(predict, in_axes=(None, None, 0, 0, 0, 0)))(*split, positions, masks, actions, codes)
+    for b in range(3):
+        np.testing.assert_allclose(batched[b], f(positions[b], masks[b], actions[b], codes[b]), atol=1e-6)
+
+
+def test_vmap_over_codes_equals_calls(split, f):
+    positions, mask = scene()
+    codes = resolution_code(jnp.array([0.005, 0.01, 0.05]))
+    batched = jax.jit(jax.vmap(predict, in_axes=(None, None, None, None, None, 0)))(*split, positions, mask, PUSH,
+                                                                                      codes)
+    singles = [np.asarray(f(positions, mask, PUSH, c)) for c in codes]
+    for b in range(3):
+        np.testing.assert_allclose(batched[b], singles[b], atol=1e-6)
+    assert not np.allclose(singles[0][mask], singles[2][mask])  # the code is used
+
+
+def test_rollout_equals_chained_predict(split, f):
+    positions, mask = scene()
+    actions = np.array([PUSH, [0.03, 0.03, -0.02, -0.01], [0.0, -0.05, 0.0, 0.04]], np.float32)
+    states = jax.jit(rollout)(*split, positions, mask, actions, 0.2)
+    assert states.shape == (3, N, 3)
+    current = positions
+    for t in range(3):
+        current = f(current, mask, actions[t], 0.2)
+        np.testing.assert_allclose(states[t], current, atol=1e-5)
+    model = nnx.merge(*split)
+    np.testing.assert_allclose(model.rollout(positions, mask, actions, 0.2), states, atol=1e-5)
+    sequences = np.stack([actions, actions[::-1]])  # vmap over action sequences, as the planner does
+    batched = jax.jit(jax.vmap(rollout, in_axes=(None, None, None, None, 0, None)))(*split, positions, mask,
+                                                                                      sequences, 0.2)
+    np.testing.assert_allclose(batched[0], states, atol=1e-5)
+    np.testing.assert_allclose(batched[1], jax.jit(rollout)(*split, positions, mask, actions[::-1], 0.2), atol=1e-5)
+
+
+def test_far_from_push_deterministic_and_finite(f):
+    positions, mask = scene(4, half_width=0.02)
+    positions[mask, :2] += 0.15  # the pile sits in a corner; the push is across the bin from it
+    action = np.array([-0.15, -0.15, -0.1, -0.15], np.float32)
+    assert np.all(sweep_displacement(positions, mask, action, 0.04) == 0)
+    first, second = f(positions, mask, action, 0.0), f(positions, mask, action, 0.0)
+    np.testing.assert_array_equal(first, second)
+    assert np.all(np.isfinite(np.asarray(first)))
+
+
+def test_split_merge_round_trip(split, f):
+    positions, mask = scene()
+    model = nnx.merge(*split)
+    again = nnx.merge(*nnx.split(model))
+    np.testing.assert_array_equal(again(positions, mask, PUSH, 0.1), model(positions, mask, PUSH, 0.1))
+    resplit = jax.jit(functools.partial(predict, *nnx.split(again)))
+    np.testing.assert_array_equal(resplit(positions, mask, PUSH, 0.1), f(positions, mask, PUSH, 0.1))
+
+
+def test_gradients_reach_every_layer_and_the_action(split):
+    positions, mask = scene()
+    graphdef, state = split
+
+    def loss(state, action):
+        return jnp.sum(predict(graphdef, state, positions, mask, action, 0.0)[mask] ** 2)
+
+    g_state, g_action = jax.jit(jax.grad(loss, argnums=(0, 1)))(state, jnp.asarray(PUSH))
+    for path, leaf in jax.tree_util.tree_leaves_with_path(g_state):
+        assert np.all(np.isfinite(leaf)) and np.any(leaf != 0), jax.tree_util.keystr(path)
+    assert np.all(np.isfinite(g_action)) and np.any(g_action != 0)
+
+
+def test_training_reduces_loss():
+    """100 Adam steps fit next = current + sweep displacement on a few scenes and pushes: the loss drops >= 5x."""
+    rng = np.random.default_rng(5)
+    scenes = [scene(seed, n_valid=int(rng.integers(8, N + 1))) for seed in range(4)]
+    positions = jnp.asarray(np.stack([s[0] for s in scenes]))
+    masks = jnp.asarray(np.stack([s[1] for s in scenes]))
+    starts = rng.uniform(-0.06, 0.0, (4, 2))
+    actions = jnp.asarray(np.concatenate([starts, starts + rng.uniform(0.0, 0.05, (4, 2))], 1), jnp.float32)
+    codes = resolution_code(jnp.array([0.01, 0.02, 0.015, 0.03]))
+    targets = positions + jax.vmap(sweep_displacement, in_axes=(0, 0, 0, None))(positions, masks, actions, 0.04)
+
+    graphdef, state = nnx.split(Dynamics(DynamicsConfig(hidden=H), rngs=nnx.Rngs(1)))
+    optimiser = optax.adam(3e-3)
+
+    def loss_fn(state):
+        pred = jax.vmap(predict, in_axes=(None, None, 0, 0, 0, 0))(graphdef, state, positions, masks, actions, codes)
+        err = jnp.sum(jnp.square(pred - targets), axis=-1)
+        return jnp.sum(jnp.where(masks, err, 0.0)) / jnp.sum(masks)
+
+    @jax.jit
+    def train(state):
+        def step(carry, _):
+            state, opt_state = carry
+            loss, grads = jax.value_and_grad(loss_fn)(state)
+            updates, opt_state = optimiser.update(grads, opt_state, state)
+            return (optax.apply_updates(state, updates), opt_state), loss
+
+        (state, _), losses = jax.lax.scan(step, (state, optimiser.init(state)), length=100)
+        return loss_fn(state), losses
+
+    final, losses = train(state)
+    assert np.isfinite(float(final)) and float(final) * 5 <= float(losses[0]), (float(losses[0]), float(final))
