@@ -1,0 +1,96 @@
+"""Checkpoints: orbax save / restore of flax NNX modules (and any other pytrees) with a JSON card of the config.
+
+The rest of the code never touches orbax. Layout: ``DIR/<step>/`` holds ``state`` (arrays) and ``meta`` (JSON: the
+config to rebuild the module, normalisation, anything the caller adds). Orbax writes a step to a temporary name and
+renames it when complete, so a killed save never leaves a step that looks finished; ``latest_step`` is where a
+training run resumes.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Callable
+from typing import Any
+
+import jax
+import orbax.checkpoint as ocp
+from flax import nnx
+
+
+class CheckpointError(ValueError):
+    """A checkpoint exists but cannot be read into what was asked for (corrupt, or another model's)."""
+
+
+def _manager(directory, keep: int | None = 3, read_only: bool = False) -> ocp.CheckpointManager:
+    options = ocp.CheckpointManagerOptions(max_to_keep=keep, create=not read_only, read_only=read_only,
+                                           enable_async_checkpointing=False)
+    return ocp.CheckpointManager(os.path.abspath(directory), options=options, item_names=("state", "meta"))
+
+
+def latest_step(directory) -> int | None:
+    """The newest complete step in ``directory``, or None when there is none (or no directory)."""
+    if not os.path.isdir(directory):
+        return None
+    with _manager(directory, read_only=True) as mngr:
+        return mngr.latest_step()
+
+
+def save(directory, step: int, state: dict[str, Any], meta: dict, keep: int | None = 3) -> None:
+    """Write pytrees ``state`` (e.g. {"model": nnx.State, "opt": ...}) and JSON ``meta`` as ``step``; keeps the
+    newest ``keep`` steps."""
+    with _manager(directory, keep) as mngr:
+        mngr.save(step, args=ocp.args.Composite(state=ocp.args.StandardSave(state), meta=ocp.args.JsonSave(meta)))
+        mngr.wait_until_finished()
+
+
+def _step_or_latest(directory, step: int | None) -> int:
+    found = latest_step(directory)
+    if found is None:
+        raise FileNotFoundError(f"no checkpoint in {directory!r} (missing, empty, or only unfinished saves)")
+    return found if step is None else step
+
+
+def load_meta(directory, step: int | None = None) -> dict:
+    """The JSON card of a step (default: the newest)."""
+    step = _step_or_latest(directory, step)
+    with _manager(directory, read_only=True) as mngr:
+        try:
+            return dict(mngr.restore(step, args=ocp.args.Composite(meta=ocp.args.JsonRestore())).meta)
+        except Exception as e:  # orbax raises many types for unreadable files
+            raise CheckpointError(f"checkpoint {directory!r} step {step}: cannot read its card: {e}") from e
+
+
+def restore(directory, abstract_state: dict[str, Any], step: int | None = None) -> tuple[dict[str, Any], dict]:
+    """Read ``state`` into the structure of ``abstract_state`` (shapes and dtypes, e.g. from ``nnx.eval_shape``)
+    and the card. Raises FileNotFoundError (nothing there) or CheckpointError (unreadable, or another structure)."""
+    step = _step_or_latest(directory, step)
+    with _manager(directory, read_only=True) as mngr:
+        try:
+            out = mngr.restore(step, args=ocp.args.Composite(state=ocp.args.StandardRestore(abstract_state),
+                                                             meta=ocp.args.JsonRestore()))
+        except Exception as e:
+            raise CheckpointError(f"checkpoint {directory!r} step {step} does not match the requested model or is "
+                                  f"corrupt: {type(e).__name__}: {e}") from e
+    return dict(out.state), dict(out.meta)
+
+
+def save_module(directory, step: int, module: nnx.Module, meta: dict, extra: dict[str, Any] | None = None,
+                keep: int | None = 3) -> None:
+    """Save an NNX module's state (plus ``extra`` pytrees, e.g. the optimiser's) and its card."""
+    save(directory, step, {"module": nnx.state(module), **(extra or {})}, meta, keep)
+
+
+def load_module(directory, build: Callable[[dict], nnx.Module], step: int | None = None,
+                extra: dict[str, Any] | None = None) -> tuple[nnx.Module, dict, dict[str, Any]]:
+    """Rebuild a module from its card and restore its state: ``build(meta)`` makes a fresh module (it is only traced,
+    through ``nnx.eval_shape``, so no parameters are initialised). ``extra``: abstract pytrees saved beside it.
+    Returns (module, meta, restored extra)."""
+    meta = load_meta(directory, step)
+    abstract = nnx.eval_shape(lambda: build(meta))
+    graphdef, abstract_state = nnx.split(abstract)
+    state, meta = restore(directory, {"module": abstract_state, **(extra or {})}, step)
+    module_state = state.pop("module")
+    shapes = jax.tree.map(lambda x: x.shape, module_state)
+    if shapes != jax.tree.map(lambda x: x.shape, abstract_state):
+        raise CheckpointError(f"checkpoint {directory!r} holds parameters of other shapes than {type(abstract)}")
+    return nnx.merge(graphdef, module_state), meta, state

@@ -1,0 +1,70 @@
+"""Checkpoints: bit-identical predictions after a restore; clear errors for missing, corrupt or mismatched ones."""
+
+import dataclasses
+import os
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from flax import nnx
+
+from dynres_jax import ckpt
+from dynres_jax.dynamics import Dynamics, DynamicsConfig
+
+CFG = DynamicsConfig(hidden=16)
+
+
+def build(meta):
+    return Dynamics(DynamicsConfig(**meta["dynamics"]), rngs=nnx.Rngs(0))
+
+
+def inputs():
+    pos = jax.random.uniform(jax.random.PRNGKey(0), (12, 3), minval=-0.05, maxval=0.05).at[:, 2].set(0.007)
+    return pos, jnp.arange(12) < 9, jnp.array([-0.08, 0.0, 0.04, 0.0]), jnp.asarray(0.3)
+
+
+@pytest.fixture(scope="module")
+def saved(tmp_path_factory):
+    model = Dynamics(CFG, rngs=nnx.Rngs(42))
+    directory = tmp_path_factory.mktemp("ckpt")
+    ckpt.save_module(directory, 7, model, {"dynamics": dataclasses.asdict(CFG), "note": "test"})
+    return model, directory
+
+
+def test_restore_gives_bit_identical_predictions(saved):
+    model, directory = saved
+    restored, meta, _ = ckpt.load_module(directory, build)
+    assert meta["note"] == "test" and ckpt.latest_step(directory) == 7
+    np.testing.assert_array_equal(np.asarray(restored(*inputs())), np.asarray(model(*inputs())))
+
+
+def test_missing_checkpoint_is_a_clear_error(tmp_path):
+    with pytest.raises(FileNotFoundError, match="no checkpoint"):
+        ckpt.load_module(tmp_path / "nowhere", build)
+
+
+def test_checkpoint_of_another_model_is_a_clear_error(saved, tmp_path):
+    _, directory = saved
+    with pytest.raises(ckpt.CheckpointError):
+        ckpt.load_module(directory, lambda meta: Dynamics(DynamicsConfig(hidden=32), rngs=nnx.Rngs(0)))
+
+
+def test_corrupt_checkpoint_is_a_clear_error(saved, tmp_path):
+    model, _ = saved
+    directory = tmp_path / "corrupt"
+    ckpt.save_module(directory, 1, model, {"dynamics": dataclasses.asdict(CFG)})
+    for root, _, files in os.walk(directory / "1" / "state"):
+        for name in files:
+            with open(os.path.join(root, name), "wb") as f:
+                f.write(b"not a checkpoint")
+    with pytest.raises(ckpt.CheckpointError):
+        ckpt.load_module(directory, build)
+
+
+def test_keeps_the_newest_steps(tmp_path):
+    model = Dynamics(CFG, rngs=nnx.Rngs(1))
+    for step in range(4):
+        ckpt.save_module(tmp_path, step, model, {"dynamics": dataclasses.asdict(CFG)}, keep=2)
+    assert ckpt.latest_step(tmp_path) == 3
+    assert sorted(p for p in os.listdir(tmp_path) if p.isdigit()) == ["2", "3"]
