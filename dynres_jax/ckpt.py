@@ -1,7 +1,8 @@
 """Checkpoints: orbax save / restore of flax NNX modules (and any other pytrees) with a JSON card of the config.
 
-The rest of the code never touches orbax. Layout: ``DIR/<step>/`` holds ``state`` (arrays) and ``meta`` (JSON: the
-config to rebuild the module, normalisation, anything the caller adds). Orbax writes a step to a temporary name and
+The rest of the code never touches orbax. Layout: ``DIR/<step>/`` holds one item per saved pytree (``module``,
+``opt``, ...; a restore reads only those it asks for) and ``meta`` (JSON: the config to rebuild the module, anything
+the caller adds). Orbax writes a step to a temporary name and
 renames it when complete, so a killed save never leaves a step that looks finished; ``latest_step`` is where a
 training run resumes.
 """
@@ -24,7 +25,7 @@ class CheckpointError(ValueError):
 def _manager(directory, keep: int | None = 3, read_only: bool = False) -> ocp.CheckpointManager:
     options = ocp.CheckpointManagerOptions(max_to_keep=keep, create=not read_only, read_only=read_only,
                                            enable_async_checkpointing=False)
-    return ocp.CheckpointManager(os.path.abspath(directory), options=options, item_names=("state", "meta"))
+    return ocp.CheckpointManager(os.path.abspath(directory), options=options)
 
 
 def latest_step(directory) -> int | None:
@@ -39,7 +40,8 @@ def save(directory, step: int, state: dict[str, Any], meta: dict, keep: int | No
     """Write pytrees ``state`` (e.g. {"model": nnx.State, "opt": ...}) and JSON ``meta`` as ``step``; keeps the
     newest ``keep`` steps."""
     with _manager(directory, keep) as mngr:
-        mngr.save(step, args=ocp.args.Composite(state=ocp.args.StandardSave(state), meta=ocp.args.JsonSave(meta)))
+        items = {name: ocp.args.StandardSave(tree) for name, tree in state.items()}
+        mngr.save(step, args=ocp.args.Composite(**items, meta=ocp.args.JsonSave(meta)))
         mngr.wait_until_finished()
 
 
@@ -55,23 +57,24 @@ def load_meta(directory, step: int | None = None) -> dict:
     step = _step_or_latest(directory, step)
     with _manager(directory, read_only=True) as mngr:
         try:
-            return dict(mngr.restore(step, args=ocp.args.Composite(meta=ocp.args.JsonRestore())).meta)
+            return dict(mngr.restore(step, args=ocp.args.Composite(meta=ocp.args.JsonRestore()))["meta"])
         except Exception as e:  # orbax raises many types for unreadable files
             raise CheckpointError(f"checkpoint {directory!r} step {step}: cannot read its card: {e}") from e
 
 
 def restore(directory, abstract_state: dict[str, Any], step: int | None = None) -> tuple[dict[str, Any], dict]:
     """Read ``state`` into the structure of ``abstract_state`` (shapes and dtypes, e.g. from ``nnx.eval_shape``)
-    and the card. Raises FileNotFoundError (nothing there) or CheckpointError (unreadable, or another structure)."""
+    and the card. ``abstract_state`` may name only some of the saved entries (the model without its optimiser).
+    Raises FileNotFoundError (nothing there) or CheckpointError (unreadable, or another structure)."""
     step = _step_or_latest(directory, step)
     with _manager(directory, read_only=True) as mngr:
         try:
-            out = mngr.restore(step, args=ocp.args.Composite(state=ocp.args.StandardRestore(abstract_state),
-                                                             meta=ocp.args.JsonRestore()))
+            items = {name: ocp.args.StandardRestore(tree) for name, tree in abstract_state.items()}
+            out = mngr.restore(step, args=ocp.args.Composite(**items, meta=ocp.args.JsonRestore()))
         except Exception as e:
             raise CheckpointError(f"checkpoint {directory!r} step {step} does not match the requested model or is "
-                                  f"corrupt: {type(e).__name__}: {e}") from e
-    return dict(out.state), dict(out.meta)
+                                  f"corrupt: {type(e).__name__}: {str(e)[:300]}") from e
+    return {name: out[name] for name in abstract_state}, dict(out["meta"])
 
 
 def save_module(directory, step: int, module: nnx.Module, meta: dict, extra: dict[str, Any] | None = None,

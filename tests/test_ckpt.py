@@ -54,10 +54,13 @@ def test_corrupt_checkpoint_is_a_clear_error(saved, tmp_path):
     model, _ = saved
     directory = tmp_path / "corrupt"
     ckpt.save_module(directory, 1, model, {"dynamics": dataclasses.asdict(CFG)})
-    for root, _, files in os.walk(directory / "1" / "state"):
+    corrupted = 0
+    for root, _, files in os.walk(directory / "1" / "module"):
         for name in files:
+            corrupted += 1
             with open(os.path.join(root, name), "wb") as f:
                 f.write(b"not a checkpoint")
+    assert corrupted
     with pytest.raises(ckpt.CheckpointError):
         ckpt.load_module(directory, build)
 

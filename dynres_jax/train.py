@@ -1,0 +1,184 @@
+"""Training the dynamics f(z, u, ω): multi-step rollout loss on valid particles, every sample with its own ω.
+
+One step: ``batch`` random windows of ``horizon`` pushes (``data.random_windows``); each gets its own ω uniform in
+``[omega_min, n_max]`` and a key; perception h turns frame t into ω particles, attached to their pieces, whose
+positions over the next ``horizon`` frames are the targets (``data.make_sample``, inside the jitted step); the model
+rolls out ``horizon`` pushes from the particles at frame t, and the loss is the mean squared error over valid
+particles and steps (samples whose perception failed weigh 0). Adam on the model's parameters.
+
+Long runs write a checkpoint (model + optimiser, ``ckpt``) every ``ckpt_every`` steps and resume from the newest;
+metrics go to ``metrics.jsonl`` (one JSON object a line; on resume, lines past the checkpoint are dropped) and
+``curves.png``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import time
+from dataclasses import dataclass, field
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+from flax import nnx
+from tqdm import tqdm
+
+from dynres_jax import ckpt, data
+from dynres_jax.dynamics import Dynamics, DynamicsConfig, resolution_code, rollout
+
+SCHEDULE = ("steps", "eval_every", "ckpt_every", "val_batches")  # may change when a run resumes; nothing else may
+VAL_STREAM = 2**30  # seeds of validation batches: (seed, VAL_STREAM, b), apart from training steps' (seed, step)
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """steps, batch: optimiser steps and windows per step (reference: batch 4); horizon: pushes rolled out per sample
+    (reference 5); lr: Adam learning rate (reference 1e-3); n_max: particle slots; omega_min: smallest ω drawn;
+    max_points: perception's point cap (``sample_particles``); eval_every / ckpt_every: steps between validation
+    and checkpoints; val_batches: validation batches per evaluation; seed: everything random."""
+
+    steps: int = 20_000
+    batch: int = 32
+    horizon: int = 5
+    lr: float = 1e-3
+    n_max: int = 100
+    omega_min: int = 2
+    max_points: int | None = 4096
+    eval_every: int = 500
+    ckpt_every: int = 1000
+    val_batches: int = 4
+    seed: int = 0
+    model: DynamicsConfig = field(default_factory=DynamicsConfig)
+
+    def __post_init__(self):
+        if not 1 <= self.omega_min <= self.n_max:
+            raise ValueError(f"omega_min={self.omega_min} must lie in [1, n_max={self.n_max}]")
+        if self.steps < 1 or self.batch < 1 or self.horizon < 1:
+            raise ValueError("steps, batch and horizon must be positive")
+
+
+def card(cfg: TrainConfig, **extra) -> dict:
+    """The JSON card saved with every checkpoint: enough to rebuild the model and know how it was trained."""
+    return {"dynamics": dataclasses.asdict(cfg.model), "train": dataclasses.asdict(cfg), **extra}
+
+
+def build_model(meta: dict) -> Dynamics:
+    """A fresh model from a checkpoint card (``ckpt.load_module``'s ``build``)."""
+    return Dynamics(DynamicsConfig(**meta["dynamics"]), rngs=nnx.Rngs(0))
+
+
+def rollout_loss(graphdef, state, samples: data.Sample):
+    """Mean squared error (m²) over valid particles and steps of a batch of samples, and the per-sample weight."""
+
+    def one(sample):
+        pred = rollout(graphdef, state, sample.positions[0], sample.mask, sample.action,
+                       resolution_code(sample.radius))
+        err = jnp.sum(jnp.square(pred - sample.positions[1:]), -1)  # [horizon, n_max]
+        w = sample.mask & (sample.error == 0)
+        return jnp.sum(err * w[None]), jnp.sum(w) * err.shape[0]
+
+    total, count = jax.vmap(one)(samples)
+    return jnp.sum(total) / jnp.maximum(jnp.sum(count), 1)
+
+
+def make_step(graphdef, optimizer: optax.GradientTransformation, camera, cfg: TrainConfig):
+    """The jitted training step: (params, opt_state, windows, omegas, keys) -> (params, opt_state, loss)."""
+    sample = jax.vmap(lambda w, o, k: data.make_sample(w, o, k, camera, cfg.n_max, max_points=cfg.max_points))
+
+    @jax.jit
+    def step(params, opt_state, windows, omegas, keys):
+        samples = sample(windows, omegas, keys)
+        loss, grads = jax.value_and_grad(lambda p: rollout_loss(graphdef, p, samples))(params)
+        updates, opt_state = optimizer.update(grads, opt_state, params)
+        return optax.apply_updates(params, updates), opt_state, loss
+
+    @jax.jit
+    def evaluate(params, windows, omegas, keys):
+        return rollout_loss(graphdef, params, sample(windows, omegas, keys))
+
+    return step, evaluate
+
+
+def _batch(dataset: data.Dataset, rng: np.random.Generator, cfg: TrainConfig, key):
+    windows = data.random_windows(dataset, rng, cfg.batch, cfg.horizon)
+    omegas = rng.integers(cfg.omega_min, cfg.n_max + 1, cfg.batch)
+    return windows, jnp.asarray(omegas, jnp.int32), jax.random.split(key, cfg.batch)
+
+
+def plot_curves(metrics_path: str, out_png: str) -> None:
+    """Training and validation RMSE (mm) against step, from metrics.jsonl."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    rows = [json.loads(line) for line in open(metrics_path)]
+    fig, ax = plt.subplots(figsize=(6, 3.5))
+    for name in ("train_rmse_mm", "val_rmse_mm"):
+        pts = [(r["step"], r[name]) for r in rows if name in r]
+        if pts:
+            ax.plot(*zip(*pts, strict=True), label=name.replace("_rmse_mm", ""))
+    ax.set(xlabel="step", ylabel=f"{rows[0].get('horizon', '')}-step rollout RMSE (mm)", yscale="log")
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(out_png, dpi=120)
+    plt.close(fig)
+
+
+def _trim_metrics(path: str, last_step: int) -> None:
+    """Drop metric lines written after the checkpoint a resumed run starts from (atomically)."""
+    if not os.path.exists(path):
+        return
+    keep = [line for line in open(path) if json.loads(line)["step"] <= last_step]
+    data.atomic_write(path, lambda f: f.write("".join(keep).encode()))
+
+
+def train(cfg: TrainConfig, data_dir: str, out_dir: str, progress: bool = True) -> dict:
+    """Train (or resume) into ``out_dir``; returns the final metrics. Checkpoints in ``out_dir/ckpt``."""
+    train_set, val_set = data.load_shards(data_dir, "train"), data.load_shards(data_dir, "val")
+    if cfg.horizon > train_set.pushes:
+        raise ValueError(f"horizon {cfg.horizon} exceeds the data's {train_set.pushes} pushes per episode")
+    os.makedirs(out_dir, exist_ok=True)
+    ckpt_dir, metrics_path = os.path.join(out_dir, "ckpt"), os.path.join(out_dir, "metrics.jsonl")
+    model = Dynamics(cfg.model, rngs=nnx.Rngs(cfg.seed))
+    graphdef, params = nnx.split(model)
+    optimizer = optax.adam(cfg.lr)
+    opt_state = optimizer.init(params)
+    start = 0
+    if ckpt.latest_step(ckpt_dir) is not None:
+        restored, meta = ckpt.restore(ckpt_dir, {"module": params, "opt": opt_state})
+        before, now = meta["train"], json.loads(json.dumps(dataclasses.asdict(cfg)))
+        changed = sorted(k for k in now if k not in SCHEDULE and before.get(k) != now[k])
+        if changed:
+            raise ValueError(f"{ckpt_dir} was trained with another TrainConfig ({', '.join(changed)} differ); "
+                             "use a new --out or the same flags")
+        params, opt_state, start = restored["module"], restored["opt"], meta["step"]
+        _trim_metrics(metrics_path, start)
+    step_fn, eval_fn = make_step(graphdef, optimizer, train_set.camera, cfg)
+    key = jax.random.PRNGKey(cfg.seed)
+    last = {}
+    bar = tqdm(range(start, cfg.steps), initial=start, total=cfg.steps, desc="train", disable=not progress)
+    t0, samples = time.perf_counter(), 0
+    for i in bar:
+        rng = np.random.default_rng([cfg.seed, i])  # a step's batch depends on (seed, step) only: resumable
+        params, opt_state, loss = step_fn(params, opt_state, *_batch(train_set, rng, cfg, jax.random.fold_in(key, i)))
+        samples += cfg.batch
+        done = i + 1
+        if done % cfg.eval_every == 0 or done == cfg.steps:
+            val = [float(eval_fn(params, *_batch(val_set, np.random.default_rng([cfg.seed, VAL_STREAM, b]), cfg,
+                                                 jax.random.fold_in(key, VAL_STREAM + b))))
+                   for b in range(cfg.val_batches)]
+            last = dict(step=done, horizon=cfg.horizon, train_rmse_mm=float(np.sqrt(loss)) * 1000,
+                        val_rmse_mm=float(np.sqrt(np.mean(val))) * 1000,
+                        samples_per_s=samples / (time.perf_counter() - t0))
+            with open(metrics_path, "a") as f:
+                f.write(json.dumps(last) + "\n")
+            bar.set_postfix(train=f"{last['train_rmse_mm']:.2f}mm", val=f"{last['val_rmse_mm']:.2f}mm")
+        if done % cfg.ckpt_every == 0 or done == cfg.steps:
+            ckpt.save(ckpt_dir, done, {"module": params, "opt": opt_state}, card(cfg, step=done))
+    if os.path.exists(metrics_path):
+        plot_curves(metrics_path, os.path.join(out_dir, "curves.png"))
+    return last

@@ -1,0 +1,119 @@
+"""Evaluate a dynamics checkpoint on held-out episodes: one-step and multi-step particle position error (mm) at
+several resolutions ω, against two baselines measured the same way: "nothing moves" and the sweep heuristic alone.
+
+    python -m experiments.eval_dynamics --ckpt runs/dynamics/ckpt --data data/piles --out runs/dynamics/eval
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import nnx
+
+from dynres_jax import ckpt, data
+from dynres_jax.dynamics import resolution_code, rollout
+from dynres_jax.graph import sweep_displacement
+from dynres_jax.train import build_model
+
+METHODS = ("model", "nothing moves", "sweep heuristic")
+
+
+def sweep_rollout(positions, mask, actions, plate_half_width):
+    """The sweep heuristic alone as a dynamics model: [T, N, 3] positions after each push."""
+
+    def step(p, a):
+        p = p + sweep_displacement(p, mask, a, plate_half_width)
+        return p, p
+
+    return jax.lax.scan(step, positions, actions)[1]
+
+
+def errors(graphdef, state, samples: data.Sample, plate_half_width) -> dict:
+    """Mean particle position error (mm) after each push, per method: {method: [horizon]} and per-kind sums."""
+
+    def one(s):
+        preds = {"model": rollout(graphdef, state, s.positions[0], s.mask, s.action, resolution_code(s.radius)),
+                 "nothing moves": jnp.broadcast_to(s.positions[0], s.positions[1:].shape),
+                 "sweep heuristic": sweep_rollout(s.positions[0], s.mask, s.action, plate_half_width)}
+        w = s.mask & (s.error == 0)
+        return {m: jnp.where(w[None], jnp.linalg.norm(p - s.positions[1:], axis=-1), 0.0) for m, p in preds.items()}
+
+    per = jax.vmap(one)(samples)  # {method: [B, horizon, n_max]}
+    valid = np.asarray(samples.mask & (samples.error == 0)[:, None])
+    out = {m: (np.asarray(e).sum((0, 2)) / max(valid.sum(), 1) * 1000).tolist() for m, e in per.items()}
+    kinds = np.asarray(samples.kind)
+    out["per_kind"] = {data.KIND_NAMES[k]: {m: float(np.asarray(e)[:, 0][valid & (kinds == k)].mean() * 1000)
+                                            for m, e in per.items()}
+                       for k in np.unique(kinds[valid])}
+    return out
+
+
+def table(result: dict) -> str:
+    h = result["horizon"]
+    lines = [f"| ω | {' | '.join(f'{m}: 1 step / {h} steps (mm)' for m in METHODS)} |",
+             "|---:|" + "---:|" * len(METHODS)]
+    for omega, r in result["omegas"].items():
+        lines.append(f"| {omega} | " + " | ".join(f"{r[m][0]:.2f} / {r[m][-1]:.2f}" for m in METHODS) + " |")
+    return "\n".join(lines)
+
+
+def plot(result: dict, path: str) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    omegas = list(result["omegas"])
+    fig, axes = plt.subplots(1, 2, figsize=(9, 3.5), sharey=True)
+    for ax, step, title in ((axes[0], 0, "one step"), (axes[1], -1, f"{result['horizon']} steps")):
+        for i, m in enumerate(METHODS):
+            ax.bar(np.arange(len(omegas)) + (i - 1) * 0.27, [result["omegas"][o][m][step] for o in omegas], 0.27,
+                   label=m)
+        ax.set(xticks=range(len(omegas)), xticklabels=omegas, xlabel="ω", title=title)
+    axes[0].set_ylabel("mean particle error (mm)")
+    axes[0].legend()
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(prog="python -m experiments.eval_dynamics", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--ckpt", required=True, help="checkpoint folder (runs/NAME/ckpt)")
+    parser.add_argument("--data", required=True, help="shards; their held-out episodes are used")
+    parser.add_argument("--out", required=True)
+    parser.add_argument("--omegas", nargs="+", type=int, default=[10, 25, 50, 100])
+    parser.add_argument("--windows", type=int, default=256, help="held-out windows per ω")
+    parser.add_argument("--seed", type=int, default=0)
+    args = parser.parse_args(argv)
+    model, meta, _ = ckpt.load_module(args.ckpt, build_model)
+    tcfg = meta["train"]
+    if max(args.omegas) > tcfg["n_max"]:
+        parser.error(f"--omegas must be at most the model's n_max = {tcfg['n_max']}")
+    val = data.load_shards(args.data, "val")
+    graphdef, state = nnx.split(model)
+    rng = np.random.default_rng(args.seed)
+    windows = data.random_windows(val, rng, args.windows, tcfg["horizon"])
+    make = jax.jit(jax.vmap(lambda w, o, k: data.make_sample(w, o, k, val.camera, tcfg["n_max"],
+                                                             max_points=tcfg["max_points"]), in_axes=(0, None, 0)))
+    keys = jax.random.split(jax.random.PRNGKey(args.seed), args.windows)
+    hw = meta["dynamics"]["plate_half_width"]
+    result = {"horizon": tcfg["horizon"], "windows": args.windows, "step": meta.get("step"), "omegas": {}}
+    for omega in args.omegas:
+        result["omegas"][str(omega)] = errors(graphdef, state, make(windows, omega, keys), hw)
+    os.makedirs(args.out, exist_ok=True)
+    data.write_json(os.path.join(args.out, "eval.json"), result)
+    plot(result, os.path.join(args.out, "eval.png"))
+    text = table(result)
+    data.atomic_write(os.path.join(args.out, "eval.md"), lambda f: f.write(text.encode()))
+    print(text)
+    return result
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,71 @@
+"""Training and evaluation of the dynamics on a tiny generated data set (CPU)."""
+
+import dataclasses
+import json
+
+import jax
+import numpy as np
+import pytest
+from flax import nnx
+
+from dynres_jax import ckpt, data
+from dynres_jax.dynamics import DynamicsConfig
+from dynres_jax.train import TrainConfig, build_model, train
+from experiments import eval_dynamics
+
+CFG = TrainConfig(steps=4, batch=4, horizon=2, n_max=8, max_points=256, eval_every=2, ckpt_every=2, val_batches=1,
+                  model=DynamicsConfig(hidden=16))
+
+
+@pytest.fixture(scope="module")
+def shards(tmp_path_factory):
+    out = tmp_path_factory.mktemp("data")
+    data.generate(data.quick_config(episodes=20, pushes=3), str(out), progress=False)
+    return str(out)
+
+
+@pytest.fixture(scope="module")
+def run(shards, tmp_path_factory):
+    out = tmp_path_factory.mktemp("run")
+    return str(out), train(CFG, shards, str(out), progress=False)
+
+
+def test_training_writes_metrics_curves_and_checkpoints(run):
+    out, last = run
+    rows = [json.loads(line) for line in open(f"{out}/metrics.jsonl")]
+    assert [r["step"] for r in rows] == [2, 4] and np.isfinite(last["val_rmse_mm"])
+    assert ckpt.latest_step(f"{out}/ckpt") == 4
+    assert (f"{out}/curves.png") and open(f"{out}/curves.png", "rb").read(4) == b"\x89PNG"
+
+
+def test_resumed_run_equals_an_uninterrupted_one(shards, run, tmp_path):
+    """Kill after step 2 (keep its checkpoint, leave a metrics line past it), resume to 4: same parameters."""
+    out, _ = run
+    train(dataclasses.replace(CFG, steps=2), shards, str(tmp_path), progress=False)
+    with open(tmp_path / "metrics.jsonl", "a") as f:
+        f.write(json.dumps({"step": 3, "train_rmse_mm": 0.0}) + "\n")  # written after the checkpoint, then killed
+    with pytest.raises(ValueError, match="another TrainConfig"):
+        train(dataclasses.replace(CFG, steps=4, lr=0.5), shards, str(tmp_path), progress=False)
+    train(CFG, shards, str(tmp_path), progress=False)
+    resumed, _, _ = ckpt.load_module(tmp_path / "ckpt", build_model)
+    straight, _, _ = ckpt.load_module(f"{out}/ckpt", build_model)
+    for a, b in zip(jax.tree.leaves(nnx.state(resumed)), jax.tree.leaves(nnx.state(straight)), strict=True):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    assert [json.loads(line)["step"] for line in open(tmp_path / "metrics.jsonl")] == [2, 4]
+
+
+def test_eval_reports_every_method_and_resolution(run, shards, tmp_path):
+    out, _ = run
+    result = eval_dynamics.main(["--ckpt", f"{out}/ckpt", "--data", shards, "--out", str(tmp_path),
+                                 "--omegas", "2", "8", "--windows", "6"])
+    assert set(result["omegas"]) == {"2", "8"}
+    for r in result["omegas"].values():
+        for method in eval_dynamics.METHODS:
+            assert len(r[method]) == CFG.horizon and all(np.isfinite(r[method]))
+        assert r["nothing moves"][0] > 0, "pushes through the pile must move some particles"
+    assert (tmp_path / "eval.md").read_text().startswith("| ω |")
+
+
+def test_bad_config_names_the_problem():
+    with pytest.raises(ValueError, match="omega_min"):
+        TrainConfig(omega_min=0)
