@@ -1,0 +1,509 @@
+"""Training data for the dynamics model f: batched MJX episodes of random pushes, on-disk shards, loaders, targets.
+
+Generation (``generate``). The run is cut into shards; shard ``i`` holds ``DataConfig.worlds`` episodes simulated
+as one batch of worlds, on one ``SimConfig`` drawn for that shard (piece kind(s), piece count, pile layout) from the
+ranges in ``DataConfig``. Everything random in a shard (its scene and its worlds) comes from ``(seed, i)`` alone,
+so shards can be made in any order, and a killed run resumes by skipping the shard files that exist: the result is
+the one an uninterrupted run writes. An episode is ``pushes`` random pushes through the pile (``PileEnv.sample_push``)
+from a freshly reset pile; frame 0 is the settled pile, frame ``t + 1`` the pile after action ``t``. The worlds of a
+batch are sharded over all visible devices (a 1-D ``Mesh`` named ``"worlds"``), so more GPUs go faster unchanged.
+Results are bit-identical for the same seed, machine and device count; with another device count XLA compiles a
+different per-device batch and values agree to float32 rounding (then drift apart, as chaotic piles do).
+
+On-disk format: ``DIR/shard_00000.npz`` ... (one zip of ``.npy`` members, deflated, fixed timestamps, so equal
+content gives equal bytes), ``DIR/config.json`` (the DataConfig, checked on resume), ``DIR/summary.json``. Shard
+members, with E kept episodes, F = pushes + 1 frames, N pieces, H x W pixels:
+
+    depth   [E, F, H, W] float16   z-depth (m); table at ``camera.distance`` (1 m): below 1 m the step is 0.49 mm
+    piece   [E, F, H, W] int16     segmentation: piece index, -1 background
+    pos     [E, F, N, 3] float32   piece (geom) centres, world frame (m)
+    mat     [E, F, N, 3, 3] float32  piece rotations (columns: the piece's axes in the world frame)
+    action  [E, F - 1, 4] float32  pushes (x_start, y_start, x_end, y_end), m
+    broken  [E, F] bool            the world broke (NaN, a piece through the table or out of the bin); sticky
+    episode [E] int64              global episode id, shard * worlds + world
+    kind    [N] int16              each piece's kind, an index into kind_names
+    kind_names [K] str; sim_config [] str (the shard's SimConfig as JSON); shard, simulated, dropped [] int64
+
+Colour images are not stored: ``Renderer`` redraws them from the poses. Broken episodes are dropped by default
+(``DataConfig.drop_broken``): ``dropped`` counts them per shard and the summary in total.
+
+Training samples. ``load_shards`` reads shards into one ``Dataset`` (pieces padded to the largest count, with a
+mask); the held-out split is by episode: global id ``% val_every == val_every - 1`` is validation, so it never
+depends on shard layout or resuming. ``windows`` cuts (episode, t) windows of ``horizon + 1`` frames; ``make_sample``
+(pure JAX, vmap it) samples particles at frame t with perception h at resolution ω, attaches each particle to the
+piece it lies on (``attach_particles``) and moves it with that piece (``particle_trajectory``): the targets are
+rigid-body tracks, never re-matched by nearest neighbours.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import glob
+import json
+import math
+import os
+import tempfile
+import time
+import zipfile
+from collections.abc import Callable, Iterator
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax.sharding import Mesh, NamedSharding, PartitionSpec
+from tqdm import tqdm
+
+from dynres_jax.config import (
+    KINDS,
+    CameraConfig,
+    PileConfig,
+    PushConfig,
+    SceneConfig,
+    SimConfig,
+    replace,
+)
+from dynres_jax.perception import sample_particles
+from dynres_jax.sim.camera import Camera, Observation
+from dynres_jax.sim.env import PileEnv
+
+KIND_NAMES = tuple(KINDS)  # global kind index used by Dataset.kind and Sample.kind
+LAYOUTS = ("blob", "two_blobs", "spread")
+SHARD_GLOB = "shard_*.npz"
+TMP_PREFIX = ".tmp-"  # temp files of atomic writes; leftovers from a killed run are removed on the next start
+ZIP_DATE = (1980, 1, 1, 0, 0, 0)
+PER_EPISODE = ("depth", "piece", "pos", "mat", "action", "broken", "episode")  # shard members with an episode axis
+
+
+@dataclass(frozen=True)
+class DataConfig:
+    """A data generation run.
+
+    episodes: episodes to keep before dropping broken ones (reference 2,000); the last shard is cut to fit.
+    pushes: random pushes per episode (reference 10; training windows need pushes >= the rollout horizon, 5).
+    worlds: worlds simulated together, one shard; must divide by the number of devices. Large batches pay on a GPU
+      (MJX peaks at about 1,024 worlds of 100 pieces on an H200), but every shard is one scene: more shards, more
+      scene variety.
+    kinds: piece kinds a shard's scene is drawn from. pieces: (min, max) piece count of a shard, drawn on a grid of
+      ``pieces_step`` (each distinct scene compiles once; a coarse grid means fewer compiles).
+    layouts: pile layouts to draw from. two_kinds: probability that a shard mixes two kinds (half the pieces each),
+      for Sort. image_size: square image side (pixels). seed: everything random derives from (seed, shard index).
+    drop_broken: drop episodes whose world broke (else keep them with their ``broken`` flags).
+    sim: the rest of the simulator (physics, push, camera distance); kinds, pieces, layout and image size above
+      override its fields per shard.
+    """
+
+    episodes: int = 2000
+    pushes: int = 10
+    worlds: int = 128
+    kinds: tuple[str, ...] = ("coffee", "almond", "rice", "mnm", "granola", "candy")
+    pieces: tuple[int, int] = (40, 100)
+    pieces_step: int = 10
+    layouts: tuple[str, ...] = LAYOUTS
+    two_kinds: float = 0.25
+    image_size: int = 128
+    seed: int = 0
+    drop_broken: bool = True
+    sim: SimConfig = field(default_factory=SimConfig)
+
+    def __post_init__(self):
+        for name in ("episodes", "pushes", "worlds", "pieces_step"):
+            value = getattr(self, name)
+            if not isinstance(value, int | np.integer) or value < 1:
+                raise ValueError(f"DataConfig.{name} must be a positive int, got {value!r}")
+        if not self.kinds or any(k not in KINDS for k in self.kinds):
+            raise ValueError(f"DataConfig.kinds must be non-empty names from {KIND_NAMES}, got {self.kinds}")
+        if len(self.pieces) != 2 or not 1 <= self.pieces[0] <= self.pieces[1]:
+            raise ValueError(f"DataConfig.pieces must be (min, max) with 1 <= min <= max, got {self.pieces}")
+        if not self.layouts or any(lay not in LAYOUTS for lay in self.layouts):
+            raise ValueError(f"DataConfig.layouts must be non-empty names from {LAYOUTS}, got {self.layouts}")
+        if not 0.0 <= self.two_kinds <= 1.0 or (self.two_kinds > 0 and len(set(self.kinds)) < 2):
+            raise ValueError(f"DataConfig.two_kinds must be in [0, 1], and 0 unless two distinct kinds are given; "
+                             f"got {self.two_kinds} with kinds {self.kinds}")
+        if self.image_size < 8:
+            raise ValueError(f"DataConfig.image_size must be at least 8 pixels, got {self.image_size}")
+
+    @property
+    def n_shards(self) -> int:
+        return math.ceil(self.episodes / self.worlds)
+
+    def to_json(self) -> str:
+        return json.dumps(dataclasses.asdict(self), indent=1, sort_keys=True)
+
+
+def quick_config(**overrides) -> DataConfig:
+    """Tiny sizes for smoke tests on a CPU: 6 coffee beans in a blob, 48 x 48 images, 2 short pushes, 8 episodes
+    in shards of 4 worlds. ``overrides``: DataConfig fields by name."""
+    quick = DataConfig(episodes=8, pushes=2, worlds=4, kinds=("coffee",), pieces=(6, 6), layouts=("blob",),
+                       two_kinds=0.0, image_size=48,
+                       sim=SimConfig(push=PushConfig(max_length=0.08, settle_time=0.04)))
+    return replace(quick, **overrides)
+
+
+def sim_config_from_json(text: str) -> SimConfig:
+    """Inverse of ``json.dumps(dataclasses.asdict(sim_config))`` (lists back to tuples)."""
+    d = json.loads(text)
+    fix = lambda sub: {k: tuple(v) if isinstance(v, list) else v for k, v in sub.items()}
+    return SimConfig(scene=SceneConfig(**fix(d["scene"])), push=PushConfig(**fix(d["push"])),
+                     pile=PileConfig(**fix(d["pile"])), camera=CameraConfig(**fix(d["camera"])))
+
+
+def shard_sim_config(config: DataConfig, shard: int) -> SimConfig:
+    """The scene of shard ``shard``: kind(s), piece count and layout drawn from ``np.random.default_rng((seed,
+    shard))``; image size from the DataConfig, everything else from ``config.sim``."""
+    rng = np.random.default_rng((config.seed, shard))
+    lo, hi = config.pieces
+    n = int(rng.choice(np.arange(lo, hi + 1, config.pieces_step)))
+    layout = str(rng.choice(config.layouts))
+    if rng.uniform() < config.two_kinds and n >= 2:
+        kinds = tuple(str(k) for k in rng.choice(sorted(set(config.kinds)), 2, replace=False))
+        pieces = (n // 2, n - n // 2)
+    else:
+        kinds, pieces = (str(rng.choice(config.kinds)),), (n,)
+    sim = config.sim
+    return replace(sim, scene=replace(sim.scene, kinds=kinds, pieces=pieces), pile=replace(sim.pile, layout=layout),
+                   camera=replace(sim.camera, width=config.image_size, height=config.image_size))
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Atomic files
+# ---------------------------------------------------------------------------------------------------------------
+def atomic_write(path: str, write: Callable) -> None:
+    """Write ``path`` atomically: ``write(f)`` fills a binary temp file in the same folder, which then replaces
+    ``path`` (``os.replace``), so readers see the old file or the whole new one, never a part."""
+    folder = os.path.dirname(os.path.abspath(path))
+    os.makedirs(folder, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=folder, prefix=TMP_PREFIX + os.path.basename(path) + ".")
+    try:
+        with os.fdopen(fd, "wb") as f:
+            write(f)
+        os.chmod(tmp, 0o644)  # mkstemp makes 0600
+        os.replace(tmp, path)
+    except BaseException:
+        os.unlink(tmp)
+        raise
+
+
+def write_json(path: str, obj) -> None:
+    atomic_write(path, lambda f: f.write(json.dumps(obj, indent=1, sort_keys=True).encode()))
+
+
+def save_npz(path: str, arrays: dict) -> None:
+    """Atomic ``np.savez_compressed`` with fixed member timestamps: equal arrays give byte-equal files."""
+
+    def write(f):
+        with zipfile.ZipFile(f, "w", zipfile.ZIP_DEFLATED, compresslevel=1) as z:
+            for name, value in arrays.items():
+                info = zipfile.ZipInfo(name + ".npy", ZIP_DATE)
+                info.compress_type = zipfile.ZIP_DEFLATED
+                with z.open(info, "w", force_zip64=True) as member:
+                    np.lib.format.write_array(member, np.asarray(value), allow_pickle=False)
+
+    atomic_write(path, write)
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Generation
+# ---------------------------------------------------------------------------------------------------------------
+def check_devices(config: DataConfig, devices=None) -> list:
+    """The devices a run shards its worlds over (default all visible); ValueError unless worlds divides."""
+    devices = list(devices or jax.devices())
+    if config.worlds % len(devices):
+        raise ValueError(f"DataConfig.worlds={config.worlds} must be a multiple of the device count "
+                         f"{len(devices)} (worlds are split evenly over devices); use e.g. worlds="
+                         f"{math.ceil(config.worlds / len(devices)) * len(devices)}")
+    return devices
+
+
+@functools.lru_cache(maxsize=4)
+def _episode_fn(sim: SimConfig, pushes: int, devices: tuple):
+    """(env, fn, sharding): jitted fn keys [W, 2] -> per-world episode arrays (leading axis W), the worlds axis
+    sharded over ``devices``. Cached, so shards of one scene compile once."""
+    env = PileEnv(sim, backend="mjx")
+
+    def frame(s):
+        return dict(depth=s.obs.depth.astype(jnp.float16), piece=s.obs.piece.astype(jnp.int16), pos=s.pos,
+                    mat=s.mat, broken=s.broken)
+
+    def episode(key):
+        k_reset, k_push = jax.random.split(key)
+        s0 = env.reset(k_reset)
+
+        def step(s, k):
+            action = env.sample_push(k, s.pos)
+            s1 = env.push(s, action)
+            return s1._replace(obs=None), (frame(s1), action)
+
+        _, (frames, actions) = jax.lax.scan(step, s0._replace(obs=None), jax.random.split(k_push, pushes))
+        out = jax.tree.map(lambda a, b: jnp.concatenate([a[None], b]), frame(s0), frames)
+        return dict(out, action=actions)
+
+    sharding = NamedSharding(Mesh(np.array(devices), ("worlds",)), PartitionSpec("worlds"))
+    return env, jax.jit(jax.vmap(episode), in_shardings=sharding, out_shardings=sharding), sharding
+
+
+def simulate_shard(config: DataConfig, shard: int, devices=None) -> dict:
+    """Simulate shard ``shard`` (all ``worlds`` episodes, nothing dropped) -> dict of NumPy arrays with a leading
+    world axis (see the module docstring) plus the shard's metadata."""
+    devices = check_devices(config, devices)
+    sim = shard_sim_config(config, shard)
+    env, fn, sharding = _episode_fn(sim, config.pushes, tuple(devices))
+    keys = jax.random.split(jax.random.fold_in(jax.random.PRNGKey(config.seed), shard), config.worlds)
+    out = jax.device_get(fn(jax.device_put(keys, sharding)))
+    out["episode"] = shard * config.worlds + np.arange(config.worlds, dtype=np.int64)
+    out["kind"] = env.scene.kind.astype(np.int16)
+    out["kind_names"] = np.array(sim.scene.kinds)
+    out["sim_config"] = np.array(json.dumps(dataclasses.asdict(sim), sort_keys=True))
+    out["shard"] = np.int64(shard)
+    return out
+
+
+def finish_shard(arrays: dict, n_keep: int, drop_broken: bool) -> dict:
+    """Keep the first ``n_keep`` worlds (the run's last shard is cut to ``episodes``) and drop the broken ones
+    when ``drop_broken``; adds ``simulated`` and ``dropped`` counts."""
+    keep = np.arange(len(arrays["episode"])) < n_keep
+    broken = keep & arrays["broken"][:, -1]
+    if drop_broken:
+        keep &= ~broken
+    out = {k: (v[keep] if k in PER_EPISODE else v) for k, v in arrays.items()}
+    out["simulated"] = np.int64(n_keep)
+    out["dropped"] = np.int64(broken.sum() if drop_broken else 0)
+    return out
+
+
+def shard_path(out_dir: str, shard: int) -> str:
+    return os.path.join(out_dir, f"shard_{shard:05d}.npz")
+
+
+def generate(config: DataConfig, out_dir: str, devices=None, progress: bool = True) -> dict:
+    """Simulate ``config`` into ``out_dir`` (shards, config.json, summary.json), resuming a killed run: shard files
+    that exist are kept, the missing ones simulated. Returns the summary (also written to summary.json): totals over
+    all shards, and this run's shards written, seconds and ``samples_per_s`` (frames written per second of this
+    run, compiles included). ValueError when ``out_dir`` holds a run of another DataConfig, or worlds does not
+    divide by the device count. One writer per folder."""
+    devices = check_devices(config, devices)
+    os.makedirs(out_dir, exist_ok=True)
+    for leftover in glob.glob(os.path.join(out_dir, TMP_PREFIX + "*")):
+        os.unlink(leftover)
+    config_path = os.path.join(out_dir, "config.json")
+    if os.path.exists(config_path):
+        with open(config_path) as f:
+            if f.read() != config.to_json():
+                raise ValueError(f"{out_dir} holds data of another DataConfig (see its config.json); resume with "
+                                 "the same config or write to a new folder")
+    else:
+        atomic_write(config_path, lambda f: f.write(config.to_json().encode()))
+
+    todo = [i for i in range(config.n_shards) if not os.path.exists(shard_path(out_dir, i))]
+    start, written_frames = time.perf_counter(), 0
+    bar = tqdm(total=config.n_shards, initial=config.n_shards - len(todo), unit="shard", desc="generate",
+               disable=not progress)
+    with ThreadPoolExecutor(1) as writer:  # compress and write shard i while shard i + 1 simulates
+        pending = None
+        for i in todo:
+            arrays = finish_shard(simulate_shard(config, i, devices), min(config.worlds, config.episodes -
+                                                                          i * config.worlds), config.drop_broken)
+            if pending is not None:
+                pending.result()
+            pending = writer.submit(save_npz, shard_path(out_dir, i), arrays)
+            written_frames += arrays["broken"].size
+            bar.update()
+            bar.set_postfix(kinds="+".join(arrays["kind_names"]), pieces=len(arrays["kind"]))
+        if pending is not None:
+            pending.result()
+    bar.close()
+    seconds = time.perf_counter() - start
+
+    totals = dict(shards=0, episodes=0, frames=0, broken_dropped=0, simulated=0)
+    for _, shard in iter_shards(out_dir, members=("broken", "simulated", "dropped")):
+        totals["shards"] += 1
+        totals["episodes"] += len(shard["broken"])
+        totals["frames"] += shard["broken"].size
+        totals["broken_dropped"] += int(shard["dropped"])
+        totals["simulated"] += int(shard["simulated"])
+    summary = dict(totals, episodes_requested=config.episodes, pushes=config.pushes, shards_written=len(todo),
+                   shards_skipped=config.n_shards - len(todo), seconds=seconds,
+                   samples_per_s=written_frames / seconds if todo else 0.0,
+                   devices=len(devices), device_kind=devices[0].device_kind)
+    write_json(os.path.join(out_dir, "summary.json"), summary)
+    return summary
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Loading
+# ---------------------------------------------------------------------------------------------------------------
+def iter_shards(data_dir: str, members=None) -> Iterator[tuple[str, dict]]:
+    """(path, {name: array}) for every shard in ``data_dir`` in shard order, reading only ``members`` (default
+    all): an npz member is read when asked for, so counting episodes never reads images."""
+    paths = sorted(glob.glob(os.path.join(data_dir, SHARD_GLOB)))
+    for path in paths:
+        with np.load(path, allow_pickle=False) as z:
+            yield path, {k: z[k] for k in (members or z.files)}
+
+
+@dataclass(frozen=True, eq=False)
+class Dataset:
+    """Episodes of all loaded shards, pieces padded to the largest count Nmax (E episodes, F frames):
+    depth [E, F, H, W] float16 (m), piece [E, F, H, W] int16, pos [E, F, Nmax, 3], mat [E, F, Nmax, 3, 3] (padding:
+    0 and identity), piece_mask [E, Nmax] bool, kind [E, Nmax] int16 index into KIND_NAMES (-1 padding), action
+    [E, F - 1, 4], broken [E, F], episode [E] global ids; camera: the shards' common camera."""
+
+    depth: np.ndarray
+    piece: np.ndarray
+    pos: np.ndarray
+    mat: np.ndarray
+    piece_mask: np.ndarray
+    kind: np.ndarray
+    action: np.ndarray
+    broken: np.ndarray
+    episode: np.ndarray
+    camera: Camera
+
+    @property
+    def pushes(self) -> int:
+        return self.action.shape[1]
+
+    def __len__(self) -> int:
+        return len(self.episode)
+
+
+def is_validation(episode, val_every: int = 10):
+    """The held-out split by global episode id: every ``val_every``-th episode -> bool (same shape)."""
+    return np.asarray(episode) % val_every == val_every - 1
+
+
+def load_shards(data_dir: str, split: str = "all", val_every: int = 10) -> Dataset:
+    """Read every shard of ``data_dir`` into a Dataset. split: "all", "train" or "val" (``is_validation``)."""
+    if split not in ("all", "train", "val"):
+        raise ValueError(f"split must be 'all', 'train' or 'val', got {split!r}")
+    parts, camera, pushes = [], None, None
+    for path, s in iter_shards(data_dir):
+        sim = sim_config_from_json(str(s["sim_config"]))
+        cam = Camera.top_down(sim.camera)
+        if camera is not None and (cam != camera or s["action"].shape[1] != pushes):
+            raise ValueError(f"{path}: its camera or pushes per episode differ from the earlier shards'")
+        camera, pushes = cam, s["action"].shape[1]
+        val = is_validation(s["episode"], val_every)
+        keep = np.ones_like(val) if split == "all" else (val if split == "val" else ~val)
+        kind = np.array([KIND_NAMES.index(str(name)) for name in s["kind_names"]], np.int16)[s["kind"]]
+        parts.append({**{k: s[k][keep] for k in PER_EPISODE}, "kind": kind})
+    if not parts:
+        raise ValueError(f"no shards ({SHARD_GLOB}) in {data_dir}")
+    n_max = max(p["pos"].shape[2] for p in parts)
+
+    def pad(p):
+        e, n = len(p["episode"]), p["pos"].shape[2]
+        f = p["pos"].shape[1]
+        mat = np.broadcast_to(np.eye(3, dtype=np.float32), (e, f, n_max, 3, 3)).copy()
+        mat[:, :, :n] = p["mat"]
+        return dict(p, pos=np.pad(p["pos"], ((0, 0), (0, 0), (0, n_max - n), (0, 0))), mat=mat,
+                    piece_mask=np.broadcast_to(np.arange(n_max) < n, (e, n_max)),
+                    kind=np.broadcast_to(np.pad(p["kind"], (0, n_max - n), constant_values=-1), (e, n_max)))
+
+    parts = [pad(p) for p in parts]
+    cat = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
+    return Dataset(**cat, camera=camera)
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Training targets
+# ---------------------------------------------------------------------------------------------------------------
+def attach_particles(particles, mask, piece_pos, piece_mat, piece_id_image, camera: Camera, piece_mask=None):
+    """Attach each particle to the piece it lies on. particles [n, 3] world (m), mask [n] bool, piece_pos [N, 3],
+    piece_mat [N, 3, 3] (columns: piece axes), piece_id_image [H, W] (piece index, negative for background),
+    piece_mask [N] bool (padding pieces False; default all real) -> (piece_index [n] int32, -1 where masked;
+    local [n, 3] piece-frame offsets R^T (p - c), 0 where masked).
+
+    The piece is the one in the segmentation pixel the particle projects to; where that pixel is background (or
+    outside the image) the piece with the nearest centre. Pure JAX."""
+    particles = jnp.asarray(particles, jnp.float32)
+    ids = jnp.asarray(piece_id_image).astype(jnp.int32)
+    n_pieces = piece_pos.shape[0]
+    piece_mask = jnp.ones(n_pieces, bool) if piece_mask is None else jnp.asarray(piece_mask, bool)
+    uv, _ = camera.world_to_pixel(particles)
+    u, v = jnp.floor(uv[:, 0]).astype(jnp.int32), jnp.floor(uv[:, 1]).astype(jnp.int32)
+    inside = (u >= 0) & (u < ids.shape[1]) & (v >= 0) & (v < ids.shape[0])
+    seen = jnp.where(inside, ids[jnp.clip(v, 0, ids.shape[0] - 1), jnp.clip(u, 0, ids.shape[1] - 1)], -1)
+    seen_ok = (seen >= 0) & (seen < n_pieces) & piece_mask[jnp.clip(seen, 0, n_pieces - 1)]
+    d2 = jnp.sum(jnp.square(particles[:, None] - piece_pos[None]), -1)
+    nearest = jnp.argmin(jnp.where(piece_mask[None], d2, jnp.inf), axis=1).astype(jnp.int32)
+    index = jnp.where(mask, jnp.where(seen_ok, seen, nearest), -1)
+    safe = jnp.maximum(index, 0)
+    local = jnp.einsum("nji,nj->ni", piece_mat[safe], particles - piece_pos[safe])
+    return index, jnp.where(mask[:, None], local, 0.0)
+
+
+def particle_trajectory(piece_index, local, pos_seq, mat_seq):
+    """Particles moved rigidly with their pieces: piece_index [n] (-1: none), local [n, 3], pos_seq [K, N, 3],
+    mat_seq [K, N, 3, 3] -> positions [K, n, 3] = R_k local + c_k (0 where piece_index is -1). Pure JAX."""
+    safe = jnp.maximum(piece_index, 0)
+    traj = pos_seq[:, safe] + jnp.einsum("knij,nj->kni", mat_seq[:, safe], local)
+    return jnp.where((piece_index >= 0)[None, :, None], traj, 0.0)
+
+
+class Window(NamedTuple):
+    """One training window of ``horizon`` pushes from frame t (NumPy or JAX; batch axes in front): depth [H, W] f32
+    (m) and piece [H, W] int32 at frame t; pos [horizon + 1, N, 3], mat [horizon + 1, N, 3, 3] at frames t..t+horizon;
+    piece_mask [N] bool; kind [N] int32 (KIND_NAMES index, -1 padding); action [horizon, 4] (m)."""
+
+    depth: np.ndarray
+    piece: np.ndarray
+    pos: np.ndarray
+    mat: np.ndarray
+    piece_mask: np.ndarray
+    kind: np.ndarray
+    action: np.ndarray
+
+
+def windows(data: Dataset, rows, t, horizon: int = 5) -> Window:
+    """Batched windows: rows [B] (Dataset rows, not episode ids), t [B] start frames, 0 <= t <= pushes - horizon."""
+    rows, t = np.asarray(rows), np.asarray(t)
+    if horizon < 1 or horizon > data.pushes:
+        raise ValueError(f"horizon={horizon} must be in [1, pushes per episode = {data.pushes}]")
+    if rows.shape != t.shape or np.any(t < 0) or np.any(t > data.pushes - horizon):
+        raise ValueError(f"t must match rows in shape and lie in [0, {data.pushes - horizon}] (pushes - horizon)")
+    span = t[:, None] + np.arange(horizon + 1)
+    r = rows[:, None]
+    return Window(data.depth[rows, t].astype(np.float32), data.piece[rows, t].astype(np.int32), data.pos[r, span],
+                  data.mat[r, span], data.piece_mask[rows], data.kind[rows].astype(np.int32),
+                  data.action[r, span[:, :-1]])
+
+
+def random_windows(data: Dataset, rng: np.random.Generator, batch: int, horizon: int = 5) -> Window:
+    """``batch`` windows, rows and start frames uniform."""
+    return windows(data, rng.integers(0, len(data), batch), rng.integers(0, data.pushes - horizon + 1, batch),
+                   horizon)
+
+
+class Sample(NamedTuple):
+    """A training sample: positions [horizon + 1, n_max, 3] of the particles at frames t..t+horizon (m, 0 where
+    masked); mask [n_max] (the first ω); kind [n_max] int32 (KIND_NAMES index of each particle's piece, -1 masked);
+    action [horizon, 4]; radius [] the FPS covering radius (m); error [] perception error flags (0 = ok; else the
+    mask is all False)."""
+
+    positions: jax.Array
+    mask: jax.Array
+    kind: jax.Array
+    action: jax.Array
+    radius: jax.Array
+    error: jax.Array
+
+
+def make_sample(window: Window, omega, key, camera: Camera, n_max: int, **perception_kw) -> Sample:
+    """One Window + resolution ω + key -> Sample: h(y_t, ω) with ``n_max`` slots, each particle attached to its
+    piece at frame t and carried rigidly to t + horizon. Pure JAX; ``jax.vmap`` over (window, omega, key).
+    perception_kw: keyword arguments of ``sample_particles`` (max_points, r_center, kind with a KIND_NAMES index)."""
+    piece = jnp.asarray(window.piece, jnp.int32)
+    kind = jnp.asarray(window.kind, jnp.int32)
+    kind_image = jnp.where(piece >= 0, kind[jnp.maximum(piece, 0)], -1)
+    obs = Observation(jnp.asarray(window.depth, jnp.float32), piece, kind_image,
+                      jnp.zeros(piece.shape + (3,), jnp.uint8))
+    p = sample_particles(obs, camera, omega, key, n_max, **perception_kw)
+    index, local = attach_particles(p.positions, p.mask, window.pos[0], window.mat[0], piece, camera,
+                                    window.piece_mask)
+    positions = particle_trajectory(index, local, jnp.asarray(window.pos), jnp.asarray(window.mat))
+    return Sample(positions, p.mask, jnp.where(index >= 0, kind[jnp.maximum(index, 0)], -1),
+                  jnp.asarray(window.action), p.radius, p.error)

@@ -1,0 +1,342 @@
+"""Data generation: shards and summary, resume after a kill, multi-device sharding, training targets, bad input.
+
+One tiny generation (6 coffee beans, 48 x 48, 2 short pushes, 7 episodes in 2 shards of 4 worlds) compiles once and
+serves every test; the 4-device run is a subprocess started first, so it runs beside the main process's work.
+"""
+
+import dataclasses
+import json
+import os
+import shutil
+import subprocess
+import sys
+import textwrap
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from dynres_jax import data
+from dynres_jax.config import CameraConfig, SceneConfig, SimConfig
+from dynres_jax.perception import sample_particles
+from dynres_jax.sim.camera import Observation
+from dynres_jax.sim.env import PileEnv
+
+QUICK = data.quick_config(episodes=7)  # shard 0: 4 episodes, shard 1: 3 (the last shard is cut to fit)
+N_MAX = 24
+REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+MULTI_DEVICE_SCRIPT = textwrap.dedent("""
+    import sys
+    import jax
+    from dynres_jax import data
+    from experiments.generate_data import main
+    assert len(jax.devices()) == 4, jax.devices()
+    try:
+        data.generate(data.quick_config(worlds=6), sys.argv[1] + "/bad", progress=False)
+    except ValueError as e:
+        print("BAD-WORLDS:", e)
+    main(["--quick", "--episodes", "4", "--no-progress", "--out", sys.argv[1] + "/run"])
+""")
+
+
+@pytest.fixture(scope="module")
+def multi_device(tmp_path_factory):
+    """The quick run's first shard made on 4 forced host devices, in a subprocess started before anything else."""
+    out = tmp_path_factory.mktemp("multi")
+    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=4", JAX_PLATFORMS="cpu")
+    proc = subprocess.Popen([sys.executable, "-c", MULTI_DEVICE_SCRIPT, str(out)], cwd=REPO, env=env,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    yield proc, out
+    if proc.poll() is None:
+        proc.kill()
+        proc.communicate()
+
+
+@pytest.fixture(scope="module")
+def generated(tmp_path_factory, multi_device):
+    out = str(tmp_path_factory.mktemp("gen") / "run")
+    return out, data.generate(QUICK, out, progress=False)
+
+
+def read(path):
+    with np.load(path, allow_pickle=False) as z:
+        return {k: z[k] for k in z.files}
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Generation
+# ----------------------------------------------------------------------------------------------------------------
+def test_generation_writes_shards_and_summary(generated):
+    out, summary = generated
+    assert sorted(os.listdir(out)) == ["config.json", "shard_00000.npz", "shard_00001.npz", "summary.json"]
+    with open(os.path.join(out, "summary.json")) as f:
+        assert json.load(f) == pytest.approx(summary)
+    assert summary["shards"] == 2 and summary["episodes"] == 7 and summary["frames"] == 7 * 3
+    assert summary["broken_dropped"] == 0 and summary["shards_written"] == 2 and summary["samples_per_s"] > 0
+    env = PileEnv(data.shard_sim_config(QUICK, 0), backend="mujoco", render=False)
+    for i, e in enumerate((4, 3)):
+        s = read(data.shard_path(out, i))
+        expect = dict(depth=((e, 3, 48, 48), np.float16), piece=((e, 3, 48, 48), np.int16),
+                      pos=((e, 3, 6, 3), np.float32), mat=((e, 3, 6, 3, 3), np.float32),
+                      action=((e, 2, 4), np.float32), broken=((e, 3), np.bool_), episode=((e,), np.int64),
+                      kind=((6,), np.int16))
+        for name, (shape, dtype) in expect.items():
+            assert s[name].shape == shape and s[name].dtype == dtype, name
+        np.testing.assert_array_equal(s["episode"], 4 * i + np.arange(e))
+        assert int(s["shard"]) == i and int(s["simulated"]) == e and int(s["dropped"]) == 0
+        assert s["kind_names"].tolist() == ["coffee"] and not s["broken"].any()
+        assert data.sim_config_from_json(str(s["sim_config"])) == data.shard_sim_config(QUICK, i)
+        # rotations orthonormal; every piece seen in every frame; table at 1 m, wall tops at 0.96 m, pieces between
+        gram = np.einsum("...ji,...jk->...ik", s["mat"], s["mat"])
+        np.testing.assert_allclose(gram, np.broadcast_to(np.eye(3), gram.shape), atol=1e-5)
+        for ep in range(e):
+            for f in range(3):
+                assert set(np.unique(s["piece"][ep, f])) == set(range(-1, 6))
+        fg = s["piece"] >= 0
+        assert np.all(s["depth"][~fg] >= 0.959) and np.all((s["depth"][fg] > 0.98) & (s["depth"][fg] < 0.999))
+        # pushes lie in the workspace with lengths within the push config; the pile moved
+        a = s["action"]
+        assert np.all(np.abs(a) <= env.action_bound + 1e-6)
+        length = np.linalg.norm(a[..., 2:] - a[..., :2], axis=-1)
+        assert np.all(length <= QUICK.sim.push.max_length + 1e-6)
+        assert np.abs(s["pos"][:, -1] - s["pos"][:, 0]).max() > 0.005
+
+
+def test_finish_shard_cuts_and_drops_broken():
+    w, f = 4, 3
+    arrays = dict(broken=np.zeros((w, f), bool), episode=np.arange(w), pos=np.arange(w * 2.0).reshape(w, 2),
+                  kind=np.zeros(5, np.int16))
+    arrays["broken"][1, 2] = arrays["broken"][3, 1:] = True  # world 3 broke but is past the cut
+    kept = data.finish_shard(arrays, n_keep=3, drop_broken=True)
+    np.testing.assert_array_equal(kept["episode"], [0, 2])
+    np.testing.assert_array_equal(kept["pos"], arrays["pos"][[0, 2]])
+    assert kept["kind"].shape == (5,) and int(kept["dropped"]) == 1 and int(kept["simulated"]) == 3
+    flagged = data.finish_shard(arrays, n_keep=3, drop_broken=False)
+    np.testing.assert_array_equal(flagged["episode"], [0, 1, 2])
+    assert int(flagged["dropped"]) == 0 and flagged["broken"][1, 2]
+
+
+def test_resume_rewrites_missing_shard_identically(generated, tmp_path):
+    original, _ = generated
+    out = str(tmp_path / "run")
+    shutil.copytree(original, out)  # copy2: mtimes kept
+    first, second = data.shard_path(out, 0), data.shard_path(out, 1)
+    with open(second, "rb") as f:
+        second_bytes = f.read()
+    os.unlink(second)  # the run was killed before shard 1 ...
+    leftover = os.path.join(out, data.TMP_PREFIX + "shard_00001.npz.x7k2")
+    with open(leftover, "wb") as f:  # ... while writing it
+        f.write(b"half a zip")
+    mtime = os.stat(first).st_mtime_ns
+    summary = data.generate(QUICK, out, progress=False)
+    assert summary["shards_written"] == 1 and summary["shards_skipped"] == 1 and summary["episodes"] == 7
+    assert not os.path.exists(leftover) and os.stat(first).st_mtime_ns == mtime
+    with open(second, "rb") as f:
+        assert f.read() == second_bytes  # byte-identical: same arrays, fixed zip timestamps
+    for name, value in read(second).items():
+        np.testing.assert_array_equal(value, read(data.shard_path(original, 1))[name], err_msg=name)
+    assert data.generate(QUICK, out, progress=False)["shards_written"] == 0  # complete: nothing to do
+    with pytest.raises(ValueError, match="another DataConfig"):
+        data.generate(data.replace(QUICK, seed=1), out, progress=False)
+
+
+def test_multi_device_run_matches_single_device(generated, multi_device):
+    proc, out = multi_device
+    stdout, stderr = proc.communicate(timeout=300)
+    assert proc.returncode == 0, stderr[-3000:]
+    assert "BAD-WORLDS: DataConfig.worlds=6 must be a multiple of the device count 4" in stdout
+    summary = json.loads(stdout[stdout.index("{"):])
+    assert summary["devices"] == 4 and summary["episodes"] == 4
+    many, one = read(data.shard_path(str(out / "run"), 0)), read(data.shard_path(generated[0], 0))
+    assert many.keys() == one.keys()
+    for name in ("episode", "kind", "kind_names", "sim_config", "broken", "simulated", "dropped"):
+        np.testing.assert_array_equal(many[name], one[name], err_msg=name)
+    for name in ("depth", "piece", "pos", "mat"):  # the reset piles: bit-identical
+        np.testing.assert_array_equal(many[name][:, 0], one[name][:, 0], err_msg=name)
+    # After pushes, not bit-identical: XLA compiles another per-device batch (1 world, not 4), float32 rounding
+    # differs and contacts amplify it (measured: 6e-5 m after 2 pushes).
+    np.testing.assert_allclose(many["action"], one["action"], atol=1e-6)
+    np.testing.assert_allclose(many["pos"], one["pos"], atol=1e-3)
+    np.testing.assert_allclose(many["mat"], one["mat"], atol=1e-2)
+    np.testing.assert_allclose(many["depth"].astype(np.float32), one["depth"].astype(np.float32), atol=3e-3)
+    assert np.mean(many["piece"] == one["piece"]) > 0.99
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Training targets
+# ----------------------------------------------------------------------------------------------------------------
+def random_rotation(rng):
+    q = rng.normal(size=4)
+    w, x, y, z = q / np.linalg.norm(q)
+    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+                     [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+                     [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
+
+
+@pytest.fixture(scope="module")
+def placed():
+    """Almonds and candies (rotated capsules and boxes) placed apart by hand, settled and rendered (C MuJoCo)."""
+    cfg = SimConfig(scene=SceneConfig(kinds=("almond", "candy"), pieces=(3, 3)),
+                    camera=CameraConfig(width=64, height=64))
+    env = PileEnv(cfg, backend="mujoco")
+    xy = np.array([[-0.1, -0.1], [0.0, -0.1], [0.1, -0.1], [-0.1, 0.08], [0.0, 0.08], [0.1, 0.08]])
+    state = env.place(xy, yaw=np.array([0.3, 1.2, -0.7, 0.5, -1.0, 2.0]))
+    return env, state
+
+
+def test_attach_and_trajectory_match_numpy_rigid_motion(placed):
+    env, state = placed
+    pos0, mat0 = np.asarray(state.pos), np.asarray(state.mat)
+    p = sample_particles(state.obs, env.camera, 20, jax.random.PRNGKey(0), N_MAX)
+    particles = np.array(p.positions)
+    # add a particle over bare table (nearest centre: piece 4) and a masked one
+    particles[20] = pos0[4] + np.array([0.0, -0.05, 0.0])
+    mask = np.asarray(p.mask).copy()
+    mask[20] = True
+    u, v = np.floor(np.asarray(env.camera.world_to_pixel(particles[20])[0])).astype(int)
+    assert state.obs.piece[v, u] == -1
+    index, local = data.attach_particles(particles, mask, pos0, mat0, state.obs.piece, env.camera)
+    index, local = np.asarray(index), np.asarray(local)
+
+    # independent: pieces are 10 cm apart, so a particle's piece is the one with the nearest centre
+    nearest = np.argmin(np.linalg.norm(particles[:, None, :2] - pos0[None, :, :2], axis=-1), axis=1)
+    np.testing.assert_array_equal(index[mask], nearest[mask])
+    assert np.all(index[~mask] == -1) and np.all(local[~mask] == 0)
+    assert set(index[:20]) == set(range(6))  # 20 FPS particles cover every piece
+    footprint = env.scene.footprint[index[:20]]
+    assert np.all(np.linalg.norm(particles[:20, :2] - pos0[index[:20], :2], axis=-1) <= footprint + 0.004)
+
+    # known rigid motions: piece i at step k rotated by Q[k, i] about its centre and moved by T[k, i]
+    rng = np.random.default_rng(0)
+    k_steps = 4
+    Q = np.array([[np.eye(3) if k == 0 else random_rotation(rng) for _ in range(6)] for k in range(k_steps)])
+    T = np.concatenate([np.zeros((1, 6, 3)), rng.uniform(-0.05, 0.05, (k_steps - 1, 6, 3))])
+    pos_seq = pos0[None] + T
+    mat_seq = np.einsum("kiab,ibc->kiac", Q, mat0)
+    traj = np.asarray(data.particle_trajectory(index, local, pos_seq.astype(np.float32), mat_seq.astype(np.float32)))
+    m = mask
+    expect = np.einsum("knab,nb->kna", Q[:, nearest[m]], particles[m] - pos0[nearest[m]]) + pos_seq[:, nearest[m]]
+    np.testing.assert_allclose(traj[:, m], expect, atol=1e-5)
+    np.testing.assert_allclose(traj[0, m], particles[m], atol=1e-6)
+    assert np.all(traj[:, ~m] == 0)
+
+    # padding pieces are never chosen, even where one sits right under a background particle
+    pad_pos = np.concatenate([pos0, particles[20:21]])
+    pad_mat = np.concatenate([mat0, np.eye(3)[None]])
+    index_pad, _ = data.attach_particles(particles, mask, pad_pos, pad_mat, state.obs.piece, env.camera,
+                                         piece_mask=np.arange(7) < 6)
+    np.testing.assert_array_equal(np.asarray(index_pad), index)
+
+
+def test_attach_is_vmappable_and_masked_entries_are_inert(placed):
+    env, state = placed
+    p = sample_particles(state.obs, env.camera, 10, jax.random.PRNGKey(1), N_MAX)
+    junk = p.positions.at[10:].set(jax.random.uniform(jax.random.PRNGKey(2), (N_MAX - 10, 3)))
+    attach = lambda x: data.attach_particles(x, p.mask, state.pos, state.mat, state.obs.piece, env.camera)
+    index, local = jax.vmap(attach)(jnp.stack([p.positions, junk]))
+    np.testing.assert_array_equal(index[0], index[1])
+    np.testing.assert_array_equal(local[0], local[1])
+    assert np.all(index[0, 10:] == -1) and np.all(index[0, :10] >= 0)
+
+
+def test_load_split_and_samples(generated):
+    out, _ = generated
+    everything = data.load_shards(out)
+    train, val = data.load_shards(out, "train", val_every=3), data.load_shards(out, "val", val_every=3)
+    assert len(everything) == 7 and everything.pushes == 2 and everything.camera.width == 48
+    np.testing.assert_array_equal(val.episode, [2, 5])
+    np.testing.assert_array_equal(np.sort(np.concatenate([train.episode, val.episode])), np.arange(7))
+    assert everything.kind.shape == (7, 6) and np.all(everything.kind == data.KIND_NAMES.index("coffee"))
+    assert everything.piece_mask.all()
+
+    horizon, rows, t = 2, np.array([0, 3, 4, 6]), np.zeros(4, int)
+    win = data.windows(everything, rows, t, horizon)
+    assert win.pos.shape == (4, 3, 6, 3) and win.action.shape == (4, 2, 4) and win.depth.dtype == np.float32
+    # 6 beans at 48 x 48 pixels make 7 to 13 foreground points, so ω stays at most 6
+    omegas, keys = jnp.array([2, 3, 5, 6]), jax.random.split(jax.random.PRNGKey(0), 4)
+    make = jax.jit(jax.vmap(lambda w, o, k: data.make_sample(w, o, k, everything.camera, N_MAX)))
+    sample = jax.tree.map(np.asarray, make(win, omegas, keys))
+    assert sample.positions.shape == (4, 3, N_MAX, 3) and np.all(sample.error == 0)
+    np.testing.assert_array_equal(sample.mask.sum(1), omegas)
+    np.testing.assert_array_equal(sample.action, everything.action[rows, :2])
+    coffee = data.KIND_NAMES.index("coffee")
+    assert np.all(sample.kind[sample.mask] == coffee) and np.all(sample.kind[~sample.mask] == -1)
+    reach = 0.007 + 1.5 * 0.46 / 48  # a bean's radius plus a pixel diagonal
+    for b in range(4):
+        m = sample.mask[b]
+        # frame t: the particles h gives
+        obs = Observation(win.depth[b], win.piece[b], np.zeros_like(win.piece[b]), np.zeros((48, 48, 3), np.uint8))
+        direct = sample_particles(obs, everything.camera, int(omegas[b]), keys[b], N_MAX)
+        np.testing.assert_allclose(sample.positions[b, 0][m], np.asarray(direct.positions)[m], atol=1e-6)
+        assert np.all(sample.positions[b][:, ~m] == 0)
+        # later frames: each particle carried rigidly by one of the pieces it lies over (NumPy, R_k R_0^T)
+        for p0, track in zip(sample.positions[b, 0][m], sample.positions[b][:, m].transpose(1, 0, 2), strict=True):
+            near = np.flatnonzero(np.linalg.norm(win.pos[b, 0, :, :2] - p0[:2], axis=-1) <= reach)
+            rigid = [np.einsum("kab,cb,c->ka", win.mat[b, :, j], win.mat[b, 0, j], p0 - win.pos[b, 0, j])
+                     + win.pos[b, :, j] for j in near]
+            assert any(np.allclose(track, r, atol=1e-5) for r in rigid)
+
+
+def test_load_pads_shards_with_fewer_pieces(generated, tmp_path):
+    """A shard of 4 almonds beside shards of 6 coffee beans: pieces padded, masked, kinds mapped to KIND_NAMES."""
+    out = str(tmp_path / "mixed")
+    shutil.copytree(generated[0], out)
+    s = read(data.shard_path(out, 1))
+    sim = data.sim_config_from_json(str(s["sim_config"]))
+    sim = data.replace(sim, scene=data.replace(sim.scene, kinds=("almond",), pieces=(4,)))
+    s.update(pos=s["pos"][:, :, :4], mat=s["mat"][:, :, :4], kind=s["kind"][:4], kind_names=np.array(["almond"]),
+             piece=np.where(s["piece"] < 4, s["piece"], -1).astype(np.int16), episode=s["episode"] + 100,
+             sim_config=np.array(json.dumps(dataclasses.asdict(sim))))
+    data.save_npz(os.path.join(out, "shard_00002.npz"), s)
+    d = data.load_shards(out)
+    assert len(d) == 10 and d.pos.shape[2] == 6
+    assert d.piece_mask[:7].all() and np.all(d.piece_mask[7:] == (np.arange(6) < 4))
+    assert np.all(d.kind[7:, :4] == data.KIND_NAMES.index("almond")) and np.all(d.kind[7:, 4:] == -1)
+    assert np.all(d.pos[7:, :, 4:] == 0) and np.all(d.mat[7:, :, 4:] == np.eye(3))
+    np.testing.assert_array_equal(d.pos[7:, :, :4], s["pos"])
+    win = data.windows(d, [8], [0], horizon=2)
+    sample = data.make_sample(jax.tree.map(lambda x: x[0], win), 3, jax.random.PRNGKey(0), d.camera, N_MAX)
+    assert int(sample.error) == 0 and np.all(np.asarray(sample.kind)[:3] == data.KIND_NAMES.index("almond"))
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Bad input
+# ----------------------------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("bad, message", [
+    (dict(episodes=0), "episodes"), (dict(episodes=-3), "episodes"), (dict(worlds=0), "worlds"),
+    (dict(pushes=0), "pushes"), (dict(pieces=(50, 40)), "pieces"), (dict(kinds=("pebble",)), "kinds"),
+    (dict(layouts=("heap",)), "layouts"), (dict(kinds=("coffee",), two_kinds=0.5), "two_kinds"),
+    (dict(image_size=4), "image_size"),
+])
+def test_bad_config_names_the_field(bad, message):
+    with pytest.raises(ValueError, match=message):
+        data.DataConfig(**bad)
+
+
+def test_worlds_must_divide_by_devices(tmp_path):
+    cpu = jax.devices()[0]
+    with pytest.raises(ValueError, match="worlds=3 must be a multiple of the device count 2"):
+        data.generate(data.quick_config(worlds=3), str(tmp_path), devices=[cpu, cpu])
+    assert not os.listdir(tmp_path)
+
+
+def test_bad_windows_and_split(generated):
+    d = data.load_shards(generated[0])
+    with pytest.raises(ValueError, match="horizon"):
+        data.windows(d, [0], [0], horizon=3)
+    with pytest.raises(ValueError, match=r"\[0, 1\]"):
+        data.windows(d, [0], [2], horizon=1)
+    with pytest.raises(ValueError, match="split"):
+        data.load_shards(generated[0], "test")
+    with pytest.raises(ValueError, match="no shards"):
+        data.load_shards(os.path.dirname(generated[0]) + "/nothing")
+
+
+def test_cli_rejects_bad_flags(capsys):
+    from experiments.generate_data import main
+
+    with pytest.raises(SystemExit):
+        main(["--out", "/nonexistent/x", "--quick", "--episodes", "0"])
+    assert "DataConfig.episodes must be a positive int" in capsys.readouterr().err
