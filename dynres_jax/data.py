@@ -43,10 +43,9 @@ import glob
 import json
 import math
 import os
-import tempfile
 import time
 import zipfile
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import NamedTuple
@@ -66,6 +65,7 @@ from dynres_jax.config import (
     SimConfig,
     replace,
 )
+from dynres_jax.files import TMP_PREFIX, atomic_write, write_json, write_text
 from dynres_jax.perception import sample_particles
 from dynres_jax.sim.camera import Camera, Observation
 from dynres_jax.sim.env import PileEnv
@@ -73,7 +73,6 @@ from dynres_jax.sim.env import PileEnv
 KIND_NAMES = tuple(KINDS)  # global kind index used by Dataset.kind and Sample.kind
 LAYOUTS = ("blob", "two_blobs", "spread")
 SHARD_GLOB = "shard_*.npz"
-TMP_PREFIX = ".tmp-"  # temp files of atomic writes; leftovers from a killed run are removed on the next start
 ZIP_DATE = (1980, 1, 1, 0, 0, 0)
 PER_EPISODE = ("depth", "piece", "pos", "mat", "action", "broken", "episode")  # shard members with an episode axis
 
@@ -171,26 +170,6 @@ def shard_sim_config(config: DataConfig, shard: int) -> SimConfig:
 # ---------------------------------------------------------------------------------------------------------------
 # Atomic files
 # ---------------------------------------------------------------------------------------------------------------
-def atomic_write(path: str, write: Callable) -> None:
-    """Write ``path`` atomically: ``write(f)`` fills a binary temp file in the same folder, which then replaces
-    ``path`` (``os.replace``), so readers see the old file or the whole new one, never a part."""
-    folder = os.path.dirname(os.path.abspath(path))
-    os.makedirs(folder, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=folder, prefix=TMP_PREFIX + os.path.basename(path) + ".")
-    try:
-        with os.fdopen(fd, "wb") as f:
-            write(f)
-        os.chmod(tmp, 0o644)  # mkstemp makes 0600
-        os.replace(tmp, path)
-    except BaseException:
-        os.unlink(tmp)
-        raise
-
-
-def write_json(path: str, obj) -> None:
-    atomic_write(path, lambda f: f.write(json.dumps(obj, indent=1, sort_keys=True).encode()))
-
-
 def save_npz(path: str, arrays: dict) -> None:
     """Atomic ``np.savez_compressed`` with fixed member timestamps: equal arrays give byte-equal files."""
 
@@ -295,7 +274,7 @@ def generate(config: DataConfig, out_dir: str, devices=None, progress: bool = Tr
                 raise ValueError(f"{out_dir} holds data of another DataConfig (see its config.json); resume with "
                                  "the same config or write to a new folder")
     else:
-        atomic_write(config_path, lambda f: f.write(config.to_json().encode()))
+        write_text(config_path, config.to_json())
 
     todo = [i for i in range(config.n_shards) if not os.path.exists(shard_path(out_dir, i))]
     start, written_frames = time.perf_counter(), 0

@@ -26,7 +26,7 @@ import optax
 from flax import nnx
 from tqdm import tqdm
 
-from dynres_jax import ckpt, data
+from dynres_jax import ckpt, data, files
 from dynres_jax.dynamics import Dynamics, DynamicsConfig, resolution_code, rollout
 
 SCHEDULE = ("steps", "eval_every", "ckpt_every", "val_batches")  # may change when a run resumes; nothing else may
@@ -133,7 +133,7 @@ def _trim_metrics(path: str, last_step: int) -> None:
     if not os.path.exists(path):
         return
     keep = [line for line in open(path) if json.loads(line)["step"] <= last_step]
-    data.atomic_write(path, lambda f: f.write("".join(keep).encode()))
+    files.write_text(path, "".join(keep))
 
 
 def train(cfg: TrainConfig, data_dir: str, out_dir: str, progress: bool = True) -> dict:

@@ -7,17 +7,8 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import tempfile
 
-
-def _write_json(path: str, obj: dict) -> None:
-    """Atomic write: a temp file in the same folder, then rename."""
-    folder = os.path.dirname(os.path.abspath(path))
-    os.makedirs(folder, exist_ok=True)
-    with tempfile.NamedTemporaryFile("w", dir=folder, delete=False, suffix=".tmp") as f:
-        json.dump(obj, f, indent=1)
-    os.replace(f.name, path)
+from dynres_jax.files import write_json
 
 
 def sim_table(result: dict) -> str:
@@ -54,7 +45,7 @@ def main(argv=None):
         result = bench_perception.run(args.quick)
         print(json.dumps(result, indent=1))
     if args.json:
-        _write_json(args.json, result)
+        write_json(args.json, result)
 
 
 if __name__ == "__main__":

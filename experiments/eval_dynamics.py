@@ -14,7 +14,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import nnx
 
-from dynres_jax import ckpt, data
+from dynres_jax import ckpt, data, files
 from dynres_jax.dynamics import resolution_code, rollout
 from dynres_jax.graph import sweep_displacement
 from dynres_jax.train import build_model
@@ -107,10 +107,10 @@ def main(argv=None):
     for omega in args.omegas:
         result["omegas"][str(omega)] = errors(graphdef, state, make(windows, omega, keys), hw)
     os.makedirs(args.out, exist_ok=True)
-    data.write_json(os.path.join(args.out, "eval.json"), result)
+    files.write_json(os.path.join(args.out, "eval.json"), result)
     plot(result, os.path.join(args.out, "eval.png"))
     text = table(result)
-    data.atomic_write(os.path.join(args.out, "eval.md"), lambda f: f.write(text.encode()))
+    files.write_text(os.path.join(args.out, "eval.md"), text)
     print(text)
     return result
 

@@ -23,6 +23,7 @@ import numpy as np
 from tqdm import tqdm
 
 from dynres_jax.config import KINDS, SceneConfig, SimConfig, replace
+from dynres_jax.files import write_json
 from dynres_jax.sim.env import PileEnv
 
 
@@ -109,8 +110,6 @@ def main(argv=None):
     parser.add_argument("--json")
     args = parser.parse_args(argv)
     rounds = max(1, -(-args.pushes // args.worlds))
-    from experiments.benchmark import _write_json
-
     overrides = dict(joints=args.joints, solver=args.solver, solver_iterations=args.solver_iterations,
                      ls_iterations=args.ls_iterations, contact_cap=args.contact_cap)
     out = dict(device=jax.devices()[0].device_kind, pieces=args.pieces, scene=overrides, kinds=[])
@@ -121,7 +120,7 @@ def main(argv=None):
         tqdm.write(str(res))
         out["kinds"].append(res)
         if args.json:  # after every kind, so a stopped run keeps what it finished
-            _write_json(args.json, out)
+            write_json(args.json, out)
     return out
 
 if __name__ == "__main__":

@@ -17,7 +17,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from dynres_jax import data
+from dynres_jax import data, files
 from dynres_jax.config import CameraConfig, SceneConfig, SimConfig
 from dynres_jax.perception import sample_particles
 from dynres_jax.sim.camera import Observation
@@ -126,7 +126,7 @@ def test_resume_rewrites_missing_shard_identically(generated, tmp_path):
     with open(second, "rb") as f:
         second_bytes = f.read()
     os.unlink(second)  # the run was killed before shard 1 ...
-    leftover = os.path.join(out, data.TMP_PREFIX + "shard_00001.npz.x7k2")
+    leftover = os.path.join(out, files.TMP_PREFIX + "shard_00001.npz.x7k2")
     with open(leftover, "wb") as f:  # ... while writing it
         f.write(b"half a zip")
     mtime = os.stat(first).st_mtime_ns
