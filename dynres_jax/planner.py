@@ -1,0 +1,285 @@
+"""The shooting planner of the paper (Algorithm 1): sample pushes, refine them by gradient descent through f.
+
+Mapping to Algorithm 1 (and the reference code):
+
+1. Sample M action sequences u_{1:T} (``sample_actions``; by default each push passes near the pile's centroid, like
+   the reference's fixed initial pushes). A warm start (the previous MPC step's plan, shifted) replaces sample 0.
+2. For N steps, all M sequences at once (``jax.vmap``) inside one ``jax.lax.scan``: roll the dynamics out
+   (``dynamics_fn``), score the final state with the task cost c (``cost_fn``), take an Adam step on the actions
+   (optax) and project them back into the workspace (``project``; the reference clamps after every step).
+3. Return the best sequence; MPC executes its first action.
+
+The planner knows nothing about the task or the model: ``dynamics_fn(positions [N, 3], mask [N], actions [T, 4]) ->
+[T, N, 3]`` and ``cost_fn(final_positions [N, 3], mask [N]) -> []`` are any differentiable JAX functions. With R
+re-samplings of the particles (the reference evaluates every push on 30 of them), positions and mask get a leading
+[R] axis and a sequence's cost is the mean over them.
+
+Compilation: ``plan`` is jitted with the functions passed as pytrees (``jax.tree_util.Partial``), so a
+``Partial(f, arrays...)`` reuses one compiled plan for new arrays (model weights, resolution code, goal), while a
+plain function or lambda is keyed by identity (a new lambda compiles again). Positions are padded with a mask, so
+one compiled plan serves every ω; the step count is static (the scan length), so each distinct count compiles once
+(the config's steps, max_particle_steps and seed are not part of the compiled function's key).
+
+Budgets: ``PlannerConfig.steps`` (fixed); ``PlannerConfig.max_particle_steps`` (particles × steps, the same plan on
+any machine: ``steps_for_budget``); ``plan_within`` (wall clock: time a short compiled run, pick the step count).
+
+Units: metres. An action is (x_start, y_start, x_end, y_end); every coordinate lies within ±bound and every push
+length within [min_length, max_length].
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, replace
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+from jax.tree_util import Partial
+
+from dynres_jax.config import PushConfig
+
+ZERO_LENGTH_DIRECTION = (1.0, 0.0)  # a push of (near) zero length is pointed along +x by ``project``
+_TINY = 1e-12  # m²: squared lengths below this count as zero
+
+
+@dataclass(frozen=True)
+class PlannerConfig:
+    """Static configuration of the planner.
+
+    samples: M action sequences optimised at once (paper 20, reference demo 50).
+    horizon: T pushes per sequence (paper 1).
+    steps: N Adam steps (paper 200; the scan length, static).
+    lr: Adam learning rate in metres (the reference's 0.05 on its 1-unit bin, scaled to our 0.4 m bin).
+    bound: every action coordinate within ±bound m (PileEnv.action_bound; 0.181 m for coffee).
+    min_length, max_length: push length range in m (PushConfig).
+    resamples: R re-samplings of the particles each sequence is scored on (mean cost); positions then carry a
+      leading [R] axis when R > 1.
+    near_pile: sample pushes through points near the pile's centroid (else anywhere in the workspace).
+    spread: m, the radius of the disc around the centroid the sampled pushes pass through.
+    max_particle_steps: optional compute budget, particles × steps (``steps_for_budget``); None: no budget.
+    seed: PRNG seed used when ``plan`` gets key=None.
+    """
+
+    samples: int = 50
+    horizon: int = 1
+    steps: int = 200
+    lr: float = 0.02
+    bound: float = 0.181
+    min_length: float = PushConfig.min_length
+    max_length: float = PushConfig.max_length
+    resamples: int = 1
+    near_pile: bool = True
+    spread: float = 0.03
+    max_particle_steps: int | None = None
+    seed: int = 0
+
+    def __post_init__(self):
+        if self.samples < 1:
+            raise ValueError(f"PlannerConfig.samples (M) must be >= 1, got {self.samples}")
+        if self.horizon < 1:
+            raise ValueError(f"PlannerConfig.horizon (T) must be >= 1, got {self.horizon}")
+        if self.steps < 0:
+            raise ValueError(f"PlannerConfig.steps (N) must be >= 0, got {self.steps}")
+        if self.resamples < 1:
+            raise ValueError(f"PlannerConfig.resamples (R) must be >= 1, got {self.resamples}")
+        if self.bound <= 0:
+            raise ValueError(f"PlannerConfig.bound must be > 0 m, got {self.bound}")
+        if not 0 < self.min_length <= self.max_length <= 2 * self.bound:
+            raise ValueError(f"PlannerConfig push lengths must satisfy 0 < min_length <= max_length <= 2 * bound, got "
+                             f"min_length={self.min_length}, max_length={self.max_length}, bound={self.bound}")
+        if self.max_particle_steps is not None and self.max_particle_steps < 0:
+            raise ValueError(f"PlannerConfig.max_particle_steps must be >= 0 or None, got {self.max_particle_steps}")
+
+
+class PlanResult(NamedTuple):
+    """best [T, 4]: the lowest-cost sequence seen (projected); best_cost []: its cost; costs [M] and actions
+    [M, T, 4]: every sequence after the final step; history [steps]: the best cost seen up to each step."""
+
+    best: jax.Array
+    best_cost: jax.Array
+    costs: jax.Array
+    history: jax.Array
+    actions: jax.Array
+
+
+def _direction(delta):
+    """delta [..., 2] -> (unit direction [..., 2], length [...]); ZERO_LENGTH_DIRECTION where the length is ~0.
+    The gradient stays finite at zero length (the unused branch divides by 1)."""
+    sq = jnp.sum(jnp.square(delta), axis=-1)
+    nonzero = sq > _TINY
+    length = jnp.sqrt(jnp.where(nonzero, sq, 1.0))
+    fixed = jnp.broadcast_to(jnp.asarray(ZERO_LENGTH_DIRECTION, delta.dtype), delta.shape)
+    return jnp.where(nonzero[..., None], delta / length[..., None], fixed), jnp.where(nonzero, length, 0.0)
+
+
+def project(actions, bound, min_length, max_length):
+    """Actions [..., 4] m -> the nearest-in-spirit actions inside the workspace, same shape.
+
+    The start is clipped to ±bound; the length is clipped to [min_length, max_length] keeping the start and the
+    direction (a zero-length push points along ZERO_LENGTH_DIRECTION); if the end then leaves the workspace, the
+    whole push is translated back inside, axis by axis (direction and length kept; it fits because
+    max_length <= 2 bound). Idempotent, pure, jit/vmap-able, finite gradients everywhere.
+    """
+    actions = jnp.asarray(actions, jnp.float32)
+    start = jnp.clip(actions[..., :2], -bound, bound)
+    direction, length = _direction(actions[..., 2:] - actions[..., :2])
+    end = start + direction * jnp.clip(length, min_length, max_length)[..., None]
+    lo, hi = jnp.minimum(start, end), jnp.maximum(start, end)
+    shift = jnp.maximum(-bound - lo, 0.0) - jnp.maximum(hi - bound, 0.0)
+    return jnp.concatenate([start + shift, end + shift], axis=-1)
+
+
+def sample_actions(key, m, t, bound, min_length, max_length, centre_xy=None, spread=0.03):
+    """M random action sequences [m, t, 4] m, inside the workspace (``project``ed).
+
+    Every push has a uniform direction and a length uniform in [min_length, max_length]. It passes through a point
+    drawn uniformly in the workspace or, with centre_xy [2] m given, uniformly in the disc of radius ``spread``
+    around it (the pile's centroid: pushes through the pile, as the reference's initial pushes); the point lies
+    20-60 % of the way along the push, so the push starts behind it.
+    """
+    k_point, k_angle, k_len, k_frac = jax.random.split(key, 4)
+    shape = (m, t)
+    if centre_xy is None:
+        point = jax.random.uniform(k_point, shape + (2,), minval=-bound, maxval=bound)
+    else:
+        k_r, k_phi = jax.random.split(k_point)
+        radius = spread * jnp.sqrt(jax.random.uniform(k_r, shape))
+        phi = jax.random.uniform(k_phi, shape, minval=-jnp.pi, maxval=jnp.pi)
+        point = jnp.asarray(centre_xy, jnp.float32) + radius[..., None] * jnp.stack([jnp.cos(phi), jnp.sin(phi)], -1)
+    angle = jax.random.uniform(k_angle, shape, minval=-jnp.pi, maxval=jnp.pi)
+    direction = jnp.stack([jnp.cos(angle), jnp.sin(angle)], axis=-1)
+    length = jax.random.uniform(k_len, shape, minval=min_length, maxval=max_length)[..., None]
+    start = point - direction * length * jax.random.uniform(k_frac, shape + (1,), minval=0.2, maxval=0.6)
+    return project(jnp.concatenate([start, start + direction * length], axis=-1), bound, min_length, max_length)
+
+
+def steps_for_budget(omega, budget, max_steps):
+    """Adam steps affordable under a compute budget of particles × steps: min(max_steps, budget // omega), >= 0.
+    omega: particle count (>= 1); budget: particles × steps, or None for no budget."""
+    if budget is None:
+        return int(max_steps)
+    return int(max(0, min(max_steps, budget // max(int(omega), 1))))
+
+
+def _as_pytree_fn(fn):
+    """A function as a jit argument: a ``Partial`` passes as is (its arrays traced), anything else is wrapped
+    (keyed by identity)."""
+    return fn if isinstance(fn, Partial) else Partial(fn)
+
+
+def _batched(positions, mask, resamples):
+    """positions [N, 3] or [R, N, 3], mask [N] or [R, N] -> ([R, N, 3] float32, [R, N] bool), R checked."""
+    positions, mask = jnp.asarray(positions, jnp.float32), jnp.asarray(mask, bool)
+    if positions.ndim == 2:
+        positions, mask = positions[None], mask[None]
+    if positions.ndim != 3 or positions.shape[-1] != 3 or mask.shape != positions.shape[:2]:
+        raise ValueError(f"positions must be [N, 3] or [R, N, 3] with mask [N] or [R, N]; got {positions.shape} "
+                         f"and {mask.shape}")
+    if positions.shape[0] != resamples:
+        raise ValueError(f"PlannerConfig.resamples is {resamples} but positions have {positions.shape[0]} "
+                         "re-samplings (a leading [R] axis is needed when R > 1)")
+    return positions, mask
+
+
+def _pile_centre(positions, mask):
+    """Centroid (x, y) [2] m of the valid particles over all re-samplings; the origin if none."""
+    w = mask.astype(jnp.float32)[..., None]
+    return jnp.sum(positions[..., :2] * w, axis=(0, 1)) / jnp.maximum(jnp.sum(w), 1.0)
+
+
+def _plan(dynamics_fn, cost_fn, positions, mask, key, init, config, steps):
+    """The jitted planner; see ``plan``. positions [R, N, 3], mask [R, N], init [T, 4] or None."""
+    c = config
+    centre = _pile_centre(positions, mask) if c.near_pile else None
+    actions = sample_actions(key, c.samples, c.horizon, c.bound, c.min_length, c.max_length, centre, c.spread)
+    if init is not None:
+        actions = actions.at[0].set(project(init, c.bound, c.min_length, c.max_length))
+
+    def objective(seq):  # [T, 4] -> mean over the R re-samplings of the final-state cost
+        final = jax.vmap(lambda p, m: dynamics_fn(p, m, seq)[-1])(positions, mask)
+        return jnp.mean(jax.vmap(cost_fn)(final, mask))
+
+    value_and_grad = jax.vmap(jax.value_and_grad(objective))
+    optimiser = optax.adam(c.lr)
+
+    def keep_best(best, best_cost, actions, costs):
+        i = jnp.argmin(costs)
+        better = costs[i] < best_cost
+        return jnp.where(better, actions[i], best), jnp.where(better, costs[i], best_cost)
+
+    def step(carry, _):
+        actions, opt_state, best, best_cost = carry
+        costs, grads = value_and_grad(actions)
+        best, best_cost = keep_best(best, best_cost, actions, costs)
+        updates, opt_state = optimiser.update(grads, opt_state, actions)
+        actions = project(optax.apply_updates(actions, updates), c.bound, c.min_length, c.max_length)
+        return (actions, opt_state, best, best_cost), best_cost
+
+    carry = (actions, optimiser.init(actions), actions[0], jnp.asarray(jnp.inf, jnp.float32))
+    (actions, _, best, best_cost), history = jax.lax.scan(step, carry, None, length=steps)
+    costs = jax.vmap(objective)(actions)
+    best, best_cost = keep_best(best, best_cost, actions, costs)
+    return PlanResult(best, best_cost, costs, history, actions)
+
+
+_plan_jit = jax.jit(_plan, static_argnames=("config", "steps"))
+
+
+def plan(dynamics_fn, cost_fn, positions, mask, key, config: PlannerConfig = PlannerConfig(), init=None, *,
+         steps=None) -> PlanResult:
+    """Optimise M action sequences for one MPC step (paper Algorithm 1); returns a ``PlanResult``.
+
+    dynamics_fn(positions [N, 3], mask [N], actions [T, 4]) -> [T, N, 3] m; cost_fn(final [N, 3], mask [N]) -> [].
+    positions [N, 3] m and mask [N] bool, or [R, N, 3] and [R, N] with config.resamples = R.
+    key: a jax.random key (None: PRNGKey(config.seed)). init [T, 4]: warm start, replaces sample 0 (projected).
+    steps: Adam steps (default config.steps, capped by config.max_particle_steps / ω, ω the valid particles per
+    re-sampling; the budget needs a concrete mask).
+    The best is the lowest-cost sequence evaluated at any step, so its cost never exceeds the warm start's.
+    """
+    positions, mask = _batched(positions, mask, config.resamples)
+    if steps is None:
+        steps = config.steps
+        if config.max_particle_steps is not None:
+            omega = int(np.asarray(mask).sum(axis=-1).max())
+            steps = steps_for_budget(omega, config.max_particle_steps, steps)
+    if init is not None:
+        init = jnp.asarray(init, jnp.float32)
+        if init.shape != (config.horizon, 4):
+            raise ValueError(f"init must be [T, 4] = [{config.horizon}, 4], got {init.shape}")
+    if key is None:
+        key = jax.random.PRNGKey(config.seed)
+    traced = replace(config, steps=0, max_particle_steps=None, seed=0)  # fields the trace ignores: one compile
+    return _plan_jit(_as_pytree_fn(dynamics_fn), _as_pytree_fn(cost_fn), positions, mask, key, init,
+                     config=traced, steps=int(steps))
+
+
+def plan_within(seconds, dynamics_fn, cost_fn, positions, mask, key, config: PlannerConfig = PlannerConfig(),
+                init=None, *, probe_steps=5):
+    """Plan under a wall-clock budget of ``seconds`` on this machine -> (PlanResult, steps used).
+
+    Compiles and times one call of ``probe_steps`` steps (compilation excluded), takes its time per step as the
+    cost of a step (an upper bound: the call's fixed cost is included), and plans with
+    min(config steps/budget, seconds // per-step) steps. The chosen count is a new scan length, so that call compiles
+    again (compilation is not counted against ``seconds``; each count compiles once). Not reproducible across
+    machines: use ``max_particle_steps`` for that.
+    """
+    def run(n):
+        return plan(dynamics_fn, cost_fn, positions, mask, key, config, init, steps=n)
+
+    probe_steps = max(1, int(probe_steps))
+    jax.block_until_ready(run(probe_steps))  # compile
+    t0 = time.perf_counter()
+    jax.block_until_ready(run(probe_steps))
+    per_step = (time.perf_counter() - t0) / probe_steps
+    _, flat_mask = _batched(positions, mask, config.resamples)
+    omega = int(np.asarray(flat_mask).sum(axis=-1).max())
+    cap = steps_for_budget(omega, config.max_particle_steps, config.steps)
+    steps = int(min(cap, seconds // per_step))
+    return run(steps), steps
+
+
+__all__ = ["PlanResult", "PlannerConfig", "ZERO_LENGTH_DIRECTION", "plan", "plan_within", "project", "sample_actions",
+           "steps_for_budget"]

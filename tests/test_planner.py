@@ -1,0 +1,195 @@
+"""The shooting planner (paper Algorithm 1): projection, sampling, optimisation through a stand-in dynamics, padding
+and re-sampling invariants, a real model end to end, warm start, budgets and configuration errors."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from flax import nnx
+from jax.tree_util import Partial
+
+from dynres_jax.dynamics import Dynamics, DynamicsConfig, resolution_code, rollout
+from dynres_jax.graph import sweep_displacement
+from dynres_jax.planner import (
+    ZERO_LENGTH_DIRECTION,
+    PlannerConfig,
+    plan,
+    plan_within,
+    project,
+    sample_actions,
+    steps_for_budget,
+)
+
+BOUND, MIN_LEN, MAX_LEN = 0.181, 0.01, 0.25
+TARGET = jnp.array([0.05, 0.0])
+CFG = PlannerConfig(samples=16, steps=40, bound=BOUND)
+
+
+def sweep_dynamics(positions, mask, actions):
+    """Stand-in f: positions [N, 3], mask [N], actions [T, 4] -> [T, N, 3] through the sweep heuristic."""
+
+    def step(current, action):
+        nxt = current + sweep_displacement(current, mask, action, 0.04)
+        return nxt, nxt
+
+    return jax.lax.scan(step, positions, actions)[1]
+
+
+def centroid_cost(final, mask):
+    """Squared distance (m²) of the valid particles' centroid (x, y) to TARGET."""
+    w = mask.astype(jnp.float32)[:, None]
+    centre = jnp.sum(final[:, :2] * w, axis=0) / jnp.sum(w)
+    return jnp.sum(jnp.square(centre - TARGET))
+
+
+def pile(key, n=12, centre=(-0.05, 0.0)):
+    """A small pile [n, 3] m around centre, particles at z = 5 mm, all valid."""
+    xy = jax.random.normal(key, (n, 2)) * 0.01 + jnp.asarray(centre)
+    return jnp.concatenate([xy, jnp.full((n, 1), 0.005)], axis=-1), jnp.ones(n, bool)
+
+
+def lengths(actions):
+    return np.hypot(actions[..., 2] - actions[..., 0], actions[..., 3] - actions[..., 1])
+
+
+def test_project_bounds_lengths_idempotent():
+    raw = jax.random.uniform(jax.random.PRNGKey(0), (500, 4), minval=-0.5, maxval=0.5)
+    raw = raw.at[:50, 2:].set(raw[:50, :2])  # zero-length pushes
+    raw = raw.at[50:100, 2:].set(raw[50:100, :2] + 1e-4)  # very short pushes
+    out = np.asarray(project(raw, BOUND, MIN_LEN, MAX_LEN))
+    assert np.all(np.abs(out) <= BOUND + 1e-6)
+    assert np.all((lengths(out) >= MIN_LEN - 1e-6) & (lengths(out) <= MAX_LEN + 1e-6))
+    np.testing.assert_allclose(project(out, BOUND, MIN_LEN, MAX_LEN), out, atol=1e-6)
+    # A valid action is untouched; a zero-length push points along the documented direction.
+    valid = jnp.array([0.01, -0.02, 0.1, 0.05])
+    np.testing.assert_allclose(project(valid, BOUND, MIN_LEN, MAX_LEN), valid, atol=1e-7)
+    np.testing.assert_allclose((out[0, 2:] - out[0, :2]) / MIN_LEN, ZERO_LENGTH_DIRECTION, atol=1e-5)
+    # Too long: the start is kept, the end pulled in along the direction.
+    long = project(jnp.array([-0.1, 0.0, 0.2, 0.0]), BOUND, MIN_LEN, MAX_LEN)
+    np.testing.assert_allclose(long, [-0.1, 0.0, -0.1 + MAX_LEN, 0.0], atol=1e-7)
+
+
+def test_project_gradient_finite_at_zero_length():
+    for a in (jnp.zeros(4), jnp.array([0.1, 0.1, 0.1, 0.1]), jnp.array([0.3, -0.3, 0.3, -0.3])):
+        grad = jax.grad(lambda x: jnp.sum(jnp.square(project(x, BOUND, MIN_LEN, MAX_LEN))))(a)
+        assert np.all(np.isfinite(grad))
+
+
+def test_sample_actions_inside_workspace_and_through_centre():
+    key = jax.random.PRNGKey(3)
+    anywhere = np.asarray(sample_actions(key, 64, 2, BOUND, MIN_LEN, MAX_LEN))
+    assert anywhere.shape == (64, 2, 4)
+    assert np.all(np.abs(anywhere) <= BOUND + 1e-6)
+    assert np.all((lengths(anywhere) >= MIN_LEN - 1e-6) & (lengths(anywhere) <= MAX_LEN + 1e-6))
+    near = np.asarray(sample_actions(key, 64, 1, BOUND, MIN_LEN, MAX_LEN, centre_xy=jnp.zeros(2), spread=0.03))
+    start, end = near[..., :2], near[..., 2:]
+    d = end - start
+    s = np.clip(np.sum(-start * d, -1) / np.sum(d * d, -1), 0, 1)  # closest point of each push to the centre
+    assert np.all(np.linalg.norm(start + s[..., None] * d, axis=-1) <= 0.03 + 1e-5)
+
+
+def test_plan_reduces_cost_and_gradient_beats_sampling():
+    key = jax.random.PRNGKey(1)
+    positions, mask = pile(key)
+    initial = float(centroid_cost(positions, mask))
+    result = plan(sweep_dynamics, centroid_cost, positions, mask, key, CFG)
+    sampled_only = plan(sweep_dynamics, centroid_cost, positions, mask, key, CFG, steps=0)
+    assert result.best.shape == (1, 4) and result.costs.shape == (16,) and result.actions.shape == (16, 1, 4)
+    assert result.history.shape == (40,) and sampled_only.history.shape == (0,)
+    assert float(result.best_cost) <= 0.5 * initial
+    np.testing.assert_allclose(centroid_cost(sweep_dynamics(positions, mask, result.best)[-1], mask),
+                               result.best_cost, rtol=1e-4, atol=1e-9)
+    history = np.asarray(result.history)
+    assert np.all(np.diff(history) <= 0) and history[-1] < 0.5 * history[0]
+    assert float(result.best_cost) < 0.5 * float(sampled_only.best_cost)
+    assert np.all(np.abs(np.asarray(result.actions)) <= BOUND + 1e-6)
+
+
+def test_masked_garbage_particles_do_not_change_the_plan():
+    key = jax.random.PRNGKey(2)
+    positions, mask = pile(key)
+    garbage = jax.random.uniform(jax.random.PRNGKey(9), (4, 3), minval=-0.15, maxval=0.15)
+    padded = jnp.concatenate([positions[:4], garbage, positions[4:]])
+    padded_mask = jnp.concatenate([mask[:4], jnp.zeros(4, bool), mask[4:]])
+    a = plan(sweep_dynamics, centroid_cost, positions, mask, key, CFG)
+    b = plan(sweep_dynamics, centroid_cost, padded, padded_mask, key, CFG)
+    np.testing.assert_allclose(a.best, b.best, atol=1e-5)
+    np.testing.assert_allclose(a.costs, b.costs, atol=1e-7)
+
+
+def test_resamples_equal_mean_cost_by_hand():
+    key = jax.random.PRNGKey(4)
+    (p0, m0), (p1, m1) = pile(jax.random.PRNGKey(5), n=8), pile(jax.random.PRNGKey(6), n=8)
+    config = PlannerConfig(samples=8, steps=20, bound=BOUND, resamples=2)
+    result = plan(sweep_dynamics, centroid_cost, jnp.stack([p0, p1]), jnp.stack([m0, m1]), key, config)
+
+    # By hand: both re-samplings side by side in one scene (the sweep acts per particle), cost = mean of the two.
+    def mean_cost(final, mask):
+        return 0.5 * (centroid_cost(final[:8], mask[:8]) + centroid_cost(final[8:], mask[8:]))
+
+    by_hand = plan(sweep_dynamics, mean_cost, jnp.concatenate([p0, p1]), jnp.concatenate([m0, m1]), key,
+                   PlannerConfig(samples=8, steps=20, bound=BOUND))
+    np.testing.assert_allclose(result.best, by_hand.best, atol=1e-5)
+    np.testing.assert_allclose(result.costs, by_hand.costs, rtol=1e-4, atol=1e-8)
+    final = [sweep_dynamics(p, m, result.actions[0])[-1] for p, m in ((p0, m0), (p1, m1))]
+    np.testing.assert_allclose(result.costs[0], 0.5 * (centroid_cost(final[0], m0) + centroid_cost(final[1], m1)),
+                               rtol=1e-4, atol=1e-8)
+
+
+def _model_dynamics(graphdef, state, code, positions, mask, actions):
+    return rollout(graphdef, state, positions, mask, actions, code)
+
+
+def test_real_dynamics_end_to_end():
+    graphdef, state = nnx.split(Dynamics(DynamicsConfig(hidden=16), rngs=nnx.Rngs(0)))
+    positions, mask = pile(jax.random.PRNGKey(7), n=12)
+    mask = mask.at[-3:].set(False)
+    config = PlannerConfig(samples=4, horizon=2, steps=3, bound=BOUND)
+    dynamics = Partial(_model_dynamics, graphdef, state, resolution_code(0.01))
+    result = plan(dynamics, centroid_cost, positions, mask, jax.random.PRNGKey(0), config)
+    best = np.asarray(result.best)
+    assert best.shape == (2, 4) and np.all(np.isfinite(best)) and np.isfinite(float(result.best_cost))
+    assert np.all(np.abs(best) <= BOUND + 1e-6)
+    assert np.all((lengths(best) >= MIN_LEN - 1e-6) & (lengths(best) <= MAX_LEN + 1e-6))
+
+
+def test_warm_start():
+    key = jax.random.PRNGKey(1)
+    positions, mask = pile(key)
+    init = jnp.array([[-0.09, 0.0, 0.04, 0.0]])  # sweeps the whole pile to x = 0.05, onto the target
+    result = plan(sweep_dynamics, centroid_cost, positions, mask, key, CFG, init=init, steps=0)
+    np.testing.assert_allclose(result.best, project(init, BOUND, MIN_LEN, MAX_LEN), atol=1e-7)
+    np.testing.assert_allclose(result.actions[0], init, atol=1e-7)
+    refined = plan(sweep_dynamics, centroid_cost, positions, mask, key, CFG, init=init)
+    assert float(refined.best_cost) <= float(result.best_cost)
+    with pytest.raises(ValueError, match="init"):
+        plan(sweep_dynamics, centroid_cost, positions, mask, key, CFG, init=jnp.zeros((2, 4)))
+
+
+def test_budgets():
+    assert steps_for_budget(100, 1300, 200) == 13
+    assert steps_for_budget(2, 1300, 200) == 200
+    assert steps_for_budget(100, 50, 200) == 0
+    assert steps_for_budget(100, None, 200) == 200
+    positions, mask = pile(jax.random.PRNGKey(1))
+    mask = mask.at[-2:].set(False)  # ω = 10 valid particles
+    config = PlannerConfig(samples=16, steps=40, bound=BOUND, max_particle_steps=75)
+    assert plan(sweep_dynamics, centroid_cost, positions, mask, None, config).history.shape == (7,)
+    result, steps = plan_within(0.0, sweep_dynamics, centroid_cost, positions, mask, None, config, probe_steps=7)
+    assert steps == 0 and result.history.shape == (0,) and np.all(np.isfinite(np.asarray(result.best)))
+
+
+def test_config_errors():
+    with pytest.raises(ValueError, match="samples"):
+        PlannerConfig(samples=0)
+    with pytest.raises(ValueError, match="horizon"):
+        PlannerConfig(horizon=0)
+    with pytest.raises(ValueError, match="min_length"):
+        PlannerConfig(min_length=0.3, max_length=0.2)
+    with pytest.raises(ValueError, match="max_length"):
+        PlannerConfig(bound=0.1, max_length=0.25)
+    with pytest.raises(ValueError, match="resamples"):
+        PlannerConfig(resamples=0)
+    positions, mask = pile(jax.random.PRNGKey(1), n=4)
+    with pytest.raises(ValueError, match="resamples"):
+        plan(sweep_dynamics, centroid_cost, positions, mask, None, PlannerConfig(samples=2, steps=1, resamples=2))
