@@ -70,3 +70,14 @@ def build_edges(positions, mask, radius=R_EDGE, k: int = K_NEIGHBOURS):
         neighbours = jnp.concatenate([neighbours, jnp.broadcast_to(jnp.arange(n)[:, None], (n, k - n))], axis=1)
         edge_mask = jnp.concatenate([edge_mask, jnp.zeros((n, k - n), bool)], axis=1)
     return neighbours, edge_mask
+
+
+def sweep_rollout(positions, mask, actions, plate_half_width):
+    """The sweep heuristic alone as a dynamics model: positions [N, 3], mask [N], actions [T, 4] (m) -> positions
+    [T, N, 3] after each push. A baseline for the learned f, and the planner's model before one is trained."""
+
+    def step(p, a):
+        p = p + sweep_displacement(p, mask, a, plate_half_width)
+        return p, p
+
+    return jax.lax.scan(step, positions, actions)[1]

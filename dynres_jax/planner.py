@@ -57,7 +57,7 @@ class PlannerConfig:
     min_length, max_length: push length range in m (PushConfig).
     resamples: R re-samplings of the particles each sequence is scored on (mean cost); positions then carry a
       leading [R] axis when R > 1.
-    near_pile: sample pushes through points near the pile's centroid (else anywhere in the workspace).
+    near_pile: sample pushes through points near randomly chosen particles (else anywhere in the workspace).
     spread: m, the radius of the disc around the centroid the sampled pushes pass through.
     max_particle_steps: optional compute budget, particles × steps (``steps_for_budget``); None: no budget.
     seed: PRNG seed used when ``plan`` gets key=None.
@@ -136,9 +136,9 @@ def sample_actions(key, m, t, bound, min_length, max_length, centre_xy=None, spr
     """M random action sequences [m, t, 4] m, inside the workspace (``project``ed).
 
     Every push has a uniform direction and a length uniform in [min_length, max_length]. It passes through a point
-    drawn uniformly in the workspace or, with centre_xy [2] m given, uniformly in the disc of radius ``spread``
-    around it (the pile's centroid: pushes through the pile, as the reference's initial pushes); the point lies
-    20-60 % of the way along the push, so the push starts behind it.
+    drawn uniformly in the workspace or, with centre_xy given ([2], or one point per push [m, t, 2]; the planner
+    passes random particles: pushes through the pile, as the reference's initial pushes), uniformly in the disc of
+    radius ``spread`` around it; the point lies 20-60 % of the way along the push, so the push starts behind it.
     """
     k_point, k_angle, k_len, k_frac = jax.random.split(key, 4)
     shape = (m, t)
@@ -184,17 +184,22 @@ def _batched(positions, mask, resamples):
     return positions, mask
 
 
-def _pile_centre(positions, mask):
-    """Centroid (x, y) [2] m of the valid particles over all re-samplings; the origin if none."""
-    w = mask.astype(jnp.float32)[..., None]
-    return jnp.sum(positions[..., :2] * w, axis=(0, 1)) / jnp.maximum(jnp.sum(w), 1.0)
+def _pile_points(key, positions, mask, shape):
+    """(x, y) [*shape, 2] m of valid particles drawn at random (first re-sampling), so sampled pushes pass through
+    the pile even when it is spread out and its centroid is empty table; the origin if no particle is valid."""
+    valid = mask[0]
+    count = jnp.sum(valid)
+    k = jnp.minimum(jnp.floor(jax.random.uniform(key, shape) * count), count - 1)  # the k-th valid particle ...
+    index = jnp.searchsorted(jnp.cumsum(valid), k + 1)  # ... wherever it sits, so masked padding changes nothing
+    return jnp.where(count > 0, positions[0, jnp.minimum(index, valid.shape[0] - 1), :2], 0.0)
 
 
 def _plan(dynamics_fn, cost_fn, positions, mask, key, init, config, steps):
     """The jitted planner; see ``plan``. positions [R, N, 3], mask [R, N], init [T, 4] or None."""
     c = config
-    centre = _pile_centre(positions, mask) if c.near_pile else None
-    actions = sample_actions(key, c.samples, c.horizon, c.bound, c.min_length, c.max_length, centre, c.spread)
+    k_points, k_actions = jax.random.split(key)
+    centre = _pile_points(k_points, positions, mask, (c.samples, c.horizon)) if c.near_pile else None
+    actions = sample_actions(k_actions, c.samples, c.horizon, c.bound, c.min_length, c.max_length, centre, c.spread)
     if init is not None:
         actions = actions.at[0].set(project(init, c.bound, c.min_length, c.max_length))
 

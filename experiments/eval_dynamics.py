@@ -16,20 +16,10 @@ from flax import nnx
 
 from dynres_jax import ckpt, data, files
 from dynres_jax.dynamics import resolution_code, rollout
-from dynres_jax.graph import sweep_displacement
+from dynres_jax.graph import sweep_rollout
 from dynres_jax.train import build_model
 
 METHODS = ("model", "nothing moves", "sweep heuristic")
-
-
-def sweep_rollout(positions, mask, actions, plate_half_width):
-    """The sweep heuristic alone as a dynamics model: [T, N, 3] positions after each push."""
-
-    def step(p, a):
-        p = p + sweep_displacement(p, mask, a, plate_half_width)
-        return p, p
-
-    return jax.lax.scan(step, positions, actions)[1]
 
 
 def errors(graphdef, state, samples: data.Sample, plate_half_width) -> dict:
