@@ -1,98 +1,10 @@
-"""Gather: push a spread-out pile into a disc (paper Sec. V), closed loop, at a fixed resolution ω.
+"""Gather: ``python -m experiments.gather --help``; the work is in ``experiments.task``."""
 
-    python -m experiments.gather --out out/gather
-
-Writes ``episode.gif`` (observation, goal in green, particles in red), ``final.png`` and ``metrics.json`` (a record
-per MPC step). Dynamics: the trained checkpoint given by ``--ckpt`` (default ``checkpoints/dynamics`` when it
-exists), else the sweep heuristic.
-"""
-
-from __future__ import annotations
-
-import argparse
-import dataclasses
-import os
-import time
-
-import cv2
-import imageio.v3 as iio
-import jax
-import numpy as np
-
-from dynres_jax import ckpt, files
-from dynres_jax.config import KINDS, CameraConfig, PileConfig, SceneConfig, SimConfig
-from dynres_jax.mpc import MPCConfig, learned_dynamics, run_episode, sweep_dynamics
-from dynres_jax.objective import disc_goal, inside_share, make_goal
-from dynres_jax.planner import PlannerConfig
-from dynres_jax.sim.env import PileEnv
-from dynres_jax.train import build_model
-
-DEFAULT_CKPT = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "checkpoints", "dynamics")
-
-
-def random_disc(rng: np.random.Generator, env: PileEnv) -> tuple[np.ndarray, float]:
-    """A disc that can hold the pile (1.3-1.8x the area of its pieces' footprints), inside the workspace."""
-    area = float(np.sum(np.pi * env.scene.footprint**2))
-    radius = float(np.sqrt(area * rng.uniform(1.3, 1.8) / np.pi))
-    lim = env.config.scene.bin_half_width - radius - 0.03
-    return rng.uniform(-lim, lim, size=2), radius
+from experiments.task import main as run_task
 
 
 def main(argv=None):
-    parser = argparse.ArgumentParser(prog="python -m experiments.gather", description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--steps", type=int, default=20, help="MPC steps")
-    parser.add_argument("--resolution", type=int, default=50, help="ω: particles the planner reasons with")
-    parser.add_argument("--backend", default="mujoco", choices=["mujoco", "mjx"])
-    parser.add_argument("--kind", default="coffee", choices=sorted(KINDS))
-    parser.add_argument("--pieces", type=int, default=100)
-    parser.add_argument("--samples", type=int, default=50, help="action sequences optimised at once (M)")
-    parser.add_argument("--plan-steps", type=int, default=100, help="Adam steps per plan (N)")
-    parser.add_argument("--ckpt", default=None, help=f"dynamics checkpoint (default {DEFAULT_CKPT} if present)")
-    parser.add_argument("--dynamics", default="auto", choices=["auto", "learned", "sweep"],
-                        help="auto: the checkpoint when there is one, else the sweep heuristic")
-    parser.add_argument("--out", default="out/gather")
-    args = parser.parse_args(argv)
-
-    sim = SimConfig(scene=SceneConfig(kinds=(args.kind,), pieces=(args.pieces,)), pile=PileConfig(layout="spread"),
-                    camera=CameraConfig())
-    env = PileEnv(sim, backend=args.backend)
-    ckpt_dir = args.ckpt or DEFAULT_CKPT
-    use_learned = args.dynamics == "learned" or (args.dynamics == "auto" and ckpt.latest_step(ckpt_dir) is not None)
-    if use_learned:
-        model, meta, _ = ckpt.load_module(ckpt_dir, build_model)
-        n_max = meta["train"]["n_max"]
-        dynamics, name = learned_dynamics(model), f"learned ({ckpt_dir}, step {meta.get('step')})"
-    else:
-        n_max, dynamics, name = 100, sweep_dynamics(sim.scene.plate_half_width), "sweep heuristic"
-    if not 1 <= args.resolution <= n_max:
-        parser.error(f"--resolution must lie in [1, {n_max}] (the model's n_max)")
-    planner = PlannerConfig(samples=args.samples, steps=args.plan_steps, bound=env.action_bound,
-                            max_length=sim.push.max_length, min_length=sim.push.min_length, seed=args.seed)
-    cfg = MPCConfig(steps=args.steps, omega=args.resolution, n_max=n_max, planner=planner)
-
-    rng = np.random.default_rng(args.seed)
-    centre, radius = random_disc(rng, env)
-    goal_mask = disc_goal(env.camera, centre, radius)
-    goal = make_goal(goal_mask, env.camera)
-    state = env.reset(jax.random.PRNGKey(args.seed))
-    start_inside = float(inside_share(state.pos, np.ones(env.scene.n_pieces, bool), goal, env.camera))
-    print(f"Gather: {args.pieces} {args.kind} pieces, disc at ({centre[0]:+.3f}, {centre[1]:+.3f}) m, radius "
-          f"{radius:.3f} m; dynamics: {name}; ω = {args.resolution}; {args.samples} x {args.plan_steps} Adam steps")
-    t0 = time.perf_counter()
-    state, records, frames = run_episode(env, state, goal, goal_mask, dynamics, cfg, jax.random.PRNGKey(args.seed))
-    os.makedirs(args.out, exist_ok=True)
-    iio.imwrite(os.path.join(args.out, "episode.gif"), np.stack(frames), duration=400, loop=0)
-    cv2.imwrite(os.path.join(args.out, "final.png"), cv2.cvtColor(frames[-1], cv2.COLOR_RGB2BGR))
-    summary = dict(task="gather", seed=args.seed, dynamics=name, goal=dict(centre=centre.tolist(), radius=radius),
-                   start_inside=start_inside, final_inside=records[-1]["success"],
-                   final_distance=records[-1]["distance"], seconds=time.perf_counter() - t0,
-                   mpc=dataclasses.asdict(cfg), steps=records)
-    files.write_json(os.path.join(args.out, "metrics.json"), summary)
-    print(f"pieces inside the goal: {start_inside:.0%} -> {summary['final_inside']:.0%}; "
-          f"wrote {args.out}/episode.gif, final.png, metrics.json")
-    return summary
+    return run_task("gather", argv)
 
 
 if __name__ == "__main__":

@@ -1,0 +1,42 @@
+"""Tasks (paper Sec. V): the goals of Gather and Redistribute, sized to the pile so it can fill them.
+
+Gather: push the pile into a disc of random centre and radius. Redistribute: push it into a letter (the paper's J,
+T, U, or any character OpenCV draws). Both goals cover 1.3-1.8 times the area of the pieces' footprints, so the
+pile fills them loosely, and stay inside the bin. Sort (two kinds to their own regions with an A* blob planner) is
+not built yet.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from dynres_jax.objective import disc_goal, text_goal
+from dynres_jax.sim.env import PileEnv
+
+TASKS = ("gather", "redistribute")
+FILL = (1.3, 1.8)  # goal area / the pieces' footprint area
+
+
+def _target_area(rng: np.random.Generator, env: PileEnv) -> float:
+    return float(np.sum(np.pi * env.scene.footprint**2)) * rng.uniform(*FILL)
+
+
+def gather_goal(rng: np.random.Generator, env: PileEnv) -> tuple[np.ndarray, dict]:
+    """A random disc holding the pile: (mask [H, W] bool, description)."""
+    radius = float(np.sqrt(_target_area(rng, env) / np.pi))
+    lim = env.config.scene.bin_half_width - radius - 0.03
+    centre = rng.uniform(-lim, lim, size=2)
+    return disc_goal(env.camera, centre, radius), dict(shape="disc", centre=centre.tolist(), radius=radius)
+
+
+def redistribute_goal(rng: np.random.Generator, env: PileEnv, letter: str) -> tuple[np.ndarray, dict]:
+    """``letter`` near the bin centre, scaled so its ink covers the target area: (mask [H, W] bool, description)."""
+    target = _target_area(rng, env)
+    centre = rng.uniform(-0.03, 0.03, size=2)
+    pixel_area = (2 * env.config.camera.view_half_width / env.camera.width) ** 2
+    height = 0.12
+    for _ in range(3):  # a stroke's area grows with the square of the height (stroke width is height / 5)
+        mask = text_goal(env.camera, letter, centre, height)
+        height *= np.sqrt(target / (mask.sum() * pixel_area))
+    mask = text_goal(env.camera, letter, centre, height)
+    return mask, dict(shape="text", text=letter, centre=centre.tolist(), height=float(height))
