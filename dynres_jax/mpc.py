@@ -65,8 +65,27 @@ def sweep_dynamics(plate_half_width: float):
     return lambda radius: Partial(_sweep, jnp.float32(plate_half_width))
 
 
+def load_dynamics(choice: str, ckpt_dir: str, plate_half_width: float):
+    """The planner's model. choice: "learned" (the checkpoint in ``ckpt_dir``), "sweep" (the heuristic), or "auto"
+    (the checkpoint when there is one). Returns (radius -> dynamics, n_max the model was trained for, a name)."""
+    from dynres_jax import ckpt
+    from dynres_jax.train import build_model
+
+    if choice not in ("auto", "learned", "sweep"):
+        raise ValueError(f"dynamics must be 'auto', 'learned' or 'sweep', got {choice!r}")
+    if choice == "learned" or (choice == "auto" and ckpt.latest_step(ckpt_dir) is not None):
+        model, meta, _ = ckpt.load_module(ckpt_dir, build_model)
+        return learned_dynamics(model), meta["train"]["n_max"], f"learned ({ckpt_dir}, step {meta.get('step')})"
+    return sweep_dynamics(plate_half_width), 100, "sweep heuristic"
+
+
 def _cost(camera, goal, positions, mask):
     return objective(positions, mask, goal, camera)
+
+
+def goal_cost(goal: Goal, camera) -> Partial:
+    """The planner's cost: the task objective c of predicted particles against ``goal``."""
+    return Partial(functools.partial(_cost, camera), goal)
 
 
 def overlay(rgb: np.ndarray, goal_mask: np.ndarray, particles: np.ndarray | None, camera, scale: int = 3):
@@ -87,7 +106,7 @@ def run_episode(env: PileEnv, state: State, goal: Goal, goal_mask: np.ndarray, d
     """One episode from ``state`` towards ``goal``. dynamics: ``learned_dynamics(model)`` or ``sweep_dynamics(hw)``.
     Returns the final state, one record per step, and GIF frames (observation, goal and particles)."""
     camera = env.camera
-    cost = Partial(functools.partial(_cost, camera), goal)
+    cost = goal_cost(goal, camera)
     records, frames, init = [], [], None
     for t in range(cfg.steps):
         k_h, k_plan = jax.random.split(jax.random.fold_in(key, t))

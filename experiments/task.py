@@ -20,13 +20,12 @@ import imageio.v3 as iio
 import jax
 import numpy as np
 
-from dynres_jax import ckpt, files, tasks
+from dynres_jax import files, tasks
 from dynres_jax.config import KINDS, CameraConfig, PileConfig, SceneConfig, SimConfig
-from dynres_jax.mpc import MPCConfig, learned_dynamics, run_episode, sweep_dynamics
+from dynres_jax.mpc import MPCConfig, load_dynamics, run_episode
 from dynres_jax.objective import inside_share, make_goal
 from dynres_jax.planner import PlannerConfig
 from dynres_jax.sim.env import PileEnv
-from dynres_jax.train import build_model
 
 DEFAULT_CKPT = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "checkpoints", "dynamics")
 
@@ -62,14 +61,7 @@ def main(task: str, argv=None):
     sim = SimConfig(scene=SceneConfig(kinds=(args.kind,), pieces=(args.pieces,)), pile=PileConfig(layout=args.layout),
                     camera=CameraConfig())
     env = PileEnv(sim, backend=args.backend)
-    ckpt_dir = args.ckpt or DEFAULT_CKPT
-    use_learned = args.dynamics == "learned" or (args.dynamics == "auto" and ckpt.latest_step(ckpt_dir) is not None)
-    if use_learned:
-        model, meta, _ = ckpt.load_module(ckpt_dir, build_model)
-        n_max = meta["train"]["n_max"]
-        dynamics, name = learned_dynamics(model), f"learned ({ckpt_dir}, step {meta.get('step')})"
-    else:
-        n_max, dynamics, name = 100, sweep_dynamics(sim.scene.plate_half_width), "sweep heuristic"
+    dynamics, n_max, name = load_dynamics(args.dynamics, args.ckpt or DEFAULT_CKPT, sim.scene.plate_half_width)
     if not 1 <= args.resolution <= n_max:
         parser.error(f"--resolution must lie in [1, {n_max}] (the model's n_max)")
     planner = PlannerConfig(samples=args.samples, steps=args.plan_steps, bound=env.action_bound,

@@ -9,7 +9,7 @@ import pytest
 from experiments import simulate
 
 
-@pytest.mark.parametrize("module", ["simulate", "benchmark", "validate_physics", "gather", "redistribute",
+@pytest.mark.parametrize("module", ["simulate", "benchmark", "validate_physics", "gather", "redistribute", "plan",
                                     "generate_data", "train_dynamics", "eval_dynamics"])
 def test_help(module):
     out = subprocess.run([sys.executable, "-m", f"experiments.{module}", "--help"], capture_output=True, text=True)

@@ -1,0 +1,60 @@
+"""Recorded frames: the simulator's frames saved as a depth camera would, read back, and planned on."""
+
+import json
+
+import cv2
+import jax
+import numpy as np
+import pytest
+
+from dynres_jax import frames
+from dynres_jax.config import CameraConfig, SceneConfig, SimConfig
+from dynres_jax.objective import disc_goal
+from dynres_jax.sim.env import PileEnv
+from experiments import plan
+
+
+@pytest.fixture(scope="module")
+def saved(tmp_path_factory):
+    env = PileEnv(SimConfig(scene=SceneConfig(pieces=(8,)), camera=CameraConfig(width=64, height=64)),
+                  backend="mujoco")
+    state = env.reset(jax.random.PRNGKey(0))
+    folder = tmp_path_factory.mktemp("frame")
+    paths = frames.save_frame(str(folder), state.obs, env.camera)
+    goal = disc_goal(env.camera, np.array([0.0, 0.0]), 0.06)
+    paths["goal.png"] = str(folder / "goal.png")
+    cv2.imwrite(paths["goal.png"], goal.astype(np.uint8) * 255)
+    return env, state, paths
+
+
+def test_round_trip_keeps_depth_to_a_millimetre(saved):
+    env, state, paths = saved
+    obs, camera = frames.load_frame(paths["depth.png"], paths["rgb.png"], paths["camera.json"])
+    assert camera == env.camera
+    np.testing.assert_allclose(obs.depth, np.asarray(state.obs.depth), atol=0.0005 + 1e-6)
+    np.testing.assert_array_equal(obs.rgb, np.asarray(state.obs.rgb))
+
+
+def test_plan_command_prints_a_push_inside_the_bound(saved, tmp_path, capsys):
+    _, _, paths = saved
+    out = plan.main(["--depth", paths["depth.png"], "--rgb", paths["rgb.png"], "--camera", paths["camera.json"],
+                     "--goal", paths["goal.png"], "--resolution", "6", "--samples", "4", "--plan-steps", "5",
+                     "--dynamics", "sweep", "--out", str(tmp_path / "push.png")])
+    printed = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert printed["push"] == out["push"] and np.all(np.abs(out["push"]) <= 0.18 + 1e-6)
+    assert cv2.imread(str(tmp_path / "push.png")) is not None
+
+
+def test_bad_files_are_named(saved, tmp_path):
+    _, _, paths = saved
+    with pytest.raises(FileNotFoundError, match="depth file"):
+        frames.load_frame(str(tmp_path / "none.png"), paths["rgb.png"], paths["camera.json"])
+    (tmp_path / "junk.png").write_bytes(b"not an image")
+    with pytest.raises(ValueError, match="not a readable image"):
+        frames.load_frame(str(tmp_path / "junk.png"), paths["rgb.png"], paths["camera.json"])
+    with pytest.raises(ValueError, match="16-bit"):
+        frames.load_frame(paths["rgb.png"], paths["rgb.png"], paths["camera.json"])
+    cv2.imwrite(str(tmp_path / "small.png"), np.zeros((8, 8), np.uint8))
+    with pytest.raises(ValueError, match="goal file"):
+        frames.load_goal(str(tmp_path / "small.png"), frames.load_frame(
+            paths["depth.png"], paths["rgb.png"], paths["camera.json"])[1])
