@@ -36,37 +36,47 @@ DESCRIPTIONS = {
 }
 
 
-def main(task: str, argv=None):
-    description = DESCRIPTIONS[task] + "\n\n" + __doc__.split("\n\n", 2)[2]
-    parser = argparse.ArgumentParser(prog=f"python -m experiments.{task}", description=description,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+def add_loop_args(parser: argparse.ArgumentParser, task: str) -> None:
+    """The flags every closed-loop task command takes."""
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--steps", type=int, default=20, help="MPC steps")
     parser.add_argument("--resolution", type=int, default=50, help="ω: particles the planner reasons with")
     parser.add_argument("--backend", default="mujoco", choices=["mujoco", "mjx"])
-    parser.add_argument("--kind", default="coffee", choices=sorted(KINDS))
-    parser.add_argument("--pieces", type=int, default=100)
     parser.add_argument("--samples", type=int, default=50, help="action sequences optimised at once (M)")
     parser.add_argument("--plan-steps", type=int, default=100, help="Adam steps per plan (N)")
     parser.add_argument("--ckpt", default=None, help=f"dynamics checkpoint (default {DEFAULT_CKPT} if present)")
     parser.add_argument("--dynamics", default="auto", choices=["auto", "learned", "sweep"],
                         help="auto: the checkpoint when there is one, else the sweep heuristic")
-    parser.add_argument("--layout", default="spread" if task == "gather" else "blob",
-                        choices=["blob", "two_blobs", "spread"], help="initial pile")
-    if task == "redistribute":
-        parser.add_argument("--letter", default="T", help="the goal: any characters OpenCV draws (paper: J, T, U)")
     parser.add_argument("--out", default=f"out/{task}")
-    args = parser.parse_args(argv)
 
-    sim = SimConfig(scene=SceneConfig(kinds=(args.kind,), pieces=(args.pieces,)), pile=PileConfig(layout=args.layout),
-                    camera=CameraConfig())
+
+def build_loop(args, sim: SimConfig, parser: argparse.ArgumentParser):
+    """The simulator, the planner's model and the MPC settings the loop flags ask for: (env, dynamics, name, cfg)."""
     env = PileEnv(sim, backend=args.backend)
     dynamics, n_max, name = load_dynamics(args.dynamics, args.ckpt or DEFAULT_CKPT, sim.scene.plate_half_width)
     if not 1 <= args.resolution <= n_max:
         parser.error(f"--resolution must lie in [1, {n_max}] (the model's n_max)")
     planner = PlannerConfig(samples=args.samples, steps=args.plan_steps, bound=env.action_bound,
                             max_length=sim.push.max_length, min_length=sim.push.min_length, seed=args.seed)
-    cfg = MPCConfig(steps=args.steps, omega=args.resolution, n_max=n_max, planner=planner)
+    return env, dynamics, name, MPCConfig(steps=args.steps, omega=args.resolution, n_max=n_max, planner=planner)
+
+
+def main(task: str, argv=None):
+    description = DESCRIPTIONS[task] + "\n\n" + __doc__.split("\n\n", 2)[2]
+    parser = argparse.ArgumentParser(prog=f"python -m experiments.{task}", description=description,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    add_loop_args(parser, task)
+    parser.add_argument("--kind", default="coffee", choices=sorted(KINDS))
+    parser.add_argument("--pieces", type=int, default=100)
+    parser.add_argument("--layout", default="spread" if task == "gather" else "blob",
+                        choices=["blob", "two_blobs", "spread"], help="initial pile")
+    if task == "redistribute":
+        parser.add_argument("--letter", default="T", help="the goal: any characters OpenCV draws (paper: J, T, U)")
+    args = parser.parse_args(argv)
+
+    sim = SimConfig(scene=SceneConfig(kinds=(args.kind,), pieces=(args.pieces,)), pile=PileConfig(layout=args.layout),
+                    camera=CameraConfig())
+    env, dynamics, name, cfg = build_loop(args, sim, parser)
 
     rng = np.random.default_rng(args.seed)
     if task == "gather":

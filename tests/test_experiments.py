@@ -9,8 +9,8 @@ import pytest
 from experiments import simulate
 
 
-@pytest.mark.parametrize("module", ["simulate", "benchmark", "validate_physics", "gather", "redistribute", "plan",
-                                    "generate_data", "train_dynamics", "eval_dynamics"])
+@pytest.mark.parametrize("module", ["simulate", "benchmark", "validate_physics", "gather", "redistribute", "sort",
+                                    "plan", "generate_data", "train_dynamics", "eval_dynamics"])
 def test_help(module):
     out = subprocess.run([sys.executable, "-m", f"experiments.{module}", "--help"], capture_output=True, text=True)
     assert out.returncode == 0 and "usage" in out.stdout

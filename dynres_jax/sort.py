@@ -1,0 +1,237 @@
+"""Sort (paper Sec. V and Appendix "High-Level Planner for Sort Task"): two piles of different kinds, each pushed to
+its own disc without mixing, guided by an A* planner over blob centres.
+
+Paper mapping:
+- Each pile is a blob: a circle of fixed radius (``blob_radius``, m) around its centre. A node of the search is the
+  pair of blob centres, each on a sparse grid (spacing ``grid_step``, m, on the table plane; the paper's grid is in
+  image space, ours in metres, which for the top-down camera is the same up to scale).
+- Neighbours move ONE blob ONE grid step, 8-connected (diagonals included), with no collision: the two circles may
+  not overlap (centre distance >= 2 ``blob_radius``) and centres stay within ±``bound``. Every step costs 1, so the
+  fewest-steps path is preferred (the paper's constant cost per step).
+- Heuristic: the sum over blobs of the Chebyshev grid distance to its goal. With 8-connected unit-cost moves this is
+  the exact cost when the blobs do not interfere, hence admissible and consistent (the Euclidean grid distance is
+  not admissible here: a diagonal step covers √2 grid units at cost 1).
+- Perceived piles can start closer than 2 ``blob_radius`` (touching or mixed piles); such a start may only be left
+  by moves that strictly increase the centre distance until the circles are apart. Goals must not overlap.
+
+Closed loop (``sort_episode``): each MPC step perceives both piles (particles of one kind each, segmentation), takes
+the blob centres as the particle centroids, RE-PLANS the A* path from them (so a pile disturbed by a push is
+handled), and moves the blob of the path's first move: one planning step of Gather (the task objective c on that
+kind's particles only) toward a disc of ``goal_radius`` at that blob's waypoint, up to ``lookahead`` grid steps
+ahead along its current run of moves. When both centres snap to their goals, the piles are gathered into their own
+goal discs alternately; when A* finds no path (no room to pass), the pile farther from its goal heads straight to
+it. The paper's reference code has no Sort; these choices are ours.
+"""
+
+from __future__ import annotations
+
+import heapq
+import time
+
+import jax
+import numpy as np
+from jax.tree_util import Partial
+
+from dynres_jax.mpc import MPCConfig, goal_cost, overlay
+from dynres_jax.objective import disc_goal, inside_share, make_goal, objective, sort_goals
+from dynres_jax.perception import point_cloud, sample_particles
+from dynres_jax.planner import plan
+from dynres_jax.sim.env import PileEnv, State
+from dynres_jax.tasks import FILL
+
+GOAL_GAP = 0.04  # m: sort goals' rims at least this far apart (room for A*'s snapping of both centres to the grid)
+GOAL_EDGE = 0.01  # m: sort goals' rims at least this far from the bin wall
+SAMPLE_TRIES = 10_000  # rejection-sampling tries for the goal centres
+WAYPOINT_EDGE = 0.005  # m: A*'s bound keeps waypoint discs of goal_radius this far inside the bin
+GOAL_TINTS = np.array([[60.0, 110.0, 235.0], [240.0, 150.0, 40.0]])  # RGB tint of goal 0 (blue) and goal 1 (orange)
+MOVES = [(di, dj) for di in (-1, 0, 1) for dj in (-1, 0, 1) if (di, dj) != (0, 0)]  # 8-connected grid steps
+
+
+def astar_blobs(starts, goals, blob_radius: float, grid_step: float, bound) -> list[np.ndarray]:
+    """A* over pairs of blob centres. starts, goals [2, 2] (m, row b = blob b's (x, y)); blob_radius, grid_step (m);
+    bound: m, centres stay within ±bound (a scalar, or (x, y) half-widths of a rectangle). Starts are snapped to the
+    nearest grid point inside the bound, goals to the nearest grid point. Returns the path as a list of [2, 2]
+    centre pairs (m) from the snapped start to the snapped goals, consecutive pairs differing in one blob by one
+    grid step (a one-element list when the start snaps to the goals). ValueError for bad arguments, goals outside
+    the bound or overlapping, and when no collision-free path exists."""
+    starts, goals = np.asarray(starts, np.float64), np.asarray(goals, np.float64)
+    if starts.shape != (2, 2) or goals.shape != (2, 2):
+        raise ValueError(f"starts and goals must be [2, 2] (one (x, y) per blob), got {starts.shape}, {goals.shape}")
+    if not (np.all(np.isfinite(starts)) and np.all(np.isfinite(goals))):
+        raise ValueError("starts and goals must be finite")
+    if not (blob_radius > 0 and grid_step > 0):
+        raise ValueError(f"blob_radius and grid_step must be positive, got {blob_radius}, {grid_step}")
+    half = np.broadcast_to(np.asarray(bound, np.float64), (2,))
+    if np.any(half < 0):
+        raise ValueError(f"bound must be non-negative, got {bound}")
+    if np.any(np.abs(goals) > half + 1e-9):
+        raise ValueError(f"goals {goals.tolist()} lie outside the bound ±{half.tolist()} m")
+    n = np.floor(half / grid_step + 1e-9).astype(int)  # grid indices -n..n per axis
+    start = tuple(int(i) for i in np.clip(np.rint(starts / grid_step), -n, n).astype(int).ravel())
+    goal = tuple(int(i) for i in np.clip(np.rint(goals / grid_step), -n, n).astype(int).ravel())
+    apart = (2 * blob_radius / grid_step) ** 2 - 1e-9  # squared centre distance (grid units) of touching circles
+
+    def gap2(node):
+        return (node[0] - node[2]) ** 2 + (node[1] - node[3]) ** 2
+
+    if gap2(goal) < apart:
+        raise ValueError(f"goals overlap: snapped to the grid their centres are {np.sqrt(gap2(goal)) * grid_step:.4f}"
+                         f" m apart, blobs of radius {blob_radius} m need {2 * blob_radius} m")
+
+    def heuristic(node):
+        return sum(max(abs(node[2 * b] - goal[2 * b]), abs(node[2 * b + 1] - goal[2 * b + 1])) for b in (0, 1))
+
+    cost, parent = {start: 0}, {start: None}
+    frontier = [(heuristic(start), 0, start)]
+    while frontier:
+        _, neg_g, node = heapq.heappop(frontier)
+        if node == goal:
+            path = []
+            while node is not None:
+                path.append(np.asarray(node, np.float64).reshape(2, 2) * grid_step)
+                node = parent[node]
+            return path[::-1]
+        if -neg_g > cost[node]:
+            continue  # a stale entry: the node was reached more cheaply since
+        g, d2 = cost[node] + 1, gap2(node)
+        for b in (0, 1):
+            for di, dj in MOVES:
+                nxt = list(node)
+                nxt[2 * b] += di
+                nxt[2 * b + 1] += dj
+                nxt = tuple(nxt)
+                if abs(nxt[2 * b]) > n[0] or abs(nxt[2 * b + 1]) > n[1]:
+                    continue
+                if gap2(nxt) < apart and not (d2 < apart and gap2(nxt) > d2):  # collision, unless escaping one
+                    continue
+                if g < cost.get(nxt, np.inf):
+                    cost[nxt], parent[nxt] = g, node
+                    heapq.heappush(frontier, (g + heuristic(nxt), -g, nxt))  # ties: deeper nodes first
+    raise ValueError(f"no collision-free path for blobs of radius {blob_radius} m from {starts.tolist()} to "
+                     f"{goals.tolist()} within ±{half.tolist()} m on a {grid_step} m grid (too little room to pass)")
+
+
+def sort_goal(rng: np.random.Generator, env: PileEnv) -> tuple[np.ndarray, float, np.ndarray]:
+    """Two random disjoint goal discs of one radius, sized to the kind with the larger footprint area (``tasks.FILL``
+    times it), rims ``GOAL_GAP`` apart and ``GOAL_EDGE`` from the wall: (centres [2, 2] m, radius m, masks [2, H, W]
+    bool, mask k for kind k). ValueError when the pieces are too many for two such discs in the bin."""
+    kinds = np.asarray(env.scene.kind)
+    if kinds.max() != 1:
+        raise ValueError(f"Sort needs a scene of two kinds, got kinds {env.config.scene.kinds}")
+    area = max(float(np.sum(np.pi * env.scene.footprint[kinds == k] ** 2)) for k in (0, 1)) * rng.uniform(*FILL)
+    radius = float(np.sqrt(area / np.pi))
+    lim = env.config.scene.bin_half_width - radius - GOAL_EDGE
+    need = 2 * radius + GOAL_GAP
+    for _ in range(SAMPLE_TRIES if lim > 0 else 0):
+        centres = rng.uniform(-lim, lim, size=(2, 2))
+        if np.linalg.norm(centres[0] - centres[1]) >= need:
+            return centres, radius, sort_goals(env.camera, centres, radius,
+                                               bin_half_width=env.config.scene.bin_half_width)
+    raise ValueError(f"two sort goals of radius {radius:.3f} m, {GOAL_GAP} m apart, hardly fit in the bin: too many "
+                     f"pieces ({env.config.scene.pieces})")
+
+
+def sort_scores(piece_pos, kinds, goals, camera) -> tuple[list[float], float]:
+    """piece_pos [N, 3] m, kinds [N] kind index, goals: the two ``Goal``s -> (inside: share of kind k's pieces
+    inside goal k, for k = 0, 1; mixing: share of all pieces inside the other kind's goal)."""
+    kinds = np.asarray(kinds)
+    inside = [float(inside_share(piece_pos, kinds == k, goals[k], camera)) for k in (0, 1)]
+    wrong = sum(float(inside_share(piece_pos, kinds == k, goals[1 - k], camera)) * np.sum(kinds == k) for k in (0, 1))
+    return inside, wrong / len(kinds)
+
+
+def _kind_particles(obs, camera, cfg: MPCConfig, key, kind: int):
+    """Particles of one kind: ω = min(cfg.omega, that kind's foreground points), so a small pile still samples."""
+    _, valid = point_cloud(obs, camera, max_points=cfg.max_points, kind=kind)
+    omega = min(cfg.omega, int(np.sum(np.asarray(valid))))
+    return sample_particles(obs, camera, max(omega, 1), key, cfg.n_max, max_points=cfg.max_points, kind=kind)
+
+
+def _next_waypoint(path: list[np.ndarray], goals_xy: np.ndarray, lookahead: int) -> tuple[int, np.ndarray]:
+    """The blob of the path's first move and its target (m): its centre after up to ``lookahead`` of its own
+    consecutive moves, or its true (unsnapped) goal when it does not move again after those."""
+    blob = int(np.argmax(np.any(path[1] != path[0], axis=1)))
+    j = 1
+    while j < lookahead and j + 1 < len(path) and not np.any(path[j + 1][1 - blob] != path[j][1 - blob]):
+        j += 1
+    if all(np.array_equal(p[blob], path[j][blob]) for p in path[j:]):
+        return blob, goals_xy[blob]
+    return blob, path[j][blob]
+
+
+def _frame(rgb, goal_masks, target_mask, particles, camera) -> np.ndarray:
+    """RGB frame: goal 0 tinted blue, goal 1 orange, the current target disc green, particles red (``overlay``)."""
+    img = np.asarray(rgb, np.float32)
+    for mask, tint in zip(goal_masks, GOAL_TINTS, strict=True):
+        img[mask] = 0.6 * img[mask] + 0.4 * tint
+    return overlay(img.astype(np.uint8), target_mask, particles, camera)
+
+
+def sort_episode(env: PileEnv, state: State, dynamics, cfg: MPCConfig, key, goals_xy, goal_radius: float, log=print,
+                 *, blob_radius: float | None = None, grid_step: float = 0.02,
+                 lookahead: int = 3) -> tuple[State, list[dict], list[np.ndarray]]:
+    """One Sort episode from ``state``: kind k to the disc of ``goal_radius`` (m) at goals_xy[k] (m).
+    dynamics: ``mpc.learned_dynamics(model)`` or ``mpc.sweep_dynamics(hw)``; blob_radius: A*'s blob circle (m,
+    default goal_radius); grid_step: A*'s grid (m); lookahead: grid steps a waypoint may lie ahead (>= 1).
+    Returns the final state, one record per step and GIF frames. A record: step, phase ("path": following A*,
+    "final": both at their goals, "direct": A* found no path, the farther pile heads straight to its goal), kind
+    moved, waypoint [2] m, centres [2, 2] m (perceived), astar_steps left, objective c before / predicted,
+    inside [2] (kind k's share inside goal k), mixing (share inside the other kind's goal), times, action, broken."""
+    if lookahead < 1:
+        raise ValueError(f"lookahead must be at least 1, got {lookahead}")
+    camera, bin_half = env.camera, env.config.scene.bin_half_width
+    goals_xy = np.asarray(goals_xy, np.float64)
+    goal_masks = sort_goals(camera, goals_xy, goal_radius, bin_half_width=bin_half)
+    goals = [make_goal(m, camera) for m in goal_masks]
+    blob_radius = goal_radius if blob_radius is None else blob_radius
+    bound = bin_half - goal_radius - WAYPOINT_EDGE
+    cost_fn = goal_cost(goals[0], camera).func
+    records, frames, turn = [], [], 0
+    for t in range(cfg.steps):
+        k_h, k_plan = jax.random.split(jax.random.fold_in(key, t))
+        particles = [_kind_particles(state.obs, camera, cfg, jax.random.fold_in(k_h, k), k) for k in (0, 1)]
+        centres = np.stack([np.asarray(p.positions)[np.asarray(p.mask), :2].mean(0) for p in particles])
+        t0 = time.perf_counter()
+        try:
+            path = astar_blobs(centres, goals_xy, blob_radius, grid_step, bound)
+        except ValueError as error:
+            path = None
+            if not records or records[-1]["phase"] != "direct":
+                log(f"A*: {error}; heading straight to the goals")
+        astar_s = time.perf_counter() - t0
+        if path is None:
+            phase, steps_left = "direct", -1
+            kind = int(np.argmax(np.linalg.norm(centres - goals_xy, axis=1)))
+            waypoint = goals_xy[kind]
+        elif len(path) == 1:
+            phase, steps_left, kind, turn = "final", 0, turn % 2, turn + 1
+            waypoint = goals_xy[kind]
+        else:
+            phase, steps_left = "path", len(path) - 1
+            kind, waypoint = _next_waypoint(path, goals_xy, lookahead)
+        target_mask = disc_goal(camera, waypoint, goal_radius, bin_half_width=bin_half)
+        target = goals[kind] if phase == "final" else make_goal(target_mask, camera)
+        p = particles[kind]
+        c_now = float(objective(p.positions, p.mask, target, camera))
+        frames.append(_frame(state.obs.rgb, goal_masks, target_mask,
+                             np.asarray(p.positions)[np.asarray(p.mask)], camera))
+        t0 = time.perf_counter()
+        cost = Partial(cost_fn, target)  # one cost function for every goal, so the planner compiles once
+        result = plan(dynamics(p.radius), cost, p.positions, p.mask, k_plan, cfg.planner)
+        action = np.asarray(jax.block_until_ready(result.best[0]))
+        planning_s = time.perf_counter() - t0
+        state = env.push(state, action)
+        inside, mixing = sort_scores(state.pos, env.scene.kind, goals, camera)
+        record = dict(step=t, phase=phase, kind=kind, waypoint=np.asarray(waypoint).tolist(),
+                      centres=centres.tolist(), astar_steps=steps_left, omega=int(np.sum(np.asarray(p.mask))),
+                      objective=c_now, predicted_objective=float(result.best_cost), inside=inside, mixing=mixing,
+                      astar_s=astar_s, planning_s=planning_s, action=action.tolist(), broken=bool(state.broken))
+        records.append(record)
+        log(f"step {t + 1:2d}/{cfg.steps}  {phase:6s} kind {kind} -> ({waypoint[0]:+.3f}, {waypoint[1]:+.3f})  "
+            f"A* {steps_left:3d} steps  c={c_now:7.2f} -> {record['predicted_objective']:7.2f}  "
+            f"inside {inside[0]:5.1%} / {inside[1]:5.1%}  mixing {mixing:5.1%}  plan {planning_s:5.2f}s")
+        if record["broken"]:
+            log("the simulated world broke (NaN or a piece out of the bin); stopping the episode")
+            break
+    frames.append(_frame(state.obs.rgb, goal_masks, np.zeros(goal_masks.shape[1:], bool), None, camera))
+    return state, records, frames

@@ -1,0 +1,131 @@
+"""Sort: the A* blob planner against a brute-force BFS, goal sampling, and a tiny closed-loop episode (CPU)."""
+
+from collections import deque
+
+import jax
+import numpy as np
+import pytest
+
+from dynres_jax.config import CameraConfig, PileConfig, PushConfig, SceneConfig, SimConfig
+from dynres_jax.mpc import MPCConfig, sweep_dynamics
+from dynres_jax.objective import BIN_HALF_WIDTH
+from dynres_jax.planner import PlannerConfig
+from dynres_jax.sim.env import PileEnv
+from dynres_jax.sort import astar_blobs, sort_episode, sort_goal
+
+STEP = 0.025  # m, the tests' grid
+
+
+def bfs_steps(start, goal, radius_cells: float, n) -> int:
+    """Fewest 8-connected single-blob moves between grid nodes (i0, j0, i1, j1) within |i| <= n[0], |j| <= n[1]
+    keeping the blobs 2 radius_cells apart; -1 when unreachable."""
+    far = (2 * radius_cells) ** 2 - 1e-9
+    seen, queue = {start: 0}, deque([start])
+    while queue:
+        node = queue.popleft()
+        if node == goal:
+            return seen[node]
+        for b in (0, 1):
+            for di in (-1, 0, 1):
+                for dj in (-1, 0, 1):
+                    nxt = list(node)
+                    nxt[2 * b] += di
+                    nxt[2 * b + 1] += dj
+                    nxt = tuple(nxt)
+                    if (abs(nxt[0]) > n[0] or abs(nxt[2]) > n[0] or abs(nxt[1]) > n[1] or abs(nxt[3]) > n[1]
+                            or (nxt[0] - nxt[2]) ** 2 + (nxt[1] - nxt[3]) ** 2 < far or nxt in seen):
+                        continue
+                    seen[nxt] = seen[node] + 1
+                    queue.append(nxt)
+    return -1
+
+
+def check_path(path, starts, goals, radius, bound):
+    """Starts and goals at the ends; each move one blob one 8-connected grid step; no overlap; inside the bound."""
+    assert np.allclose(path[0], starts) and np.allclose(path[-1], goals)
+    for a, b in zip(path, path[1:], strict=False):
+        moved = np.any(~np.isclose(a, b), axis=1)
+        assert moved.sum() == 1 and np.max(np.abs(a - b)) == pytest.approx(STEP)
+    for p in path:
+        assert np.linalg.norm(p[0] - p[1]) >= 2 * radius - 1e-9
+        assert np.all(np.abs(p) <= np.asarray(bound) + 1e-9)
+
+
+def cells(xy):
+    return tuple(int(i) for i in np.rint(np.asarray(xy) / STEP).astype(int).ravel())
+
+
+@pytest.mark.parametrize("starts, goals", [
+    ([[-0.1, -0.1], [0.1, 0.1]], [[0.05, -0.1], [0.1, -0.05]]),
+    ([[0.0, 0.0], [0.1, 0.025]], [[-0.075, 0.1], [0.1, -0.1]]),
+])
+def test_astar_is_optimal_on_an_open_grid(starts, goals):
+    radius, bound = 0.02, 0.1
+    path = astar_blobs(starts, goals, radius, STEP, bound)
+    check_path(path, starts, goals, radius, bound)
+    chebyshev = sum(np.max(np.abs(np.subtract(goals, starts)), axis=1)) / STEP
+    assert len(path) - 1 == round(chebyshev) == bfs_steps(cells(starts), cells(goals), radius / STEP, (4, 4))
+
+
+def test_astar_matches_bfs_when_blobs_must_detour():
+    starts, goals, radius, bound = [[-0.05, 0.0], [0.05, 0.0]], [[0.05, 0.0], [-0.05, 0.0]], 0.04, (0.075, 0.05)
+    path = astar_blobs(starts, goals, radius, STEP, bound)
+    check_path(path, starts, goals, radius, bound)
+    assert len(path) - 1 == bfs_steps(cells(starts), cells(goals), radius / STEP, (3, 2)) > 8  # 8: the open grid
+
+
+def test_astar_swaps_blobs_when_there_is_room_and_names_the_failure_otherwise():
+    starts, goals, radius = [[-0.1, 0.0], [0.1, 0.0]], [[0.1, 0.0], [-0.1, 0.0]], 0.05
+    path = astar_blobs(starts, goals, radius, STEP, (0.15, 0.1))
+    check_path(path, starts, goals, radius, (0.15, 0.1))
+    with pytest.raises(ValueError, match="no collision-free path"):
+        astar_blobs(starts, goals, radius, STEP, (0.15, 0.04))  # the corridor is narrower than a blob: no passing
+
+
+def test_astar_snaps_and_escapes_an_overlapping_start():
+    path = astar_blobs([[0.011, 0.0], [-0.012, 0.004]], [[0.1, 0.0], [-0.1, 0.0]], 0.04, STEP, 0.1)
+    assert np.allclose(path[0], [[0.0, 0.0], [0.0, 0.0]]) and np.allclose(path[-1], [[0.1, 0.0], [-0.1, 0.0]])
+    gaps = [np.linalg.norm(p[0] - p[1]) for p in path]
+    first_apart = next(i for i, g in enumerate(gaps) if g >= 0.08 - 1e-9)
+    assert np.all(np.diff(gaps[:first_apart + 1]) > 0) and min(gaps[first_apart:]) >= 0.08 - 1e-9
+
+
+def test_astar_rejects_bad_goals():
+    with pytest.raises(ValueError, match="overlap"):
+        astar_blobs([[-0.1, 0.0], [0.1, 0.0]], [[0.0, 0.0], [0.025, 0.0]], 0.05, STEP, 0.1)
+    with pytest.raises(ValueError, match="outside the bound"):
+        astar_blobs([[-0.1, 0.0], [0.1, 0.0]], [[0.2, 0.0], [-0.1, 0.0]], 0.02, STEP, 0.1)
+
+
+@pytest.fixture(scope="module")
+def env():
+    sim = SimConfig(scene=SceneConfig(kinds=("coffee", "candy"), pieces=(6, 4)), pile=PileConfig(layout="two_blobs"),
+                    push=PushConfig(max_length=0.1, settle_time=0.04), camera=CameraConfig(width=64, height=64))
+    return PileEnv(sim, backend="mujoco")
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_sort_goal_gives_two_disjoint_discs_in_the_bin(env, seed):
+    centres, radius, masks = sort_goal(np.random.default_rng(seed), env)
+    assert centres.shape == (2, 2) and masks.shape == (2, 64, 64) and radius > 0
+    assert np.linalg.norm(centres[0] - centres[1]) > 2 * radius
+    assert np.all(np.abs(centres) + radius <= BIN_HALF_WIDTH)
+    assert masks[0].any() and masks[1].any() and not np.any(masks[0] & masks[1])
+
+
+def test_tiny_sort_episode_runs_and_records_every_step(env):
+    goals, radius, _ = sort_goal(np.random.default_rng(0), env)
+    planner = PlannerConfig(samples=8, steps=10, bound=env.action_bound, max_length=0.1)
+    cfg = MPCConfig(steps=3, omega=20, n_max=32, max_points=512, planner=planner)
+    lines = []
+    _, records, frames = sort_episode(env, env.reset(jax.random.PRNGKey(0)), sweep_dynamics(0.04), cfg,
+                                      jax.random.PRNGKey(1), goals, radius, log=lines.append)
+    assert [r["step"] for r in records] == [0, 1, 2] and len(lines) == 3 and len(frames) == 4
+    assert frames[0].shape == (192, 192, 3) and frames[0].dtype == np.uint8
+    for r in records:
+        assert r["phase"] in ("path", "final", "direct") and r["kind"] in (0, 1)
+        assert len(r["waypoint"]) == 2 and np.all(np.abs(r["waypoint"]) <= BIN_HALF_WIDTH)
+        assert np.shape(r["centres"]) == (2, 2) and 1 <= r["omega"] <= 20
+        assert all(0.0 <= s <= 1.0 for s in r["inside"]) and 0.0 <= r["mixing"] <= 1.0
+        assert np.isfinite(r["objective"]) and np.isfinite(r["predicted_objective"])
+        assert np.all(np.abs(r["action"]) <= env.action_bound + 1e-5)
