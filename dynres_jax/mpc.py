@@ -101,32 +101,43 @@ def overlay(rgb: np.ndarray, goal_mask: np.ndarray, particles: np.ndarray | None
     return img
 
 
+def decide(obs, goal: Goal, key, init, dynamics, cfg: MPCConfig, camera):
+    """One MPC decision: particles from ``obs`` (h at ω), c of them, and the plan. Pure, so it vmaps over episodes.
+    Returns (Particles, c [], PlanResult)."""
+    k_h, k_plan = jax.random.split(key)
+    particles = sample_particles(obs, camera, cfg.omega, k_h, cfg.n_max, max_points=cfg.max_points)
+    c_now = objective(particles.positions, particles.mask, goal, camera)
+    result = plan(dynamics(particles.radius), goal_cost(goal, camera), particles.positions, particles.mask, k_plan,
+                  cfg.planner, init=init)
+    return particles, c_now, result
+
+
+def _shift(best):
+    """The plan of the next step: the remaining pushes, the last one repeated (warm start)."""
+    return jnp.concatenate([best[..., 1:, :], best[..., -1:, :]], axis=-2)
+
+
 def run_episode(env: PileEnv, state: State, goal: Goal, goal_mask: np.ndarray, dynamics, cfg: MPCConfig, key,
                 log=print) -> tuple[State, list[dict], list[np.ndarray]]:
     """One episode from ``state`` towards ``goal``. dynamics: ``learned_dynamics(model)`` or ``sweep_dynamics(hw)``.
     Returns the final state, one record per step, and GIF frames (observation, goal and particles)."""
     camera = env.camera
-    cost = goal_cost(goal, camera)
     records, frames, init = [], [], None
     for t in range(cfg.steps):
-        k_h, k_plan = jax.random.split(jax.random.fold_in(key, t))
-        particles = sample_particles(state.obs, camera, cfg.omega, k_h, cfg.n_max, max_points=cfg.max_points)
-        c_now = float(objective(particles.positions, particles.mask, goal, camera))
-        frames.append(overlay(np.asarray(state.obs.rgb), goal_mask, np.asarray(particles.positions)[
-            np.asarray(particles.mask)], camera))
         t0 = time.perf_counter()
-        result = plan(dynamics(particles.radius), cost, particles.positions, particles.mask, k_plan, cfg.planner,
-                      init=init)
+        particles, c_now, result = decide(state.obs, goal, jax.random.fold_in(key, t), init, dynamics, cfg, camera)
         action = np.asarray(jax.block_until_ready(result.best[0]))
         planning = time.perf_counter() - t0
+        frames.append(overlay(np.asarray(state.obs.rgb), goal_mask, np.asarray(particles.positions)[
+            np.asarray(particles.mask)], camera))
         state = env.push(state, action)
-        init = jnp.concatenate([result.best[1:], result.best[-1:]])  # shift the plan: warm start of the next step
-        record = dict(step=t, omega=cfg.omega, objective=c_now, predicted_objective=float(result.best_cost),
+        init = _shift(result.best)
+        record = dict(step=t, omega=cfg.omega, objective=float(c_now), predicted_objective=float(result.best_cost),
                       distance=float(distribution_distance(state.obs, goal, camera)),
                       success=float(inside_share(state.pos, jnp.ones(env.scene.n_pieces, bool), goal, camera)),
                       planning_s=planning, action=action.tolist(), broken=bool(state.broken))
         records.append(record)
-        log(f"step {t + 1:2d}/{cfg.steps}  ω={cfg.omega}  c={c_now:7.2f} -> predicted "
+        log(f"step {t + 1:2d}/{cfg.steps}  ω={cfg.omega}  c={record['objective']:7.2f} -> predicted "
             f"{record['predicted_objective']:7.2f}  d={record['distance']:7.2f}  inside={record['success']:5.1%}  "
             f"plan {planning:5.2f}s")
         if record["broken"]:
@@ -134,3 +145,40 @@ def run_episode(env: PileEnv, state: State, goal: Goal, goal_mask: np.ndarray, d
             break
     frames.append(overlay(np.asarray(state.obs.rgb), goal_mask, None, camera))
     return state, records, frames
+
+
+def run_episodes(env: PileEnv, states: State, goals: Goal, dynamics, cfg: MPCConfig, keys,
+                 log=print) -> tuple[State, list[dict]]:
+    """Many episodes at once (backend "mjx"): states and goals batched on a leading axis [B], keys [B]. Each MPC step
+    is one compiled call over all episodes (perception, planning, objective) and one batched push. Returns the final
+    states and one record per step whose values are arrays [B] (c, predicted c, d, inside share, broken)."""
+    if env.backend != "mjx":
+        raise ValueError("run_episodes needs backend='mjx' (its pushes are vmapped); loop run_episode otherwise")
+    camera = env.camera
+    n = env.scene.n_pieces
+
+    def step(obs, goal, key, init):
+        return decide(obs, goal, key, init, dynamics, cfg, camera)
+
+    def measure(obs, pos, goal):
+        return distribution_distance(obs, goal, camera), inside_share(pos, jnp.ones(n, bool), goal, camera)
+
+    first, later = jax.jit(jax.vmap(lambda o, g, k: step(o, g, k, None))), jax.jit(jax.vmap(step))
+    push, measure = jax.jit(jax.vmap(env.push)), jax.jit(jax.vmap(measure))
+    records, init = [], None
+    for t in range(cfg.steps):
+        t0 = time.perf_counter()
+        step_keys = jax.vmap(jax.random.fold_in, in_axes=(0, None))(keys, t)
+        if init is None:
+            _, c_now, result = first(states.obs, goals, step_keys)
+        else:
+            _, c_now, result = later(states.obs, goals, step_keys, init)
+        states = push(states, result.best[:, 0])
+        init = _shift(result.best)
+        distance, success = measure(states.obs, states.pos, goals)
+        record = {k: np.asarray(v) for k, v in dict(objective=c_now, predicted_objective=result.best_cost,
+                                                     distance=distance, success=success, broken=states.broken).items()}
+        records.append(dict(step=t, omega=cfg.omega, seconds=time.perf_counter() - t0, **record))
+        log(f"step {t + 1:2d}/{cfg.steps}  {len(keys)} episodes  ω={cfg.omega}  mean d={record['distance'].mean():7.2f}"
+            f"  mean inside={record['success'].mean():5.1%}  {records[-1]['seconds']:5.2f}s")
+    return states, records

@@ -1,4 +1,4 @@
-"""Benchmarks: ``python -m experiments.benchmark {sim,perception} --json FILE [--quick]``.
+"""Benchmarks: ``python -m experiments.benchmark {sim,perception,planner} --json FILE [--quick]``.
 
 Every figure is taken on whatever device JAX sees (named in the output) against a peer measured in the same run.
 """
@@ -26,7 +26,7 @@ def sim_table(result: dict) -> str:
 
 def main(argv=None):
     parser = argparse.ArgumentParser(prog="python -m experiments.benchmark", description=__doc__)
-    parser.add_argument("what", choices=["sim", "perception"])
+    parser.add_argument("what", choices=["sim", "perception", "planner"])
     parser.add_argument("--json", help="write the results here (atomically)")
     parser.add_argument("--quick", action="store_true", help="tiny sizes: checks the benchmark runs, in seconds")
     parser.add_argument("--variants", nargs="*", help="sim: scene variants (default: all)")
@@ -40,9 +40,9 @@ def main(argv=None):
         result = bench_sim.run(args.quick, args.pieces, args.variants, args.worlds, args.full_sweep)
         print(sim_table(result))
     else:
-        from experiments import bench_perception
+        import importlib
 
-        result = bench_perception.run(args.quick)
+        result = importlib.import_module(f"experiments.bench_{args.what}").run(args.quick)
         print(json.dumps(result, indent=1))
     if args.json:
         write_json(args.json, result)

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from dynres_jax.config import CameraConfig, PileConfig, PushConfig, SceneConfig, SimConfig
-from dynres_jax.mpc import MPCConfig, run_episode, sweep_dynamics
+from dynres_jax.mpc import MPCConfig, run_episode, run_episodes, sweep_dynamics
 from dynres_jax.objective import disc_goal, distribution_distance, make_goal
 from dynres_jax.planner import PlannerConfig
 from dynres_jax.sim.env import PileEnv
@@ -44,3 +44,25 @@ def test_episode_brings_the_pile_nearer_the_goal(episode):
 def test_omega_out_of_range_is_named():
     with pytest.raises(ValueError, match="omega"):
         MPCConfig(omega=0)
+
+
+def test_batched_episodes_equal_one_at_a_time():
+    """run_episodes (MJX, vmapped over episodes) makes the same first decision as run_episode on each episode."""
+    sim = SimConfig(scene=SceneConfig(pieces=(6,)), pile=PileConfig(layout="spread"),
+                    push=PushConfig(max_length=0.1, settle_time=0.04), camera=CameraConfig(width=48, height=48))
+    env = PileEnv(sim, backend="mjx")
+    masks = [disc_goal(env.camera, np.array(c), 0.06) for c in ([0.0, 0.0], [0.05, -0.03])]
+    goals = [make_goal(m, env.camera, n_samples=32) for m in masks]
+    planner = PlannerConfig(samples=4, steps=5, bound=env.action_bound, max_length=0.1)
+    cfg = MPCConfig(steps=1, omega=5, n_max=6, max_points=256, planner=planner)
+    keys = jax.random.split(jax.random.PRNGKey(2), 2)
+    starts = jax.vmap(env.reset)(jax.random.split(jax.random.PRNGKey(3), 2))
+    batched_goals = jax.tree.map(lambda *x: np.stack(x), *goals)
+    _, records = run_episodes(env, starts, batched_goals, sweep_dynamics(0.04), cfg, keys, log=lambda s: None)
+    for b in range(2):
+        start = jax.tree.map(lambda x, b=b: x[b], starts)
+        _, one, _ = run_episode(env, start, goals[b], masks[b], sweep_dynamics(0.04), cfg, keys[b],
+                                log=lambda s: None)
+        np.testing.assert_allclose(records[0]["objective"][b], one[0]["objective"], rtol=1e-4)
+        np.testing.assert_allclose(records[0]["predicted_objective"][b], one[0]["predicted_objective"], rtol=1e-3)
+        np.testing.assert_allclose(records[0]["success"][b], one[0]["success"], atol=1 / 6 + 1e-6)

@@ -1,0 +1,262 @@
+"""Planner benchmark: one gradient step of the shooting planner (paper Algorithm 1) against a PyTorch reference.
+
+Batch: the reference code's demo, M = 50 pushes × R = 30 re-samplings of the particles = 1,500 candidates of one push
+(T = 1) each, over N = 100 particles; every candidate is rolled out through the dynamics f, scored, differentiated
+with respect to its push, and the pushes take one Adam step and are clamped to the workspace.
+
+- PyTorch reference (``torch.nn``, eager, CUDA when available): the PropNet of PAPER.md ("Graph and dynamics")
+  written in the reference code's style. The sweep heuristic and the edges (``cdist`` + ``topk`` + radius) are
+  computed in torch for the whole batch; the edges become dense one-hot relation matrices Rr, Rs [B, n_rel, N]
+  (n_rel = N·k, padded with zero rows) and every gather and sum is a ``bmm``: edge inputs ``Rr @ x`` and
+  ``Rs @ x``, incoming effects ``Rr^T @ effect``. Node encoder 5→64→64, edge encoder 6→64→64→64, 3 propagation
+  steps with a residual, predictor 64→64→3. The cost is the mean squared distance of the predicted particles to a
+  target point; the step is ``backward`` to the actions (the model's weights are frozen), ``torch.optim.Adam`` and
+  a clamp. Time per step: the median of single steps after warm-up, with ``torch.cuda.synchronize`` around each.
+  It is a speed peer, not numerically equal to our model (different weights, a simpler cost).
+- JAX: ``planner.plan`` with the real ``Dynamics`` (random weights) and the task objective c on a disc goal, on the
+  device JAX sees. ``plan`` is timed (median of repeated calls after a compiling first call) at the full step count
+  and at a tenth of it; the time per Adam step is the difference divided by the difference in steps, which removes
+  the fixed cost of a call (sampling the pushes, the final evaluation, dispatch). The full plan's wall time is
+  reported as is; compile time (first call minus the median) separately for both step counts.
+
+Both sides use float32 with each library's default matmul precision. Speed-up = torch ms per step / JAX ms per
+step. ``run(quick=True)`` uses tiny sizes so it finishes in seconds on a CPU; without torch the reference is skipped
+(noted in the result).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+
+import numpy as np
+
+PILE_RADIUS = 0.06  # m: particles uniform in a disc of this radius around the bin centre
+PARTICLE_Z = 0.005  # m: particle height
+PARTICLE_RADIUS = 0.01  # m: covering radius fed to the resolution code
+GOAL_XY = (0.08, 0.05)  # m: centre of the disc goal (JAX) and the target point (torch)
+GOAL_RADIUS = 0.04  # m
+SPEEDUP_GOAL = 15.0  # the issue's goal: JAX at least this many times faster per step than the reference
+PLAN_GOAL_S = 1.0  # the issue's goal: a full plan at the full batch under this many seconds
+
+FULL = dict(particles=100, samples=50, resamples=30, steps=200, repeats=5, torch_repeats=20)
+QUICK = dict(particles=16, samples=4, resamples=2, steps=5, repeats=3, torch_repeats=3)
+
+
+def _piles(particles: int, resamples: int, seed: int = 0) -> np.ndarray:
+    """[R, N, 3] float32: R independent re-samplings of N particles uniform in the pile's disc."""
+    rng = np.random.default_rng(seed)
+    r = PILE_RADIUS * np.sqrt(rng.uniform(size=(resamples, particles)))
+    phi = rng.uniform(-np.pi, np.pi, size=(resamples, particles))
+    return np.stack([r * np.cos(phi), r * np.sin(phi), np.full_like(r, PARTICLE_Z)], -1).astype(np.float32)
+
+
+def _median_s(fn, repeats: int, sync) -> float:
+    """Median wall time of ``repeats`` calls of fn (seconds), ``sync`` called before each clock read."""
+    times = []
+    for _ in range(repeats):
+        sync()
+        t0 = time.perf_counter()
+        fn()
+        sync()
+        times.append(time.perf_counter() - t0)
+    return float(np.median(times))
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# PyTorch reference
+# ---------------------------------------------------------------------------------------------------------------
+
+def _torch_reference(positions: np.ndarray, samples: int, repeats: int) -> dict:
+    """Median ms of one planner step of the PyTorch reference PropNet on ``samples`` × R candidates."""
+    import torch
+    from torch import nn
+
+    from dynres_jax.config import SceneConfig
+    from dynres_jax.dynamics import LENGTH_SCALE, R_REF
+    from dynres_jax.graph import K_NEIGHBOURS, R_EDGE, SWEEP_END_OFFSET, SWEEP_FALLOFF
+    from dynres_jax.planner import PlannerConfig
+
+    device = torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    planner = PlannerConfig()
+
+    def smoothstep(x):
+        x = x.clamp(0.0, 1.0)
+        return x * x * (3.0 - 2.0 * x)
+
+    def sweep(p, a):
+        """Guessed displacements [B, N, 3] of particles p [B, N, 3] under pushes a [B, 4] (graph.sweep_displacement)."""
+        start, delta = a[:, None, :2], a[:, 2:] - a[:, :2]
+        length = delta.square().sum(-1).add(1e-12).sqrt()[:, None]
+        along = delta[:, None] / length[..., None]
+        side = torch.stack([-along[..., 1], along[..., 0]], -1)
+        rel = p[..., :2] - start
+        s, t = (rel * along).sum(-1), (rel * side).sum(-1)
+        sideways = smoothstep((SceneConfig.plate_half_width + SWEEP_FALLOFF - t.abs()) / SWEEP_FALLOFF)
+        gate = sideways * smoothstep((s + SWEEP_FALLOFF) / SWEEP_FALLOFF)
+        push = gate * (length + SWEEP_END_OFFSET - s).clamp(min=0.0)
+        return torch.cat([push[..., None] * along, torch.zeros_like(push[..., None])], -1)
+
+    @torch.no_grad()
+    def relations(p):
+        """Dense one-hot Rr, Rs [B, N·k, N] of the radius + kNN edges on p [B, N, 3] (receiver i, sender j)."""
+        b, n, _ = p.shape
+        d2 = torch.cdist(p, p).square() + torch.eye(n, device=p.device) * 1e10
+        dist, senders = torch.topk(d2, min(K_NEIGHBOURS, n - 1), dim=-1, largest=False)
+        k = senders.shape[-1]
+        valid = (dist < R_EDGE ** 2).to(p.dtype).reshape(b, n * k)
+        rows = torch.arange(n * k, device=p.device)
+        rr = torch.zeros(b, n * k, n, device=p.device)
+        rr[:, rows, rows // k] = valid
+        rs = torch.zeros(b, n * k, n, device=p.device).scatter_(2, senders.reshape(b, n * k, 1), valid[..., None])
+        return rr, rs
+
+    def mlp(*sizes, final_relu):
+        layers = []
+        for i, (a, b) in enumerate(zip(sizes[:-1], sizes[1:], strict=True)):
+            layers.append(nn.Linear(a, b))
+            if final_relu or i < len(sizes) - 2:
+                layers.append(nn.ReLU())
+        return nn.Sequential(*layers)
+
+    class PropNet(nn.Module):
+        """PAPER.md's PropNet with dense relation matrices, as the reference code builds it."""
+
+        def __init__(self, h=64, steps=3):
+            super().__init__()
+            self.steps = steps
+            self.node_encoder = mlp(5, h, h, final_relu=True)
+            self.edge_encoder = mlp(6, h, h, h, final_relu=True)
+            self.edge_propagator = nn.Linear(3 * h + 1, h)
+            self.node_propagator = nn.Linear(2 * h + 1, h)
+            self.predictor = mlp(h, h, 3, final_relu=False)
+
+        def forward(self, p, a, code):
+            """p [B, N, 3] m, a [B, 4] m, code float -> positions after the push [B, N, 3] m."""
+            guess = sweep(p, a)
+            rr, rs = relations(p + guess)
+            rr_t = rr.transpose(1, 2)
+            b, n, _ = p.shape
+            attr = torch.ones(b, n, 1, device=p.device)
+            node_res = torch.full((b, n, 1), code, device=p.device)
+            edge_res = torch.full((b, rr.shape[1], 1), code, device=p.device)
+            node_code = self.node_encoder(torch.cat([guess / LENGTH_SCALE, attr, node_res], -1))
+            rel = (rr.bmm(p) - rs.bmm(p)) / LENGTH_SCALE
+            edge_code = self.edge_encoder(torch.cat([rr.bmm(attr), rs.bmm(attr), rel, edge_res], -1))
+            effect = node_code
+            for _ in range(self.steps):
+                edge_effect = torch.relu(self.edge_propagator(
+                    torch.cat([edge_code, rr.bmm(effect), rs.bmm(effect), edge_res], -1)))
+                effect = torch.relu(self.node_propagator(torch.cat([node_code, rr_t.bmm(edge_effect), node_res], -1))
+                                    + effect)
+            return p + self.predictor(effect) * LENGTH_SCALE
+
+    torch.manual_seed(0)
+    model = PropNet().to(device).requires_grad_(False)
+    resamples = positions.shape[0]
+    pile = torch.as_tensor(positions, device=device).repeat(samples, 1, 1)  # [M·R, N, 3], candidate i: pile i % R
+    target = torch.tensor(GOAL_XY, device=device)
+    code = float(np.log(R_REF / PARTICLE_RADIUS))
+    gen = torch.Generator().manual_seed(0)
+    start = (torch.rand(samples, 2, generator=gen) - 0.5) * 0.1 - 0.05
+    actions = torch.cat([start, start + 0.1], -1).to(device).requires_grad_(True)
+    optimiser = torch.optim.Adam([actions], lr=planner.lr)
+
+    def step():
+        optimiser.zero_grad(set_to_none=True)
+        final = model(pile, actions.repeat_interleave(resamples, 0), code)
+        (final[..., :2] - target).square().sum(-1).mean().backward()
+        optimiser.step()
+        with torch.no_grad():
+            actions.clamp_(-planner.bound, planner.bound)
+
+    sync = torch.cuda.synchronize if device.type == "cuda" else (lambda: None)
+    for _ in range(3):  # warm-up: cuBLAS handles, allocator
+        step()
+    ms = 1e3 * _median_s(step, repeats, sync)
+    name = torch.cuda.get_device_name(device) if device.type == "cuda" else "cpu"
+    if device.type == "cuda":
+        torch.cuda.empty_cache()  # hand the memory back before JAX allocates
+    n = positions.shape[1]
+    return dict(device=name, torch_version=torch.__version__, ms_per_step=ms,
+                params=sum(p.numel() for p in model.parameters()), relations_per_candidate=n * min(K_NEIGHBOURS, n - 1))
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# JAX
+# ---------------------------------------------------------------------------------------------------------------
+
+def _jax_planner(positions: np.ndarray, samples: int, steps: int, repeats: int) -> dict:
+    """Time ``planner.plan`` at ``steps`` and at a tenth of it; ms per step from the difference."""
+    import jax
+    from flax import nnx
+    from jax.tree_util import Partial
+
+    from dynres_jax.dynamics import Dynamics, DynamicsConfig, count_params, resolution_code, rollout
+    from dynres_jax.objective import disc_goal, make_goal, objective
+    from dynres_jax.planner import PlannerConfig, plan
+    from dynres_jax.sim.camera import Camera, CameraConfig
+
+    model = Dynamics(DynamicsConfig(), rngs=nnx.Rngs(0))
+    camera = Camera.top_down(CameraConfig())
+    # The planner's functions as dynres_jax.mpc builds them (not imported: mpc pulls in the simulator, MuJoCo).
+    dynamics = Partial(lambda graphdef, state, code, p, m, a: rollout(graphdef, state, p, m, a, code),
+                       *nnx.split(model), resolution_code(PARTICLE_RADIUS))
+    cost = Partial(lambda goal, p, m: objective(p, m, goal, camera),
+                   make_goal(disc_goal(camera, GOAL_XY, GOAL_RADIUS), camera))
+    resamples = positions.shape[0]
+    config = PlannerConfig(samples=samples, resamples=resamples)
+    pile, mask = jax.device_put(positions), jax.device_put(np.ones(positions.shape[:2], bool))
+    key = jax.random.PRNGKey(0)
+
+    def timed(n):
+        """(compile s, median s) of a plan of n steps."""
+        t0 = time.perf_counter()
+        jax.block_until_ready(plan(dynamics, cost, pile, mask, key, config, steps=n))
+        first = time.perf_counter() - t0
+        wall = _median_s(lambda: jax.block_until_ready(plan(dynamics, cost, pile, mask, key, config, steps=n)),
+                         repeats, lambda: None)
+        return first - wall, wall
+
+    short = max(1, steps // 10)
+    compile_short, wall_short = timed(short)
+    compile_full, wall_full = timed(steps)
+    device = jax.devices()[0]
+    return dict(device=f"{device.platform}: {device.device_kind}", jax_version=jax.__version__,
+                params=count_params(model), ms_per_step=1e3 * (wall_full - wall_short) / (steps - short),
+                short_steps=short, short_plan_s=wall_short, steps=steps, plan_s=wall_full,
+                plan_ms_per_step=1e3 * wall_full / steps, compile_s=compile_full, compile_short_s=compile_short)
+
+
+def run(quick: bool) -> dict:
+    """The benchmark; a JSON-ready dict with the sizes, a ``torch`` and a ``jax`` section and the ratios."""
+    os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")  # torch and JAX share the GPU in one process
+    sizes = QUICK if quick else FULL
+    positions = _piles(sizes["particles"], sizes["resamples"])
+    result = dict(quick=quick, particles=sizes["particles"], samples=sizes["samples"], resamples=sizes["resamples"],
+                  batch=sizes["samples"] * sizes["resamples"], horizon=1, steps=sizes["steps"],
+                  speedup_goal=SPEEDUP_GOAL, plan_goal_s=PLAN_GOAL_S)
+    try:
+        import torch  # noqa: F401
+    except ImportError:
+        result["torch"] = dict(skipped="torch is not importable: the PyTorch reference was not run")
+    else:
+        result["torch"] = _torch_reference(positions, sizes["samples"], sizes["torch_repeats"])
+        print(f"  torch reference ({result['torch']['device']}): {result['torch']['ms_per_step']:.2f} ms/step",
+              flush=True)
+    result["jax"] = _jax_planner(positions, sizes["samples"], sizes["steps"], sizes["repeats"])
+    j = result["jax"]
+    print(f"  JAX ({j['device']}): {j['ms_per_step']:.2f} ms/step, {j['steps']}-step plan {j['plan_s']:.3f} s, "
+          f"compile {j['compile_s']:.1f} s", flush=True)
+    result["plan_meets_goal"] = j["plan_s"] < PLAN_GOAL_S
+    if "ms_per_step" in result["torch"]:
+        result["speedup"] = result["torch"]["ms_per_step"] / j["ms_per_step"]
+        result["speedup_meets_goal"] = result["speedup"] >= SPEEDUP_GOAL
+    return result
+
+
+if __name__ == "__main__":
+    import sys
+
+    print(json.dumps(run("--quick" in sys.argv[1:]), indent=1))
