@@ -12,6 +12,7 @@ from __future__ import annotations
 import functools
 import time
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import cv2
 import jax
@@ -25,7 +26,9 @@ from dynres_jax.graph import sweep_rollout
 from dynres_jax.objective import Goal, distribution_distance, inside_share, objective
 from dynres_jax.perception import sample_particles
 from dynres_jax.planner import PlannerConfig, plan
-from dynres_jax.sim.env import PileEnv, State
+
+if TYPE_CHECKING:  # annotations only: the planning half of this module needs no simulator (nor MuJoCo)
+    from dynres_jax.sim.env import PileEnv, State
 
 
 @dataclass(frozen=True)

@@ -191,20 +191,17 @@ def _jax_planner(positions: np.ndarray, samples: int, steps: int, repeats: int) 
     """Time ``planner.plan`` at ``steps`` and at a tenth of it; ms per step from the difference."""
     import jax
     from flax import nnx
-    from jax.tree_util import Partial
 
-    from dynres_jax.dynamics import Dynamics, DynamicsConfig, count_params, resolution_code, rollout
-    from dynres_jax.objective import disc_goal, make_goal, objective
+    from dynres_jax.dynamics import Dynamics, DynamicsConfig, count_params
+    from dynres_jax.mpc import goal_cost, learned_dynamics
+    from dynres_jax.objective import disc_goal, make_goal
     from dynres_jax.planner import PlannerConfig, plan
     from dynres_jax.sim.camera import Camera, CameraConfig
 
     model = Dynamics(DynamicsConfig(), rngs=nnx.Rngs(0))
     camera = Camera.top_down(CameraConfig())
-    # The planner's functions as dynres_jax.mpc builds them (not imported: mpc pulls in the simulator, MuJoCo).
-    dynamics = Partial(lambda graphdef, state, code, p, m, a: rollout(graphdef, state, p, m, a, code),
-                       *nnx.split(model), resolution_code(PARTICLE_RADIUS))
-    cost = Partial(lambda goal, p, m: objective(p, m, goal, camera),
-                   make_goal(disc_goal(camera, GOAL_XY, GOAL_RADIUS), camera))
+    dynamics = learned_dynamics(model)(PARTICLE_RADIUS)
+    cost = goal_cost(make_goal(disc_goal(camera, GOAL_XY, GOAL_RADIUS), camera), camera)
     resamples = positions.shape[0]
     config = PlannerConfig(samples=samples, resamples=resamples)
     pile, mask = jax.device_put(positions), jax.device_put(np.ones(positions.shape[:2], bool))
