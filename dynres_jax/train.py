@@ -36,14 +36,16 @@ VAL_STREAM = 2**30  # seeds of validation batches: (seed, VAL_STREAM, b), apart 
 @dataclass(frozen=True)
 class TrainConfig:
     """steps, batch: optimiser steps and windows per step (reference: batch 4); horizon: pushes rolled out per sample
-    (reference 5); lr: Adam learning rate (reference 1e-3); n_max: particle slots; omega_min: smallest ω drawn;
-    max_points: perception's point cap (``sample_particles``); eval_every / ckpt_every: steps between validation
-    and checkpoints; val_batches: validation batches per evaluation; seed: everything random."""
+    (reference 5); lr: Adam learning rate (reference 1e-3), cosine-decayed to ``lr * lr_final`` at ``steps``;
+    n_max: particle slots; omega_min: smallest ω drawn; max_points: perception's point cap (``sample_particles``);
+    eval_every / ckpt_every: steps between validation and checkpoints; val_batches: validation batches per
+    evaluation; seed: everything random."""
 
     steps: int = 20_000
     batch: int = 32
     horizon: int = 5
     lr: float = 1e-3
+    lr_final: float = 0.05
     n_max: int = 100
     omega_min: int = 2
     max_points: int | None = 4096
@@ -136,8 +138,11 @@ def _trim_metrics(path: str, last_step: int) -> None:
     files.write_text(path, "".join(keep))
 
 
-def train(cfg: TrainConfig, data_dir: str, out_dir: str, progress: bool = True) -> dict:
-    """Train (or resume) into ``out_dir``; returns the final metrics. Checkpoints in ``out_dir/ckpt``."""
+def train(cfg: TrainConfig, data_dir: str, out_dir: str, progress: bool = True,
+          max_minutes: float | None = None) -> dict:
+    """Train (or resume) into ``out_dir``; returns the final metrics. Checkpoints in ``out_dir/ckpt``.
+    ``max_minutes``: stop early once this much wall time has passed, after a validation and a checkpoint (run
+    again to go on)."""
     train_set, val_set = data.load_shards(data_dir, "train"), data.load_shards(data_dir, "val")
     if cfg.horizon > train_set.pushes:
         raise ValueError(f"horizon {cfg.horizon} exceeds the data's {train_set.pushes} pushes per episode")
@@ -145,7 +150,7 @@ def train(cfg: TrainConfig, data_dir: str, out_dir: str, progress: bool = True) 
     ckpt_dir, metrics_path = os.path.join(out_dir, "ckpt"), os.path.join(out_dir, "metrics.jsonl")
     model = Dynamics(cfg.model, rngs=nnx.Rngs(cfg.seed))
     graphdef, params = nnx.split(model)
-    optimizer = optax.adam(cfg.lr)
+    optimizer = optax.adam(optax.cosine_decay_schedule(cfg.lr, cfg.steps, alpha=cfg.lr_final))
     opt_state = optimizer.init(params)
     start = 0
     if ckpt.latest_step(ckpt_dir) is not None:
@@ -167,7 +172,8 @@ def train(cfg: TrainConfig, data_dir: str, out_dir: str, progress: bool = True) 
         params, opt_state, loss = step_fn(params, opt_state, *_batch(train_set, rng, cfg, jax.random.fold_in(key, i)))
         samples += cfg.batch
         done = i + 1
-        if done % cfg.eval_every == 0 or done == cfg.steps:
+        out_of_time = max_minutes is not None and time.perf_counter() - t0 > 60 * max_minutes
+        if done % cfg.eval_every == 0 or done == cfg.steps or out_of_time:
             val = [float(eval_fn(params, *_batch(val_set, np.random.default_rng([cfg.seed, VAL_STREAM, b]), cfg,
                                                  jax.random.fold_in(key, VAL_STREAM + b))))
                    for b in range(cfg.val_batches)]
@@ -177,8 +183,10 @@ def train(cfg: TrainConfig, data_dir: str, out_dir: str, progress: bool = True) 
             with open(metrics_path, "a") as f:
                 f.write(json.dumps(last) + "\n")
             bar.set_postfix(train=f"{last['train_rmse_mm']:.2f}mm", val=f"{last['val_rmse_mm']:.2f}mm")
-        if done % cfg.ckpt_every == 0 or done == cfg.steps:
+        if done % cfg.ckpt_every == 0 or done == cfg.steps or out_of_time:
             ckpt.save(ckpt_dir, done, {"module": params, "opt": opt_state}, card(cfg, step=done))
+        if out_of_time:
+            break
     if os.path.exists(metrics_path):
         plot_curves(metrics_path, os.path.join(out_dir, "curves.png"))
     return last

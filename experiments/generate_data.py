@@ -1,6 +1,7 @@
 """Generate dynamics training data: batched MJX episodes of random pushes, written in resumable shards.
 
     python -m experiments.generate_data --out data/piles --episodes 2000 --pushes 10 --worlds 256
+    python -m experiments.generate_data --out data/piles --backend mujoco   # C engine on every host core
     python -m experiments.generate_data --out /tmp/quick --quick          # seconds-scale smoke run
 
 Every DataConfig field is a flag of the same name (``--two-kinds 0.5``, ``--pieces 40 100``); given flags override
@@ -42,6 +43,8 @@ def main(argv=None) -> dict:
     parser.add_argument("--out", required=True, help="output folder (shards, config.json, summary.json)")
     parser.add_argument("--quick", action="store_true",
                         help="tiny sizes (6 coffee beans, 48x48, 2 short pushes, 8 episodes of 4 worlds)")
+    parser.add_argument("--workers", type=int, default=None,
+                        help="C engine processes for --backend mujoco (default: every host core)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     names = _add_field_flags(parser)
     args = parser.parse_args(argv)
@@ -51,7 +54,7 @@ def main(argv=None) -> dict:
         data.check_devices(config)
     except (ValueError, TypeError) as e:
         parser.error(str(e))
-    summary = data.generate(config, args.out, progress=not args.no_progress)
+    summary = data.generate(config, args.out, progress=not args.no_progress, workers=args.workers)
     print(json.dumps(summary, indent=1, sort_keys=True))
     return summary
 

@@ -39,9 +39,11 @@ def test_training_writes_metrics_curves_and_checkpoints(run):
 
 
 def test_resumed_run_equals_an_uninterrupted_one(shards, run, tmp_path):
-    """Kill after step 2 (keep its checkpoint, leave a metrics line past it), resume to 4: same parameters."""
+    """Stop on the time limit after step 1 (a checkpoint there), leave a metrics line past it as a kill would,
+    resume to 4: the same parameters as the uninterrupted run."""
     out, _ = run
-    train(dataclasses.replace(CFG, steps=2), shards, str(tmp_path), progress=False)
+    train(CFG, shards, str(tmp_path), progress=False, max_minutes=0.0)
+    assert ckpt.latest_step(tmp_path / "ckpt") == 1
     with open(tmp_path / "metrics.jsonl", "a") as f:
         f.write(json.dumps({"step": 3, "train_rmse_mm": 0.0}) + "\n")  # written after the checkpoint, then killed
     with pytest.raises(ValueError, match="another TrainConfig"):
@@ -51,7 +53,7 @@ def test_resumed_run_equals_an_uninterrupted_one(shards, run, tmp_path):
     straight, _, _ = ckpt.load_module(f"{out}/ckpt", build_model)
     for a, b in zip(jax.tree.leaves(nnx.state(resumed)), jax.tree.leaves(nnx.state(straight)), strict=True):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
-    assert [json.loads(line)["step"] for line in open(tmp_path / "metrics.jsonl")] == [2, 4]
+    assert [json.loads(line)["step"] for line in open(tmp_path / "metrics.jsonl")] == [1, 2, 4]
 
 
 def test_eval_reports_every_method_and_resolution(run, shards, tmp_path):
