@@ -7,6 +7,7 @@ centred at the origin. Every field can be overridden by name (``dataclasses.repl
 from __future__ import annotations
 
 import dataclasses
+import json
 from dataclasses import dataclass, field
 
 GEOMS = ("sphere", "capsule", "box")
@@ -171,6 +172,17 @@ class SimConfig:
     push: PushConfig = field(default_factory=PushConfig)
     pile: PileConfig = field(default_factory=PileConfig)
     camera: CameraConfig = field(default_factory=CameraConfig)
+
+    def to_json(self) -> str:
+        return json.dumps(dataclasses.asdict(self), sort_keys=True)
+
+    @staticmethod
+    def from_json(text: str) -> SimConfig:
+        """Inverse of ``to_json`` (lists back to tuples)."""
+        d = json.loads(text)
+        fix = lambda sub: {k: tuple(v) if isinstance(v, list) else v for k, v in sub.items()}  # noqa: E731
+        return SimConfig(scene=SceneConfig(**fix(d["scene"])), push=PushConfig(**fix(d["push"])),
+                         pile=PileConfig(**fix(d["pile"])), camera=CameraConfig(**fix(d["camera"])))
 
 
 def replace(cfg, **overrides):

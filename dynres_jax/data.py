@@ -43,7 +43,6 @@ import functools
 import glob
 import json
 import math
-import multiprocessing
 import os
 import time
 import zipfile
@@ -60,10 +59,7 @@ from tqdm import tqdm
 
 from dynres_jax.config import (
     KINDS,
-    CameraConfig,
-    PileConfig,
     PushConfig,
-    SceneConfig,
     SimConfig,
     replace,
 )
@@ -71,6 +67,7 @@ from dynres_jax.files import TMP_PREFIX, atomic_write, write_json, write_text
 from dynres_jax.perception import sample_particles
 from dynres_jax.sim.camera import Camera, Observation
 from dynres_jax.sim.env import PileEnv
+from dynres_jax.sim.pool import WorldPool, process_pool
 
 KIND_NAMES = tuple(KINDS)  # global kind index used by Dataset.kind and Sample.kind
 LAYOUTS = ("blob", "two_blobs", "spread")
@@ -150,14 +147,6 @@ def quick_config(**overrides) -> DataConfig:
     return replace(quick, **overrides)
 
 
-def sim_config_from_json(text: str) -> SimConfig:
-    """Inverse of ``json.dumps(dataclasses.asdict(sim_config))`` (lists back to tuples)."""
-    d = json.loads(text)
-    fix = lambda sub: {k: tuple(v) if isinstance(v, list) else v for k, v in sub.items()}
-    return SimConfig(scene=SceneConfig(**fix(d["scene"])), push=PushConfig(**fix(d["push"])),
-                     pile=PileConfig(**fix(d["pile"])), camera=CameraConfig(**fix(d["camera"])))
-
-
 def shard_sim_config(config: DataConfig, shard: int) -> SimConfig:
     """The scene of shard ``shard``: kind(s), piece count and layout drawn from ``np.random.default_rng((seed,
     shard))``; image size from the DataConfig, everything else from ``config.sim``."""
@@ -233,82 +222,25 @@ def _episode_fn(sim: SimConfig, pushes: int, devices: tuple):
     return env, jax.jit(jax.vmap(episode), in_shardings=sharding, out_shardings=sharding), sharding
 
 
-def _c_episode(job) -> dict:
-    """One episode in the C engine (a worker process): job = (SimConfig JSON, key data [2], pushes). Returns pos,
-    mat, broken per frame and the actions; a world that broke stays as it was (the episode is dropped later)."""
-    sim_json, key, pushes = job
-    env = _c_env(sim_json)
-    k_reset, k_push = jax.random.split(jnp.asarray(key, jnp.uint32))
-    s = env.reset(k_reset)
-    frames, actions = [s], []
-    for k in jax.random.split(k_push, pushes):
-        action = env.sample_push(k, s.pos) if not s.broken else jnp.array([0.0, 0.0, env.config.push.min_length, 0])
-        if not s.broken:  # as the MJX path's traced push: sampled pushes are in bounds, short ones are no-ops
-            s = env.simulate(s, *env.plate_trajectory(action))
-        frames.append(s)
-        actions.append(action)
-    get = lambda name: np.stack([np.asarray(getattr(f, name)) for f in frames])  # noqa: E731
-    return dict(pos=get("pos"), mat=get("mat"), broken=np.maximum.accumulate(get("broken")),
-                action=np.stack([np.asarray(a, np.float32) for a in actions]))
-
-
-@functools.lru_cache(maxsize=2)
-def _c_env(sim_json: str) -> PileEnv:
-    return PileEnv(sim_config_from_json(sim_json), backend="mujoco", render=False)
-
-
-def _cpu_only() -> None:
-    """Worker initialiser: C workers run their small JAX ops (pile layout, push sampling) on the host, never on
-    the accelerator the parent process holds, on one thread each (one process per core)."""
-    os.environ["XLA_FLAGS"] = "--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1"
-    jax.config.update("jax_platforms", "cpu")
-
-
-@functools.lru_cache(maxsize=16)
-def _render_fn(scene: SceneConfig, camera: CameraConfig):
-    """jitted (pos [W, F, N, 3], mat [W, F, N, 3, 3]) -> per-frame depth (float16) and segmentation (int16)."""
-    env = PileEnv(SimConfig(scene=scene, camera=camera), backend="mujoco")
-
-    def frame(pos, mat):
-        obs = env.renderer(pos, mat)
-        return obs.depth.astype(jnp.float16), obs.piece.astype(jnp.int16)
-
-    return env, jax.jit(jax.vmap(jax.vmap(frame)))
-
-
-def _simulate_c(sim: SimConfig, keys, pushes: int, pool) -> tuple[PileEnv, dict]:
-    """Episodes of every world in C (in ``pool``'s processes, or here when pool is None), frames rendered in JAX."""
-    jobs = [(json.dumps(dataclasses.asdict(sim), sort_keys=True), np.asarray(k), pushes) for k in keys]
-    episodes = list(pool.imap(_c_episode, jobs)) if pool is not None else [_c_episode(j) for j in jobs]
-    out = {name: np.stack([e[name] for e in episodes]) for name in episodes[0]}
-    env, render = _render_fn(sim.scene, sim.camera)
-    depth, piece = render(out["pos"], out["mat"])
-    return env, dict(out, depth=np.asarray(depth), piece=np.asarray(piece))
-
-
 def simulate_shard(config: DataConfig, shard: int, devices=None, pool=None) -> dict:
     """Simulate shard ``shard`` (all ``worlds`` episodes, nothing dropped) -> dict of NumPy arrays with a leading
     world axis (see the module docstring) plus the shard's metadata. ``pool``: worker processes for backend
-    "mujoco" (``c_pool``); without one the C episodes run in this process."""
+    "mujoco" (``pool.process_pool``); without one the C episodes run in this process."""
     devices = check_devices(config, devices)
     sim = shard_sim_config(config, shard)
     keys = jax.random.split(jax.random.fold_in(jax.random.PRNGKey(config.seed), shard), config.worlds)
     if config.backend == "mujoco":
-        env, out = _simulate_c(sim, keys, config.pushes, pool)
+        worlds = WorldPool(sim, pool)
+        env, out = worlds.env, worlds.random_episodes(keys, config.pushes)
     else:
         env, fn, sharding = _episode_fn(sim, config.pushes, tuple(devices))
         out = jax.device_get(fn(jax.device_put(keys, sharding)))
     out["episode"] = shard * config.worlds + np.arange(config.worlds, dtype=np.int64)
     out["kind"] = env.scene.kind.astype(np.int16)
     out["kind_names"] = np.array(sim.scene.kinds)
-    out["sim_config"] = np.array(json.dumps(dataclasses.asdict(sim), sort_keys=True))
+    out["sim_config"] = np.array(sim.to_json())
     out["shard"] = np.int64(shard)
     return out
-
-
-def c_pool(workers: int | None = None):
-    """A pool of ``workers`` (default: every host core) spawned processes for backend "mujoco"."""
-    return multiprocessing.get_context("spawn").Pool(workers or os.cpu_count(), initializer=_cpu_only)
 
 
 def finish_shard(arrays: dict, n_keep: int, drop_broken: bool) -> dict:
@@ -352,7 +284,7 @@ def generate(config: DataConfig, out_dir: str, devices=None, progress: bool = Tr
     start, written_frames = time.perf_counter(), 0
     bar = tqdm(total=config.n_shards, initial=config.n_shards - len(todo), unit="shard", desc="generate",
                disable=not progress)
-    pool = c_pool(workers) if config.backend == "mujoco" and todo else None
+    pool = process_pool(workers) if config.backend == "mujoco" and todo else None
     with ThreadPoolExecutor(1) as writer, pool or contextlib.nullcontext():  # write shard i while i + 1 simulates
         pending = None
         for i in todo:
@@ -433,7 +365,7 @@ def load_shards(data_dir: str, split: str = "all", val_every: int = 10) -> Datas
         raise ValueError(f"split must be 'all', 'train' or 'val', got {split!r}")
     parts, camera, pushes = [], None, None
     for path, s in iter_shards(data_dir):
-        sim = sim_config_from_json(str(s["sim_config"]))
+        sim = SimConfig.from_json(str(s["sim_config"]))
         cam = Camera.top_down(sim.camera)
         if camera is not None and (cam != camera or s["action"].shape[1] != pushes):
             raise ValueError(f"{path}: its camera or pushes per episode differ from the earlier shards'")

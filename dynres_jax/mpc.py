@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import functools
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING
 
 import cv2
@@ -25,7 +25,7 @@ from dynres_jax.dynamics import Dynamics, resolution_code, rollout
 from dynres_jax.graph import sweep_rollout
 from dynres_jax.objective import Goal, distribution_distance, inside_share, objective
 from dynres_jax.perception import sample_particles
-from dynres_jax.planner import PlannerConfig, plan
+from dynres_jax.planner import PlannerConfig, budget_steps, plan
 
 if TYPE_CHECKING:  # annotations only: the planning half of this module needs no simulator (nor MuJoCo)
     from dynres_jax.sim.env import PileEnv, State
@@ -104,14 +104,19 @@ def overlay(rgb: np.ndarray, goal_mask: np.ndarray, particles: np.ndarray | None
     return img
 
 
-def decide(obs, goal: Goal, key, init, dynamics, cfg: MPCConfig, camera):
+def decide(obs, goal: Goal, key, init, dynamics, cfg: MPCConfig, camera, omega=None):
     """One MPC decision: particles from ``obs`` (h at ω), c of them, and the plan. Pure, so it vmaps over episodes.
+    omega: this step's ω (default cfg.omega; may be traced). With ``cfg.planner.max_particle_steps`` the plan gets
+    budget // ω Adam steps (``budget_steps``), so a higher resolution plans with fewer steps (paper Sec. IV-C).
     Returns (Particles, c [], PlanResult)."""
     k_h, k_plan = jax.random.split(key)
-    particles = sample_particles(obs, camera, cfg.omega, k_h, cfg.n_max, max_points=cfg.max_points)
+    omega = cfg.omega if omega is None else omega
+    particles = sample_particles(obs, camera, omega, k_h, cfg.n_max, max_points=cfg.max_points)
     c_now = objective(particles.positions, particles.mask, goal, camera)
+    budget = cfg.planner.max_particle_steps
+    active = None if budget is None else budget_steps(omega, budget, cfg.planner.steps)
     result = plan(dynamics(particles.radius), goal_cost(goal, camera), particles.positions, particles.mask, k_plan,
-                  cfg.planner, init=init)
+                  replace(cfg.planner, max_particle_steps=None), init=init, active_steps=active)
     return particles, c_now, result
 
 
@@ -150,38 +155,50 @@ def run_episode(env: PileEnv, state: State, goal: Goal, goal_mask: np.ndarray, d
     return state, records, frames
 
 
-def run_episodes(env: PileEnv, states: State, goals: Goal, dynamics, cfg: MPCConfig, keys,
+def run_episodes(env, states: State, goals: Goal, dynamics, cfg: MPCConfig, keys, choose_omega=None,
                  log=print) -> tuple[State, list[dict]]:
-    """Many episodes at once (backend "mjx"): states and goals batched on a leading axis [B], keys [B]. Each MPC step
-    is one compiled call over all episodes (perception, planning, objective) and one batched push. Returns the final
-    states and one record per step whose values are arrays [B] (c, predicted c, d, inside share, broken)."""
-    if env.backend != "mjx":
-        raise ValueError("run_episodes needs backend='mjx' (its pushes are vmapped); loop run_episode otherwise")
+    """Many episodes at once: states and goals batched on a leading axis [B], keys [B]. Each MPC step is one
+    compiled call over all episodes (perception, planning, objective) and one batched push: ``env`` is a PileEnv
+    with backend "mjx" (pushes vmapped on the device) or a ``WorldPool`` (pushes in C worker processes).
+    choose_omega: optional ``(obs [B], goals [B]) -> ω [B]`` called every step (adaptive resolution); default
+    cfg.omega everywhere. Returns the final states and one record per step whose values are arrays [B] (ω, c,
+    predicted c, d, inside share, broken)."""
+    from dynres_jax.sim.pool import WorldPool
+
+    if isinstance(env, WorldPool):
+        push = env.push
+    elif env.backend == "mjx":
+        push = jax.jit(jax.vmap(env.push))
+    else:
+        raise ValueError("run_episodes needs a PileEnv with backend='mjx' or a WorldPool; loop run_episode otherwise")
     camera = env.camera
     n = env.scene.n_pieces
 
-    def step(obs, goal, key, init):
-        return decide(obs, goal, key, init, dynamics, cfg, camera)
+    def step(obs, goal, key, init, omega):
+        return decide(obs, goal, key, init, dynamics, cfg, camera, omega)
 
     def measure(obs, pos, goal):
         return distribution_distance(obs, goal, camera), inside_share(pos, jnp.ones(n, bool), goal, camera)
 
-    first, later = jax.jit(jax.vmap(lambda o, g, k: step(o, g, k, None))), jax.jit(jax.vmap(step))
-    push, measure = jax.jit(jax.vmap(env.push)), jax.jit(jax.vmap(measure))
+    first, later = jax.jit(jax.vmap(lambda o, g, k, w: step(o, g, k, None, w))), jax.jit(jax.vmap(step))
+    measure = jax.jit(jax.vmap(measure))
     records, init = [], None
     for t in range(cfg.steps):
         t0 = time.perf_counter()
         step_keys = jax.vmap(jax.random.fold_in, in_axes=(0, None))(keys, t)
+        omega = (jnp.full(len(keys), cfg.omega, jnp.int32) if choose_omega is None
+                 else jnp.asarray(choose_omega(states.obs, goals), jnp.int32))
         if init is None:
-            _, c_now, result = first(states.obs, goals, step_keys)
+            _, c_now, result = first(states.obs, goals, step_keys, omega)
         else:
-            _, c_now, result = later(states.obs, goals, step_keys, init)
+            _, c_now, result = later(states.obs, goals, step_keys, init, omega)
         states = push(states, result.best[:, 0])
         init = _shift(result.best)
         distance, success = measure(states.obs, states.pos, goals)
-        record = {k: np.asarray(v) for k, v in dict(objective=c_now, predicted_objective=result.best_cost,
+        record = {k: np.asarray(v) for k, v in dict(omega=omega, objective=c_now, predicted_objective=result.best_cost,
                                                      distance=distance, success=success, broken=states.broken).items()}
-        records.append(dict(step=t, omega=cfg.omega, seconds=time.perf_counter() - t0, **record))
-        log(f"step {t + 1:2d}/{cfg.steps}  {len(keys)} episodes  ω={cfg.omega}  mean d={record['distance'].mean():7.2f}"
-            f"  mean inside={record['success'].mean():5.1%}  {records[-1]['seconds']:5.2f}s")
+        records.append(dict(step=t, seconds=time.perf_counter() - t0, **record))
+        log(f"step {t + 1:2d}/{cfg.steps}  {len(keys)} episodes  mean ω={record['omega'].mean():5.1f}  mean d="
+            f"{record['distance'].mean():7.2f}  mean inside={record['success'].mean():5.1%}  "
+            f"{records[-1]['seconds']:5.2f}s")
     return states, records

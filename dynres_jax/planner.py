@@ -194,8 +194,15 @@ def _pile_points(key, positions, mask, shape):
     return jnp.where(count > 0, positions[0, jnp.minimum(index, valid.shape[0] - 1), :2], 0.0)
 
 
-def _plan(dynamics_fn, cost_fn, positions, mask, key, init, config, steps):
-    """The jitted planner; see ``plan``. positions [R, N, 3], mask [R, N], init [T, 4] or None."""
+def budget_steps(omega, budget, max_steps):
+    """``steps_for_budget`` in JAX, for a traced ω (one compiled plan for every resolution): min(max_steps,
+    budget // ω), an int32 scalar."""
+    return jnp.clip(budget // jnp.maximum(jnp.asarray(omega, jnp.int32), 1), 0, max_steps).astype(jnp.int32)
+
+
+def _plan(dynamics_fn, cost_fn, positions, mask, key, init, active, config, steps):
+    """The jitted planner; see ``plan``. positions [R, N, 3], mask [R, N], init [T, 4] or None, active [] or
+    None: scan steps from ``active`` on leave the actions unchanged."""
     c = config
     k_points, k_actions = jax.random.split(key)
     centre = _pile_points(k_points, positions, mask, (c.samples, c.horizon)) if c.near_pile else None
@@ -215,16 +222,20 @@ def _plan(dynamics_fn, cost_fn, positions, mask, key, init, config, steps):
         better = costs[i] < best_cost
         return jnp.where(better, actions[i], best), jnp.where(better, costs[i], best_cost)
 
-    def step(carry, _):
+    def step(carry, i):
         actions, opt_state, best, best_cost = carry
         costs, grads = value_and_grad(actions)
         best, best_cost = keep_best(best, best_cost, actions, costs)
-        updates, opt_state = optimiser.update(grads, opt_state, actions)
-        actions = project(optax.apply_updates(actions, updates), c.bound, c.min_length, c.max_length)
-        return (actions, opt_state, best, best_cost), best_cost
+        updates, new_state = optimiser.update(grads, opt_state, actions)
+        new_actions = project(optax.apply_updates(actions, updates), c.bound, c.min_length, c.max_length)
+        if active is not None:  # past the budget: keep the actions (and the best) as they are
+            go = i < active
+            new_actions = jnp.where(go, new_actions, actions)
+            new_state = jax.tree.map(lambda a, b: jnp.where(go, a, b), new_state, opt_state)
+        return (new_actions, new_state, best, best_cost), best_cost
 
     carry = (actions, optimiser.init(actions), actions[0], jnp.asarray(jnp.inf, jnp.float32))
-    (actions, _, best, best_cost), history = jax.lax.scan(step, carry, None, length=steps)
+    (actions, _, best, best_cost), history = jax.lax.scan(step, carry, jnp.arange(steps))
     costs = jax.vmap(objective)(actions)
     best, best_cost = keep_best(best, best_cost, actions, costs)
     return PlanResult(best, best_cost, costs, history, actions)
@@ -234,7 +245,7 @@ _plan_jit = jax.jit(_plan, static_argnames=("config", "steps"))
 
 
 def plan(dynamics_fn, cost_fn, positions, mask, key, config: PlannerConfig = PlannerConfig(), init=None, *,
-         steps=None) -> PlanResult:
+         steps=None, active_steps=None) -> PlanResult:
     """Optimise M action sequences for one MPC step (paper Algorithm 1); returns a ``PlanResult``.
 
     dynamics_fn(positions [N, 3], mask [N], actions [T, 4]) -> [T, N, 3] m; cost_fn(final [N, 3], mask [N]) -> [].
@@ -242,6 +253,9 @@ def plan(dynamics_fn, cost_fn, positions, mask, key, config: PlannerConfig = Pla
     key: a jax.random key (None: PRNGKey(config.seed)). init [T, 4]: warm start, replaces sample 0 (projected).
     steps: Adam steps (default config.steps, capped by config.max_particle_steps / ω, ω the valid particles per
     re-sampling; the budget needs a concrete mask).
+    active_steps: optional int, may be traced (``budget_steps``): only the first ``active_steps`` of the ``steps``
+    scan steps move the actions, so one compiled plan of ``steps`` runs any budget up to it, vmapped over episodes
+    with different ω. The result equals a plan of ``active_steps`` steps.
     The best is the lowest-cost sequence evaluated at any step, so its cost never exceeds the warm start's.
     """
     positions, mask = _batched(positions, mask, config.resamples)
@@ -258,7 +272,7 @@ def plan(dynamics_fn, cost_fn, positions, mask, key, config: PlannerConfig = Pla
         key = jax.random.PRNGKey(config.seed)
     traced = replace(config, steps=0, max_particle_steps=None, seed=0)  # fields the trace ignores: one compile
     return _plan_jit(_as_pytree_fn(dynamics_fn), _as_pytree_fn(cost_fn), positions, mask, key, init,
-                     config=traced, steps=int(steps))
+                     active_steps, config=traced, steps=int(steps))
 
 
 def plan_within(seconds, dynamics_fn, cost_fn, positions, mask, key, config: PlannerConfig = PlannerConfig(),
@@ -286,5 +300,5 @@ def plan_within(seconds, dynamics_fn, cost_fn, positions, mask, key, config: Pla
     return run(steps), steps
 
 
-__all__ = ["PlanResult", "PlannerConfig", "ZERO_LENGTH_DIRECTION", "plan", "plan_within", "project", "sample_actions",
-           "steps_for_budget"]
+__all__ = ["PlanResult", "PlannerConfig", "ZERO_LENGTH_DIRECTION", "budget_steps", "plan", "plan_within", "project",
+           "sample_actions", "steps_for_budget"]

@@ -22,6 +22,7 @@ from dynres_jax.config import CameraConfig, SceneConfig, SimConfig
 from dynres_jax.perception import sample_particles
 from dynres_jax.sim.camera import Observation
 from dynres_jax.sim.env import PileEnv
+from dynres_jax.sim.pool import process_pool
 
 QUICK = data.quick_config(episodes=7)  # shard 0: 4 episodes, shard 1: 3 (the last shard is cut to fit)
 N_MAX = 24
@@ -87,7 +88,7 @@ def test_generation_writes_shards_and_summary(generated):
         np.testing.assert_array_equal(s["episode"], 4 * i + np.arange(e))
         assert int(s["shard"]) == i and int(s["simulated"]) == e and int(s["dropped"]) == 0
         assert s["kind_names"].tolist() == ["coffee"] and not s["broken"].any()
-        assert data.sim_config_from_json(str(s["sim_config"])) == data.shard_sim_config(QUICK, i)
+        assert SimConfig.from_json(str(s["sim_config"])) == data.shard_sim_config(QUICK, i)
         # rotations orthonormal; every piece seen in every frame; table at 1 m, wall tops at 0.96 m, pieces between
         gram = np.einsum("...ji,...jk->...ik", s["mat"], s["mat"])
         np.testing.assert_allclose(gram, np.broadcast_to(np.eye(3), gram.shape), atol=1e-5)
@@ -284,7 +285,7 @@ def test_load_pads_shards_with_fewer_pieces(generated, tmp_path):
     out = str(tmp_path / "mixed")
     shutil.copytree(generated[0], out)
     s = read(data.shard_path(out, 1))
-    sim = data.sim_config_from_json(str(s["sim_config"]))
+    sim = SimConfig.from_json(str(s["sim_config"]))
     sim = data.replace(sim, scene=data.replace(sim.scene, kinds=("almond",), pieces=(4,)))
     s.update(pos=s["pos"][:, :, :4], mat=s["mat"][:, :, :4], kind=s["kind"][:4], kind_names=np.array(["almond"]),
              piece=np.where(s["piece"] < 4, s["piece"], -1).astype(np.int16), episode=s["episode"] + 100,
@@ -347,7 +348,7 @@ def test_c_backend_in_worker_processes_equals_in_process():
     (poses, renders, pushes), and every frame is a settled, unbroken pile inside the bin."""
     cfg = data.quick_config(backend="mujoco", worlds=2, pushes=1)
     here = data.simulate_shard(cfg, 0)
-    with data.c_pool(2) as pool:
+    with process_pool(2) as pool:
         there = data.simulate_shard(cfg, 0, pool=pool)
     for name in ("pos", "mat", "depth", "piece", "action", "broken"):
         np.testing.assert_array_equal(here[name], there[name], err_msg=name)

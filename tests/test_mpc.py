@@ -66,3 +66,31 @@ def test_batched_episodes_equal_one_at_a_time():
         np.testing.assert_allclose(records[0]["objective"][b], one[0]["objective"], rtol=1e-4)
         np.testing.assert_allclose(records[0]["predicted_objective"][b], one[0]["predicted_objective"], rtol=1e-3)
         np.testing.assert_allclose(records[0]["success"][b], one[0]["success"], atol=1 / 6 + 1e-6)
+
+
+def test_pool_episodes_with_per_episode_omega_and_budget_equal_one_at_a_time():
+    """run_episodes on a WorldPool with ω chosen per episode (adaptive) and a particle-step budget makes the same
+    decisions as run_episode at each episode's ω, where the budget becomes budget // ω Adam steps."""
+    from dynres_jax.sim.pool import WorldPool
+
+    sim = SimConfig(scene=SceneConfig(pieces=(6,)), pile=PileConfig(layout="spread"),
+                    push=PushConfig(max_length=0.1, settle_time=0.04), camera=CameraConfig(width=48, height=48))
+    pool, env = WorldPool(sim), PileEnv(sim, backend="mujoco")
+    masks = [disc_goal(env.camera, np.array(c), 0.06) for c in ([0.0, 0.0], [0.05, -0.03])]
+    goals = [make_goal(m, env.camera, n_samples=32) for m in masks]
+    planner = PlannerConfig(samples=4, steps=6, bound=env.action_bound, max_length=0.1, max_particle_steps=12)
+    cfg = MPCConfig(steps=2, omega=5, n_max=6, max_points=256, planner=planner)
+    keys = jax.random.split(jax.random.PRNGKey(2), 2)
+    starts = pool.reset(jax.random.split(jax.random.PRNGKey(3), 2))
+    omegas = np.array([2, 6])
+    _, records = run_episodes(pool, starts, jax.tree.map(lambda *x: np.stack(x), *goals), sweep_dynamics(0.04), cfg,
+                              keys, choose_omega=lambda obs, goals: omegas, log=lambda s: None)
+    assert [r["omega"].tolist() for r in records] == [[2, 6], [2, 6]]
+    for b in range(2):
+        start = jax.tree.map(lambda x, b=b: x[b], starts)
+        one_cfg = MPCConfig(steps=2, omega=int(omegas[b]), n_max=6, max_points=256, planner=planner)
+        _, one, _ = run_episode(env, start, goals[b], masks[b], sweep_dynamics(0.04), one_cfg, keys[b],
+                                log=lambda s: None)
+        for t in range(2):
+            np.testing.assert_allclose(records[t]["predicted_objective"][b], one[t]["predicted_objective"], rtol=1e-3)
+            np.testing.assert_allclose(records[t]["success"][b], one[t]["success"], atol=1e-6)

@@ -13,6 +13,7 @@ from dynres_jax.graph import sweep_displacement
 from dynres_jax.planner import (
     ZERO_LENGTH_DIRECTION,
     PlannerConfig,
+    budget_steps,
     plan,
     plan_within,
     project,
@@ -178,6 +179,23 @@ def test_budgets():
     assert plan(sweep_dynamics, centroid_cost, positions, mask, None, config).history.shape == (7,)
     result, steps = plan_within(0.0, sweep_dynamics, centroid_cost, positions, mask, None, config, probe_steps=7)
     assert steps == 0 and result.history.shape == (0,) and np.all(np.isfinite(np.asarray(result.best)))
+
+
+def test_traced_budget_equals_a_plan_of_that_many_steps():
+    """active_steps (traced, vmapped over per-episode ω) inside a longer scan gives exactly the plan of that many
+    steps; budget_steps matches steps_for_budget."""
+    positions, mask = pile(jax.random.PRNGKey(4))
+    key = jax.random.PRNGKey(5)
+    omegas = jnp.array([3, 10, 40])
+    actives = jax.vmap(lambda w: budget_steps(w, 75, 40))(omegas)
+    assert actives.tolist() == [steps_for_budget(int(w), 75, 40) for w in omegas] == [25, 7, 1]
+    batched = jax.vmap(lambda n: plan(sweep_dynamics, centroid_cost, positions, mask, key, CFG, active_steps=n))(
+        actives)
+    for i, n in enumerate(actives.tolist()):
+        alone = plan(sweep_dynamics, centroid_cost, positions, mask, key, CFG, steps=n)
+        np.testing.assert_allclose(np.asarray(batched.best[i]), np.asarray(alone.best), atol=1e-6)
+        np.testing.assert_allclose(float(batched.best_cost[i]), float(alone.best_cost), rtol=1e-6)
+        np.testing.assert_allclose(np.asarray(batched.actions[i]), np.asarray(alone.actions), atol=1e-6)
 
 
 def test_config_errors():

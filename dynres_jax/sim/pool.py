@@ -1,0 +1,130 @@
+"""Many C MuJoCo worlds at once: ``WorldPool`` steps worlds in host worker processes, one world per core, and
+renders their observations on the JAX device, with ``PileEnv``'s batched State.
+
+Why: with the default Newton solver, C MuJoCo on every host core outruns MJX on one GPU several times over (README,
+Speed), so data generation and evaluation at scale push through this pool while perception and planning stay
+batched on the accelerator. A worker is a spawned process whose JAX runs on the host (pile layouts and push
+sampling are small JAX functions); it builds each scene once, from the SimConfig's JSON.
+"""
+
+from __future__ import annotations
+
+import functools
+import multiprocessing
+import os
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from dynres_jax.config import CameraConfig, SceneConfig, SimConfig
+from dynres_jax.sim.camera import Camera, Renderer
+from dynres_jax.sim.env import PileEnv, State
+from dynres_jax.sim.scene import build_scene
+
+
+def _host_only() -> None:
+    """Worker initialiser: JAX on the host (never the accelerator the parent holds), one thread per process."""
+    os.environ["XLA_FLAGS"] = "--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1"
+    jax.config.update("jax_platforms", "cpu")
+
+
+def process_pool(workers: int | None = None):
+    """``workers`` (default: every host core) spawned processes for ``WorldPool``; use as a context manager."""
+    return multiprocessing.get_context("spawn").Pool(workers or os.cpu_count(), initializer=_host_only)
+
+
+@functools.lru_cache(maxsize=2)
+def _env(sim_json: str) -> PileEnv:
+    return PileEnv(SimConfig.from_json(sim_json), backend="mujoco", render=False)
+
+
+def _arrays(s: State) -> tuple:
+    return tuple(np.asarray(x) for x in (s.qpos, s.qvel, s.pos, s.mat, s.broken))
+
+
+def _reset(job) -> tuple:
+    sim_json, key = job
+    return _arrays(_env(sim_json).reset(jnp.asarray(key, jnp.uint32)))
+
+
+def _push(job) -> tuple:
+    sim_json, world, action = job
+    qpos, qvel, pos, mat, broken = world
+    if broken:  # a broken world stays as it was
+        return world
+    return _arrays(_env(sim_json).push(State(qpos, qvel, pos, mat, None, broken), action))
+
+
+def _random_episode(job) -> dict:
+    """A reset and ``pushes`` random pushes through the pile (``PileEnv.sample_push``), as data generation's MJX
+    path does; a world that broke stays as it was."""
+    sim_json, key, pushes = job
+    env = _env(sim_json)
+    k_reset, k_push = jax.random.split(jnp.asarray(key, jnp.uint32))
+    s = env.reset(k_reset)
+    frames, actions = [s], []
+    for k in jax.random.split(k_push, pushes):
+        action = env.sample_push(k, s.pos) if not s.broken else jnp.array([0.0, 0, env.config.push.min_length, 0])
+        if not s.broken:  # as MJX's traced push: sampled pushes are in bounds, too-short ones are no-ops
+            s = env.simulate(s, *env.plate_trajectory(action))
+        frames.append(s)
+        actions.append(action)
+    get = lambda name: np.stack([np.asarray(getattr(f, name)) for f in frames])  # noqa: E731
+    return dict(pos=get("pos"), mat=get("mat"), broken=np.maximum.accumulate(get("broken")),
+                action=np.stack([np.asarray(a, np.float32) for a in actions]))
+
+
+@functools.lru_cache(maxsize=16)
+def _renderer(scene: SceneConfig, camera: CameraConfig):
+    """Jitted renderer of poses pos [B, N, 3], mat [B, N, 3, 3] -> batched Observation (one compile per scene)."""
+    return jax.jit(jax.vmap(Renderer(build_scene(scene), Camera.top_down(camera)).__call__))
+
+
+class WorldPool:
+    """Worlds of one SimConfig stepped in ``processes`` (``process_pool``; None: in this process, for tests and
+    debugging). ``reset(keys)`` and ``push(states, actions)`` take and return PileEnv States batched on a leading
+    axis, observations rendered here on the JAX device. ``env`` (backend "mujoco") gives the scene, camera and
+    action checks."""
+
+    def __init__(self, config: SimConfig, processes=None):
+        self.env = PileEnv(config, backend="mujoco", render=False)
+        self._render = _renderer(config.scene, config.camera)
+        self.config, self.camera, self.scene = config, self.env.camera, self.env.scene
+        self._json = config.to_json()
+        self._processes = processes
+
+    def _map(self, fn, jobs) -> list:
+        return list(self._processes.imap(fn, jobs)) if self._processes is not None else [fn(j) for j in jobs]
+
+    def _states(self, rows) -> State:
+        qpos, qvel, pos, mat, broken = (np.stack(x) for x in zip(*rows, strict=True))
+        pos, mat = jnp.asarray(pos), jnp.asarray(mat)
+        return State(jnp.asarray(qpos), jnp.asarray(qvel), pos, mat, self._render(pos, mat), jnp.asarray(broken))
+
+    def reset(self, keys) -> State:
+        """New settled piles, one per key: keys [B, 2] -> State [B]."""
+        return self._states(self._map(_reset, [(self._json, np.asarray(k)) for k in keys]))
+
+    def push(self, states: State, actions) -> State:
+        """One push per world: actions [B, 4] (checked like ``PileEnv.push``; a bad one raises ValueError)."""
+        actions = np.asarray(actions, np.float32)
+        for a in actions:
+            self.env.check_action(a)
+        worlds = zip(*(np.asarray(x) for x in (states.qpos, states.qvel, states.pos, states.mat, states.broken)),
+                     strict=True)
+        jobs = [(self._json, w, a) for w, a in zip(worlds, actions, strict=True)]
+        return self._states(self._map(_push, jobs))
+
+    def random_episodes(self, keys, pushes: int) -> dict:
+        """Data generation: per key a reset and ``pushes`` random pushes. Returns arrays with a leading world axis:
+        pos [B, F, N, 3], mat [B, F, N, 3, 3], broken [B, F], action [B, F - 1, 4], depth (float16) and piece
+        (int16) [B, F, H, W] (F = pushes + 1)."""
+        episodes = self._map(_random_episode, [(self._json, np.asarray(k), pushes) for k in keys])
+        out = {name: np.stack([e[name] for e in episodes]) for name in episodes[0]}
+        flat = lambda x: jnp.asarray(x.reshape((-1,) + x.shape[2:]))  # noqa: E731
+        obs = self._render(flat(out["pos"]), flat(out["mat"]))
+        frames = out["broken"].shape
+        out["depth"] = np.asarray(obs.depth.astype(jnp.float16)).reshape(frames + obs.depth.shape[1:])
+        out["piece"] = np.asarray(obs.piece.astype(jnp.int16)).reshape(frames + obs.piece.shape[1:])
+        return out

@@ -1,0 +1,42 @@
+"""WorldPool: C MuJoCo worlds in worker processes behave as PileEnv's C backend world by world."""
+
+import jax
+import numpy as np
+import pytest
+
+from dynres_jax.config import PushConfig, SceneConfig, SimConfig
+from dynres_jax.sim.env import PileEnv
+from dynres_jax.sim.pool import WorldPool, process_pool
+
+SIM = SimConfig(scene=SceneConfig(pieces=(6,)), push=PushConfig(max_length=0.08, settle_time=0.04))
+
+
+@pytest.fixture(scope="module")
+def processes():
+    with process_pool(2) as p:
+        yield p
+
+
+def test_pool_reset_and_push_equal_one_world_at_a_time(processes):
+    pool, env = WorldPool(SIM, processes), PileEnv(SIM, backend="mujoco")
+    keys = jax.random.split(jax.random.PRNGKey(3), 3)
+    states = pool.reset(keys)
+    centre = np.asarray(states.pos)[:, :, :2].mean(1)  # push through each pile, along x, y and a diagonal
+    actions = np.concatenate([centre - [[0.04, 0], [0, 0.04], [0.03, 0.03]],
+                              centre + [[0.03, 0], [0, 0.03], [0.02, 0.02]]], 1).astype(np.float32)
+    pushed = pool.push(states, actions)
+    for i, key in enumerate(keys):
+        one = env.reset(key)
+        np.testing.assert_array_equal(np.asarray(states.pos[i]), np.asarray(one.pos))
+        one = env.push(one, actions[i])
+        for name in ("qpos", "pos", "mat", "broken"):
+            np.testing.assert_array_equal(np.asarray(getattr(pushed, name)[i]), np.asarray(getattr(one, name)))
+        np.testing.assert_array_equal(np.asarray(pushed.obs.depth[i]), np.asarray(one.obs.depth))
+    assert np.abs(np.asarray(pushed.pos) - np.asarray(states.pos)).max() > 0.005  # the pushes moved pieces
+
+
+def test_pool_names_a_bad_action():
+    pool = WorldPool(SIM)
+    states = pool.reset(jax.random.split(jax.random.PRNGKey(0), 1))
+    with pytest.raises(ValueError, match="leaves the workspace"):
+        pool.push(states, np.array([[0.0, 0.0, 0.5, 0.0]]))
