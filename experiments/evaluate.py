@@ -1,0 +1,183 @@
+"""The paper's evaluation (Fig. 5): task score against threshold for adaptive ω and every fixed ω, on Gather and
+Redistribute, many episodes at once.
+
+    python -m experiments.evaluate --task gather --episodes 64 --out runs/eval
+    python -m experiments.evaluate --task gather --methods 50 --budget 0 --plan-steps 100 --out runs/gather50
+
+Episode i of a task has the same pile and goal for every method (seeded by i). Each method runs all episodes
+together: perception and planning vmapped on the JAX device, pushes in C worker processes (``WorldPool``). Planning
+is under the particle-step budget (``--budget``; 0: none), as in labelling: a higher ω plans with fewer Adam steps.
+"adaptive" picks ω at every step with the regressor g (``--regressor``). Writes per method ``METHOD.json`` (final d
+and inside share per episode, means per step; resumable: finished methods are skipped), ``summary.json`` (means with
+95 % confidence intervals, success rates) and ``score.png`` (share of episodes with final d below τ, against τ) and
+``steps.png`` (mean d over the MPC steps).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import os
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import nnx
+
+from dynres_jax import ckpt, files, resolution, tasks
+from dynres_jax.config import CameraConfig, PileConfig, SceneConfig, SimConfig
+from dynres_jax.mpc import load_dynamics, run_episodes
+from dynres_jax.objective import make_goal
+from dynres_jax.perception import foreground
+from dynres_jax.sim.pool import WorldPool, process_pool
+from experiments.label_resolution import planner_config
+from experiments.task import DEFAULT_CKPT
+from experiments.train_regressor import build_regressor
+
+DEFAULT_REGRESSOR = os.path.join(os.path.dirname(DEFAULT_CKPT), "regressor")
+SUCCESS = 0.9  # Gather succeeds when this share of the pieces is inside the goal
+
+
+def episode_goals(task: str, episodes: int, seed: int, env) -> list[np.ndarray]:
+    goals = []
+    for i in range(episodes):
+        rng = np.random.default_rng((seed, i))
+        if task == "gather":
+            goals.append(tasks.gather_goal(rng, env)[0])
+        else:
+            goals.append(tasks.redistribute_goal(rng, env, "JTU"[i % 3])[0])
+    return goals
+
+
+def adaptive_chooser(regressor_dir: str, camera):
+    """(obs [B], goals [B]) -> ω [B] of the trained regressor."""
+    model, _, _ = ckpt.load_module(regressor_dir, build_regressor)
+    graphdef, state = nnx.split(model)
+
+    @jax.jit
+    def choose(obs, goals):
+        current = jax.vmap(lambda o: foreground(o, camera)[1].reshape(camera.height, camera.width))(obs)
+        return resolution.choose_omega(graphdef, state, current, goals.mask)
+
+    return choose
+
+
+def wilson(k: int, n: int) -> tuple[float, float]:
+    """95 % Wilson interval of a success rate k / n."""
+    z, p = 1.96, k / n
+    centre = (p + z * z / (2 * n)) / (1 + z * z / n)
+    half = z * np.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / (1 + z * z / n)
+    return float(centre - half), float(centre + half)
+
+
+def summarise(results: dict) -> dict:
+    out = {}
+    for method, r in results.items():
+        d, inside = np.array(r["final_distance"]), np.array(r["final_inside"])
+        n, k = len(d), int(np.sum(inside >= SUCCESS))
+        out[method] = dict(episodes=n, final_distance=float(d.mean()),
+                           final_distance_ci95=float(1.96 * d.std(ddof=1) / np.sqrt(n)) if n > 1 else 0.0,
+                           final_inside=float(inside.mean()), success_share=k / n, success_ci95=wilson(k, n),
+                           mean_omega=float(np.mean(r["omega"])), broken=int(np.sum(r["broken"])))
+    return out
+
+
+def plot(results: dict, task: str, out_dir: str) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    top = max(max(r["final_distance"]) for r in results.values())
+    taus = np.linspace(0, top * 1.05, 200)
+    fig, ax = plt.subplots(figsize=(5, 3.5))
+    for method, r in results.items():
+        d = np.array(r["final_distance"])
+        ax.plot(taus, [(d < t).mean() for t in taus], label=f"ω = {method}" if method != "adaptive" else method,
+                lw=2.5 if method == "adaptive" else 1.2)
+    ax.set(xlabel="threshold τ on final d (pixels)", ylabel="task score (share of episodes with d < τ)",
+           title=f"{task}, {len(d)} episodes")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(os.path.join(out_dir, "score.png"), dpi=120)
+    plt.close(fig)
+    fig, ax = plt.subplots(figsize=(5, 3.5))
+    for method, r in results.items():
+        ax.plot(np.arange(1, len(r["mean_distance"]) + 1), r["mean_distance"], label=method)
+    ax.set(xlabel="MPC step", ylabel="mean d", title=task)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(os.path.join(out_dir, "steps.png"), dpi=120)
+    plt.close(fig)
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(prog="python -m experiments.evaluate", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--task", default="gather", choices=tasks.TASKS)
+    parser.add_argument("--episodes", type=int, default=64)
+    parser.add_argument("--steps", type=int, default=20, help="MPC steps per episode")
+    parser.add_argument("--methods", nargs="+", default=["10", "25", "50", "75", "100", "adaptive"])
+    parser.add_argument("--budget", type=int, default=1000, help="particle-steps per plan (0: no budget)")
+    parser.add_argument("--samples", type=int, default=20)
+    parser.add_argument("--plan-steps", type=int, default=100)
+    parser.add_argument("--kind", default="coffee")
+    parser.add_argument("--pieces", type=int, default=100)
+    parser.add_argument("--ckpt", default=DEFAULT_CKPT)
+    parser.add_argument("--dynamics", default="auto", choices=["auto", "learned", "sweep"])
+    parser.add_argument("--regressor", default=DEFAULT_REGRESSOR)
+    parser.add_argument("--workers", type=int, default=None)
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--out", required=True)
+    parser.add_argument("--quick", action="store_true", help="tiny sizes for a CPU smoke run")
+    args = parser.parse_args(argv)
+    args.budget = args.budget or None
+    for m in args.methods:
+        if m != "adaptive" and not (m.isdigit() and resolution.OMEGA_MIN <= int(m) <= resolution.OMEGA_MAX):
+            parser.error(f"--methods takes 'adaptive' or integers in [{resolution.OMEGA_MIN}, "
+                         f"{resolution.OMEGA_MAX}], got {m!r}")
+    camera = CameraConfig(width=64, height=64) if args.quick else CameraConfig()
+    sim = SimConfig(scene=SceneConfig(kinds=(args.kind,), pieces=(args.pieces,)), camera=camera,
+                    pile=PileConfig(layout="spread" if args.task == "gather" else "blob"))
+    dynamics, n_max, name = load_dynamics(args.dynamics, args.ckpt, sim.scene.plate_half_width)
+    os.makedirs(args.out, exist_ok=True)
+    results = {}
+    with process_pool(args.workers) as processes:
+        pool = WorldPool(sim, processes)
+        masks = episode_goals(args.task, args.episodes, args.seed, pool.env)
+        goals = jax.tree.map(lambda *g: jnp.stack(g), *[make_goal(m, pool.camera) for m in masks])
+        keys = jax.random.split(jax.random.PRNGKey(args.seed), args.episodes)
+        for method in args.methods:
+            path = os.path.join(args.out, f"{method}.json")
+            if os.path.exists(path):
+                with open(path) as f:
+                    results[method] = json.load(f)
+                continue
+            cfg = dataclasses.replace(planner_config(pool.env, args), steps=args.steps, n_max=n_max,
+                                      omega=50 if method == "adaptive" else int(method))
+            chooser = adaptive_chooser(args.regressor, pool.camera) if method == "adaptive" else None
+            print(f"{args.task}: method {method}, {args.episodes} episodes, dynamics {name}")
+            starts = pool.reset(jax.vmap(lambda i: jax.random.fold_in(jax.random.PRNGKey(args.seed), i))(
+                jnp.arange(args.episodes)))
+            states, records = run_episodes(pool, starts, goals, dynamics, cfg, keys, choose_omega=chooser)
+            r = dict(final_distance=records[-1]["distance"].tolist(), final_inside=records[-1]["success"].tolist(),
+                     mean_distance=[float(x["distance"].mean()) for x in records],
+                     mean_inside=[float(x["success"].mean()) for x in records],
+                     omega=np.stack([x["omega"] for x in records]).tolist(), broken=records[-1]["broken"].tolist(),
+                     seconds=float(sum(x["seconds"] for x in records)))
+            files.write_json(path, r)
+            results[method] = r
+    summary = dict(task=args.task, dynamics=name, device=jax.devices()[0].device_kind, budget=args.budget,
+                   steps=args.steps, methods=summarise(results))
+    files.write_json(os.path.join(args.out, "summary.json"), summary)
+    plot(results, args.task, args.out)
+    for method, s in summary["methods"].items():
+        print(f"{method:>8}: final d {s['final_distance']:8.2f} ± {s['final_distance_ci95']:.2f}  inside "
+              f"{s['final_inside']:.1%}  ≥{SUCCESS:.0%} inside in {s['success_share']:.0%} of episodes  "
+              f"mean ω {s['mean_omega']:.1f}")
+    return summary
+
+
+if __name__ == "__main__":
+    main()

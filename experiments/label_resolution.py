@@ -1,0 +1,173 @@
+"""Label scenes with their best resolution by Bayesian optimisation (paper Sec. IV-C), for the regressor g.
+
+    python -m experiments.label_resolution --out runs/labels --scenes 1024
+    python -m experiments.label_resolution --out /tmp/labels --quick        # a CPU smoke run
+
+For every scene (a settled pile and a goal), ``c+(ω) = c*(ω) + w_R · d_0 · ω`` is evaluated at ω = 2, 25, 50, 75,
+100 and then at ``--evals`` - 5 more ω chosen by Expected Improvement; c*(ω) is the distribution distance d after one
+push planned at ω under the particle-step budget (higher ω: fewer Adam steps) and executed in the simulator,
+averaged over ``--repeats`` plans; d_0 is d before the push. The label is the argmin of the GP posterior mean.
+
+Scenes come in shards of ``--batch`` scenes, all simulated, planned and optimised together (vmapped; pushes in C
+worker processes). Pairs for the paper's Fig. 4: in every shard, scenes 2j and 2j + 1 share the pile and differ in
+the goal (a disc vs a letter); shards 2s and 2s + 1 share their goals and differ in the pile (spread vs one blob).
+Each shard is written atomically (``shard_NNNNN.npz``) and a rerun skips finished shards.
+"""
+
+from __future__ import annotations
+
+import argparse
+import glob
+import os
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from tqdm import tqdm
+
+from dynres_jax import files, resolution, tasks
+from dynres_jax.config import CameraConfig, PileConfig, PushConfig, SceneConfig, SimConfig
+from dynres_jax.data import save_npz
+from dynres_jax.mpc import MPCConfig, decide, load_dynamics
+from dynres_jax.objective import distribution_distance, make_goal
+from dynres_jax.perception import foreground
+from dynres_jax.planner import PlannerConfig
+from dynres_jax.sim.pool import WorldPool, process_pool
+from experiments.task import DEFAULT_CKPT
+
+FIRST = (2, 25, 50, 75, 100)  # the reference's initial ω
+LAYOUTS = ("spread", "blob")
+LETTERS = "JTU"
+
+
+def scene_config(args, shard: int) -> SimConfig:
+    layout = LAYOUTS[shard % 2]
+    push = PushConfig(max_length=0.1, settle_time=0.04) if args.quick else PushConfig()
+    camera = CameraConfig(width=64, height=64) if args.quick else CameraConfig()
+    return SimConfig(scene=SceneConfig(kinds=(args.kind,), pieces=(args.pieces,)), pile=PileConfig(layout=layout),
+                     push=push, camera=camera)
+
+
+def planner_config(env, args) -> MPCConfig:
+    """The planner under the particle-step budget, shared with ``experiments.evaluate``."""
+    planner = PlannerConfig(samples=args.samples, steps=args.plan_steps, bound=env.action_bound,
+                            max_length=env.config.push.max_length, min_length=env.config.push.min_length,
+                            max_particle_steps=args.budget)
+    return MPCConfig(steps=1, omega=resolution.OMEGA_MAX, n_max=resolution.OMEGA_MAX, planner=planner,
+                     max_points=1024 if args.quick else 4096)
+
+
+def shard_goals(args, shard: int, env) -> tuple[np.ndarray, np.ndarray]:
+    """Goal masks [B, H, W] and shapes [B] (0 disc, 1 letter) of a shard; shards 2s and 2s + 1 draw the same."""
+    masks, shapes = [], []
+    for j in range(args.batch):
+        rng = np.random.default_rng((args.seed, shard // 2, j // 2))
+        if j % 2 == 0:
+            mask, _ = tasks.gather_goal(rng, env)
+        else:
+            mask, _ = tasks.redistribute_goal(rng, env, LETTERS[rng.integers(len(LETTERS))])
+        masks.append(mask)
+        shapes.append(j % 2)
+    return np.stack(masks), np.array(shapes)
+
+
+def label_shard(args, shard: int, dynamics, processes) -> dict:
+    sim = scene_config(args, shard)
+    pool = WorldPool(sim, processes)
+    camera, cfg = pool.camera, planner_config(pool.env, args)
+    b, r = args.batch, args.repeats
+    pile_keys = jax.vmap(lambda j: jax.random.fold_in(jax.random.fold_in(jax.random.PRNGKey(args.seed), shard), j))(
+        jnp.arange(b) // 2)  # scenes 2j and 2j + 1: the same pile
+    start = pool.reset(pile_keys)
+    goal_masks, shapes = shard_goals(args, shard, pool.env)
+    goals = jax.tree.map(lambda *g: jnp.stack(g), *[make_goal(m, camera) for m in goal_masks])
+    measure = jax.jit(jax.vmap(lambda obs, goal: distribution_distance(obs, goal, camera)))
+    d0 = measure(start.obs, goals)
+
+    def plan_at(obs, goal, key, omega):
+        return decide(obs, goal, key, None, dynamics, cfg, camera, omega)[2].best[0]
+
+    plan_all = jax.jit(jax.vmap(plan_at))
+    rep = lambda x: jnp.repeat(x, r, axis=0)  # noqa: E731  [B] -> [B * R], repeats of a scene adjacent
+    starts, goals_r = jax.tree.map(rep, start), jax.tree.map(rep, goals)
+
+    def c_star(omega, i):
+        keys = jax.random.split(jax.random.fold_in(jax.random.PRNGKey(args.seed + 1), shard * 100 + i), b * r)
+        actions = plan_all(starts.obs, goals_r, keys, rep(omega))
+        after = pool.push(starts, actions)
+        return measure(after.obs, goals_r).reshape(b, r).mean(axis=1)
+
+    k = args.evals
+    omega = jnp.zeros((b, k), jnp.int32)
+    target, c_stars = jnp.zeros((b, k)), jnp.zeros((b, k))
+    mask = jnp.zeros((b, k), bool)
+    propose = jax.jit(jax.vmap(resolution.next_omega))
+    for i in range(k):
+        if i < len(FIRST):
+            w = jnp.full(b, FIRST[i], jnp.int32)
+        else:
+            w = propose(omega, target, mask, jax.random.split(jax.random.PRNGKey(i), b))
+        c = c_star(w, i)
+        omega, mask = omega.at[:, i].set(w), mask.at[:, i].set(True)
+        c_stars, target = c_stars.at[:, i].set(c), target.at[:, i].set(resolution.penalised(c, d0, w))
+    label, mean = jax.jit(jax.vmap(resolution.best_omega))(omega, target, mask, jax.random.split(
+        jax.random.PRNGKey(shard), b))
+    current = jax.vmap(lambda o: foreground(o, camera)[1].reshape(camera.height, camera.width))(start.obs)
+    inputs = jax.vmap(resolution.regressor_input)(current, jnp.asarray(goal_masks))
+    return dict(inputs=np.asarray(inputs), label=np.asarray(label), gp_mean=np.asarray(mean),
+                omega=np.asarray(omega), c_plus=np.asarray(target), c_star=np.asarray(c_stars), d0=np.asarray(d0),
+                goal_shape=shapes, layout=np.full(b, shard % 2), pile=np.arange(b) // 2, shard=np.int64(shard))
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(prog="python -m experiments.label_resolution", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--out", required=True)
+    parser.add_argument("--scenes", type=int, default=1024)
+    parser.add_argument("--batch", type=int, default=128, help="scenes per shard (even)")
+    parser.add_argument("--evals", type=int, default=10, help="c+ evaluations per scene (reference 10)")
+    parser.add_argument("--repeats", type=int, default=2, help="plans averaged per evaluation (reference 5)")
+    parser.add_argument("--budget", type=int, default=1000, help="particle-steps per plan (ω x Adam steps)")
+    parser.add_argument("--samples", type=int, default=20, help="action samples per plan (paper M = 20)")
+    parser.add_argument("--plan-steps", type=int, default=100, help="most Adam steps per plan")
+    parser.add_argument("--kind", default="coffee")
+    parser.add_argument("--pieces", type=int, default=100)
+    parser.add_argument("--ckpt", default=DEFAULT_CKPT)
+    parser.add_argument("--dynamics", default="auto", choices=["auto", "learned", "sweep"])
+    parser.add_argument("--workers", type=int, default=None, help="C engine processes (default: every core)")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--quick", action="store_true", help="tiny sizes for a CPU smoke run")
+    args = parser.parse_args(argv)
+    if args.quick:
+        args.scenes, args.batch, args.evals, args.repeats, args.pieces = 8, 4, 6, 1, 8
+        args.samples, args.plan_steps, args.budget = 4, 4, 16
+    if args.batch % 2 or args.batch < 2:
+        parser.error("--batch must be even (scenes come in pairs)")
+    if args.evals <= len(FIRST):
+        parser.error(f"--evals must exceed the {len(FIRST)} initial evaluations")
+    dynamics, n_max, name = load_dynamics(args.dynamics, args.ckpt, SceneConfig.plate_half_width)
+    if n_max < resolution.OMEGA_MAX:
+        parser.error(f"the dynamics checkpoint holds {n_max} particles; labels need {resolution.OMEGA_MAX}")
+    os.makedirs(args.out, exist_ok=True)
+    files.write_json(os.path.join(args.out, "config.json"), dict(vars(args), dynamics_name=name))
+    n_shards = -(-args.scenes // args.batch)
+    todo = [s for s in range(n_shards) if not os.path.exists(os.path.join(args.out, f"shard_{s:05d}.npz"))]
+    t0 = time.perf_counter()
+    with process_pool(args.workers) as processes:
+        for s in tqdm(todo, desc="label shards", unit="shard"):
+            save_npz(os.path.join(args.out, f"shard_{s:05d}.npz"), label_shard(args, s, dynamics, processes))
+    minutes = (time.perf_counter() - t0) / 60
+    labels = np.concatenate([np.load(p)["label"] for p in sorted(glob.glob(os.path.join(args.out, "shard_*.npz")))])
+    summary = dict(scenes=len(labels), shards_written=len(todo), minutes=minutes,
+                   labels_per_minute=len(todo) * args.batch / minutes if todo else 0.0,
+                   device=jax.devices()[0].device_kind, dynamics=name,
+                   label_mean=float(labels.mean()), label_histogram=np.histogram(labels, bins=10, range=(2, 102))[0]
+                   .tolist())
+    files.write_json(os.path.join(args.out, "summary.json"), summary)
+    print(summary)
+    return summary
+
+
+if __name__ == "__main__":
+    main()

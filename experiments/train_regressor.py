@@ -1,0 +1,109 @@
+"""Train the resolution regressor g(y_0, y_g) -> ω on Bayesian-optimisation labels (experiments.label_resolution).
+
+    python -m experiments.train_regressor --labels runs/labels --out runs/regressor
+
+Held out: every tenth pile (both of its goals), so no held-out pile was seen in training. Loss: squared error of ω
+scaled to [0, 1]. Reports the held-out mean absolute error in ω against predicting the training labels' mean, and
+writes an orbax checkpoint (``dynres_jax.ckpt``) with a card, ``metrics.json`` and a scatter plot.
+"""
+
+from __future__ import annotations
+
+import argparse
+import glob
+import os
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+from flax import nnx
+from tqdm import tqdm
+
+from dynres_jax import ckpt, files
+from dynres_jax.resolution import OMEGA_MAX, OMEGA_MIN, Regressor
+
+
+def build_regressor(meta: dict) -> Regressor:
+    """A fresh regressor from a checkpoint card (``ckpt.load_module``'s ``build``)."""
+    return Regressor(width=meta["width"], rngs=nnx.Rngs(0))
+
+
+def load_labels(folder: str) -> dict:
+    paths = sorted(glob.glob(os.path.join(folder, "shard_*.npz")))
+    if not paths:
+        raise ValueError(f"no label shards (shard_*.npz) in {folder}; run experiments.label_resolution first")
+    shards = [dict(np.load(p)) for p in paths]
+    out = {k: np.concatenate([s[k] for s in shards]) for k in ("inputs", "label", "pile")}
+    out["shard"] = np.concatenate([np.full(len(s["label"]), s["shard"]) for s in shards])
+    return out
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(prog="python -m experiments.train_regressor", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--labels", required=True)
+    parser.add_argument("--out", required=True)
+    parser.add_argument("--steps", type=int, default=3000)
+    parser.add_argument("--batch", type=int, default=64)
+    parser.add_argument("--lr", type=float, default=1e-3)
+    parser.add_argument("--width", type=int, default=16)
+    parser.add_argument("--seed", type=int, default=0)
+    args = parser.parse_args(argv)
+    d = load_labels(args.labels)
+    held = (d["shard"] * 7919 + d["pile"]) % 10 == 9
+    x, y = jnp.asarray(d["inputs"]), (jnp.asarray(d["label"], jnp.float32) - OMEGA_MIN) / (OMEGA_MAX - OMEGA_MIN)
+    train_i, val_i = np.flatnonzero(~held), np.flatnonzero(held)
+    if len(train_i) == 0 or len(val_i) == 0:
+        raise ValueError(f"{len(d['label'])} labels are too few to hold out every tenth pile; label more scenes")
+    model = Regressor(width=args.width, rngs=nnx.Rngs(args.seed))
+    graphdef, params = nnx.split(model)
+    opt = optax.adam(optax.cosine_decay_schedule(args.lr, args.steps, alpha=0.05))
+    state = opt.init(params)
+
+    def loss_fn(p, idx):
+        pred = (nnx.merge(graphdef, p)(x[idx]) - OMEGA_MIN) / (OMEGA_MAX - OMEGA_MIN)
+        return jnp.mean(jnp.square(pred - y[idx]))
+
+    @jax.jit
+    def step(p, s, idx):
+        loss, grads = jax.value_and_grad(loss_fn)(p, idx)
+        updates, s = opt.update(grads, s, p)
+        return optax.apply_updates(p, updates), s, loss
+
+    rng = np.random.default_rng(args.seed)
+    for _ in tqdm(range(args.steps), desc="train regressor"):
+        params, state, _ = step(params, state, jnp.asarray(rng.choice(train_i, args.batch)))
+    predict = jax.jit(lambda p, xs: nnx.merge(graphdef, p)(xs))
+    pred = np.asarray(predict(params, x[val_i]))
+    truth = d["label"][val_i].astype(np.float64)
+    mean_label = float(d["label"][train_i].mean())
+    metrics = dict(train=len(train_i), held_out=len(val_i), mae=float(np.abs(pred - truth).mean()),
+                   mae_predict_mean=float(np.abs(mean_label - truth).mean()), mean_label=mean_label,
+                   correlation=float(np.corrcoef(pred, truth)[0, 1]) if truth.std() > 0 else float("nan"),
+                   params=int(sum(v.size for v in jax.tree.leaves(params))), steps=args.steps)
+    os.makedirs(args.out, exist_ok=True)
+    ckpt.save(os.path.join(args.out, "ckpt"), args.steps, {"module": params}, dict(width=args.width, **metrics))
+    files.write_json(os.path.join(args.out, "metrics.json"), metrics)
+    _scatter(truth, pred, os.path.join(args.out, "heldout.png"))
+    print(metrics)
+    return metrics
+
+
+def _scatter(truth, pred, path):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(4, 4))
+    ax.scatter(truth, pred, s=8, alpha=0.6)
+    ax.plot([OMEGA_MIN, OMEGA_MAX], [OMEGA_MIN, OMEGA_MAX], "k--", lw=1)
+    ax.set(xlabel="BO label ω", ylabel="regressor ω", title="held-out scenes")
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+if __name__ == "__main__":
+    main()
