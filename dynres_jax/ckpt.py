@@ -65,11 +65,15 @@ def load_meta(directory, step: int | None = None) -> dict:
 def restore(directory, abstract_state: dict[str, Any], step: int | None = None) -> tuple[dict[str, Any], dict]:
     """Read ``state`` into the structure of ``abstract_state`` (shapes and dtypes, e.g. from ``nnx.eval_shape``)
     and the card. ``abstract_state`` may name only some of the saved entries (the model without its optimiser).
+    Arrays land on this process's first device, whatever devices wrote them (a GPU checkpoint restores on a CPU).
     Raises FileNotFoundError (nothing there) or CheckpointError (unreadable, or another structure)."""
     step = _step_or_latest(directory, step)
+    here = jax.sharding.SingleDeviceSharding(jax.devices()[0])
+    placed = jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=here)
+                          if hasattr(x, "shape") else x, abstract_state)
     with _manager(directory, read_only=True) as mngr:
         try:
-            items = {name: ocp.args.StandardRestore(tree) for name, tree in abstract_state.items()}
+            items = {name: ocp.args.StandardRestore(tree) for name, tree in placed.items()}
             out = mngr.restore(step, args=ocp.args.Composite(**items, meta=ocp.args.JsonRestore()))
         except Exception as e:
             raise CheckpointError(f"checkpoint {directory!r} step {step} does not match the requested model or is "
