@@ -91,8 +91,10 @@ def goal_cost(goal: Goal, camera) -> Partial:
     return Partial(functools.partial(_cost, camera), goal)
 
 
-def overlay(rgb: np.ndarray, goal_mask: np.ndarray, particles: np.ndarray | None, camera, scale: int = 3):
-    """An RGB frame [H, W, 3] uint8 with the goal tinted green and particles [n, 3] (world, m) as red dots."""
+def overlay(rgb: np.ndarray, goal_mask: np.ndarray, particles: np.ndarray | None, camera, scale: int = 3,
+            label: str = ""):
+    """An RGB frame [H, W, 3] uint8 with the goal tinted green, particles [n, 3] (world, m) as red dots and an
+    optional text label in the top-left corner."""
     img = rgb.astype(np.float32)
     img[goal_mask] = 0.6 * img[goal_mask] + 0.4 * np.array([60.0, 200.0, 60.0])
     img = cv2.resize(img.astype(np.uint8), (rgb.shape[1] * scale, rgb.shape[0] * scale),
@@ -101,6 +103,8 @@ def overlay(rgb: np.ndarray, goal_mask: np.ndarray, particles: np.ndarray | None
         uv, _ = camera.world_to_pixel(np.asarray(particles, np.float64))
         for u, v in np.asarray(uv) * scale:
             cv2.circle(img, (int(u), int(v)), max(2, scale), (220, 30, 30), -1)
+    if label:
+        cv2.putText(img, label.replace("ω", "w"), (6, 18), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (20, 20, 20), 1, cv2.LINE_AA)
     return img
 
 
@@ -126,26 +130,31 @@ def _shift(best):
 
 
 def run_episode(env: PileEnv, state: State, goal: Goal, goal_mask: np.ndarray, dynamics, cfg: MPCConfig, key,
-                log=print) -> tuple[State, list[dict], list[np.ndarray]]:
+                log=print, choose_omega=None) -> tuple[State, list[dict], list[np.ndarray]]:
     """One episode from ``state`` towards ``goal``. dynamics: ``learned_dynamics(model)`` or ``sweep_dynamics(hw)``.
-    Returns the final state, one record per step, and GIF frames (observation, goal and particles)."""
+    choose_omega: optional batched ``(obs [B], goals [B]) -> ω [B]`` (``resolution.load_chooser``) picking ω every
+    step; default cfg.omega. Returns the final state, one record per step, and GIF frames (observation, goal,
+    particles and ω)."""
     camera = env.camera
     records, frames, init = [], [], None
+    batch = lambda tree: jax.tree.map(lambda x: jnp.asarray(x)[None], tree)  # noqa: E731
     for t in range(cfg.steps):
         t0 = time.perf_counter()
-        particles, c_now, result = decide(state.obs, goal, jax.random.fold_in(key, t), init, dynamics, cfg, camera)
+        omega = cfg.omega if choose_omega is None else int(choose_omega(batch(state.obs), batch(goal))[0])
+        particles, c_now, result = decide(state.obs, goal, jax.random.fold_in(key, t), init, dynamics, cfg, camera,
+                                          omega)
         action = np.asarray(jax.block_until_ready(result.best[0]))
         planning = time.perf_counter() - t0
         frames.append(overlay(np.asarray(state.obs.rgb), goal_mask, np.asarray(particles.positions)[
-            np.asarray(particles.mask)], camera))
+            np.asarray(particles.mask)], camera, label=f"step {t + 1}  ω = {omega}"))
         state = env.push(state, action)
         init = _shift(result.best)
-        record = dict(step=t, omega=cfg.omega, objective=float(c_now), predicted_objective=float(result.best_cost),
+        record = dict(step=t, omega=omega, objective=float(c_now), predicted_objective=float(result.best_cost),
                       distance=float(distribution_distance(state.obs, goal, camera)),
                       success=float(inside_share(state.pos, jnp.ones(env.scene.n_pieces, bool), goal, camera)),
                       planning_s=planning, action=action.tolist(), broken=bool(state.broken))
         records.append(record)
-        log(f"step {t + 1:2d}/{cfg.steps}  ω={cfg.omega}  c={record['objective']:7.2f} -> predicted "
+        log(f"step {t + 1:2d}/{cfg.steps}  ω={omega:3d}  c={record['objective']:7.2f} -> predicted "
             f"{record['predicted_objective']:7.2f}  d={record['distance']:7.2f}  inside={record['success']:5.1%}  "
             f"plan {planning:5.2f}s")
         if record["broken"]:

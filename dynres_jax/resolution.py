@@ -132,7 +132,7 @@ def expected_improvement(mean, std, best, xi: float = 0.01):
     return gap * ndtr(z) + std * jnp.exp(-0.5 * z**2) / jnp.sqrt(2 * jnp.pi)
 
 
-CANDIDATES = jnp.arange(OMEGA_MIN, OMEGA_MAX + 1)  # every integer ω
+CANDIDATES = np.arange(OMEGA_MIN, OMEGA_MAX + 1)  # every integer ω (NumPy: no device work at import)
 
 
 def next_omega(omega, target, mask, key):
@@ -142,14 +142,15 @@ def next_omega(omega, target, mask, key):
     mean, std = posterior(gp, CANDIDATES)
     best = jnp.min(jnp.where(mask, target, jnp.inf))
     ei = expected_improvement(mean, std, best, xi=0.01 * gp.y_std)
-    tried = jnp.any((CANDIDATES[:, None] == jnp.asarray(omega)[None, :]) & jnp.asarray(mask)[None, :], axis=1)
-    return CANDIDATES[jnp.argmax(jnp.where(tried, -jnp.inf, ei))]
+    cands = jnp.asarray(CANDIDATES)
+    tried = jnp.any((cands[:, None] == jnp.asarray(omega)[None, :]) & jnp.asarray(mask)[None, :], axis=1)
+    return cands[jnp.argmax(jnp.where(tried, -jnp.inf, ei))]
 
 
 def best_omega(omega, target, mask, key):
     """The BO label: (argmin over integer ω of the GP posterior mean, the mean curve [len(CANDIDATES)])."""
     mean, _ = posterior(fit_gp(omega, target, mask, key), CANDIDATES)
-    return CANDIDATES[jnp.argmin(mean)], mean
+    return jnp.asarray(CANDIDATES)[jnp.argmin(mean)], mean
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -209,3 +210,24 @@ def choose_omega(graphdef, state, current_mask, goal_mask):
     x = jnp.vectorize(regressor_input, signature="(h,w),(h,w)->(s,s,c)")(current_mask, goal_mask)
     omega = nnx.merge(graphdef, state)(x)
     return jnp.clip(jnp.round(omega), OMEGA_MIN, OMEGA_MAX).astype(jnp.int32)
+
+
+def build_regressor(meta: dict) -> Regressor:
+    """A fresh regressor from a checkpoint card (``ckpt.load_module``'s ``build``)."""
+    return Regressor(width=meta["width"], rngs=nnx.Rngs(0))
+
+
+def load_chooser(regressor_dir: str, camera):
+    """Adaptive ω from a trained regressor checkpoint: a jitted ``(obs [B], goals [B]) -> ω [B]`` (Observation and
+    Goal batched), the ``choose_omega`` of ``mpc.run_episodes``."""
+    from dynres_jax import ckpt
+    from dynres_jax.perception import foreground
+
+    graphdef, state = nnx.split(ckpt.load_module(regressor_dir, build_regressor)[0])
+
+    @jax.jit
+    def choose(obs, goals):
+        current = jax.vmap(lambda o: foreground(o, camera)[1].reshape(camera.height, camera.width))(obs)
+        return choose_omega(graphdef, state, current, goals.mask)
+
+    return choose

@@ -23,19 +23,15 @@ import os
 import jax
 import jax.numpy as jnp
 import numpy as np
-from flax import nnx
 
-from dynres_jax import ckpt, files, resolution, tasks
+from dynres_jax import files, resolution, tasks
 from dynres_jax.config import CameraConfig, PileConfig, SceneConfig, SimConfig
 from dynres_jax.mpc import load_dynamics, run_episodes
 from dynres_jax.objective import make_goal
-from dynres_jax.perception import foreground
 from dynres_jax.sim.pool import WorldPool, process_pool
 from experiments.label_resolution import planner_config
-from experiments.task import DEFAULT_CKPT
-from experiments.train_regressor import build_regressor
+from experiments.task import DEFAULT_CKPT, DEFAULT_REGRESSOR
 
-DEFAULT_REGRESSOR = os.path.join(os.path.dirname(DEFAULT_CKPT), "regressor")
 SUCCESS = 0.9  # Gather succeeds when this share of the pieces is inside the goal
 
 
@@ -48,19 +44,6 @@ def episode_goals(task: str, episodes: int, seed: int, env) -> list[np.ndarray]:
         else:
             goals.append(tasks.redistribute_goal(rng, env, "JTU"[i % 3])[0])
     return goals
-
-
-def adaptive_chooser(regressor_dir: str, camera):
-    """(obs [B], goals [B]) -> ω [B] of the trained regressor."""
-    model, _, _ = ckpt.load_module(regressor_dir, build_regressor)
-    graphdef, state = nnx.split(model)
-
-    @jax.jit
-    def choose(obs, goals):
-        current = jax.vmap(lambda o: foreground(o, camera)[1].reshape(camera.height, camera.width))(obs)
-        return resolution.choose_omega(graphdef, state, current, goals.mask)
-
-    return choose
 
 
 def wilson(k: int, n: int) -> tuple[float, float]:
@@ -156,7 +139,7 @@ def main(argv=None):
                 continue
             cfg = dataclasses.replace(planner_config(pool.env, args), steps=args.steps, n_max=n_max,
                                       omega=50 if method == "adaptive" else int(method))
-            chooser = adaptive_chooser(args.regressor, pool.camera) if method == "adaptive" else None
+            chooser = resolution.load_chooser(args.regressor, pool.camera) if method == "adaptive" else None
             print(f"{args.task}: method {method}, {args.episodes} episodes, dynamics {name}")
             starts = pool.reset(jax.vmap(lambda i: jax.random.fold_in(jax.random.PRNGKey(args.seed), i))(
                 jnp.arange(args.episodes)))

@@ -41,7 +41,7 @@ def main(argv=None):
 
     sim = SimConfig(scene=SceneConfig(kinds=tuple(args.kinds), pieces=tuple(args.pieces)),
                     pile=PileConfig(layout="two_blobs"), camera=CameraConfig())
-    env, dynamics, name, cfg = build_loop(args, sim, parser)
+    env, dynamics, name, cfg, _ = build_loop(args, sim, parser)
 
     goals_xy, radius, masks = sort_goal(np.random.default_rng(args.seed), env)
     goals = [make_goal(m, env.camera) for m in masks]

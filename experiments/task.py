@@ -1,4 +1,5 @@
-"""One closed-loop episode of a task (``dynres_jax.tasks``) at a fixed resolution ω; the body of the task commands:
+"""One closed-loop episode of a task (``dynres_jax.tasks``) at a fixed or adaptive resolution ω; the body of the task
+commands:
 
     python -m experiments.gather --out out/gather
     python -m experiments.redistribute --letter T --out out/redistribute
@@ -25,9 +26,11 @@ from dynres_jax.config import KINDS, CameraConfig, PileConfig, SceneConfig, SimC
 from dynres_jax.mpc import MPCConfig, load_dynamics, run_episode
 from dynres_jax.objective import inside_share, make_goal
 from dynres_jax.planner import PlannerConfig
+from dynres_jax.resolution import load_chooser
 from dynres_jax.sim.env import PileEnv
 
 DEFAULT_CKPT = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "checkpoints", "dynamics")
+DEFAULT_REGRESSOR = os.path.join(os.path.dirname(DEFAULT_CKPT), "regressor")
 
 
 DESCRIPTIONS = {
@@ -40,7 +43,14 @@ def add_loop_args(parser: argparse.ArgumentParser, task: str) -> None:
     """The flags every closed-loop task command takes."""
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--steps", type=int, default=20, help="MPC steps")
-    parser.add_argument("--resolution", type=int, default=50, help="ω: particles the planner reasons with")
+    if task == "sort":
+        parser.add_argument("--resolution", type=int, default=50, help="ω: particles the planner reasons with")
+    else:
+        adaptive = os.path.isdir(DEFAULT_REGRESSOR)
+        parser.add_argument("--resolution", default="adaptive" if adaptive else "50",
+                            help="ω, the particles the planner reasons with: an integer, or 'adaptive' (the regressor "
+                                 f"g picks ω every step; the default when {DEFAULT_REGRESSOR} exists)")
+        parser.add_argument("--regressor", default=DEFAULT_REGRESSOR, help="regressor checkpoint for adaptive ω")
     parser.add_argument("--backend", default="mujoco", choices=["mujoco", "mjx"])
     parser.add_argument("--samples", type=int, default=50, help="action sequences optimised at once (M)")
     parser.add_argument("--plan-steps", type=int, default=100, help="Adam steps per plan (N)")
@@ -51,14 +61,21 @@ def add_loop_args(parser: argparse.ArgumentParser, task: str) -> None:
 
 
 def build_loop(args, sim: SimConfig, parser: argparse.ArgumentParser):
-    """The simulator, the planner's model and the MPC settings the loop flags ask for: (env, dynamics, name, cfg)."""
+    """The simulator, the planner's model, the MPC settings the loop flags ask for and the adaptive-ω chooser (None
+    at a fixed ω): (env, dynamics, name, cfg, chooser)."""
     env = PileEnv(sim, backend=args.backend)
     dynamics, n_max, name = load_dynamics(args.dynamics, args.ckpt or DEFAULT_CKPT, sim.scene.plate_half_width)
-    if not 1 <= args.resolution <= n_max:
-        parser.error(f"--resolution must lie in [1, {n_max}] (the model's n_max)")
+    chooser, omega = None, str(args.resolution)
+    if omega == "adaptive":
+        if not os.path.isdir(args.regressor):
+            parser.error(f"--resolution adaptive needs a regressor checkpoint; {args.regressor} does not exist")
+        chooser, omega = load_chooser(args.regressor, env.camera), "50"
+    if not omega.isdigit() or not 1 <= int(omega) <= n_max:
+        parser.error(f"--resolution must be 'adaptive' or an integer in [1, {n_max}] (the model's n_max)")
     planner = PlannerConfig(samples=args.samples, steps=args.plan_steps, bound=env.action_bound,
                             max_length=sim.push.max_length, min_length=sim.push.min_length, seed=args.seed)
-    return env, dynamics, name, MPCConfig(steps=args.steps, omega=args.resolution, n_max=n_max, planner=planner)
+    cfg = MPCConfig(steps=args.steps, omega=int(omega), n_max=n_max, planner=planner)
+    return env, dynamics, name, cfg, chooser
 
 
 def main(task: str, argv=None):
@@ -76,7 +93,7 @@ def main(task: str, argv=None):
 
     sim = SimConfig(scene=SceneConfig(kinds=(args.kind,), pieces=(args.pieces,)), pile=PileConfig(layout=args.layout),
                     camera=CameraConfig())
-    env, dynamics, name, cfg = build_loop(args, sim, parser)
+    env, dynamics, name, cfg, chooser = build_loop(args, sim, parser)
 
     rng = np.random.default_rng(args.seed)
     if task == "gather":
@@ -89,7 +106,8 @@ def main(task: str, argv=None):
     print(f"{task}: {args.pieces} {args.kind} pieces, goal {goal_info}; dynamics: {name}; ω = {args.resolution}; "
           f"{args.samples} x {args.plan_steps} Adam steps")
     t0 = time.perf_counter()
-    state, records, frames = run_episode(env, state, goal, goal_mask, dynamics, cfg, jax.random.PRNGKey(args.seed))
+    state, records, frames = run_episode(env, state, goal, goal_mask, dynamics, cfg, jax.random.PRNGKey(args.seed),
+                                         choose_omega=chooser)
     os.makedirs(args.out, exist_ok=True)
     iio.imwrite(os.path.join(args.out, "episode.gif"), np.stack(frames), duration=400, loop=0)
     cv2.imwrite(os.path.join(args.out, "final.png"), cv2.cvtColor(frames[-1], cv2.COLOR_RGB2BGR))

@@ -24,11 +24,6 @@ from dynres_jax import ckpt, files
 from dynres_jax.resolution import OMEGA_MAX, OMEGA_MIN, Regressor
 
 
-def build_regressor(meta: dict) -> Regressor:
-    """A fresh regressor from a checkpoint card (``ckpt.load_module``'s ``build``)."""
-    return Regressor(width=meta["width"], rngs=nnx.Rngs(0))
-
-
 def load_labels(folder: str) -> dict:
     paths = sorted(glob.glob(os.path.join(folder, "shard_*.npz")))
     if not paths:

@@ -1,12 +1,11 @@
 #!/usr/bin/env bash
-# Adaptive resolution end to end on one GPU machine (results in $OUT): the planner benchmark, BO labels (time-boxed,
+# Adaptive resolution end to end on one GPU machine (results in $OUT): BO labels (time-boxed,
 # resumable), the regressor, the Fig. 4 analysis, and issue 5's fixed-ω Gather evaluation.
 #   OUT=runs/res bash scripts/gpu_resolution.sh
 # Env: SCENES (1024), LABEL_SECONDS (300).
 set -uo pipefail
 OUT=${OUT:-runs/res}; SCENES=${SCENES:-1024}; LABEL_SECONDS=${LABEL_SECONDS:-300}
 mkdir -p "$OUT"
-python -m experiments.benchmark planner --json "$OUT/bench_planner.json"
 timeout "$LABEL_SECONDS" python -m experiments.label_resolution --out "$OUT/labels" --scenes "$SCENES" --batch 128
 python -m experiments.train_regressor --labels "$OUT/labels" --out "$OUT/regressor"
 python -m experiments.tradeoff --labels "$OUT/labels" --out "$OUT/tradeoff"

@@ -30,8 +30,19 @@ def _host_only() -> None:
 
 
 def process_pool(workers: int | None = None):
-    """``workers`` (default: every host core) spawned processes for ``WorldPool``; use as a context manager."""
-    return multiprocessing.get_context("spawn").Pool(workers or os.cpu_count(), initializer=_host_only)
+    """``workers`` (default: every host core) spawned processes for ``WorldPool``; use as a context manager. The
+    workers start with ``JAX_PLATFORMS=cpu`` in their environment, so a module that makes a JAX array on import
+    cannot open the accelerator in every worker before ``_host_only`` runs."""
+    saved = {k: os.environ.get(k) for k in ("JAX_PLATFORMS", "XLA_PYTHON_CLIENT_PREALLOCATE")}
+    os.environ.update(JAX_PLATFORMS="cpu", XLA_PYTHON_CLIENT_PREALLOCATE="false")
+    try:
+        return multiprocessing.get_context("spawn").Pool(workers or os.cpu_count(), initializer=_host_only)
+    finally:
+        for k, v in saved.items():
+            if v is None:
+                os.environ.pop(k)
+            else:
+                os.environ[k] = v
 
 
 @functools.lru_cache(maxsize=2)

@@ -1,0 +1,74 @@
+"""Adaptive resolution end to end on a CPU, tiny sizes: BO labels -> regressor -> evaluation -> Fig. 4 analysis."""
+
+import json
+import os
+
+import numpy as np
+import pytest
+
+from dynres_jax import resolution
+from experiments import evaluate, label_resolution, tradeoff, train_regressor
+
+QUICK = ["--quick", "--dynamics", "sweep", "--workers", "2"]
+
+
+@pytest.fixture(scope="module")
+def labels(tmp_path_factory):
+    out = str(tmp_path_factory.mktemp("labels"))
+    return out, label_resolution.main(["--out", out, *QUICK])
+
+
+@pytest.fixture(scope="module")
+def regressor(labels, tmp_path_factory):
+    out = str(tmp_path_factory.mktemp("regressor"))
+    return out, train_regressor.main(["--labels", labels[0], "--out", out, "--steps", "5", "--batch", "4",
+                                      "--width", "4"])
+
+
+def test_labels_follow_the_bo_recipe_and_resume(labels):
+    out, summary = labels
+    assert summary["scenes"] == 8 and summary["shards_written"] == 2
+    for shard in ("shard_00000.npz", "shard_00001.npz"):
+        z = np.load(os.path.join(out, shard))
+        first = len(label_resolution.FIRST)
+        assert np.all(z["omega"][:, :first] == np.array(label_resolution.FIRST))
+        for row in z["omega"]:
+            assert len(set(row.tolist())) == len(row)  # EI never repeats an ω
+        np.testing.assert_allclose(z["c_plus"], z["c_star"] + resolution.W_R * z["d0"][:, None] * z["omega"],
+                                   rtol=1e-5)
+        assert np.all(z["label"] == resolution.CANDIDATES[np.argmin(z["gp_mean"], axis=1)])
+        assert z["inputs"].shape == (4, resolution.FEATURE_SIZE, resolution.FEATURE_SIZE, 6)
+        assert np.all(z["pile"] == [0, 0, 1, 1]) and np.all(z["goal_shape"] == [0, 1, 0, 1])
+    again = label_resolution.main(["--out", out, *QUICK])
+    assert again["shards_written"] == 0 and again["scenes"] == 8
+
+
+def test_regressor_checkpoint_and_metrics(regressor):
+    out, metrics = regressor
+    assert metrics["train"] + metrics["held_out"] == 8 and np.isfinite(metrics["mae"])
+    with open(os.path.join(out, "metrics.json")) as f:
+        assert json.load(f)["params"] == metrics["params"]
+
+
+def test_evaluation_fixed_and_adaptive(regressor, tmp_path):
+    summary = evaluate.main(["--quick", "--episodes", "2", "--steps", "2", "--pieces", "8", "--samples", "4",
+                             "--plan-steps", "4", "--budget", "16", "--methods", "10", "adaptive", "--regressor",
+                             os.path.join(regressor[0], "ckpt"), "--dynamics", "sweep", "--workers", "2",
+                             "--out", str(tmp_path)])
+    assert set(summary["methods"]) == {"10", "adaptive"}
+    with open(tmp_path / "10.json") as f:
+        fixed = json.load(f)
+    with open(tmp_path / "adaptive.json") as f:
+        adaptive = json.load(f)
+    assert np.all(np.array(fixed["omega"]) == 10) and len(fixed["final_distance"]) == 2
+    assert np.all((np.array(adaptive["omega"]) >= 2) & (np.array(adaptive["omega"]) <= 100))
+    assert (tmp_path / "score.png").read_bytes()[:4] == b"\x89PNG"
+    with pytest.raises(SystemExit):
+        evaluate.main(["--methods", "7000", "--out", str(tmp_path)])
+
+
+def test_tradeoff_pairs(labels, tmp_path):
+    result = tradeoff.main(["--labels", labels[0], "--out", str(tmp_path)])
+    assert result["letter_vs_disc"]["pairs"] == 4 and result["gathered_vs_spread"]["pairs"] == 4
+    r = result["letter_vs_disc"]
+    assert abs(r["higher"] + r["lower"] + r["equal"] - 1) < 1e-9
