@@ -13,6 +13,14 @@ A state z is a padded particle set: positions [N, 3] (metres, world frame) with 
    node effect = ReLU(W_n [node code, sum of incoming edge effects, code] + node effect), starting from the node code.
 5. Predictor H -> H -> 3: a displacement added to the current position.
 
+Options (``DynamicsConfig``; both off by default, which is the architecture above). ``push_frame``: everything is
+expressed in the push's frame (axes: along the push, its left normal, up; origin at the push start), so the model is
+invariant to the push's direction and every particle, not only the swept ones, knows where the plate passes. Node
+input: [guess along the push (1), s, t, s - L, L (1 each; s along and t sideways from the start, L the push length),
+attribute (1), resolution code (1)] -> MLP 7 -> H -> H; edge p_r - p_s in the push frame; the predicted displacement
+is rotated back to the world frame. ``residual``: the network predicts a correction added to the sweep's guess; the
+predictor's last layer starts at zero, so an untrained model is exactly the sweep heuristic.
+
 Defaults (H = 64, 3 steps) give 38,403 parameters, the reference's "about 38k".
 
 Resolution code. Like the reference, the model is conditioned on the particle density 1/r², r the FPS covering radius
@@ -53,6 +61,7 @@ LENGTH_SCALE = 0.05  # m: displacements and relative positions are divided by th
 R_REF = 0.02  # m: covering radius whose resolution code is 0
 R_MIN = 1e-3  # m: radii below this (including the 0 of bad perception input) are clipped in ``resolution_code``
 NODE_IN = 5  # guessed displacement (3), attribute (1), resolution code (1)
+NODE_IN_PUSH_FRAME = 7  # push_frame: guess along the push, s, t, s - L, L (1 each), attribute (1), code (1)
 EDGE_IN = 6  # receiver attribute (1), sender attribute (1), p_r - p_s (3), resolution code (1)
 
 
@@ -67,6 +76,8 @@ class DynamicsConfig:
     edge_radius: float = R_EDGE
     k: int = K_NEIGHBOURS
     length_scale: float = LENGTH_SCALE
+    push_frame: bool = False
+    residual: bool = False
 
 
 def resolution_code(radius):
@@ -74,6 +85,18 @@ def resolution_code(radius):
     the density 1/r² relative to 1/R_REF². Radii below R_MIN are clipped, so the code is always finite."""
     radius = jnp.asarray(radius, jnp.float32)
     return jnp.log(R_REF / jnp.maximum(radius, R_MIN))
+
+
+def _push_frame(action):
+    """action [4] -> (frame [3, 3] whose rows are the unit push direction, its left normal and +z; start [2];
+    length []). The rows are orthonormal, so ``v @ frame.T`` maps world vectors to the push frame and ``w @ frame``
+    maps them back. A zero-length push gets a finite (arbitrary) frame."""
+    action = jnp.asarray(action, jnp.float32)
+    start, delta = action[:2], action[2:] - action[:2]
+    length = jnp.sqrt(jnp.sum(jnp.square(delta)) + 1e-12)
+    along = delta / length
+    frame = jnp.array([[along[0], along[1], 0.0], [-along[1], along[0], 0.0], [0.0, 0.0, 1.0]])
+    return frame, start, length
 
 
 def _mlp(sizes, rngs, *, final_relu):
@@ -92,11 +115,16 @@ class Dynamics(nnx.Module):
     def __init__(self, config: DynamicsConfig = DynamicsConfig(), *, rngs: nnx.Rngs):
         h = config.hidden
         self.config = config
-        self.node_encoder = _mlp((NODE_IN, h, h), rngs, final_relu=True)
+        node_in = NODE_IN_PUSH_FRAME if config.push_frame else NODE_IN
+        self.node_encoder = _mlp((node_in, h, h), rngs, final_relu=True)
         self.edge_encoder = _mlp((EDGE_IN, h, h, h), rngs, final_relu=True)
         self.edge_propagator = nnx.Linear(3 * h + 1, h, rngs=rngs)  # [edge code, receiver, sender, code]
         self.node_propagator = nnx.Linear(2 * h + 1, h, rngs=rngs)  # [node code, summed edge effects, code]
         self.predictor = _mlp((h, h, 3), rngs, final_relu=False)
+        if config.residual:  # the correction starts at zero: an untrained model is the sweep heuristic
+            last = self.predictor.layers[-1]
+            last.kernel[...] = jnp.zeros_like(last.kernel[...])
+            last.bias[...] = jnp.zeros_like(last.bias[...])
 
     def __call__(self, positions, mask, action, code):
         """positions [N, 3] m, mask [N] bool, action [4] m, code [] (``resolution_code``) -> next positions [N, 3] m.
@@ -111,9 +139,18 @@ class Dynamics(nnx.Module):
         neighbours, edge_mask = build_edges(clean + guess, mask, cfg.edge_radius, cfg.k)
 
         attr = mask.astype(jnp.float32)[:, None]  # [N, 1]: 1 for a particle
-        node_code = self.node_encoder(
-            jnp.concatenate([guess / cfg.length_scale, attr, jnp.broadcast_to(code, (n, 1))], axis=-1))
         rel = (clean[:, None, :] - clean[neighbours]) / cfg.length_scale  # [N, k, 3]: receiver i minus sender j
+        if cfg.push_frame:
+            frame, start, length = _push_frame(action)  # frame [3, 3]: rows along, side, up
+            local = (clean - jnp.concatenate([start, jnp.zeros(1)])) @ frame.T / cfg.length_scale  # [N, 3]
+            s, t = local[:, :1], local[:, 1:2]
+            ell = jnp.broadcast_to(length / cfg.length_scale, (n, 1))
+            node_in = [(guess @ frame.T)[:, :1] / cfg.length_scale, s, t, s - ell, ell]
+            node_in = [jnp.where(mask[:, None], x, 0.0) for x in node_in]
+            rel = rel @ frame.T
+        else:
+            node_in = [guess / cfg.length_scale]
+        node_code = self.node_encoder(jnp.concatenate(node_in + [attr, jnp.broadcast_to(code, (n, 1))], axis=-1))
         edge_code = self.edge_encoder(jnp.concatenate(
             [jnp.broadcast_to(attr[:, None], rel.shape[:2] + (1,)), attr[neighbours], rel,
              jnp.broadcast_to(code, rel.shape[:2] + (1,))], axis=-1))  # [N, k, H]
@@ -130,6 +167,10 @@ class Dynamics(nnx.Module):
             effect = nnx.relu(node_const + incoming @ w_n[h:2 * h] + effect)
 
         displacement = self.predictor(effect) * cfg.length_scale
+        if cfg.push_frame:
+            displacement = displacement @ frame  # push frame -> world frame
+        if cfg.residual:
+            displacement = displacement + guess  # the network predicts the correction to the sweep heuristic
         return jnp.where(mask[:, None], positions + displacement, positions)
 
     def rollout(self, positions, mask, actions, code):

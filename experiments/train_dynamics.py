@@ -26,12 +26,15 @@ def main(argv=None):
             parser.add_argument("--" + f.name.replace("_", "-"), type=kind, default=value,
                                 help=f"TrainConfig.{f.name} (default {value})")
     parser.add_argument("--hidden", type=int, default=defaults.model.hidden, help="model width")
+    parser.add_argument("--push-frame", action="store_true", help="DynamicsConfig.push_frame (push-frame inputs)")
+    parser.add_argument("--residual", action="store_true", help="DynamicsConfig.residual (correct the sweep)")
     parser.add_argument("--max-minutes", type=float, default=None,
                         help="stop after this much wall time, with a checkpoint (run again to go on)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     args = parser.parse_args(argv)
     fields = {f.name: getattr(args, f.name) for f in dataclasses.fields(TrainConfig) if f.name != "model"}
-    cfg = TrainConfig(**fields, model=dataclasses.replace(defaults.model, hidden=args.hidden))
+    model = dataclasses.replace(defaults.model, hidden=args.hidden, push_frame=args.push_frame, residual=args.residual)
+    cfg = TrainConfig(**fields, model=model)
     print(json.dumps(train(cfg, args.data, args.out, progress=not args.quiet, max_minutes=args.max_minutes)))
 
 

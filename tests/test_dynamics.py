@@ -230,3 +230,23 @@ def test_training_reduces_loss():
 
     final, losses = train(state)
     assert np.isfinite(float(final)) and float(final) * 5 <= float(losses[0]), (float(losses[0]), float(final))
+
+
+def test_residual_model_starts_as_the_sweep_heuristic_and_push_frame_is_rotation_invariant():
+    """residual: an untrained model predicts exactly the sweep heuristic (padding untouched); push_frame: rotating
+    the scene and the push together about the origin rotates the prediction (the model sees only the push frame)."""
+    from dynres_jax.graph import sweep_displacement
+
+    p = jax.random.uniform(jax.random.PRNGKey(0), (20, 3), minval=-0.05, maxval=0.05).at[:, 2].set(0.005)
+    mask = jnp.ones(20, bool).at[-3:].set(False)
+    a = jnp.array([-0.06, 0.0, 0.06, 0.02])
+    model = Dynamics(DynamicsConfig(residual=True, push_frame=True), rngs=nnx.Rngs(0))
+    clean = jnp.where(mask[:, None], p, 0.0)
+    np.testing.assert_allclose(np.asarray(model(p, mask, a, 0.3)),
+                               np.asarray(p + jnp.where(mask[:, None], sweep_displacement(
+                                   clean, mask, a, model.config.plate_half_width), 0.0)), atol=1e-7)
+    trained = Dynamics(DynamicsConfig(push_frame=True), rngs=nnx.Rngs(1))
+    c, s = np.cos(0.7), np.sin(0.7)
+    rot = jnp.array([[c, -s, 0], [s, c, 0], [0, 0, 1]], jnp.float32)
+    turned = trained(p @ rot.T, mask, jnp.concatenate([a[:2] @ rot[:2, :2].T, a[2:] @ rot[:2, :2].T]), 0.3)
+    np.testing.assert_allclose(np.asarray(turned), np.asarray(trained(p, mask, a, 0.3) @ rot.T), atol=2e-5)
