@@ -46,10 +46,10 @@ def add_loop_args(parser: argparse.ArgumentParser, task: str) -> None:
     if task == "sort":
         parser.add_argument("--resolution", type=int, default=50, help="ω: particles the planner reasons with")
     else:
-        adaptive = os.path.isdir(DEFAULT_REGRESSOR)
-        parser.add_argument("--resolution", default="adaptive" if adaptive else "50",
+        parser.add_argument("--resolution", default="50",
                             help="ω, the particles the planner reasons with: an integer, or 'adaptive' (the regressor "
-                                 f"g picks ω every step; the default when {DEFAULT_REGRESSOR} exists)")
+                                 "g picks ω every step; not the default: the shipped regressor does not yet beat "
+                                 "predicting its labels' mean, checkpoints/regressor/CARD.md)")
         parser.add_argument("--regressor", default=DEFAULT_REGRESSOR, help="regressor checkpoint for adaptive ω")
     parser.add_argument("--backend", default="mujoco", choices=["mujoco", "mjx"])
     parser.add_argument("--samples", type=int, default=50, help="action sequences optimised at once (M)")
