@@ -4,6 +4,6 @@
 #   OUT=runs/eval bash scripts/gpu_evaluate.sh
 set -uo pipefail
 OUT=${OUT:-runs/eval}
-for task in gather redistribute; do
-  python -m experiments.evaluate --task "$task" --episodes 64 --out "$OUT/eval_$task"
+for task in ${TASKS:-gather redistribute}; do
+  python -m experiments.evaluate --task "$task" --episodes 64 --out "$OUT/eval_$task" || exit
 done

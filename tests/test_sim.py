@@ -143,6 +143,15 @@ def test_bad_action_names_the_problem(envs, action, message):
         envs["mujoco"].push(state, action)
 
 
+def test_actions_on_the_length_bounds_in_float32_pass_the_check(envs):
+    """The planner projects lengths onto [min_length, max_length] in float32; such pushes must be accepted."""
+    env = envs["mujoco"]
+    p = env.config.push
+    for length in (p.min_length, p.max_length):
+        a = np.array([0.0, 0.0, np.float32(length) * np.float32(1 - 3e-7), 0.0], np.float32)
+        env.check_action(a)
+
+
 def test_traced_nan_action_flags_the_world_broken(envs, pushed):
     env = envs["mjx"]
     s = jax.jit(env.push)(pushed["mjx"][0], jnp.array([0.0, 0.0, jnp.nan, 0.0]))

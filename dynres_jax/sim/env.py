@@ -218,7 +218,7 @@ class PileEnv:
                              "(the bin less the plate and a piece's width, PileEnv.action_bound)")
         length = float(np.hypot(a[2] - a[0], a[3] - a[1]))
         p = self.config.push
-        if not p.min_length <= length <= p.max_length + 1e-6:
+        if not p.min_length - 1e-6 <= length <= p.max_length + 1e-6:  # float32 plans sit on the bounds
             raise ValueError(f"push length {length:.4f} m is outside [{p.min_length}, {p.max_length}] m "
                              "(PushConfig.min_length / max_length)")
         return a.astype(np.float32)
