@@ -72,8 +72,9 @@ def plot(results: dict, task: str, out_dir: str) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    top = max(max(r["final_distance"]) for r in results.values())
-    taus = np.linspace(0, top * 1.05, 200)
+    finals = np.concatenate([r["final_distance"] for r in results.values()])  # d is signed: negative inside
+    span = finals.max() - finals.min()
+    taus = np.linspace(finals.min() - 0.02 * span, finals.max() + 0.02 * span, 200)
     fig, ax = plt.subplots(figsize=(5, 3.5))
     for method, r in results.items():
         d = np.array(r["final_distance"])
