@@ -205,10 +205,19 @@ class Regressor(nnx.Module):
         return (OMEGA_MIN + (OMEGA_MAX - OMEGA_MIN) * unit).reshape(lead)
 
 
-def choose_omega(graphdef, state, current_mask, goal_mask):
-    """Adaptive ω of a trained regressor (``nnx.split``): masks [..., H, W] -> integer ω [...] in range."""
-    x = jnp.vectorize(regressor_input, signature="(h,w),(h,w)->(s,s,c)")(current_mask, goal_mask)
-    omega = nnx.merge(graphdef, state)(x)
+def observation_input(obs, goal_mask, camera, size: int = FEATURE_SIZE):
+    """``regressor_input`` of an Observation (its foreground, ``perception.foreground``) and a goal mask [H, W]:
+    what labelling stores and what the adaptive MPC feeds g, computed one way. Pure JAX; vmap over scenes."""
+    from dynres_jax.perception import foreground
+
+    current = foreground(obs, camera)[1].reshape(camera.height, camera.width)
+    return regressor_input(current, goal_mask, size)
+
+
+def choose_omega(graphdef, state, inputs):
+    """Adaptive ω of a trained regressor (``nnx.split``): regressor inputs [..., S, S, 6] -> integer ω [...] in
+    range."""
+    omega = nnx.merge(graphdef, state)(inputs)
     return jnp.clip(jnp.round(omega), OMEGA_MIN, OMEGA_MAX).astype(jnp.int32)
 
 
@@ -221,13 +230,12 @@ def load_chooser(regressor_dir: str, camera):
     """Adaptive ω from a trained regressor checkpoint: a jitted ``(obs [B], goals [B]) -> ω [B]`` (Observation and
     Goal batched), the ``choose_omega`` of ``mpc.run_episodes``."""
     from dynres_jax import ckpt
-    from dynres_jax.perception import foreground
 
     graphdef, state = nnx.split(ckpt.load_module(regressor_dir, build_regressor)[0])
 
     @jax.jit
     def choose(obs, goals):
-        current = jax.vmap(lambda o: foreground(o, camera)[1].reshape(camera.height, camera.width))(obs)
-        return choose_omega(graphdef, state, current, goals.mask)
+        inputs = jax.vmap(lambda o, m: observation_input(o, m, camera))(obs, goals.mask)
+        return choose_omega(graphdef, state, inputs)
 
     return choose

@@ -31,7 +31,6 @@ from dynres_jax.config import CameraConfig, PileConfig, PushConfig, SceneConfig,
 from dynres_jax.data import save_npz
 from dynres_jax.mpc import MPCConfig, decide, load_dynamics
 from dynres_jax.objective import distribution_distance, make_goal
-from dynres_jax.perception import foreground
 from dynres_jax.planner import PlannerConfig
 from dynres_jax.sim.pool import WorldPool, process_pool
 from experiments.task import DEFAULT_CKPT
@@ -113,8 +112,7 @@ def label_shard(args, shard: int, dynamics, processes) -> dict:
         c_stars, target = c_stars.at[:, i].set(c), target.at[:, i].set(resolution.penalised(c, d0, w))
     label, mean = jax.jit(jax.vmap(resolution.best_omega))(omega, target, mask, jax.random.split(
         jax.random.PRNGKey(shard), b))
-    current = jax.vmap(lambda o: foreground(o, camera)[1].reshape(camera.height, camera.width))(start.obs)
-    inputs = jax.vmap(resolution.regressor_input)(current, jnp.asarray(goal_masks))
+    inputs = jax.vmap(lambda o, m: resolution.observation_input(o, m, camera))(start.obs, jnp.asarray(goal_masks))
     return dict(inputs=np.asarray(inputs), label=np.asarray(label), gp_mean=np.asarray(mean),
                 omega=np.asarray(omega), c_plus=np.asarray(target), c_star=np.asarray(c_stars), d0=np.asarray(d0),
                 goal_shape=shapes, layout=np.full(b, shard % 2), pile=np.arange(b) // 2, shard=np.int64(shard))

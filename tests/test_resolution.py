@@ -98,9 +98,9 @@ def test_regressor_input_channels_and_distance_transform_by_brute_force():
 def test_regressor_range_and_choose_omega_batches():
     model = res.Regressor(width=4, rngs=nnx.Rngs(0))
     masks = jnp.asarray(np.random.default_rng(1).uniform(size=(3, 64, 64)) > 0.7)
-    omega = res.choose_omega(*nnx.split(model), masks, masks[::-1])
+    omega = res.choose_omega(*nnx.split(model), jax.vmap(res.regressor_input)(masks, masks[::-1]))
     assert omega.shape == (3,) and omega.dtype == jnp.int32
     assert np.all((np.asarray(omega) >= res.OMEGA_MIN) & (np.asarray(omega) <= res.OMEGA_MAX))
-    one = res.choose_omega(*nnx.split(model), masks[1], masks[1])
     x = res.regressor_input(masks[1], masks[1])
+    one = res.choose_omega(*nnx.split(model), x)
     assert int(one) == int(np.clip(np.round(float(model(x))), 2, 100))
