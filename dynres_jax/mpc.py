@@ -25,7 +25,7 @@ from dynres_jax.dynamics import Dynamics, resolution_code, rollout
 from dynres_jax.graph import sweep_rollout
 from dynres_jax.objective import Goal, distribution_distance, inside_share, objective
 from dynres_jax.perception import sample_particles
-from dynres_jax.planner import PlannerConfig, budget_steps, plan
+from dynres_jax.planner import PlannerConfig, budget_steps, plan, steps_for_budget
 
 if TYPE_CHECKING:  # annotations only: the planning half of this module needs no simulator (nor MuJoCo)
     from dynres_jax.sim.env import PileEnv, State
@@ -117,10 +117,13 @@ def decide(obs, goal: Goal, key, init, dynamics, cfg: MPCConfig, camera, omega=N
     omega = cfg.omega if omega is None else omega
     particles = sample_particles(obs, camera, omega, k_h, cfg.n_max, max_points=cfg.max_points)
     c_now = objective(particles.positions, particles.mask, goal, camera)
-    budget = cfg.planner.max_particle_steps
-    active = None if budget is None else budget_steps(omega, budget, cfg.planner.steps)
+    budget, steps, active = cfg.planner.max_particle_steps, cfg.planner.steps, None
+    if budget is not None and isinstance(omega, int):  # a concrete ω: scan only the affordable steps
+        steps = steps_for_budget(omega, budget, steps)
+    elif budget is not None:  # a traced ω (vmapped episodes): one scan, steps past the budget are no-ops
+        active = budget_steps(omega, budget, steps)
     result = plan(dynamics(particles.radius), goal_cost(goal, camera), particles.positions, particles.mask, k_plan,
-                  replace(cfg.planner, max_particle_steps=None), init=init, active_steps=active)
+                  replace(cfg.planner, max_particle_steps=None), init=init, steps=steps, active_steps=active)
     return particles, c_now, result
 
 
