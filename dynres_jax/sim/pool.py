@@ -64,7 +64,8 @@ def _push(job) -> tuple:
     qpos, qvel, pos, mat, broken = world
     if broken:  # a broken world stays as it was
         return world
-    return _arrays(_env(sim_json).push(State(qpos, qvel, pos, mat, None, broken), action))
+    env = _env(sim_json)  # the action was checked in the parent (WorldPool.push)
+    return _arrays(env.simulate(State(qpos, qvel, pos, mat, None, broken), *env.plate_trajectory(jnp.asarray(action))))
 
 
 def _random_episode(job) -> dict:
