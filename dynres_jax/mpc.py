@@ -86,9 +86,16 @@ def _cost(camera, goal, positions, mask):
     return objective(positions, mask, goal, camera)
 
 
+@functools.cache
+def _camera_cost(camera):
+    """One function object per camera: the planner's compile cache keys a cost by its function's identity."""
+    return functools.partial(_cost, camera)
+
+
 def goal_cost(goal: Goal, camera) -> Partial:
-    """The planner's cost: the task objective c of predicted particles against ``goal``."""
-    return Partial(functools.partial(_cost, camera), goal)
+    """The planner's cost: the task objective c of predicted particles against ``goal`` (a pytree argument, so a new
+    goal for the same camera reuses the compiled plan)."""
+    return Partial(_camera_cost(camera), goal)
 
 
 def overlay(rgb: np.ndarray, goal_mask: np.ndarray, particles: np.ndarray | None, camera, scale: int = 3,

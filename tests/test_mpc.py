@@ -5,9 +5,9 @@ import numpy as np
 import pytest
 
 from dynres_jax.config import CameraConfig, PileConfig, PushConfig, SceneConfig, SimConfig
-from dynres_jax.mpc import MPCConfig, run_episode, run_episodes, sweep_dynamics
+from dynres_jax.mpc import MPCConfig, goal_cost, run_episode, run_episodes, sweep_dynamics
 from dynres_jax.objective import disc_goal, distribution_distance, make_goal
-from dynres_jax.planner import PlannerConfig
+from dynres_jax.planner import PlannerConfig, _plan_jit, plan
 from dynres_jax.sim.env import PileEnv
 
 
@@ -94,3 +94,17 @@ def test_pool_episodes_with_per_episode_omega_and_budget_equal_one_at_a_time():
         for t in range(2):
             np.testing.assert_allclose(records[t]["predicted_objective"][b], one[t]["predicted_objective"], rtol=1e-3)
             np.testing.assert_allclose(records[t]["success"][b], one[t]["success"], atol=1e-6)
+
+
+def test_a_new_goal_reuses_the_compiled_plan(episode):
+    """Each MPC step builds its cost for a new goal; the planner must not compile again for it."""
+    env, state, goal, *_ = episode
+    other = make_goal(disc_goal(env.camera, np.array([0.05, -0.03]), 0.05), env.camera, n_samples=64)
+    config = PlannerConfig(samples=4, steps=3, bound=env.action_bound, max_length=0.1)
+    positions, mask = state.pos[:6], np.ones(6, bool)
+    dynamics = sweep_dynamics(0.04)(0.01)
+    plan(dynamics, goal_cost(goal, env.camera), positions, mask, jax.random.PRNGKey(0), config)
+    compiled = _plan_jit._cache_size()
+    result = plan(dynamics, goal_cost(other, env.camera), positions, mask, jax.random.PRNGKey(1), config)
+    assert _plan_jit._cache_size() == compiled
+    assert np.isfinite(float(result.best_cost))
