@@ -1,6 +1,8 @@
-"""Benchmarks: ``python -m experiments.benchmark {sim,perception,planner} --json FILE [--quick]``.
+"""Benchmarks: ``python -m experiments.benchmark {sim,perception,planner,all} --json FILE [--quick]``.
 
 Every figure is taken on whatever device JAX sees (named in the output) against a peer measured in the same run.
+``all`` runs the three in turn and writes one Markdown table (printed, and beside the JSON as ``FILE.md``) with a
+row per figure: ours, the peer, and the ratio.
 """
 
 from __future__ import annotations
@@ -8,7 +10,7 @@ from __future__ import annotations
 import argparse
 import json
 
-from dynres_jax.files import write_json
+from dynres_jax.files import write_json, write_text
 
 
 def sim_table(result: dict) -> str:
@@ -24,9 +26,45 @@ def sim_table(result: dict) -> str:
     return "\n".join(lines)
 
 
+def _row(what: str, ours: str, peer: str, ratio: float | None) -> str:
+    return f"| {what} | {ours} | {peer} | {'-' if ratio is None else f'{ratio:,.1f}x'} |"
+
+
+def report_table(results: dict) -> str:
+    """One Markdown table of ``benchmark all``'s results: {"sim": ..., "perception": ..., "planner": ...}."""
+    sim, per, pl = results["sim"], results["perception"], results["planner"]
+    j = pl["jax"]
+    lines = [f"Device: {j['device']} (JAX {j['jax_version']}); host: {sim['host_cores']} cores"
+             f"{' (quick sizes: checks only)' if results.get('quick') else ''}.", "",
+             "| benchmark | ours | peer, measured in the same run | ours, times faster |", "|---|---|---|---:|"]
+    for name, v in sim["variants"].items():
+        best = max(v["mjx"]["rows"], key=lambda r: r["pushes_per_s"])
+        c = v["c_mujoco"]
+        lines.append(_row(f"simulator `{name}`, {sim['pieces']} pieces: pushes/s",
+                          f"MJX, {best['worlds']:,} worlds: {best['pushes_per_s']:,.1f}",
+                          f"C MuJoCo, {c['cores']} cores: {c['pushes_per_s']:,.1f}",
+                          best["pushes_per_s"] / c["pushes_per_s"]))
+    f, npy = per["fps"], per["fps_numpy"]
+    lines.append(_row(f"FPS, {f['clouds']:,} clouds x {f['points']:,} points -> {f['n']}: ms per batch",
+                      f"JAX vmap: {f['median_ms']:,.1f}", f"NumPy loop: {npy['batch_ms_scaled']:,.0f}",
+                      npy["batch_ms_scaled"] / f["median_ms"]))
+    h, packed = per["h"], per["h_max_points"]
+    lines.append(_row(f"h (ω = {h['omega']}), {h['observations']:,} observations of {h['image']}² px: ms per batch",
+                      f"foreground packed into {packed['max_points']:,} slots: {packed['median_ms']:,.1f}",
+                      f"every pixel a candidate: {h['median_ms']:,.1f}", h["median_ms"] / packed["median_ms"]))
+    batch = f"{pl['batch']:,} pushes x {pl['particles']} particles"
+    t = pl["torch"]
+    lines.append(_row(f"planner, one Adam step over {batch}: ms", f"JAX: {j['ms_per_step']:.2f}",
+                      f"PyTorch reference PropNet: {t['ms_per_step']:.2f}" if "ms_per_step" in t else t["skipped"],
+                      pl.get("speedup")))
+    lines.append(_row(f"planner, a {pl['steps']}-step plan over {batch}: s (compile {j['compile_s']:.1f} s)",
+                      f"JAX: {j['plan_s']:.2f}", f"goal: {pl['plan_goal_s']:.1f}", pl["plan_goal_s"] / j["plan_s"]))
+    return "\n".join(lines)
+
+
 def main(argv=None):
     parser = argparse.ArgumentParser(prog="python -m experiments.benchmark", description=__doc__)
-    parser.add_argument("what", choices=["sim", "perception", "planner"])
+    parser.add_argument("what", choices=["sim", "perception", "planner", "all"])
     parser.add_argument("--json", help="write the results here (atomically)")
     parser.add_argument("--quick", action="store_true", help="tiny sizes: checks the benchmark runs, in seconds")
     parser.add_argument("--variants", nargs="*", help="sim: scene variants (default: all)")
@@ -34,7 +72,17 @@ def main(argv=None):
     parser.add_argument("--full-sweep", nargs="*", help="sim: variants timed at every world count")
     parser.add_argument("--pieces", type=int, default=100)
     args = parser.parse_args(argv)
-    if args.what == "sim":
+    if args.what == "all":
+        from experiments import bench_perception, bench_planner, bench_sim
+
+        result = dict(quick=args.quick,
+                      sim=bench_sim.run(args.quick, args.pieces, args.variants, args.worlds, args.full_sweep),
+                      perception=bench_perception.run(args.quick), planner=bench_planner.run(args.quick))
+        table = report_table(result)
+        print(table)
+        if args.json:
+            write_text(args.json + ".md", table + "\n")
+    elif args.what == "sim":
         from experiments import bench_sim
 
         result = bench_sim.run(args.quick, args.pieces, args.variants, args.worlds, args.full_sweep)

@@ -1,0 +1,62 @@
+"""``benchmark all``: one Markdown table, a row per figure, each ratio computed from the two figures beside it."""
+
+import json
+import re
+
+import pytest
+
+from experiments import bench_perception, bench_planner, bench_sim, benchmark
+
+
+def _results():
+    """Inputs shaped like the three benchmarks' results (different numbers in every field)."""
+    sim = dict(device="dev", host_cores=16, pieces=100, variants={
+        name: dict(mjx=dict(rows=[dict(worlds=16, pushes_per_s=3.0 * i + 1),
+                                  dict(worlds=4096, pushes_per_s=50.0 * i + 7)]),
+                   c_mujoco=dict(cores=16, pushes_per_s=20.0 + i))
+        for i, name in enumerate(["a", "b"])})
+    per = dict(fps=dict(clouds=1024, points=20000, n=100, median_ms=12.5), fps_numpy=dict(batch_ms_scaled=33280.0),
+               h=dict(omega=50, observations=1024, image=256, median_ms=81.6),
+               h_max_points=dict(max_points=8192, median_ms=17.3))
+    planner = dict(batch=1500, particles=100, steps=200, plan_goal_s=1.0, speedup=31.73 / 4.29,
+                   torch=dict(ms_per_step=31.73), jax=dict(device="gpu: H200", jax_version="0", ms_per_step=4.29,
+                                                          plan_s=0.86, compile_s=2.5))
+    return sim, per, planner
+
+
+def _cells(row):
+    return [c.strip() for c in row.strip("|").split("|")]
+
+
+def _number(cell):
+    return float(re.findall(r"[\d,]+\.?\d*", cell.split(":")[-1])[-1].replace(",", ""))
+
+
+@pytest.fixture
+def written(tmp_path, monkeypatch):
+    sim, per, planner = _results()
+    monkeypatch.setattr(bench_sim, "run", lambda *a, **k: sim)
+    monkeypatch.setattr(bench_perception, "run", lambda quick: per)
+    monkeypatch.setattr(bench_planner, "run", lambda quick: planner)
+    path = tmp_path / "bench.json"
+    benchmark.main(["all", "--json", str(path)])
+    return json.loads(path.read_text()), (tmp_path / "bench.json.md").read_text()
+
+
+def test_all_writes_json_and_one_table(written):
+    result, table = written
+    assert set(result) == {"quick", "sim", "perception", "planner"}
+    rows = [r for r in table.splitlines() if r.startswith("| ") and not r.startswith("| benchmark")]
+    assert len(rows) == 2 + 4  # a row per simulator variant, FPS, h, the planner step and the whole plan
+    assert "gpu: H200" in table
+
+
+def test_every_ratio_is_how_many_times_faster_ours_is(written):
+    _, table = written
+    rows = [_cells(r) for r in table.splitlines() if r.startswith("| ") and not r.startswith("| benchmark")]
+    for what, ours, peer, ratio in rows:
+        a, b = _number(ours), _number(peer)
+        expected = a / b if "pushes/s" in what else b / a  # a rate: ours over peer; a time: peer over ours
+        assert float(ratio.rstrip("x").replace(",", "")) == pytest.approx(expected, rel=0.02, abs=0.06), what
+    sim_rows = [r for r in rows if r[0].startswith("simulator")]
+    assert [_number(r[1]) for r in sim_rows] == [7.0, 57.0]  # the best world count of each variant
