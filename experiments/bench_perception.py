@@ -6,7 +6,7 @@
   with every pixel a candidate point and with the foreground packed into 8,192 slots.
 
 Times are medians over several runs after a warm-up; compile time is reported separately. ``run(quick=True)`` uses
-tiny sizes so it finishes in seconds on a CPU. ``python -m experiments.bench_perception [--quick]`` prints JSON.
+tiny sizes so it finishes in seconds on a CPU. ``python -m experiments.benchmark perception [--quick]`` prints JSON.
 
 Measured on one H200 (JAX 0.11.2): FPS batch 12.1 ms (compile 0.2 s; NumPy 32.5 ms a cloud, about 2,700 times
 slower over the batch); h over 1,024 observations 81.6 ms with every pixel a candidate, 17.3 ms packed into 8,192.
@@ -14,8 +14,6 @@ slower over the batch); h over 1,024 observations 81.6 ms with every pixel a can
 
 from __future__ import annotations
 
-import argparse
-import json
 import time
 
 import jax
@@ -111,8 +109,3 @@ def run(quick: bool) -> dict:
     return {"device": jax.devices()[0].device_kind, "backend": jax.default_backend(), "quick": quick,
             "fps": fps_result, "fps_numpy": numpy_result, **bench_h(s)}
 
-
-if __name__ == "__main__":
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--quick", action="store_true", help="tiny sizes: seconds on a CPU")
-    print(json.dumps(run(parser.parse_args().quick), indent=1))

@@ -26,7 +26,6 @@ step. ``run(quick=True)`` uses tiny sizes so it finishes in seconds on a CPU; wi
 
 from __future__ import annotations
 
-import json
 import os
 import time
 
@@ -252,8 +251,3 @@ def run(quick: bool) -> dict:
         result["speedup_meets_goal"] = result["speedup"] >= SPEEDUP_GOAL
     return result
 
-
-if __name__ == "__main__":
-    import sys
-
-    print(json.dumps(run("--quick" in sys.argv[1:]), indent=1))

@@ -1,19 +1,63 @@
 """Command-line entry points: each one's --help, and the simulator demo end to end on a tiny scene."""
 
 import json
-import subprocess
+import re
+import runpy
+import shlex
 import sys
+from pathlib import Path
 
 import pytest
 
 from experiments import simulate
 
+ROOT = Path(__file__).resolve().parents[1]
+COMMANDS = sorted(p.stem for p in (ROOT / "experiments").glob("*.py") if '"__main__"' in p.read_text())
 
-@pytest.mark.parametrize("module", ["simulate", "benchmark", "validate_physics", "gather", "redistribute", "sort",
-                                    "plan", "generate_data", "train_dynamics", "eval_dynamics"])
-def test_help(module):
-    out = subprocess.run([sys.executable, "-m", f"experiments.{module}", "--help"], capture_output=True, text=True)
-    assert out.returncode == 0 and "usage" in out.stdout
+
+def readme_commands() -> list[tuple[str, list[str]]]:
+    """Every ``python -m experiments.X ARGS`` the README shows, in code blocks (continuation lines joined) and
+    inline code (which may wrap), as (module, args); chained commands and trailing comments cut off."""
+    text = (ROOT / "README.md").read_text()
+    blocks = re.findall(r"```[^\n]*\n(.*?)```", text, re.S)
+    lines = [line for b in blocks for line in b.replace("\\\n", " ").splitlines()]
+    prose = re.sub(r"```.*?```", "", text, flags=re.S)
+    lines += [span.replace("\n", " ") for span in re.findall(r"`([^`]+)`", prose)]
+    found = []
+    for line in lines:
+        for m in re.finditer(r"python -m (experiments\.\w+)([^&|;]*)", line):
+            found.append((m.group(1), shlex.split(m.group(2), comments=True)))
+    return sorted(set((module, tuple(args)) for module, args in found))
+
+
+def _help(module: str, args, monkeypatch, capsys) -> str:
+    """The module run as ``python -m`` with args + --help, in this process; its printed help."""
+    monkeypatch.setattr(sys, "argv", [module, *args, "--help"])
+    with pytest.raises(SystemExit) as exit_:
+        runpy.run_module(module, run_name="__main__", alter_sys=True)
+    assert exit_.value.code == 0
+    return capsys.readouterr().out
+
+
+def test_the_readme_shows_commands():
+    assert len(readme_commands()) >= 10 and {m for m, _ in readme_commands()} <= {f"experiments.{c}" for c in COMMANDS}
+
+
+RERUN = "ignore:.*found in sys.modules:RuntimeWarning"  # runpy re-running an imported module is what we want
+
+
+@pytest.mark.filterwarnings(RERUN)
+@pytest.mark.parametrize("module", COMMANDS)
+def test_help(module, monkeypatch, capsys):
+    assert "usage" in _help(f"experiments.{module}", [], monkeypatch, capsys)
+
+
+@pytest.mark.filterwarnings(RERUN)
+@pytest.mark.parametrize("module, args", readme_commands(), ids=lambda x: " ".join(x) if isinstance(x, tuple) else x)
+def test_readme_command_parses(module, args, monkeypatch, capsys):
+    """The README's command, as written, with --help appended: its flags and choices are ones the command takes
+    (argparse rejects an unknown flag or a bad choice before it acts on --help)."""
+    assert "usage" in _help(module, args, monkeypatch, capsys)
 
 
 def test_simulate_demo_writes_its_files(tmp_path):
