@@ -29,7 +29,7 @@ from dynres_jax.config import CameraConfig, PileConfig, SceneConfig, SimConfig
 from dynres_jax.mpc import load_dynamics, run_episodes
 from dynres_jax.objective import make_goal
 from dynres_jax.sim.pool import WorldPool, process_pool
-from experiments.label_resolution import planner_config
+from experiments.label_resolution import add_planner_args, planner_config
 from experiments.task import DEFAULT_CKPT, DEFAULT_REGRESSOR
 
 SUCCESS = 0.9  # Gather succeeds when this share of the pieces is inside the goal
@@ -103,9 +103,7 @@ def main(argv=None):
     parser.add_argument("--episodes", type=int, default=64)
     parser.add_argument("--steps", type=int, default=20, help="MPC steps per episode")
     parser.add_argument("--methods", nargs="+", default=["10", "25", "50", "75", "100", "adaptive"])
-    parser.add_argument("--budget", type=int, default=1000, help="particle-steps per plan (0: no budget)")
-    parser.add_argument("--samples", type=int, default=20)
-    parser.add_argument("--plan-steps", type=int, default=100)
+    add_planner_args(parser)
     parser.add_argument("--kind", default="coffee")
     parser.add_argument("--pieces", type=int, default=100)
     parser.add_argument("--ckpt", default=DEFAULT_CKPT)

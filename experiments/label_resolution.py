@@ -48,11 +48,20 @@ def scene_config(args, shard: int) -> SimConfig:
                      push=push, camera=camera)
 
 
+def add_planner_args(parser) -> None:
+    """The planner flags shared with ``experiments.evaluate``."""
+    parser.add_argument("--budget", type=int, default=1000,
+                        help="particle-steps per plan (ω x Adam steps; 0: no budget)")
+    parser.add_argument("--samples", type=int, default=20, help="action sequences per plan (paper M = 20)")
+    parser.add_argument("--plan-steps", type=int, default=100, help="most Adam steps per plan")
+    parser.add_argument("--horizon", type=int, default=1, help="pushes per planned sequence (paper T = 1)")
+
+
 def planner_config(env, args) -> MPCConfig:
     """The planner under the particle-step budget, shared with ``experiments.evaluate``."""
-    planner = PlannerConfig(samples=args.samples, steps=args.plan_steps, bound=env.action_bound,
-                            max_length=env.config.push.max_length, min_length=env.config.push.min_length,
-                            max_particle_steps=args.budget)
+    planner = PlannerConfig(samples=args.samples, steps=args.plan_steps, horizon=args.horizon,
+                            bound=env.action_bound, max_length=env.config.push.max_length,
+                            min_length=env.config.push.min_length, max_particle_steps=args.budget or None)
     return MPCConfig(steps=1, omega=resolution.OMEGA_MAX, n_max=resolution.OMEGA_MAX, planner=planner,
                      max_points=1024 if args.quick else 4096)
 
@@ -126,9 +135,7 @@ def main(argv=None):
     parser.add_argument("--batch", type=int, default=128, help="scenes per shard (even)")
     parser.add_argument("--evals", type=int, default=10, help="c+ evaluations per scene (reference 10)")
     parser.add_argument("--repeats", type=int, default=2, help="plans averaged per evaluation (reference 5)")
-    parser.add_argument("--budget", type=int, default=1000, help="particle-steps per plan (ω x Adam steps)")
-    parser.add_argument("--samples", type=int, default=20, help="action samples per plan (paper M = 20)")
-    parser.add_argument("--plan-steps", type=int, default=100, help="most Adam steps per plan")
+    add_planner_args(parser)
     parser.add_argument("--kind", default="coffee")
     parser.add_argument("--pieces", type=int, default=100)
     parser.add_argument("--ckpt", default=DEFAULT_CKPT)
