@@ -9,6 +9,7 @@ training run resumes.
 
 from __future__ import annotations
 
+import logging
 import os
 from collections.abc import Callable
 from typing import Any
@@ -20,6 +21,17 @@ from flax import nnx
 
 class CheckpointError(ValueError):
     """A checkpoint exists but cannot be read into what was asked for (corrupt, or another model's)."""
+
+
+class _QuietReadOnly(logging.Filter):
+    """Drops orbax's warnings that a read-only manager ignores its save options: expected on every restore."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        message = record.getMessage()
+        return not ("read_only=True" in message or "directory is read only" in message)
+
+
+logging.getLogger("absl").addFilter(_QuietReadOnly())
 
 
 def _manager(directory, keep: int | None = 3, read_only: bool = False) -> ocp.CheckpointManager:

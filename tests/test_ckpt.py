@@ -39,6 +39,15 @@ def test_restore_gives_bit_identical_predictions(saved):
     np.testing.assert_array_equal(np.asarray(restored(*inputs())), np.asarray(model(*inputs())))
 
 
+def test_restoring_is_quiet(saved, capsys, caplog):
+    """A restore prints none of orbax's read-only-manager warnings (they said nothing a user could act on)."""
+    _, directory = saved
+    with caplog.at_level("INFO"):
+        ckpt.load_module(directory, build)
+    assert "read only" not in caplog.text and "read_only" not in caplog.text
+    assert "read only" not in capsys.readouterr().err
+
+
 def test_missing_checkpoint_is_a_clear_error(tmp_path):
     with pytest.raises(FileNotFoundError, match="no checkpoint"):
         ckpt.load_module(tmp_path / "nowhere", build)
