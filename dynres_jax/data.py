@@ -260,17 +260,39 @@ def shard_path(out_dir: str, shard: int) -> str:
     return os.path.join(out_dir, f"shard_{shard:05d}.npz")
 
 
-def generate(config: DataConfig, out_dir: str, devices=None, progress: bool = True, workers: int | None = None) -> dict:
+def parse_part(text: str) -> tuple[int, int]:
+    """``"I/K"`` -> (I, K): this process makes the shards whose index is I modulo K, so K machines (or one process
+    per GPU) split a run over one shared folder. ValueError unless 0 <= I < K."""
+    try:
+        i, k = (int(x) for x in str(text).split("/"))
+    except ValueError:
+        raise ValueError(f"a part is written I/K (e.g. 0/4), got {text!r}") from None
+    if not 0 <= i < k:
+        raise ValueError(f"part {i}/{k}: I must lie in [0, K)")
+    return i, k
+
+
+def shards_todo(out_dir: str, n_shards: int, part: tuple[int, int] = (0, 1)) -> list[int]:
+    """This part's shard indices whose files are not written yet (a rerun resumes where a killed one stopped)."""
+    i, k = part
+    return [s for s in range(i, n_shards, k) if not os.path.exists(shard_path(out_dir, s))]
+
+
+def generate(config: DataConfig, out_dir: str, devices=None, progress: bool = True, workers: int | None = None,
+             part: tuple[int, int] = (0, 1)) -> dict:
     """Simulate ``config`` into ``out_dir`` (shards, config.json, summary.json), resuming a killed run: shard files
     that exist are kept, the missing ones simulated. Returns the summary (also written to summary.json): totals over
     all shards, and this run's shards written, seconds and ``samples_per_s`` (frames written per second of this
     run, compiles included). ValueError when ``out_dir`` holds a run of another DataConfig, or worlds does not
-    divide by the device count. One writer per folder. ``workers``: C processes for backend "mujoco" (default
-    every host core)."""
+    divide by the device count. ``workers``: C processes for backend "mujoco" (default every host core).
+    ``part`` (I, K): make only the shards with index I modulo K (``parse_part``); K parts may share a folder, one
+    writer per part."""
     devices = check_devices(config, devices)
     os.makedirs(out_dir, exist_ok=True)
-    for leftover in glob.glob(os.path.join(out_dir, TMP_PREFIX + "*")):
-        os.unlink(leftover)
+    for shard in range(part[0], config.n_shards, part[1]):  # half-written shards of a killed run of this part
+        for leftover in glob.glob(os.path.join(out_dir, TMP_PREFIX + os.path.basename(shard_path(out_dir, shard))
+                                               + "*")):
+            os.unlink(leftover)
     config_path = os.path.join(out_dir, "config.json")
     if os.path.exists(config_path):
         with open(config_path) as f:
@@ -280,9 +302,10 @@ def generate(config: DataConfig, out_dir: str, devices=None, progress: bool = Tr
     else:
         write_text(config_path, config.to_json())
 
-    todo = [i for i in range(config.n_shards) if not os.path.exists(shard_path(out_dir, i))]
+    todo = shards_todo(out_dir, config.n_shards, part)
+    mine = len(range(part[0], config.n_shards, part[1]))
     start, written_frames = time.perf_counter(), 0
-    bar = tqdm(total=config.n_shards, initial=config.n_shards - len(todo), unit="shard", desc="generate",
+    bar = tqdm(total=mine, initial=mine - len(todo), unit="shard", desc="generate",
                disable=not progress)
     pool = process_pool(workers) if config.backend == "mujoco" and todo else None
     with ThreadPoolExecutor(1) as writer, pool or contextlib.nullcontext():  # write shard i while i + 1 simulates
@@ -309,7 +332,7 @@ def generate(config: DataConfig, out_dir: str, devices=None, progress: bool = Tr
         totals["broken_dropped"] += int(shard["dropped"])
         totals["simulated"] += int(shard["simulated"])
     summary = dict(totals, episodes_requested=config.episodes, pushes=config.pushes, shards_written=len(todo),
-                   shards_skipped=config.n_shards - len(todo), seconds=seconds,
+                   shards_skipped=mine - len(todo), seconds=seconds,
                    samples_per_s=written_frames / seconds if todo else 0.0,
                    devices=len(devices), device_kind=devices[0].device_kind, backend=config.backend)
     write_json(os.path.join(out_dir, "summary.json"), summary)

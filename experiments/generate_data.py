@@ -45,6 +45,8 @@ def main(argv=None) -> dict:
                         help="tiny sizes (6 coffee beans, 48x48, 2 short pushes, 8 episodes of 4 worlds)")
     parser.add_argument("--workers", type=int, default=None,
                         help="C engine processes for --backend mujoco (default: every host core)")
+    parser.add_argument("--part", default="0/1", help="I/K: make only shards I, I + K, ... so K machines (or one "
+                        "process per GPU) share a run over one folder (default 0/1: all)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     names = _add_field_flags(parser)
     args = parser.parse_args(argv)
@@ -52,9 +54,10 @@ def main(argv=None) -> dict:
     try:
         config = data.quick_config(**overrides) if args.quick else data.DataConfig(**overrides)
         data.check_devices(config)
+        part = data.parse_part(args.part)
     except (ValueError, TypeError) as e:
         parser.error(str(e))
-    summary = data.generate(config, args.out, progress=not args.no_progress, workers=args.workers)
+    summary = data.generate(config, args.out, progress=not args.no_progress, workers=args.workers, part=part)
     print(json.dumps(summary, indent=1, sort_keys=True))
     return summary
 

@@ -28,7 +28,7 @@ from tqdm import tqdm
 
 from dynres_jax import files, resolution, tasks
 from dynres_jax.config import CameraConfig, PileConfig, PushConfig, SceneConfig, SimConfig
-from dynres_jax.data import save_npz
+from dynres_jax.data import parse_part, save_npz, shard_path, shards_todo
 from dynres_jax.mpc import MPCConfig, decide, load_dynamics
 from dynres_jax.objective import distribution_distance, make_goal
 from dynres_jax.planner import PlannerConfig
@@ -142,8 +142,14 @@ def main(argv=None):
     parser.add_argument("--dynamics", default="auto", choices=["auto", "learned", "sweep"])
     parser.add_argument("--workers", type=int, default=None, help="C engine processes (default: every core)")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--part", default="0/1", help="I/K: label only shards I, I + K, ... so K machines share a "
+                        "run over one folder (default 0/1: all)")
     parser.add_argument("--quick", action="store_true", help="tiny sizes for a CPU smoke run")
     args = parser.parse_args(argv)
+    try:
+        part = parse_part(args.part)
+    except ValueError as e:
+        parser.error(str(e))
     if args.quick:
         args.scenes, args.batch, args.evals, args.repeats, args.pieces = 8, 4, 6, 1, 8
         args.samples, args.plan_steps, args.budget = 4, 4, 16
@@ -157,11 +163,11 @@ def main(argv=None):
     os.makedirs(args.out, exist_ok=True)
     files.write_json(os.path.join(args.out, "config.json"), dict(vars(args), dynamics_name=name))
     n_shards = -(-args.scenes // args.batch)
-    todo = [s for s in range(n_shards) if not os.path.exists(os.path.join(args.out, f"shard_{s:05d}.npz"))]
+    todo = shards_todo(args.out, n_shards, part)
     t0 = time.perf_counter()
     with process_pool(args.workers) as processes:
         for s in tqdm(todo, desc="label shards", unit="shard"):
-            save_npz(os.path.join(args.out, f"shard_{s:05d}.npz"), label_shard(args, s, dynamics, processes))
+            save_npz(shard_path(args.out, s), label_shard(args, s, dynamics, processes))
     minutes = (time.perf_counter() - t0) / 60
     labels = np.concatenate([np.load(p)["label"] for p in sorted(glob.glob(os.path.join(args.out, "shard_*.npz")))])
     summary = dict(scenes=len(labels), shards_written=len(todo), minutes=minutes,

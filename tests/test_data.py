@@ -143,6 +143,28 @@ def test_resume_rewrites_missing_shard_identically(generated, tmp_path):
         data.generate(data.replace(QUICK, seed=1), out, progress=False)
 
 
+def test_a_part_makes_only_its_shards_bit_for_bit(generated, tmp_path):
+    """--part 1/2 alone writes shard 1 exactly as the whole run did; a 0/2 writer's half-written file is left alone."""
+    original, _ = generated
+    out = str(tmp_path / "parts")
+    os.makedirs(out)
+    other = os.path.join(out, files.TMP_PREFIX + "shard_00000.npz.a1b2")  # part 0 is writing shard 0 right now
+    with open(other, "wb") as f:
+        f.write(b"part 0 at work")
+    summary = data.generate(QUICK, out, progress=False, part=(1, 2))
+    assert sorted(os.listdir(out)) == sorted(["config.json", "shard_00001.npz", "summary.json",
+                                              os.path.basename(other)])
+    assert summary["shards_written"] == 1 and summary["shards_skipped"] == 0
+    with open(data.shard_path(out, 1), "rb") as a, open(data.shard_path(original, 1), "rb") as b:
+        assert a.read() == b.read()
+
+
+@pytest.mark.parametrize("text", ["2/2", "-1/3", "1", "a/b", "1/0"])
+def test_a_bad_part_is_named(text):
+    with pytest.raises(ValueError, match="part"):
+        data.parse_part(text)
+
+
 def test_multi_device_run_matches_single_device(generated, multi_device):
     proc, out = multi_device
     stdout, stderr = proc.communicate(timeout=300)
