@@ -111,14 +111,13 @@ def _batch(dataset: data.Dataset, rng: np.random.Generator, cfg: TrainConfig, ke
 
 
 def plot_curves(metrics_path: str, out_png: str) -> None:
-    """Training and validation RMSE (mm) against step, from metrics.jsonl."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    """Training and validation RMSE (mm) against step, from metrics.jsonl. Drawn on a bare ``Figure``: no pyplot
+    state, so a notebook's own plotting backend is left as it is."""
+    from matplotlib.figure import Figure
 
     rows = [json.loads(line) for line in open(metrics_path)]
-    fig, ax = plt.subplots(figsize=(6, 3.5))
+    fig = Figure(figsize=(6, 3.5))
+    ax = fig.subplots()
     for name in ("train_rmse_mm", "val_rmse_mm"):
         pts = [(r["step"], r[name]) for r in rows if name in r]
         if pts:
@@ -127,7 +126,6 @@ def plot_curves(metrics_path: str, out_png: str) -> None:
     ax.legend()
     fig.tight_layout()
     fig.savefig(out_png, dpi=120)
-    plt.close(fig)
 
 
 def _trim_metrics(path: str, last_step: int) -> None:
