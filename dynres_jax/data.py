@@ -412,6 +412,9 @@ def load_shards(data_dir: str, split: str = "all", val_every: int = 10) -> Datas
 
     parts = [pad(p) for p in parts]
     cat = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
+    if not len(cat["episode"]):
+        raise ValueError(f"the {split!r} split of {data_dir} is empty: validation takes every {val_every}th episode "
+                         f"(is_validation), so it needs at least {val_every} episodes")
     return Dataset(**cat, camera=camera)
 
 

@@ -302,6 +302,11 @@ def test_load_split_and_samples(generated):
             assert any(np.allclose(track, r, atol=1e-5) for r in rigid)
 
 
+def test_an_empty_split_is_named(generated):
+    with pytest.raises(ValueError, match="'val' split .* is empty"):
+        data.load_shards(generated[0], "val", val_every=100)
+
+
 def test_load_pads_shards_with_fewer_pieces(generated, tmp_path):
     """A shard of 4 almonds beside shards of 6 coffee beans: pieces padded, masked, kinds mapped to KIND_NAMES."""
     out = str(tmp_path / "mixed")
