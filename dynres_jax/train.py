@@ -6,6 +6,10 @@ positions over the next ``horizon`` frames are the targets (``data.make_sample``
 rolls out ``horizon`` pushes from the particles at frame t, and the loss is the mean squared error over valid
 particles and steps (samples whose perception failed weigh 0). Adam on the model's parameters.
 
+The model is the GNN (``dynamics.Dynamics``, ``TrainConfig.model`` a ``DynamicsConfig``) or the CNN baseline
+(``cnn_dynamics.CNNDynamics``, a ``CNNDynamicsConfig``); both have the same call interface, and the checkpoint's card
+says which (``"model_class"``: "gnn" or "cnn"; cards without it are gnn), so ``build_model`` rebuilds either.
+
 Long runs write a checkpoint (model + optimiser, ``ckpt``) every ``ckpt_every`` steps and resume from the newest;
 metrics go to ``metrics.jsonl`` (one JSON object a line; on resume, lines past the checkpoint are dropped) and
 ``curves.png``.
@@ -27,10 +31,12 @@ from flax import nnx
 from tqdm import tqdm
 
 from dynres_jax import ckpt, data, files
+from dynres_jax.cnn_dynamics import CNNDynamics, CNNDynamicsConfig
 from dynres_jax.dynamics import Dynamics, DynamicsConfig, resolution_code, rollout
 
 SCHEDULE = ("steps", "eval_every", "ckpt_every", "val_batches")  # may change when a run resumes; nothing else may
 VAL_STREAM = 2**30  # seeds of validation batches: (seed, VAL_STREAM, b), apart from training steps' (seed, step)
+MODEL_CLASSES = {"gnn": (DynamicsConfig, Dynamics), "cnn": (CNNDynamicsConfig, CNNDynamics)}  # card name -> classes
 
 
 @dataclass(frozen=True)
@@ -39,7 +45,7 @@ class TrainConfig:
     (reference 5); lr: Adam learning rate (reference 1e-3), cosine-decayed to ``lr * lr_final`` at ``steps``;
     n_max: particle slots; omega_min: smallest ω drawn; max_points: perception's point cap (``sample_particles``);
     eval_every / ckpt_every: steps between validation and checkpoints; val_batches: validation batches per
-    evaluation; seed: everything random."""
+    evaluation; seed: everything random; model: the GNN's ``DynamicsConfig`` or the CNN's ``CNNDynamicsConfig``."""
 
     steps: int = 20_000
     batch: int = 32
@@ -53,23 +59,42 @@ class TrainConfig:
     ckpt_every: int = 1000
     val_batches: int = 4
     seed: int = 0
-    model: DynamicsConfig = field(default_factory=DynamicsConfig)
+    model: DynamicsConfig | CNNDynamicsConfig = field(default_factory=DynamicsConfig)
 
     def __post_init__(self):
+        model_class(self.model)  # a ValueError for anything but a model config
         if not 1 <= self.omega_min <= self.n_max:
             raise ValueError(f"omega_min={self.omega_min} must lie in [1, n_max={self.n_max}]")
         if self.steps < 1 or self.batch < 1 or self.horizon < 1:
             raise ValueError("steps, batch and horizon must be positive")
 
 
+def model_class(config) -> str:
+    """The card's name ("gnn" or "cnn") of a model config; a ValueError for anything else."""
+    for name, (config_type, _) in MODEL_CLASSES.items():
+        if isinstance(config, config_type):
+            return name
+    raise ValueError(f"TrainConfig.model must be a DynamicsConfig or a CNNDynamicsConfig, got {type(config).__name__}")
+
+
+def make_model(config: DynamicsConfig | CNNDynamicsConfig, seed: int = 0) -> Dynamics | CNNDynamics:
+    """A fresh model of the class its config names, parameters drawn from ``seed``."""
+    return MODEL_CLASSES[model_class(config)][1](config, rngs=nnx.Rngs(seed))
+
+
 def card(cfg: TrainConfig, **extra) -> dict:
     """The JSON card saved with every checkpoint: enough to rebuild the model and know how it was trained."""
-    return {"dynamics": dataclasses.asdict(cfg.model), "train": dataclasses.asdict(cfg), **extra}
+    return {"model_class": model_class(cfg.model), "dynamics": dataclasses.asdict(cfg.model),
+            "train": dataclasses.asdict(cfg), **extra}
 
 
-def build_model(meta: dict) -> Dynamics:
-    """A fresh model from a checkpoint card (``ckpt.load_module``'s ``build``)."""
-    return Dynamics(DynamicsConfig(**meta["dynamics"]), rngs=nnx.Rngs(0))
+def build_model(meta: dict) -> Dynamics | CNNDynamics:
+    """A fresh model from a checkpoint card (``ckpt.load_module``'s ``build``): ``meta["model_class"]`` ("gnn", the
+    default for cards written before the CNN existed, or "cnn") and its config ``meta["dynamics"]``."""
+    name = meta.get("model_class", "gnn")
+    if name not in MODEL_CLASSES:
+        raise ValueError(f"checkpoint card names model_class {name!r}; known: {', '.join(MODEL_CLASSES)}")
+    return make_model(MODEL_CLASSES[name][0](**meta["dynamics"]))
 
 
 def rollout_loss(graphdef, state, samples: data.Sample):
@@ -146,8 +171,7 @@ def train(cfg: TrainConfig, data_dir: str, out_dir: str, progress: bool = True,
         raise ValueError(f"horizon {cfg.horizon} exceeds the data's {train_set.pushes} pushes per episode")
     os.makedirs(out_dir, exist_ok=True)
     ckpt_dir, metrics_path = os.path.join(out_dir, "ckpt"), os.path.join(out_dir, "metrics.jsonl")
-    model = Dynamics(cfg.model, rngs=nnx.Rngs(cfg.seed))
-    graphdef, params = nnx.split(model)
+    graphdef, params = nnx.split(make_model(cfg.model, cfg.seed))
     optimizer = optax.adam(optax.cosine_decay_schedule(cfg.lr, cfg.steps, alpha=cfg.lr_final))
     opt_state = optimizer.init(params)
     start = 0

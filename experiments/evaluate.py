@@ -7,7 +7,9 @@ Redistribute, many episodes at once.
 Episode i of a task has the same pile and goal for every method (seeded by i). Each method runs all episodes
 together: perception and planning vmapped on the JAX device, pushes in C worker processes (``WorldPool``). Planning
 is under the particle-step budget (``--budget``; 0: none), as in labelling: a higher ω plans with fewer Adam steps.
-"adaptive" picks ω at every step with the regressor g (``--regressor``). Writes per method ``METHOD.json`` (final d
+"adaptive" picks ω at every step with the regressor g (``--regressor``); "cnn" (not in the default list) is the
+paper's CNN-dynamics baseline: the same planner at ω = ``--cnn-omega`` (50) with the CNN checkpoint ``--cnn-ckpt``
+(``experiments.train_dynamics --model cnn``) as its model. Writes per method ``METHOD.json`` (final d
 and inside share per episode, means per step; resumable: finished methods are skipped), ``summary.json`` (means with
 95 % confidence intervals, success rates) and ``score.png`` (share of episodes with final d below τ, against τ) and
 ``steps.png`` (mean d over the MPC steps).
@@ -24,7 +26,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from dynres_jax import files, resolution, tasks
+from dynres_jax import ckpt, files, resolution, tasks
 from dynres_jax.config import CameraConfig, PileConfig, SceneConfig, SimConfig
 from dynres_jax.mpc import load_dynamics, run_episodes
 from dynres_jax.objective import make_goal
@@ -33,6 +35,7 @@ from experiments.label_resolution import add_planner_args, planner_config
 from experiments.task import DEFAULT_CKPT, DEFAULT_REGRESSOR
 
 SUCCESS = 0.9  # Gather succeeds when this share of the pieces is inside the goal
+DEFAULT_CNN_CKPT = os.path.join(os.path.dirname(DEFAULT_CKPT), "cnn_dynamics")
 
 
 def episode_goals(task: str, episodes: int, seed: int, env) -> list[np.ndarray]:
@@ -62,8 +65,16 @@ def summarise(results: dict) -> dict:
         out[method] = dict(episodes=n, final_distance=float(d.mean()),
                            final_distance_ci95=float(1.96 * d.std(ddof=1) / np.sqrt(n)) if n > 1 else 0.0,
                            final_inside=float(inside.mean()), success_share=k / n, success_ci95=wilson(k, n),
-                           mean_omega=float(np.mean(r["omega"])), broken=int(np.sum(r["broken"])))
+                           mean_omega=float(np.mean(r["omega"])), broken=int(np.sum(r["broken"])),
+                           dynamics=r.get("dynamics"))
     return out
+
+
+def label(method: str, r: dict) -> str:
+    """A method's name in the plots: "ω = 50", "adaptive", "CNN, ω = 50"."""
+    if method.isdigit():
+        return f"ω = {method}"
+    return f"CNN, ω = {round(float(np.mean(r['omega'])))}" if method == "cnn" else method
 
 
 def plot(results: dict, task: str, out_dir: str) -> None:
@@ -78,8 +89,8 @@ def plot(results: dict, task: str, out_dir: str) -> None:
     fig, ax = plt.subplots(figsize=(5, 3.5))
     for method, r in results.items():
         d = np.array(r["final_distance"])
-        ax.plot(taus, [(d < t).mean() for t in taus], label=f"ω = {method}" if method != "adaptive" else method,
-                lw=2.5 if method == "adaptive" else 1.2)
+        ax.plot(taus, [(d < t).mean() for t in taus], label=label(method, r), lw=2.5 if method == "adaptive" else 1.2,
+                ls="--" if method == "cnn" else "-")
     ax.set(xlabel="threshold τ on final d (pixels)", ylabel="task score (share of episodes with d < τ)",
            title=f"{task}, {len(d)} episodes")
     ax.legend(fontsize=8)
@@ -88,12 +99,26 @@ def plot(results: dict, task: str, out_dir: str) -> None:
     plt.close(fig)
     fig, ax = plt.subplots(figsize=(5, 3.5))
     for method, r in results.items():
-        ax.plot(np.arange(1, len(r["mean_distance"]) + 1), r["mean_distance"], label=method)
+        ax.plot(np.arange(1, len(r["mean_distance"]) + 1), r["mean_distance"], label=label(method, r))
     ax.set(xlabel="MPC step", ylabel="mean d", title=task)
     ax.legend(fontsize=8)
     fig.tight_layout()
     fig.savefig(os.path.join(out_dir, "steps.png"), dpi=120)
     plt.close(fig)
+
+
+def check_cnn(parser, args) -> None:
+    """Method "cnn" needs a CNN checkpoint at --cnn-ckpt and a valid --cnn-omega; parser.error naming what is wrong."""
+    if not resolution.OMEGA_MIN <= args.cnn_omega <= resolution.OMEGA_MAX:
+        parser.error(f"--cnn-omega must lie in [{resolution.OMEGA_MIN}, {resolution.OMEGA_MAX}], got {args.cnn_omega}")
+    if ckpt.latest_step(args.cnn_ckpt) is None:
+        parser.error(f"method 'cnn' needs a CNN dynamics checkpoint; there is none in {args.cnn_ckpt!r} (train one "
+                     "with python -m experiments.train_dynamics --model cnn, or give --cnn-ckpt)")
+    meta = ckpt.load_meta(args.cnn_ckpt)
+    if meta.get("model_class", "gnn") != "cnn":
+        parser.error(f"--cnn-ckpt {args.cnn_ckpt!r} holds a {meta.get('model_class', 'gnn')} model, not a cnn one")
+    if args.cnn_omega > meta["train"]["n_max"]:
+        parser.error(f"--cnn-omega {args.cnn_omega} exceeds the CNN model's n_max = {meta['train']['n_max']}")
 
 
 def main(argv=None):
@@ -102,13 +127,17 @@ def main(argv=None):
     parser.add_argument("--task", default="gather", choices=tasks.TASKS)
     parser.add_argument("--episodes", type=int, default=64)
     parser.add_argument("--steps", type=int, default=20, help="MPC steps per episode")
-    parser.add_argument("--methods", nargs="+", default=["10", "25", "50", "75", "100", "adaptive"])
+    parser.add_argument("--methods", nargs="+", default=["10", "25", "50", "75", "100", "adaptive"],
+                        help="fixed ω (integers), 'adaptive' (the regressor picks ω) and 'cnn' (the CNN-dynamics "
+                             "baseline at --cnn-omega)")
     add_planner_args(parser)
     parser.add_argument("--kind", default="coffee")
     parser.add_argument("--pieces", type=int, default=100)
     parser.add_argument("--ckpt", default=DEFAULT_CKPT)
     parser.add_argument("--dynamics", default="auto", choices=["auto", "learned", "sweep"])
     parser.add_argument("--regressor", default=DEFAULT_REGRESSOR)
+    parser.add_argument("--cnn-ckpt", default=DEFAULT_CNN_CKPT, help="the CNN-dynamics checkpoint of method 'cnn'")
+    parser.add_argument("--cnn-omega", type=int, default=50, help="ω of method 'cnn'")
     parser.add_argument("--workers", type=int, default=None)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", required=True)
@@ -116,13 +145,17 @@ def main(argv=None):
     args = parser.parse_args(argv)
     args.budget = args.budget or None
     for m in args.methods:
-        if m != "adaptive" and not (m.isdigit() and resolution.OMEGA_MIN <= int(m) <= resolution.OMEGA_MAX):
-            parser.error(f"--methods takes 'adaptive' or integers in [{resolution.OMEGA_MIN}, "
+        fixed = m.isdigit() and resolution.OMEGA_MIN <= int(m) <= resolution.OMEGA_MAX
+        if m not in ("adaptive", "cnn") and not fixed:
+            parser.error(f"--methods takes 'adaptive', 'cnn' or integers in [{resolution.OMEGA_MIN}, "
                          f"{resolution.OMEGA_MAX}], got {m!r}")
+    if "cnn" in args.methods:
+        check_cnn(parser, args)
     camera = CameraConfig(width=64, height=64) if args.quick else CameraConfig()
     sim = SimConfig(scene=SceneConfig(kinds=(args.kind,), pieces=(args.pieces,)), camera=camera,
                     pile=PileConfig(layout="spread" if args.task == "gather" else "blob"))
-    dynamics, n_max, name = load_dynamics(args.dynamics, args.ckpt, sim.scene.plate_half_width)
+    main_model = load_dynamics(args.dynamics, args.ckpt, sim.scene.plate_half_width)  # (dynamics, n_max, name)
+    cnn_model = load_dynamics("learned", args.cnn_ckpt, sim.scene.plate_half_width) if "cnn" in args.methods else None
     os.makedirs(args.out, exist_ok=True)
     results = {}
     with process_pool(args.workers) as processes:
@@ -136,8 +169,9 @@ def main(argv=None):
                 with open(path) as f:
                     results[method] = json.load(f)
                 continue
-            cfg = dataclasses.replace(planner_config(pool.env, args), steps=args.steps, n_max=n_max,
-                                      omega=50 if method == "adaptive" else int(method))
+            dynamics, n_max, name = cnn_model if method == "cnn" else main_model
+            omega = 50 if method == "adaptive" else args.cnn_omega if method == "cnn" else int(method)
+            cfg = dataclasses.replace(planner_config(pool.env, args), steps=args.steps, n_max=n_max, omega=omega)
             chooser = resolution.load_chooser(args.regressor, pool.camera) if method == "adaptive" else None
             print(f"{args.task}: method {method}, {args.episodes} episodes, dynamics {name}")
             starts = pool.reset(jax.vmap(lambda i: jax.random.fold_in(jax.random.PRNGKey(args.seed), i))(
@@ -147,10 +181,10 @@ def main(argv=None):
                      mean_distance=[float(x["distance"].mean()) for x in records],
                      mean_inside=[float(x["success"].mean()) for x in records],
                      omega=np.stack([x["omega"] for x in records]).tolist(), broken=records[-1]["broken"].tolist(),
-                     seconds=float(sum(x["seconds"] for x in records)))
+                     seconds=float(sum(x["seconds"] for x in records)), dynamics=name)
             files.write_json(path, r)
             results[method] = r
-    summary = dict(task=args.task, dynamics=name, device=jax.devices()[0].device_kind, budget=args.budget,
+    summary = dict(task=args.task, dynamics=main_model[2], device=jax.devices()[0].device_kind, budget=args.budget,
                    steps=args.steps, methods=summarise(results))
     files.write_json(os.path.join(args.out, "summary.json"), summary)
     plot(results, args.task, args.out)

@@ -1,7 +1,12 @@
 """Train the dynamics model f(z, u, ω) on generated data; resumes from the newest checkpoint in --out.
 
     python -m experiments.generate_data --out data/piles
-    python -m experiments.train_dynamics --data data/piles --out runs/dynamics
+    python -m experiments.train_dynamics --data data/piles --out runs/dynamics --residual --push-frame
+    python -m experiments.train_dynamics --data data/piles --out runs/cnn_dynamics --model cnn   # the CNN baseline
+
+--model gnn (default): the PropNet GNN (``dynres_jax.dynamics``; --hidden, --push-frame, --residual). --model cnn:
+the CNN baseline (``dynres_jax.cnn_dynamics``; --grid, --channels, and --no-residual to predict whole
+displacements instead of correcting the sweep heuristic).
 """
 
 from __future__ import annotations
@@ -10,7 +15,11 @@ import argparse
 import dataclasses
 import json
 
-from dynres_jax.train import TrainConfig, train
+from dynres_jax.cnn_dynamics import CNNDynamicsConfig
+from dynres_jax.dynamics import DynamicsConfig
+from dynres_jax.train import MODEL_CLASSES, TrainConfig, train
+
+GNN_ONLY, CNN_ONLY = ("hidden", "push_frame"), ("grid", "channels")
 
 
 def main(argv=None):
@@ -25,16 +34,30 @@ def main(argv=None):
             kind = int if f.name == "max_points" else type(value)
             parser.add_argument("--" + f.name.replace("_", "-"), type=kind, default=value,
                                 help=f"TrainConfig.{f.name} (default {value})")
-    parser.add_argument("--hidden", type=int, default=defaults.model.hidden, help="model width")
-    parser.add_argument("--push-frame", action="store_true", help="DynamicsConfig.push_frame (push-frame inputs)")
-    parser.add_argument("--residual", action="store_true", help="DynamicsConfig.residual (correct the sweep)")
+    parser.add_argument("--model", default="gnn", choices=list(MODEL_CLASSES), help="gnn (PropNet) or cnn (baseline)")
+    parser.add_argument("--hidden", type=int, default=None, help=f"gnn: width (default {DynamicsConfig.hidden})")
+    parser.add_argument("--push-frame", action="store_true", default=None,
+                        help="gnn: DynamicsConfig.push_frame (push-frame inputs)")
+    parser.add_argument("--residual", action=argparse.BooleanOptionalAction, default=None,
+                        help="correct the sweep heuristic (default: off for gnn, on for cnn)")
+    parser.add_argument("--grid", type=int, default=None,
+                        help=f"cnn: cells per side (default {CNNDynamicsConfig.grid})")
+    parser.add_argument("--channels", type=int, default=None,
+                        help=f"cnn: convolution width (default {CNNDynamicsConfig.channels})")
     parser.add_argument("--max-minutes", type=float, default=None,
                         help="stop after this much wall time, with a checkpoint (run again to go on)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     args = parser.parse_args(argv)
     fields = {f.name: getattr(args, f.name) for f in dataclasses.fields(TrainConfig) if f.name != "model"}
-    model = dataclasses.replace(defaults.model, hidden=args.hidden, push_frame=args.push_frame, residual=args.residual)
-    cfg = TrainConfig(**fields, model=model)
+    wrong = [name for name in (CNN_ONLY if args.model == "gnn" else GNN_ONLY) if getattr(args, name) is not None]
+    if wrong:
+        parser.error(f"--{', --'.join(n.replace('_', '-') for n in wrong)} do not apply to --model {args.model}")
+    options = {name: getattr(args, name) for name in (*GNN_ONLY, *CNN_ONLY, "residual")
+               if getattr(args, name) is not None}
+    try:
+        cfg = TrainConfig(**fields, model=MODEL_CLASSES[args.model][0](**options))
+    except ValueError as e:
+        parser.error(str(e))
     print(json.dumps(train(cfg, args.data, args.out, progress=not args.quiet, max_minutes=args.max_minutes)))
 
 
