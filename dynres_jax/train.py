@@ -3,8 +3,9 @@
 One step: ``batch`` random windows of ``horizon`` pushes (``data.random_windows``); each gets its own ω uniform in
 ``[omega_min, n_max]`` and a key; perception h turns frame t into ω particles, attached to their pieces, whose
 positions over the next ``horizon`` frames are the targets (``data.make_sample``, inside the jitted step); the model
-rolls out ``horizon`` pushes from the particles at frame t, and the loss is the mean squared error over valid
-particles and steps (samples whose perception failed weigh 0). Adam on the model's parameters.
+rolls out ``horizon`` pushes from the particles at frame t, and the loss (``TrainConfig.loss``) is the mean squared
+error, or the mean Euclidean error, over valid particles and steps (samples whose perception failed weigh 0). Adam on
+the model's parameters.
 
 The model is the GNN (``dynamics.Dynamics``, ``TrainConfig.model`` a ``DynamicsConfig``) or the CNN baseline
 (``cnn_dynamics.CNNDynamics``, a ``CNNDynamicsConfig``); both have the same call interface, and the checkpoint's card
@@ -36,6 +37,8 @@ from dynres_jax.dynamics import Dynamics, DynamicsConfig, resolution_code, rollo
 
 SCHEDULE = ("steps", "eval_every", "ckpt_every", "val_batches")  # may change when a run resumes; nothing else may
 VAL_STREAM = 2**30  # seeds of validation batches: (seed, VAL_STREAM, b), apart from training steps' (seed, step)
+LOSSES = ("mse", "distance")  # TrainConfig.loss: see rollout_errors
+DISTANCE_EPS = 1e-4  # m: smoothing of the "distance" loss at zero error
 MODEL_CLASSES = {"gnn": (DynamicsConfig, Dynamics), "cnn": (CNNDynamicsConfig, CNNDynamics)}  # card name -> classes
 
 
@@ -45,7 +48,9 @@ class TrainConfig:
     (reference 5); lr: Adam learning rate (reference 1e-3), cosine-decayed to ``lr * lr_final`` at ``steps``;
     n_max: particle slots; omega_min: smallest ω drawn; max_points: perception's point cap (``sample_particles``);
     eval_every / ckpt_every: steps between validation and checkpoints; val_batches: validation batches per
-    evaluation; seed: everything random; model: the GNN's ``DynamicsConfig`` or the CNN's ``CNNDynamicsConfig``."""
+    evaluation; seed: everything random; loss: "mse" (the reference's mean squared error) or "distance" (the mean
+    Euclidean error that ``eval_dynamics`` reports; less pulled by the few pieces that end far from any guess);
+    model: the GNN's ``DynamicsConfig`` or the CNN's ``CNNDynamicsConfig``."""
 
     steps: int = 20_000
     batch: int = 32
@@ -59,10 +64,13 @@ class TrainConfig:
     ckpt_every: int = 1000
     val_batches: int = 4
     seed: int = 0
+    loss: str = "mse"
     model: DynamicsConfig | CNNDynamicsConfig = field(default_factory=DynamicsConfig)
 
     def __post_init__(self):
         model_class(self.model)  # a ValueError for anything but a model config
+        if self.loss not in LOSSES:
+            raise ValueError(f"loss must be one of {', '.join(LOSSES)}, got {self.loss!r}")
         if not 1 <= self.omega_min <= self.n_max:
             raise ValueError(f"omega_min={self.omega_min} must lie in [1, n_max={self.n_max}]")
         if self.steps < 1 or self.batch < 1 or self.horizon < 1:
@@ -97,34 +105,44 @@ def build_model(meta: dict) -> Dynamics | CNNDynamics:
     return make_model(MODEL_CLASSES[name][0](**meta["dynamics"]))
 
 
-def rollout_loss(graphdef, state, samples: data.Sample):
-    """Mean squared error (m²) over valid particles and steps of a batch of samples, and the per-sample weight."""
+def rollout_errors(graphdef, state, samples: data.Sample) -> dict:
+    """Errors of the model's rollouts over the valid particles and steps of a batch of samples: ``"mse"``, the mean
+    squared position error (m²), and ``"distance"``, the mean Euclidean position error (m; each distance smoothed as
+    sqrt(e² + DISTANCE_EPS²) so its gradient is finite at zero)."""
 
     def one(sample):
         pred = rollout(graphdef, state, sample.positions[0], sample.mask, sample.action,
                        resolution_code(sample.radius))
-        err = jnp.sum(jnp.square(pred - sample.positions[1:]), -1)  # [horizon, n_max]
-        w = sample.mask & (sample.error == 0)
-        return jnp.sum(err * w[None]), jnp.sum(w) * err.shape[0]
+        sq = jnp.sum(jnp.square(pred - sample.positions[1:]), -1)  # [horizon, n_max]
+        w = (sample.mask & (sample.error == 0))[None]
+        return jnp.sum(sq * w), jnp.sum(jnp.sqrt(sq + DISTANCE_EPS**2) * w), jnp.sum(w) * sq.shape[0]
 
-    total, count = jax.vmap(one)(samples)
-    return jnp.sum(total) / jnp.maximum(jnp.sum(count), 1)
+    sq, dist, count = jax.vmap(one)(samples)
+    count = jnp.maximum(jnp.sum(count), 1)
+    return {"mse": jnp.sum(sq) / count, "distance": jnp.sum(dist) / count}
 
 
 def make_step(graphdef, optimizer: optax.GradientTransformation, camera, cfg: TrainConfig):
-    """The jitted training step: (params, opt_state, windows, omegas, keys) -> (params, opt_state, loss)."""
+    """The jitted training step (params, opt_state, windows, omegas, keys) -> (params, opt_state, errors) and
+    evaluation (params, windows, omegas, keys) -> errors; errors as ``rollout_errors``; the loss is
+    ``errors[cfg.loss]``."""
     sample = jax.vmap(lambda w, o, k: data.make_sample(w, o, k, camera, cfg.n_max, max_points=cfg.max_points))
 
     @jax.jit
     def step(params, opt_state, windows, omegas, keys):
         samples = sample(windows, omegas, keys)
-        loss, grads = jax.value_and_grad(lambda p: rollout_loss(graphdef, p, samples))(params)
+
+        def loss(p):
+            errors = rollout_errors(graphdef, p, samples)
+            return errors[cfg.loss], errors
+
+        (_, errors), grads = jax.value_and_grad(loss, has_aux=True)(params)
         updates, opt_state = optimizer.update(grads, opt_state, params)
-        return optax.apply_updates(params, updates), opt_state, loss
+        return optax.apply_updates(params, updates), opt_state, errors
 
     @jax.jit
     def evaluate(params, windows, omegas, keys):
-        return rollout_loss(graphdef, params, sample(windows, omegas, keys))
+        return rollout_errors(graphdef, params, sample(windows, omegas, keys))
 
     return step, evaluate
 
@@ -178,6 +196,7 @@ def train(cfg: TrainConfig, data_dir: str, out_dir: str, progress: bool = True,
     if ckpt.latest_step(ckpt_dir) is not None:
         restored, meta = ckpt.restore(ckpt_dir, {"module": params, "opt": opt_state})
         before, now = meta["train"], json.loads(json.dumps(dataclasses.asdict(cfg)))
+        before = {**json.loads(json.dumps(dataclasses.asdict(TrainConfig()))), **before}  # fields added since: defaults
         changed = sorted(k for k in now if k not in SCHEDULE and before.get(k) != now[k])
         if changed:
             raise ValueError(f"{ckpt_dir} was trained with another TrainConfig ({', '.join(changed)} differ); "
@@ -191,16 +210,17 @@ def train(cfg: TrainConfig, data_dir: str, out_dir: str, progress: bool = True,
     t0, samples = time.perf_counter(), 0
     for i in bar:
         rng = np.random.default_rng([cfg.seed, i])  # a step's batch depends on (seed, step) only: resumable
-        params, opt_state, loss = step_fn(params, opt_state, *_batch(train_set, rng, cfg, jax.random.fold_in(key, i)))
+        params, opt_state, errors = step_fn(params, opt_state, *_batch(train_set, rng, cfg, jax.random.fold_in(key, i)))
         samples += cfg.batch
         done = i + 1
         out_of_time = max_minutes is not None and time.perf_counter() - t0 > 60 * max_minutes
         if done % cfg.eval_every == 0 or done == cfg.steps or out_of_time:
-            val = [float(eval_fn(params, *_batch(val_set, np.random.default_rng([cfg.seed, VAL_STREAM, b]), cfg,
-                                                 jax.random.fold_in(key, VAL_STREAM + b))))
+            val = [eval_fn(params, *_batch(val_set, np.random.default_rng([cfg.seed, VAL_STREAM, b]), cfg,
+                                           jax.random.fold_in(key, VAL_STREAM + b)))
                    for b in range(cfg.val_batches)]
-            last = dict(step=done, horizon=cfg.horizon, train_rmse_mm=float(np.sqrt(loss)) * 1000,
-                        val_rmse_mm=float(np.sqrt(np.mean(val))) * 1000,
+            val = {name: float(np.mean([v[name] for v in val])) for name in LOSSES}
+            last = dict(step=done, horizon=cfg.horizon, train_rmse_mm=float(np.sqrt(errors["mse"])) * 1000,
+                        val_rmse_mm=float(np.sqrt(val["mse"])) * 1000, val_distance_mm=val["distance"] * 1000,
                         samples_per_s=samples / (time.perf_counter() - t0))
             with open(metrics_path, "a") as f:
                 f.write(json.dumps(last) + "\n")

@@ -4,9 +4,10 @@
     python -m experiments.train_dynamics --data data/piles --out runs/dynamics --residual --push-frame
     python -m experiments.train_dynamics --data data/piles --out runs/cnn_dynamics --model cnn   # the CNN baseline
 
---model gnn (default): the PropNet GNN (``dynres_jax.dynamics``; --hidden, --push-frame, --residual). --model cnn:
-the CNN baseline (``dynres_jax.cnn_dynamics``; --grid, --channels, and --no-residual to predict whole
-displacements instead of correcting the sweep heuristic).
+--model gnn (default): the PropNet GNN (``dynres_jax.dynamics``; --hidden, --propagation-steps, --push-frame,
+--residual). --model cnn: the CNN baseline (``dynres_jax.cnn_dynamics``; --grid, --channels, and --no-residual to
+predict whole displacements instead of correcting the sweep heuristic). --loss mse (default) or distance: the
+training loss (``TrainConfig.loss``).
 """
 
 from __future__ import annotations
@@ -19,7 +20,7 @@ from dynres_jax.cnn_dynamics import CNNDynamicsConfig
 from dynres_jax.dynamics import DynamicsConfig
 from dynres_jax.train import MODEL_CLASSES, TrainConfig, train
 
-GNN_ONLY, CNN_ONLY = ("hidden", "push_frame"), ("grid", "channels")
+GNN_ONLY, CNN_ONLY = ("hidden", "propagation_steps", "push_frame"), ("grid", "channels")
 
 
 def main(argv=None):
@@ -36,6 +37,8 @@ def main(argv=None):
                                 help=f"TrainConfig.{f.name} (default {value})")
     parser.add_argument("--model", default="gnn", choices=list(MODEL_CLASSES), help="gnn (PropNet) or cnn (baseline)")
     parser.add_argument("--hidden", type=int, default=None, help=f"gnn: width (default {DynamicsConfig.hidden})")
+    parser.add_argument("--propagation-steps", type=int, default=None,
+                        help=f"gnn: message-passing steps (DynamicsConfig.steps, default {DynamicsConfig.steps})")
     parser.add_argument("--push-frame", action="store_true", default=None,
                         help="gnn: DynamicsConfig.push_frame (push-frame inputs)")
     parser.add_argument("--residual", action=argparse.BooleanOptionalAction, default=None,
@@ -54,6 +57,8 @@ def main(argv=None):
         parser.error(f"--{', --'.join(n.replace('_', '-') for n in wrong)} do not apply to --model {args.model}")
     options = {name: getattr(args, name) for name in (*GNN_ONLY, *CNN_ONLY, "residual")
                if getattr(args, name) is not None}
+    if "propagation_steps" in options:
+        options["steps"] = options.pop("propagation_steps")
     try:
         cfg = TrainConfig(**fields, model=MODEL_CLASSES[args.model][0](**options))
     except ValueError as e:

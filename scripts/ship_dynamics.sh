@@ -1,31 +1,60 @@
 #!/usr/bin/env bash
-# The shipped dynamics model, end to end on one GPU machine: data (C MuJoCo on every host core, frames rendered on
-# the GPU), training (a time-boxed run whose step count is set from the measured speed), held-out evaluation.
-#   OUT=runs/ship bash scripts/ship_dynamics.sh        # results in $OUT/dynamics, data in $DATA (default /tmp/piles)
-# Env: EPISODES (2000), TRAIN_MINUTES (4), BATCH (64), PROBE_STEPS (300), MODEL_FLAGS (e.g. "--residual --push-frame").
+# Dynamics models end to end on one GPU machine: one data set (C MuJoCo on every host core, frames rendered on the
+# GPU), then every variant trained side by side on the GPU (a time-boxed run whose step count is set from the speed
+# it measures), then its held-out evaluation. Each variant's run folder is packed as $OUT/NAME.tar.gz (its log too).
+#   OUT=runs/ship bash scripts/ship_dynamics.sh                 # one variant, "dynamics", with MODEL_FLAGS
+#   OUT=runs/ship VARIANTS="gnn:--residual --push-frame;cnn:--model cnn" bash scripts/ship_dynamics.sh
+# Env: EPISODES (2000), TRAIN_MINUTES (4), BATCH (64), PROBE_STEPS (300), DATA (/tmp/piles), VARIANTS
+# ("NAME:flags;NAME:flags", default "dynamics:$MODEL_FLAGS"), RUNS (run folders, default $OUT):
+# $RUNS/NAME/{ckpt,metrics.jsonl,curves.png,eval/,log.txt,timing.json}.
 set -euo pipefail
-OUT=${OUT:-runs/ship}; DATA=${DATA:-/tmp/piles}
+OUT=${OUT:-runs/ship}; DATA=${DATA:-/tmp/piles}; RUNS=${RUNS:-$OUT}
 EPISODES=${EPISODES:-2000}; TRAIN_MINUTES=${TRAIN_MINUTES:-4}; BATCH=${BATCH:-64}; PROBE=${PROBE_STEPS:-300}
-RUN=$OUT/dynamics
-mkdir -p "$RUN"
+VARIANTS=${VARIANTS:-"dynamics:${MODEL_FLAGS:-}"}
+mkdir -p "$OUT"
 t0=$(date +%s)
 python -m experiments.generate_data --out "$DATA" --backend mujoco --episodes "$EPISODES" --pushes 10 --worlds 64 \
-  --no-progress > "$RUN/data_summary.json"
-cat "$RUN/data_summary.json"
+  --no-progress > "$OUT/data_summary.json"
+cat "$OUT/data_summary.json"
 t1=$(date +%s)
-# PROBE steps to measure the speed (the cosine schedule's length may change on resume), then the rest of the budget.
-python -m experiments.train_dynamics --data "$DATA" --out "$RUN" --batch "$BATCH" ${MODEL_FLAGS:-} --steps "$PROBE" --eval-every "$PROBE" --quiet
-steps=$(python - "$RUN/metrics.jsonl" "$TRAIN_MINUTES" "$BATCH" "$PROBE" <<'PY'
+echo "{\"data_s\": $((t1 - t0))}" > "$OUT/timing.json"
+
+variant() {  # NAME FLAGS: probe the speed, train to the time box, evaluate, pack
+  local name=$1 flags=$2 run=$RUNS/$1 steps t2 t3
+  # PROBE steps to measure the speed (the cosine schedule's length may change on resume), then the rest of the budget.
+  # shellcheck disable=SC2086
+  python -m experiments.train_dynamics --data "$DATA" --out "$run" --batch "$BATCH" $flags --steps "$PROBE" \
+    --eval-every "$PROBE" --quiet
+  steps=$(python - "$run/metrics.jsonl" "$TRAIN_MINUTES" "$BATCH" "$PROBE" <<'PY'
 import json, sys
 rate = json.loads(open(sys.argv[1]).readlines()[-1])["samples_per_s"]
 print(int(rate * 60 * float(sys.argv[2]) / int(sys.argv[3])) // 500 * 500 + int(sys.argv[4]))
 PY
 )
-echo "training to $steps steps"
-python -m experiments.train_dynamics --data "$DATA" --out "$RUN" --batch "$BATCH" ${MODEL_FLAGS:-} --steps "$steps" \
-  --max-minutes "$TRAIN_MINUTES" --quiet
-t2=$(date +%s)
-python -m experiments.eval_dynamics --ckpt "$RUN/ckpt" --data "$DATA" --out "$RUN/eval"
-t3=$(date +%s)
-echo "{\"data_s\": $((t1 - t0)), \"train_s\": $((t2 - t1)), \"eval_s\": $((t3 - t2))}" > "$RUN/timing.json"
-cat "$RUN/timing.json"
+  echo "$name: training to $steps steps"
+  t2=$(date +%s)
+  # shellcheck disable=SC2086
+  python -m experiments.train_dynamics --data "$DATA" --out "$run" --batch "$BATCH" $flags --steps "$steps" \
+    --max-minutes "$TRAIN_MINUTES" --quiet
+  t3=$(date +%s)
+  python -m experiments.eval_dynamics --ckpt "$run/ckpt" --data "$DATA" --out "$run/eval"
+  echo "{\"name\": \"$name\", \"flags\": \"$flags\", \"train_s\": $((t3 - t2)), \"eval_s\": $(($(date +%s) - t3))}" \
+    > "$run/timing.json"
+}
+
+IFS=';' read -ra specs <<< "$VARIANTS"
+# Side by side on one GPU: each process may take an equal share of its memory.
+XLA_PYTHON_CLIENT_MEM_FRACTION=$(python -c "print(round(0.9 / ${#specs[@]}, 3))")
+export XLA_PYTHON_CLIENT_MEM_FRACTION
+pids=()
+for spec in "${specs[@]}"; do
+  name=${spec%%:*}
+  mkdir -p "$RUNS/$name"
+  (set +e; (set -e; variant "$name" "${spec#*:}" > "$RUNS/$name/log.txt" 2>&1); rc=$?
+   tar -czf "$OUT/$name.tar.gz" -C "$RUNS" "$name"; exit $rc) &
+  pids+=($!)
+done
+status=0
+for pid in "${pids[@]}"; do wait "$pid" || status=1; done
+for spec in "${specs[@]}"; do echo "== ${spec%%:*}"; tail -8 "$RUNS/${spec%%:*}/log.txt"; done
+exit $status

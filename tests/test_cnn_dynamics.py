@@ -190,8 +190,8 @@ def test_training_reduces_the_loss_and_the_checkpoint_restores(cnn_run, shards):
     key = jax.random.PRNGKey(CNN_CFG.seed)
     batches = [_batch(train_set, np.random.default_rng([CNN_CFG.seed, i]), CNN_CFG, jax.random.fold_in(key, i))
                for i in range(CNN_CFG.steps)]
-    before = np.mean([float(loss(initial, *b)) for b in batches])
-    after = np.mean([float(loss(nnx.split(model)[1], *b)) for b in batches])
+    before = np.mean([float(loss(initial, *b)["mse"]) for b in batches])
+    after = np.mean([float(loss(nnx.split(model)[1], *b)["mse"]) for b in batches])
     assert after < before, (before, after)
     _, n_max, name = load_dynamics("learned", f"{out}/ckpt", SMALL.plate_half_width)  # the planner's loader
     assert n_max == CNN_CFG.n_max and f"step {CNN_CFG.steps}" in name

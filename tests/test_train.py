@@ -9,8 +9,8 @@ import pytest
 from flax import nnx
 
 from dynres_jax import ckpt, data
-from dynres_jax.dynamics import DynamicsConfig
-from dynres_jax.train import TrainConfig, build_model, train
+from dynres_jax.dynamics import Dynamics, DynamicsConfig, resolution_code
+from dynres_jax.train import DISTANCE_EPS, TrainConfig, _batch, build_model, make_step, rollout_errors, train
 from experiments import eval_dynamics
 
 CFG = TrainConfig(steps=4, batch=4, horizon=2, n_max=8, max_points=256, eval_every=2, ckpt_every=2, val_batches=1,
@@ -71,3 +71,31 @@ def test_eval_reports_every_method_and_resolution(run, shards, tmp_path):
 def test_bad_config_names_the_problem():
     with pytest.raises(ValueError, match="omega_min"):
         TrainConfig(omega_min=0)
+    with pytest.raises(ValueError, match="loss must be one of"):
+        TrainConfig(loss="huber")
+
+
+def test_rollout_errors_equal_a_loop_over_samples_and_particles(shards):
+    """Both losses against a NumPy loop over the model's own rollouts: valid particles of samples whose perception
+    worked, every step."""
+    train_set = data.load_shards(shards, "train")
+    cfg = dataclasses.replace(CFG, batch=3)
+    graphdef, params = nnx.split(Dynamics(cfg.model, rngs=nnx.Rngs(3)))
+    windows, omegas, keys = _batch(train_set, np.random.default_rng(5), cfg, jax.random.PRNGKey(5))
+    samples = jax.vmap(lambda w, o, k: data.make_sample(w, o, k, train_set.camera, cfg.n_max,
+                                                        max_points=cfg.max_points))(windows, omegas, keys)
+    got = rollout_errors(graphdef, params, samples)
+    model, sq, dist = nnx.merge(graphdef, params), [], []
+    for b in range(cfg.batch):
+        s = jax.tree.map(lambda x, b=b: np.asarray(x[b]), samples)
+        pred = np.asarray(model.rollout(s.positions[0], s.mask, s.action, resolution_code(s.radius)))
+        for t in range(cfg.horizon):
+            for i in np.flatnonzero(s.mask & (s.error == 0)):
+                e2 = float(np.sum((pred[t, i].astype(np.float64) - s.positions[t + 1, i]) ** 2))
+                sq.append(e2)
+                dist.append(np.sqrt(e2 + DISTANCE_EPS**2))
+    assert sq, "the batch must hold valid particles"
+    np.testing.assert_allclose(float(got["mse"]), np.mean(sq), rtol=1e-4)
+    np.testing.assert_allclose(float(got["distance"]), np.mean(dist), rtol=1e-4)
+    _, evaluate = make_step(graphdef, None, train_set.camera, cfg)  # the jitted evaluation gives the same errors
+    np.testing.assert_allclose(float(evaluate(params, windows, omegas, keys)["distance"]), np.mean(dist), rtol=1e-4)
