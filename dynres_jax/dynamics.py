@@ -42,6 +42,16 @@ Evaluation: the propagators are linear layers on concatenated inputs, as in Prop
 kernels: the terms that do not change across steps (edge code, node code, resolution code, bias) are computed once,
 and the receiver and sender terms per node before gathering, so propagation does no per-edge matrix product.
 
+Mixed precision (``edge_dtype``, float32 by default): the per-edge tensors, N·k rows against N for everything else,
+carry almost all of the memory traffic and matrix products, so they may be bfloat16. With ``edge_dtype=bfloat16``
+the edge encoder (its inputs and parameters cast), the edge propagator's per-edge constant and the per-edge effects
+are bfloat16; the sum over incoming edges accumulates in float32, and the sweep heuristic, the edges, the relative
+positions (until the encoder's input), every per-node tensor, the predictor and the output stay float32, as do the
+gradients the gathers send back to the nodes. On the shipped checkpoint (random pushes through random piles of 20
+to 100 particles) predictions move by about 0.03 mm on average and at most about 0.5 mm, and gradients w.r.t. the
+push by about 0.5 % (median). bfloat16 nodes as well cost 0.15 mm on average and up to 1 cm (node inputs of up to
+about 8 length scales keep only 8 significant bits) for tensors a tenth the size, so the nodes stay float32.
+
 For hot loops use the pure functions ``predict`` and ``rollout`` of ``nnx.split(model)``; both jit and vmap over
 scenes, actions and resolution codes.
 """
@@ -99,6 +109,14 @@ def _push_frame(action):
     return frame, start, length
 
 
+def _cast(module: nnx.Module, dtype) -> nnx.Module:
+    """module with its parameters cast to dtype (a copy; float32: the module itself)."""
+    if jnp.dtype(dtype) == jnp.float32:
+        return module
+    graphdef, state = nnx.split(module)
+    return nnx.merge(graphdef, jax.tree.map(lambda x: x.astype(dtype), state))
+
+
 def _mlp(sizes, rngs, *, final_relu):
     """Linear layers of the given sizes with ReLU between them (and after the last when final_relu)."""
     layers = []
@@ -126,10 +144,11 @@ class Dynamics(nnx.Module):
             last.kernel[...] = jnp.zeros_like(last.kernel[...])
             last.bias[...] = jnp.zeros_like(last.bias[...])
 
-    def __call__(self, positions, mask, action, code):
-        """positions [N, 3] m, mask [N] bool, action [4] m, code [] (``resolution_code``) -> next positions [N, 3] m.
-        Masked rows are returned unchanged."""
-        cfg, h = self.config, self.config.hidden
+    def __call__(self, positions, mask, action, code, *, edge_dtype=jnp.float32):
+        """positions [N, 3] m, mask [N] bool, action [4] m, code [] (``resolution_code``) -> next positions [N, 3] m
+        (float32). Masked rows are returned unchanged. edge_dtype: float32 or bfloat16, the per-edge network's
+        dtype (module docstring, "Mixed precision")."""
+        cfg, h, dt = self.config, self.config.hidden, jnp.dtype(edge_dtype)
         positions = jnp.asarray(positions, jnp.float32)
         mask = jnp.asarray(mask, bool)
         code = jnp.asarray(code, jnp.float32)
@@ -151,19 +170,20 @@ class Dynamics(nnx.Module):
         else:
             node_in = [guess / cfg.length_scale]
         node_code = self.node_encoder(jnp.concatenate(node_in + [attr, jnp.broadcast_to(code, (n, 1))], axis=-1))
-        edge_code = self.edge_encoder(jnp.concatenate(
+        edge_code = _cast(self.edge_encoder, dt)(jnp.concatenate(
             [jnp.broadcast_to(attr[:, None], rel.shape[:2] + (1,)), attr[neighbours], rel,
-             jnp.broadcast_to(code, rel.shape[:2] + (1,))], axis=-1))  # [N, k, H]
+             jnp.broadcast_to(code, rel.shape[:2] + (1,))], axis=-1).astype(dt))  # [N, k, H] dt
 
         w_e, b_e = self.edge_propagator.kernel[...], self.edge_propagator.bias[...]
         w_n, b_n = self.node_propagator.kernel[...], self.node_propagator.bias[...]
-        edge_const = edge_code @ w_e[:h] + code * w_e[3 * h] + b_e  # [N, k, H]
+        edge_const = edge_code @ w_e[:h].astype(dt) + (code * w_e[3 * h]).astype(dt) + b_e.astype(dt)  # [N, k, H] dt
         node_const = node_code @ w_n[:h] + code * w_n[2 * h] + b_n  # [N, H]
         effect = node_code
         for _ in range(cfg.steps):
             receiver, sender = effect @ w_e[h:2 * h], effect @ w_e[2 * h:3 * h]  # [N, H] each
-            edge_effect = nnx.relu(edge_const + receiver[:, None, :] + sender[neighbours])  # [N, k, H]
-            incoming = jnp.sum(jnp.where(edge_mask[..., None], edge_effect, 0.0), axis=1)  # [N, H]
+            # Cast after the broadcast and the gather, so their gradients add up in float32.
+            edge_effect = nnx.relu(edge_const + receiver[:, None, :].astype(dt) + sender[neighbours].astype(dt))
+            incoming = jnp.sum(jnp.where(edge_mask[..., None], edge_effect, 0.0), axis=1, dtype=jnp.float32)  # [N, H]
             effect = nnx.relu(node_const + incoming @ w_n[h:2 * h] + effect)
 
         displacement = self.predictor(effect) * cfg.length_scale
@@ -173,22 +193,26 @@ class Dynamics(nnx.Module):
             displacement = displacement + guess  # the network predicts the correction to the sweep heuristic
         return jnp.where(mask[:, None], positions + displacement, positions)
 
-    def rollout(self, positions, mask, actions, code):
+    def rollout(self, positions, mask, actions, code, *, edge_dtype=jnp.float32):
         """positions [N, 3] m, mask [N], actions [T, 4] m, code [] -> positions after each action [T, N, 3] m."""
-        return rollout(*nnx.split(self), positions, mask, actions, code)
+        return rollout(*nnx.split(self), positions, mask, actions, code, edge_dtype=edge_dtype)
 
 
-def predict(graphdef, state, positions, mask, action, code):
-    """Pure f of ``nnx.split(model)``: positions [N, 3] m, mask [N], action [4] m, code [] -> next positions [N, 3]."""
-    return nnx.merge(graphdef, state)(positions, mask, action, code)
+def predict(graphdef, state, positions, mask, action, code, *, edge_dtype=jnp.float32):
+    """Pure f of ``nnx.split(model)``: positions [N, 3] m, mask [N], action [4] m, code [] -> next positions [N, 3].
+    edge_dtype: ``Dynamics.__call__``'s; only the GNN takes it, so float32 calls any model of that signature."""
+    model = nnx.merge(graphdef, state)
+    if jnp.dtype(edge_dtype) == jnp.float32:
+        return model(positions, mask, action, code)
+    return model(positions, mask, action, code, edge_dtype=edge_dtype)
 
 
-def rollout(graphdef, state, positions, mask, actions, code):
+def rollout(graphdef, state, positions, mask, actions, code, *, edge_dtype=jnp.float32):
     """Pure multi-step f (``lax.scan``): positions [N, 3] m, mask [N], actions [T, 4] m, code [] -> [T, N, 3] m,
-    the positions after each action (the initial positions not included)."""
+    the positions after each action (the initial positions not included). edge_dtype: as in ``predict``."""
 
     def step(current, action):
-        nxt = predict(graphdef, state, current, mask, action, code)
+        nxt = predict(graphdef, state, current, mask, action, code, edge_dtype=edge_dtype)
         return nxt, nxt
 
     return jax.lax.scan(step, jnp.asarray(positions, jnp.float32), actions)[1]

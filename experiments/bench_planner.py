@@ -19,9 +19,13 @@ with respect to its push, and the pushes take one Adam step and are clamped to t
   the fixed cost of a call (sampling the pushes, the final evaluation, dispatch). The full plan's wall time is
   reported as is; compile time (first call minus the median) separately for both step counts.
 
-Both sides use float32 with each library's default matmul precision. Speed-up = torch ms per step / JAX ms per
-step. ``run(quick=True)`` uses tiny sizes so it finishes in seconds on a CPU; without torch the reference is skipped
-(noted in the result).
+Both sides use float32 with each library's default matmul precision. JAX is timed a second time with the model's
+per-edge network in bfloat16 (``mpc.learned_dynamics(model, "bfloat16")``, the ``dynamics`` module's "Mixed
+precision"), the ``jax_bf16`` section; it also says how far that is from float32 on the same inputs: predicted
+positions (mm) and the best cost of a full plan (pixels), measured on the shipped checkpoint when there is one (a
+trained model's numbers; the timed random weights blow a pile metres apart). Speed-up = torch ms per step / JAX ms
+per step (``speedup``, and ``speedup_bf16`` for the bfloat16 section). ``run(quick=True)`` uses tiny sizes so it
+finishes in seconds on a CPU; without torch the reference is skipped (noted in the result).
 """
 
 from __future__ import annotations
@@ -186,27 +190,49 @@ def _torch_reference(positions: np.ndarray, samples: int, repeats: int) -> dict:
 # JAX
 # ---------------------------------------------------------------------------------------------------------------
 
-def _jax_planner(positions: np.ndarray, samples: int, steps: int, repeats: int) -> dict:
-    """Time ``planner.plan`` at ``steps`` and at a tenth of it; ms per step from the difference."""
+def _quality_model(timed_model):
+    """(model, its name) that the bfloat16 agreement is measured on: the shipped checkpoint when there is one (the
+    random weights of the timed model blow a pile metres apart, so their errors say little), else the timed model."""
+    from dynres_jax import ckpt
+    from dynres_jax.train import build_model
+    from experiments.task import DEFAULT_CKPT
+
+    if ckpt.latest_step(DEFAULT_CKPT) is None:
+        return timed_model, "random weights (the timed model)"
+    model, meta, _ = ckpt.load_module(DEFAULT_CKPT, build_model)
+    return model, f"shipped checkpoint (step {meta.get('step')})"
+
+
+def _jax_planner(positions: np.ndarray, samples: int, steps: int, repeats: int) -> tuple[dict, dict]:
+    """Time ``planner.plan`` at ``steps`` and at a tenth of it, ms per step from the difference, with the model's
+    per-edge network in float32 and in bfloat16 (``mpc.learned_dynamics``'s edge_dtype) -> (float32 section,
+    bfloat16 section). The bfloat16 section also holds its agreement with float32 on the same piles, goal, key and
+    steps (on ``_quality_model``): prediction_mean_mm and prediction_max_mm, |bfloat16 - float32| of the predicted
+    positions at the float32 plan's final pushes (every push on every re-sampling); float32_best_cost, the float32
+    plan's best cost; best_cost_in_float32, the bfloat16 plan's best push scored by the float32 model (the honest
+    peer of float32_best_cost); best_cost, as the bfloat16 model scores it; initial_cost, the piles unpushed (all
+    costs in pixels, the mean over the re-samplings)."""
     import jax
+    import jax.numpy as jnp
     from flax import nnx
 
     from dynres_jax.dynamics import Dynamics, DynamicsConfig, count_params
-    from dynres_jax.mpc import goal_cost, learned_dynamics
+    from dynres_jax.mpc import EDGE_DTYPES, goal_cost, learned_dynamics
     from dynres_jax.objective import disc_goal, make_goal
     from dynres_jax.planner import PlannerConfig, plan
     from dynres_jax.sim.camera import Camera, CameraConfig
 
     model = Dynamics(DynamicsConfig(), rngs=nnx.Rngs(0))
     camera = Camera.top_down(CameraConfig())
-    dynamics = learned_dynamics(model)(PARTICLE_RADIUS)
     cost = goal_cost(make_goal(disc_goal(camera, GOAL_XY, GOAL_RADIUS), camera), camera)
     resamples = positions.shape[0]
     config = PlannerConfig(samples=samples, resamples=resamples)
     pile, mask = jax.device_put(positions), jax.device_put(np.ones(positions.shape[:2], bool))
     key = jax.random.PRNGKey(0)
+    device = jax.devices()[0]
+    short = max(1, steps // 10)
 
-    def timed(n):
+    def timed(dynamics, n):
         """(compile s, median s) of a plan of n steps."""
         t0 = time.perf_counter()
         jax.block_until_ready(plan(dynamics, cost, pile, mask, key, config, steps=n))
@@ -215,14 +241,36 @@ def _jax_planner(positions: np.ndarray, samples: int, steps: int, repeats: int) 
                          repeats, lambda: None)
         return first - wall, wall
 
-    short = max(1, steps // 10)
-    compile_short, wall_short = timed(short)
-    compile_full, wall_full = timed(steps)
-    device = jax.devices()[0]
-    return dict(device=f"{device.platform}: {device.device_kind}", jax_version=jax.__version__,
-                params=count_params(model), ms_per_step=1e3 * (wall_full - wall_short) / (steps - short),
-                short_steps=short, short_plan_s=wall_short, steps=steps, plan_s=wall_full,
-                plan_ms_per_step=1e3 * wall_full / steps, compile_s=compile_full, compile_short_s=compile_short)
+    def section(edge_dtype):
+        dynamics = learned_dynamics(model, edge_dtype)(PARTICLE_RADIUS)
+        compile_short, wall_short = timed(dynamics, short)
+        compile_full, wall_full = timed(dynamics, steps)
+        return dict(device=f"{device.platform}: {device.device_kind}", jax_version=jax.__version__,
+                    edge_dtype=edge_dtype, params=count_params(model),
+                    ms_per_step=1e3 * (wall_full - wall_short) / (steps - short), short_steps=short,
+                    short_plan_s=wall_short, steps=steps, plan_s=wall_full, plan_ms_per_step=1e3 * wall_full / steps,
+                    compile_s=compile_full, compile_short_s=compile_short)
+
+    f32, bf16 = (section(edge_dtype) for edge_dtype in EDGE_DTYPES)
+
+    quality_model, quality_name = _quality_model(model)
+    dynamics = {d: learned_dynamics(quality_model, d)(PARTICLE_RADIUS) for d in EDGE_DTYPES}
+    plans = {d: plan(dynamics[d], cost, pile, mask, key, config, steps=steps) for d in EDGE_DTYPES}
+
+    def final(f, seq):
+        """[R, N, 3]: every re-sampling after the pushes seq [T, 4], by the planner dynamics f."""
+        return jax.vmap(lambda p, m: f(p, m, seq)[-1])(pile, mask)
+
+    finals = jax.jit(jax.vmap(final, (None, 0)))  # over the M sequences
+    score = jax.jit(lambda f, seq: jnp.mean(jax.vmap(cost)(final(f, seq), mask)))
+    predicted = {d: np.asarray(finals(dynamics[d], plans["float32"].actions)) for d in EDGE_DTYPES}
+    error_mm = 1e3 * np.linalg.norm(predicted["bfloat16"] - predicted["float32"], axis=-1)
+    bf16.update(quality_model=quality_name, prediction_mean_mm=float(error_mm.mean()),
+                prediction_max_mm=float(error_mm.max()), float32_best_cost=float(plans["float32"].best_cost),
+                best_cost_in_float32=float(score(dynamics["float32"], plans["bfloat16"].best)),
+                best_cost=float(plans["bfloat16"].best_cost),
+                initial_cost=float(jnp.mean(jax.vmap(cost)(pile, mask))))
+    return f32, bf16
 
 
 def run(quick: bool) -> dict:
@@ -241,13 +289,20 @@ def run(quick: bool) -> dict:
         result["torch"] = _torch_reference(positions, sizes["samples"], sizes["torch_repeats"])
         print(f"  torch reference ({result['torch']['device']}): {result['torch']['ms_per_step']:.2f} ms/step",
               flush=True)
-    result["jax"] = _jax_planner(positions, sizes["samples"], sizes["steps"], sizes["repeats"])
-    j = result["jax"]
-    print(f"  JAX ({j['device']}): {j['ms_per_step']:.2f} ms/step, {j['steps']}-step plan {j['plan_s']:.3f} s, "
-          f"compile {j['compile_s']:.1f} s", flush=True)
+    result["jax"], result["jax_bf16"] = _jax_planner(positions, sizes["samples"], sizes["steps"], sizes["repeats"])
+    j, b = result["jax"], result["jax_bf16"]
+    for name, x in (("JAX", j), ("JAX, bfloat16 edges", b)):
+        print(f"  {name} ({x['device']}): {x['ms_per_step']:.2f} ms/step, {x['steps']}-step plan {x['plan_s']:.3f} s, "
+              f"compile {x['compile_s']:.1f} s", flush=True)
+    print(f"  bfloat16 vs float32 ({b['quality_model']}): predictions {b['prediction_mean_mm']:.3f} mm mean, "
+          f"{b['prediction_max_mm']:.3f} mm max; best cost {b['best_cost_in_float32']:.2f} px (scored in float32) vs "
+          f"{b['float32_best_cost']:.2f} px, unpushed {b['initial_cost']:.2f} px", flush=True)
     result["plan_meets_goal"] = j["plan_s"] < PLAN_GOAL_S
+    result["plan_bf16_meets_goal"] = b["plan_s"] < PLAN_GOAL_S
     if "ms_per_step" in result["torch"]:
         result["speedup"] = result["torch"]["ms_per_step"] / j["ms_per_step"]
         result["speedup_meets_goal"] = result["speedup"] >= SPEEDUP_GOAL
+        result["speedup_bf16"] = result["torch"]["ms_per_step"] / b["ms_per_step"]
+        result["speedup_bf16_meets_goal"] = result["speedup_bf16"] >= SPEEDUP_GOAL
     return result
 

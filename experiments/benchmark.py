@@ -53,12 +53,17 @@ def report_table(results: dict) -> str:
                       f"foreground packed into {packed['max_points']:,} slots: {packed['median_ms']:,.1f}",
                       f"every pixel a candidate: {h['median_ms']:,.1f}", h["median_ms"] / packed["median_ms"]))
     batch = f"{pl['batch']:,} pushes x {pl['particles']} particles"
-    t = pl["torch"]
-    lines.append(_row(f"planner, one Adam step over {batch}: ms", f"JAX: {j['ms_per_step']:.2f}",
-                      f"PyTorch reference PropNet: {t['ms_per_step']:.2f}" if "ms_per_step" in t else t["skipped"],
+    t, b = pl["torch"], pl["jax_bf16"]
+    torch_cell = f"PyTorch reference PropNet: {t['ms_per_step']:.2f}" if "ms_per_step" in t else t["skipped"]
+    lines.append(_row(f"planner, one Adam step over {batch}: ms", f"JAX: {j['ms_per_step']:.2f}", torch_cell,
                       pl.get("speedup")))
-    lines.append(_row(f"planner, a {pl['steps']}-step plan over {batch}: s (compile {j['compile_s']:.1f} s)",
-                      f"JAX: {j['plan_s']:.2f}", f"goal: {pl['plan_goal_s']:.1f}", pl["plan_goal_s"] / j["plan_s"]))
+    lines.append(_row(f"planner, one Adam step over {batch}, bfloat16 edges (vs float32, {b['quality_model']}: "
+                      f"predictions {b['prediction_mean_mm']:.2f} mm mean, {b['prediction_max_mm']:.2f} mm max; "
+                      f"best plan cost {b['best_cost_in_float32']:.2f} vs {b['float32_best_cost']:.2f} px): ms",
+                      f"JAX: {b['ms_per_step']:.2f}", torch_cell, pl.get("speedup_bf16")))
+    for name, x in (("", j), (", bfloat16 edges", b)):
+        lines.append(_row(f"planner, a {pl['steps']}-step plan over {batch}{name}: s (compile {x['compile_s']:.1f} s)",
+                          f"JAX: {x['plan_s']:.2f}", f"goal: {pl['plan_goal_s']:.1f}", pl["plan_goal_s"] / x["plan_s"]))
     return "\n".join(lines)
 
 

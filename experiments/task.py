@@ -23,7 +23,7 @@ import numpy as np
 
 from dynres_jax import files, tasks
 from dynres_jax.config import KINDS, CameraConfig, PileConfig, SceneConfig, SimConfig
-from dynres_jax.mpc import MPCConfig, load_dynamics, run_episode
+from dynres_jax.mpc import EDGE_DTYPES, MPCConfig, load_dynamics, run_episode
 from dynres_jax.objective import inside_share, make_goal
 from dynres_jax.planner import PlannerConfig
 from dynres_jax.resolution import load_chooser
@@ -57,6 +57,9 @@ def add_loop_args(parser: argparse.ArgumentParser, task: str) -> None:
     parser.add_argument("--ckpt", default=None, help=f"dynamics checkpoint (default {DEFAULT_CKPT} if present)")
     parser.add_argument("--dynamics", default="auto", choices=["auto", "learned", "sweep"],
                         help="auto: the checkpoint when there is one, else the sweep heuristic")
+    parser.add_argument("--edge-dtype", default="float32", choices=EDGE_DTYPES,
+                        help="the learned model's per-edge network: bfloat16 plans faster, predictions within about "
+                             "half a millimetre")
     parser.add_argument("--out", default=f"out/{task}")
 
 
@@ -64,7 +67,8 @@ def build_loop(args, sim: SimConfig, parser: argparse.ArgumentParser):
     """The simulator, the planner's model, the MPC settings the loop flags ask for and the adaptive-ω chooser (None
     at a fixed ω): (env, dynamics, name, cfg, chooser)."""
     env = PileEnv(sim, backend=args.backend)
-    dynamics, n_max, name = load_dynamics(args.dynamics, args.ckpt or DEFAULT_CKPT, sim.scene.plate_half_width)
+    dynamics, n_max, name = load_dynamics(args.dynamics, args.ckpt or DEFAULT_CKPT, sim.scene.plate_half_width,
+                                          args.edge_dtype)
     chooser, omega = None, str(args.resolution)
     if omega == "adaptive":
         if not os.path.isdir(args.regressor):

@@ -1,4 +1,5 @@
-"""The planner benchmark runs end to end at its quick sizes and reports positive timings."""
+"""The planner benchmark runs end to end at its quick sizes and reports positive timings, at float32 and with
+bfloat16 edges, and how close the bfloat16 plan is to the float32 one."""
 
 import pytest
 
@@ -20,10 +21,24 @@ def test_jax_section(result):
     assert isinstance(result["plan_meets_goal"], bool)
 
 
+def test_bf16_section(result):
+    f32, bf16 = result["jax"], result["jax_bf16"]
+    assert f32["edge_dtype"] == "float32" and bf16["edge_dtype"] == "bfloat16"
+    for key in ("ms_per_step", "plan_s", "short_plan_s", "compile_s", "compile_short_s", "prediction_max_mm"):
+        assert bf16[key] > 0, key
+    assert bf16["steps"] == f32["steps"] and bf16["params"] == f32["params"] and bf16["quality_model"]
+    assert bf16["prediction_mean_mm"] <= bf16["prediction_max_mm"] < 5.0  # mm: bfloat16 moves no particle far
+    # Both plans improve on the unpushed piles, and the bfloat16 plan is about as good, judged by the float32 model.
+    assert max(bf16["float32_best_cost"], bf16["best_cost_in_float32"]) < bf16["initial_cost"]
+    assert bf16["best_cost_in_float32"] == pytest.approx(bf16["float32_best_cost"], rel=0.1)
+    assert isinstance(result["plan_bf16_meets_goal"], bool)
+
+
 def test_torch_section(result):
     pytest.importorskip("torch")
     torch_part = result["torch"]
     assert torch_part["ms_per_step"] > 0 and torch_part["device"]
     assert torch_part["params"] == result["jax"]["params"]
     assert result["speedup"] == pytest.approx(torch_part["ms_per_step"] / result["jax"]["ms_per_step"])
-    assert isinstance(result["speedup_meets_goal"], bool)
+    assert result["speedup_bf16"] == pytest.approx(torch_part["ms_per_step"] / result["jax_bf16"]["ms_per_step"])
+    assert isinstance(result["speedup_meets_goal"], bool) and isinstance(result["speedup_bf16_meets_goal"], bool)

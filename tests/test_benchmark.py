@@ -19,8 +19,11 @@ def _results():
                h=dict(omega=50, observations=1024, image=256, median_ms=81.6),
                h_max_points=dict(max_points=8192, median_ms=17.3))
     planner = dict(batch=1500, particles=100, steps=200, plan_goal_s=1.0, speedup=31.73 / 4.29,
-                   torch=dict(ms_per_step=31.73), jax=dict(device="gpu: H200", jax_version="0", ms_per_step=4.29,
-                                                          plan_s=0.86, compile_s=2.5))
+                   speedup_bf16=31.73 / 2.61, torch=dict(ms_per_step=31.73),
+                   jax=dict(device="gpu: H200", jax_version="0", ms_per_step=4.29, plan_s=0.86, compile_s=2.5),
+                   jax_bf16=dict(ms_per_step=2.61, plan_s=0.55, compile_s=2.7, quality_model="shipped checkpoint",
+                                 prediction_mean_mm=0.03, prediction_max_mm=0.4, best_cost_in_float32=7.5,
+                                 float32_best_cost=7.4))
     return sim, per, planner
 
 
@@ -47,7 +50,8 @@ def test_all_writes_json_and_one_table(written):
     result, table = written
     assert set(result) == {"quick", "sim", "perception", "planner"}
     rows = [r for r in table.splitlines() if r.startswith("| ") and not r.startswith("| benchmark")]
-    assert len(rows) == 2 + 4  # a row per simulator variant, FPS, h, the planner step and the whole plan
+    assert len(rows) == 2 + 6  # a row per simulator variant, FPS, h, and the planner step and whole plan at each dtype
+    assert "bfloat16 edges (vs float32, shipped checkpoint: predictions 0.03 mm mean" in table
     assert "gpu: H200" in table
 
 
