@@ -11,7 +11,9 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 import pytest
+import test_dynamics
 from flax import nnx
+from test_dynamics import N_VALID, N
 from test_train import CFG, shards  # noqa: F401  (shards: the module-scoped tiny data set)
 
 from dynres_jax import ckpt, data
@@ -25,17 +27,8 @@ from experiments.task import DEFAULT_CKPT
 
 SMALL = CNNDynamicsConfig(grid=16, channels=8)
 HW = SMALL.bin_half_width
-N, N_VALID = 24, 18
 PUSH = np.array([-0.06, 0.0, 0.03, 0.01], np.float32)
-
-
-def scene(seed=0, n=N, n_valid=N_VALID, half_width=0.05):
-    """A pile around the origin in the first n_valid slots; the padding holds zeros."""
-    rng = np.random.default_rng(seed)
-    positions = np.zeros((n, 3), np.float32)
-    positions[:n_valid, :2] = rng.uniform(-half_width, half_width, (n_valid, 2))
-    positions[:n_valid, 2] = 0.007
-    return positions, np.arange(n) < n_valid
+scene = functools.partial(test_dynamics.scene, half_width=0.05)  # the GNN tests' padded pile, a little wider
 
 
 def perturbed(config=SMALL, seed=1):
@@ -100,15 +93,7 @@ def test_padding_inert(f):
 
 
 def test_vmap_over_scenes_equals_loop(split, f):
-    scenes = [scene(seed) for seed in range(3)]
-    positions = np.stack([s[0] for s in scenes])
-    masks = np.stack([s[1] for s in scenes])
-    masks[1, 6:] = False  # different resolutions in one batch
-    actions = np.stack([PUSH, PUSH[[2, 3, 0, 1]], np.array([0.0, -0.05, 0.0, 0.03], np.float32)])
-    codes = resolution_code(jnp.array([0.01, 0.03, 0.02]))
-    batched = jax.jit(jax.vmap(predict, in_axes=(None, None, 0, 0, 0, 0)))(*split, positions, masks, actions, codes)
-    for b in range(3):
-        np.testing.assert_allclose(batched[b], f(positions[b], masks[b], actions[b], codes[b]), atol=1e-6)
+    batched, positions, masks, actions, codes = test_dynamics.check_vmap_over_scenes(split, f, scene, PUSH, 6)
     assert not np.allclose(batched[0], f(positions[0], masks[0], actions[0], codes[2]))  # the code is used
 
 

@@ -173,16 +173,23 @@ def test_permutation_equivariance(f):
     np.testing.assert_allclose(out_perm, out[perm], atol=1e-6)
 
 
-def test_vmap_over_scenes_equals_loop(split, f):
+def check_vmap_over_scenes(split, f, scene, push, valid_in_second):
+    """predict vmapped over three scenes (the second cut to ``valid_in_second`` particles: different resolutions in
+    one batch), pushes and codes equals one call each; returns (batched, positions, masks, actions, codes)."""
     scenes = [scene(seed) for seed in range(3)]
     positions = np.stack([s[0] for s in scenes])
     masks = np.stack([s[1] for s in scenes])
-    masks[1, 10:] = False  # different resolutions in one batch
-    actions = np.stack([PUSH, PUSH[[2, 3, 0, 1]], np.array([0.0, -0.05, 0.0, 0.03], np.float32)])
+    masks[1, valid_in_second:] = False
+    actions = np.stack([push, push[[2, 3, 0, 1]], np.array([0.0, -0.05, 0.0, 0.03], np.float32)])
     codes = resolution_code(jnp.array([0.01, 0.03, 0.02]))
     batched = jax.jit(jax.vmap(predict, in_axes=(None, None, 0, 0, 0, 0)))(*split, positions, masks, actions, codes)
     for b in range(3):
         np.testing.assert_allclose(batched[b], f(positions[b], masks[b], actions[b], codes[b]), atol=1e-6)
+    return batched, positions, masks, actions, codes
+
+
+def test_vmap_over_scenes_equals_loop(split, f):
+    check_vmap_over_scenes(split, f, scene, PUSH, 10)
 
 
 def test_vmap_over_codes_equals_calls(split, f):
