@@ -196,8 +196,8 @@ def test_checkpoint_round_trip_is_bit_identical(tmp_path):
 
 def test_shipped_gnn_card_still_builds_a_dynamics():
     meta = ckpt.load_meta(DEFAULT_CKPT)
-    assert "model_class" not in meta  # written before the CNN existed: means gnn
-    assert type(build_model(meta)) is Dynamics
+    legacy = {k: v for k, v in meta.items() if k != "model_class"}  # cards written before the CNN existed: gnn
+    assert meta["model_class"] == "gnn" and type(build_model(legacy)) is Dynamics
     model, _, _ = ckpt.load_module(DEFAULT_CKPT, build_model)
     assert type(model) is Dynamics and model.config.residual and model.config.push_frame
     with pytest.raises(ValueError, match="model_class"):
