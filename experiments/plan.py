@@ -17,11 +17,11 @@ import jax
 import numpy as np
 
 from dynres_jax import frames
-from dynres_jax.mpc import EDGE_DTYPES, goal_cost, load_dynamics, overlay
+from dynres_jax.mpc import goal_cost, load_dynamics, overlay
 from dynres_jax.objective import make_goal
 from dynres_jax.perception import WORKSPACE_HALF_WIDTH, sample_particles
 from dynres_jax.planner import PlannerConfig, plan
-from experiments.task import DEFAULT_CKPT
+from experiments.task import DEFAULT_CKPT, add_edge_dtype_arg
 
 
 def main(argv=None):
@@ -40,9 +40,7 @@ def main(argv=None):
     parser.add_argument("--plan-steps", type=int, default=100)
     parser.add_argument("--dynamics", default="auto", choices=["auto", "learned", "sweep"])
     parser.add_argument("--ckpt", default=DEFAULT_CKPT)
-    parser.add_argument("--edge-dtype", default="float32", choices=EDGE_DTYPES,
-                        help="the learned model's per-edge network: bfloat16 plans faster, predictions within about "
-                             "half a millimetre")
+    add_edge_dtype_arg(parser)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", default="push.png", help="the frame with the goal, particles and push drawn")
     args = parser.parse_args(argv)

@@ -57,10 +57,15 @@ def add_loop_args(parser: argparse.ArgumentParser, task: str) -> None:
     parser.add_argument("--ckpt", default=None, help=f"dynamics checkpoint (default {DEFAULT_CKPT} if present)")
     parser.add_argument("--dynamics", default="auto", choices=["auto", "learned", "sweep"],
                         help="auto: the checkpoint when there is one, else the sweep heuristic")
+    add_edge_dtype_arg(parser)
+    parser.add_argument("--out", default=f"out/{task}")
+
+
+def add_edge_dtype_arg(parser: argparse.ArgumentParser) -> None:
+    """--edge-dtype, ``mpc.load_dynamics``'s edge_dtype: the task commands' and ``experiments.plan``'s."""
     parser.add_argument("--edge-dtype", default="float32", choices=EDGE_DTYPES,
                         help="the learned model's per-edge network: bfloat16 plans faster, predictions within about "
                              "half a millimetre")
-    parser.add_argument("--out", default=f"out/{task}")
 
 
 def build_loop(args, sim: SimConfig, parser: argparse.ArgumentParser):
