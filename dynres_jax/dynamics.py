@@ -88,6 +88,13 @@ class DynamicsConfig:
     length_scale: float = LENGTH_SCALE
     push_frame: bool = False
     residual: bool = False
+    world_edges: bool = False
+
+    @property
+    def edges_in_push_frame(self) -> bool:
+        """Whether the edge encoder sees p_r - p_s rotated into the push frame (push_frame without world_edges), so
+        its codes depend on the push and cannot come from a ``pair_table``."""
+        return self.push_frame and not self.world_edges
 
 
 def resolution_code(radius):
@@ -144,11 +151,15 @@ class Dynamics(nnx.Module):
             last.kernel[...] = jnp.zeros_like(last.kernel[...])
             last.bias[...] = jnp.zeros_like(last.bias[...])
 
-    def __call__(self, positions, mask, action, code, *, edge_dtype=jnp.float32):
+    def __call__(self, positions, mask, action, code, *, edge_dtype=jnp.float32, pair_table=False):
         """positions [N, 3] m, mask [N] bool, action [4] m, code [] (``resolution_code``) -> next positions [N, 3] m
         (float32). Masked rows are returned unchanged. edge_dtype: float32 or bfloat16, the per-edge network's
-        dtype (module docstring, "Mixed precision")."""
+        dtype (module docstring, "Mixed precision"). pair_table: edge codes gathered from a table over all N x N
+        pairs (module docstring, "Pair table"); the same result, for edges not in the push frame only."""
         cfg, h, dt = self.config, self.config.hidden, jnp.dtype(edge_dtype)
+        if pair_table and cfg.edges_in_push_frame:
+            raise ValueError("pair_table needs edge codes that do not depend on the push: a model with push_frame=True "
+                             "and world_edges=False rotates its edges into the push frame")
         positions = jnp.asarray(positions, jnp.float32)
         mask = jnp.asarray(mask, bool)
         code = jnp.asarray(code, jnp.float32)
@@ -158,7 +169,6 @@ class Dynamics(nnx.Module):
         neighbours, edge_mask = build_edges(clean + guess, mask, cfg.edge_radius, cfg.k)
 
         attr = mask.astype(jnp.float32)[:, None]  # [N, 1]: 1 for a particle
-        rel = (clean[:, None, :] - clean[neighbours]) / cfg.length_scale  # [N, k, 3]: receiver i minus sender j
         if cfg.push_frame:
             frame, start, length = _push_frame(action)  # frame [3, 3]: rows along, side, up
             local = (clean - jnp.concatenate([start, jnp.zeros(1)])) @ frame.T / cfg.length_scale  # [N, 3]
@@ -166,17 +176,31 @@ class Dynamics(nnx.Module):
             ell = jnp.broadcast_to(length / cfg.length_scale, (n, 1))
             node_in = [(guess @ frame.T)[:, :1] / cfg.length_scale, s, t, s - ell, ell]
             node_in = [jnp.where(mask[:, None], x, 0.0) for x in node_in]
-            rel = rel @ frame.T
         else:
             node_in = [guess / cfg.length_scale]
         node_code = self.node_encoder(jnp.concatenate(node_in + [attr, jnp.broadcast_to(code, (n, 1))], axis=-1))
-        edge_code = _cast(self.edge_encoder, dt)(jnp.concatenate(
-            [jnp.broadcast_to(attr[:, None], rel.shape[:2] + (1,)), attr[neighbours], rel,
-             jnp.broadcast_to(code, rel.shape[:2] + (1,))], axis=-1).astype(dt))  # [N, k, H] dt
 
         w_e, b_e = self.edge_propagator.kernel[...], self.edge_propagator.bias[...]
         w_n, b_n = self.node_propagator.kernel[...], self.node_propagator.bias[...]
-        edge_const = edge_code @ w_e[:h].astype(dt) + (code * w_e[3 * h]).astype(dt) + b_e.astype(dt)  # [N, k, H] dt
+        edge_encoder = _cast(self.edge_encoder, dt)
+
+        def edge_constant(rel, sender_attr):
+            """rel [..., 3] (p_r - p_s in length units), sender_attr [..., 1] -> the edge propagator's terms that
+            do not change across propagation steps [..., H] dt: edge code, resolution code and bias."""
+            edge_code = edge_encoder(jnp.concatenate(
+                [jnp.broadcast_to(attr[:, None], sender_attr.shape), sender_attr, rel,
+                 jnp.broadcast_to(code, sender_attr.shape)], axis=-1).astype(dt))
+            return edge_code @ w_e[:h].astype(dt) + (code * w_e[3 * h]).astype(dt) + b_e.astype(dt)
+
+        if pair_table:
+            table = edge_constant((clean[:, None, :] - clean[None, :, :]) / cfg.length_scale,
+                                  jnp.broadcast_to(attr[None], (n, n, 1)))  # [N, N, H]: receiver i, sender j
+            edge_const = jnp.take_along_axis(table, neighbours[..., None], axis=1)  # [N, k, H] dt
+        else:
+            rel = (clean[:, None, :] - clean[neighbours]) / cfg.length_scale  # [N, k, 3]: receiver i minus sender j
+            if cfg.edges_in_push_frame:
+                rel = rel @ frame.T
+            edge_const = edge_constant(rel, attr[neighbours])  # [N, k, H] dt
         node_const = node_code @ w_n[:h] + code * w_n[2 * h] + b_n  # [N, H]
         effect = node_code
         for _ in range(cfg.steps):
@@ -198,18 +222,28 @@ class Dynamics(nnx.Module):
         return rollout(*nnx.split(self), positions, mask, actions, code, edge_dtype=edge_dtype)
 
 
-def predict(graphdef, state, positions, mask, action, code, *, edge_dtype=jnp.float32):
+def predict(graphdef, state, positions, mask, action, code, *, edge_dtype=jnp.float32, pair_table=False):
     """Pure f of ``nnx.split(model)``: positions [N, 3] m, mask [N], action [4] m, code [] -> next positions [N, 3].
-    edge_dtype: ``Dynamics.__call__``'s; only the GNN takes it, so float32 calls any model of that signature."""
+    edge_dtype, pair_table: ``Dynamics.__call__``'s; only the GNN takes them, so the defaults call any model of that
+    signature."""
     model = nnx.merge(graphdef, state)
-    if jnp.dtype(edge_dtype) == jnp.float32:
-        return model(positions, mask, action, code)
-    return model(positions, mask, action, code, edge_dtype=edge_dtype)
+    options = {}
+    if jnp.dtype(edge_dtype) != jnp.float32:
+        options["edge_dtype"] = edge_dtype
+    if pair_table:
+        options["pair_table"] = True
+    return model(positions, mask, action, code, **options)
 
 
-def rollout(graphdef, state, positions, mask, actions, code, *, edge_dtype=jnp.float32):
+def rollout(graphdef, state, positions, mask, actions, code, *, edge_dtype=jnp.float32, pair_table=False):
     """Pure multi-step f (``lax.scan``): positions [N, 3] m, mask [N], actions [T, 4] m, code [] -> [T, N, 3] m,
-    the positions after each action (the initial positions not included). edge_dtype: as in ``predict``."""
+    the positions after each action (the initial positions not included). edge_dtype: as in ``predict``;
+    pair_table: the first push's edge codes from a table (``Dynamics.__call__``), the only push whose particles do
+    not depend on the actions."""
+    if pair_table:
+        first = predict(graphdef, state, positions, mask, actions[0], code, edge_dtype=edge_dtype, pair_table=True)
+        rest = rollout(graphdef, state, first, mask, actions[1:], code, edge_dtype=edge_dtype)
+        return jnp.concatenate([first[None], rest], axis=0)
 
     def step(current, action):
         nxt = predict(graphdef, state, current, mask, action, code, edge_dtype=edge_dtype)

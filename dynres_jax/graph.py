@@ -50,6 +50,30 @@ def sweep_displacement(particles, mask, action, plate_half_width, *, end_offset=
     return jnp.concatenate([push[:, None] * along, jnp.zeros_like(push[:, None])], axis=-1)
 
 
+def _smallest_by_top_k(d2, k):
+    neg, index = jax.lax.top_k(-d2, k)
+    return -neg, index
+
+
+def _smallest_by_argmin(d2, k):
+    values, indices = [], []
+    for _ in range(k):
+        index = jnp.argmin(d2, axis=-1)
+        values.append(jnp.take_along_axis(d2, index[..., None], axis=-1)[..., 0])
+        indices.append(index)
+        d2 = jnp.where(jnp.arange(d2.shape[-1]) == index[..., None], jnp.inf, d2)
+    return jnp.stack(values, -1), jnp.stack(indices, -1).astype(jnp.int32)
+
+
+def k_smallest(d2, k: int):
+    """(values, indices) [..., k] of the k smallest entries of each row of d2 [..., M] (k <= M), ascending, the lower
+    index first on ties. Entries that are +inf may come back in any order (repeated indices included): callers mask
+    them. lax.top_k on CPU; elsewhere k rounds of argmin, which XLA runs about 1.5x faster than its top_k on an H100
+    for the planner's rows of 100 particles (and twice as slow on CPU)."""
+    return jax.lax.platform_dependent(d2, cpu=functools.partial(_smallest_by_top_k, k=k),
+                                      default=functools.partial(_smallest_by_argmin, k=k))
+
+
 @functools.partial(jax.jit, static_argnames="k")
 def build_edges(positions, mask, radius=R_EDGE, k: int = K_NEIGHBOURS):
     """Radius + kNN edges. positions [N, 3] m (the guessed, swept positions), mask [N] bool, radius m, k static ->
@@ -63,8 +87,8 @@ def build_edges(positions, mask, radius=R_EDGE, k: int = K_NEIGHBOURS):
     n = positions.shape[0]
     d2 = jnp.sum(jnp.square(positions[:, None, :] - positions[None, :, :]), axis=-1)
     allowed = mask[:, None] & mask[None, :] & ~jnp.eye(n, dtype=bool)
-    neg_d2, neighbours = jax.lax.top_k(jnp.where(allowed, -d2, -jnp.inf), min(k, n))
-    edge_mask = -neg_d2 < jnp.square(radius)
+    nearest_d2, neighbours = k_smallest(jnp.where(allowed, d2, jnp.inf), min(k, n))
+    edge_mask = nearest_d2 < jnp.square(radius)
     neighbours = jnp.where(edge_mask, neighbours, jnp.arange(n)[:, None]).astype(jnp.int32)
     if k > n:
         neighbours = jnp.concatenate([neighbours, jnp.broadcast_to(jnp.arange(n)[:, None], (n, k - n))], axis=1)

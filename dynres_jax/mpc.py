@@ -52,14 +52,15 @@ class MPCConfig:
 EDGE_DTYPES = ("float32", "bfloat16")  # ``learned_dynamics``'s choices for the GNN's per-edge network
 
 
-def _learned(graphdef, state, code, positions, mask, actions, *, edge_dtype):
-    return rollout(graphdef, state, positions, mask, actions, code, edge_dtype=edge_dtype)
+def _learned(graphdef, state, code, positions, mask, actions, *, edge_dtype, pair_table):
+    return rollout(graphdef, state, positions, mask, actions, code, edge_dtype=edge_dtype, pair_table=pair_table)
 
 
 @functools.cache
-def _learned_in(edge_dtype: str):
-    """One function object per dtype: the planner's compile cache keys a dynamics by its function's identity."""
-    return functools.partial(_learned, edge_dtype=edge_dtype)
+def _learned_in(edge_dtype: str, pair_table: bool):
+    """One function object per option pair: the planner's compile cache keys a dynamics by its function's
+    identity."""
+    return functools.partial(_learned, edge_dtype=edge_dtype, pair_table=pair_table)
 
 
 def _sweep(plate_half_width, positions, mask, actions):
@@ -69,14 +70,17 @@ def _sweep(plate_half_width, positions, mask, actions):
 def learned_dynamics(model: Dynamics, edge_dtype: str = "float32"):
     """radius (m) -> planner dynamics ``(positions, mask, actions [T, 4]) -> [T, N, 3]`` of a trained model.
     edge_dtype: "float32", or "bfloat16" for a GNN's per-edge network (faster planning, predictions within about
-    half a millimetre: ``dynamics`` module docstring, "Mixed precision")."""
+    half a millimetre: ``dynamics`` module docstring, "Mixed precision"). A GNN whose edges are not in the push frame
+    takes the first push's edge codes from a pair table (``dynamics`` module docstring, "Pair table"): the planner's
+    pushes all start from the same particles, so the table is built once per plan, not per push and Adam step."""
     edge_dtype = jnp.dtype(edge_dtype).name
     if edge_dtype not in EDGE_DTYPES:
         raise ValueError(f"edge_dtype must be one of {EDGE_DTYPES}, got {edge_dtype!r}")
     if edge_dtype != "float32" and not isinstance(model, Dynamics):
         raise ValueError(f"edge_dtype={edge_dtype!r} needs the graph network (Dynamics), got {type(model).__name__}")
+    pair_table = isinstance(model, Dynamics) and not model.config.edges_in_push_frame
     graphdef, state = nnx.split(model)
-    return lambda radius: Partial(_learned_in(edge_dtype), graphdef, state, resolution_code(radius))
+    return lambda radius: Partial(_learned_in(edge_dtype, pair_table), graphdef, state, resolution_code(radius))
 
 
 def sweep_dynamics(plate_half_width: float):

@@ -258,9 +258,8 @@ def bilinear(image, uv):
     return (1 - fy) * top + fy * bottom
 
 
-def _norm(d):
-    """|d| over the last axis with a zero (not NaN) gradient at d = 0."""
-    d2 = jnp.sum(jnp.square(d), axis=-1)
+def _root(d2):
+    """sqrt(d2) for squared distances d2 >= 0, with a zero (not NaN) gradient at d2 = 0."""
     positive = d2 > 0
     return jnp.where(positive, jnp.sqrt(jnp.where(positive, d2, 1.0)), 0.0)
 
@@ -273,8 +272,8 @@ def _cost(pixels, valid, goal: Goal):
     Q, P = goal.samples.shape[0], pixels.shape[0]
     active = goal.sample_mask & (jnp.arange(Q) < SAMPLES_PER_PARTICLE * omega)
 
-    def nearest(q):
-        return jnp.min(jnp.where(valid, _norm(pixels - q), jnp.inf))
+    def nearest(q):  # the root of the smallest squared distance: one square root per goal sample, not per pair
+        return _root(jnp.min(jnp.where(valid, jnp.sum(jnp.square(pixels - q), axis=-1), jnp.inf)))
 
     nearest_distance = jax.lax.map(nearest, goal.samples, batch_size=max(1, min(Q, MAX_PAIRS // P)))
     coverage_term = jnp.sum(jnp.where(active, nearest_distance, 0.0))

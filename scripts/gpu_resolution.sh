@@ -1,13 +1,12 @@
 #!/usr/bin/env bash
-# Adaptive resolution end to end on one GPU machine (results in $OUT): BO labels (time-boxed,
-# resumable), the regressor, the Fig. 4 analysis, and issue 5's fixed-ω Gather evaluation.
+# Adaptive resolution end to end on one GPU machine (results in $OUT): BO labels (time-boxed, resumable), the
+# regressor and the Fig. 4 analysis.
 #   OUT=runs/res bash scripts/gpu_resolution.sh
-# Env: SCENES (1024), LABEL_SECONDS (300).
+# Env: SCENES (1024), LABEL_SECONDS (300), REPEATS (plans averaged per BO evaluation, 2).
 set -uo pipefail
-OUT=${OUT:-runs/res}; SCENES=${SCENES:-1024}; LABEL_SECONDS=${LABEL_SECONDS:-300}
+OUT=${OUT:-runs/res}; SCENES=${SCENES:-1024}; LABEL_SECONDS=${LABEL_SECONDS:-300}; REPEATS=${REPEATS:-2}
 mkdir -p "$OUT"
-timeout "$LABEL_SECONDS" python -m experiments.label_resolution --out "$OUT/labels" --scenes "$SCENES" --batch 128
+timeout "$LABEL_SECONDS" python -m experiments.label_resolution --out "$OUT/labels" --scenes "$SCENES" --batch 128 \
+  --repeats "$REPEATS"
 python -m experiments.train_regressor --labels "$OUT/labels" --out "$OUT/regressor"
 python -m experiments.tradeoff --labels "$OUT/labels" --out "$OUT/tradeoff"
-python -m experiments.evaluate --task gather --methods 50 --budget 0 --samples 50 --plan-steps 100 \
-  --out "$OUT/gather50"

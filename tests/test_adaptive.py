@@ -45,7 +45,8 @@ def test_labels_follow_the_bo_recipe_and_resume(labels):
 
 def test_regressor_checkpoint_and_metrics(regressor):
     out, metrics = regressor
-    assert metrics["train"] + metrics["held_out"] == 8 and np.isfinite(metrics["mae"])
+    assert metrics["train"] + metrics["validation"] + metrics["held_out"] == 8 and np.isfinite(metrics["mae"])
+    assert min(metrics["train"], metrics["validation"], metrics["held_out"]) > 0 and 0 <= metrics["best_step"] <= 5
     with open(os.path.join(out, "metrics.json")) as f:
         assert json.load(f)["params"] == metrics["params"]
 
@@ -72,3 +73,15 @@ def test_tradeoff_pairs(labels, tmp_path):
     assert result["letter_vs_disc"]["pairs"] == 4 and result["gathered_vs_spread"]["pairs"] == 4
     r = result["letter_vs_disc"]
     assert abs(r["higher"] + r["lower"] + r["equal"] - 1) < 1e-9
+
+
+def test_dihedral_augmentation_is_the_eight_symmetries_of_the_grid():
+    """Each (turns, flip) equals NumPy's rot90 then a left-right mirror, sample by sample; the 8 are distinct."""
+    images = np.random.default_rng(0).normal(size=(8, 5, 5, 2)).astype(np.float32)
+    images[:] = images[0]
+    turns, flip = np.arange(8) % 4, np.arange(8) // 4
+    out = np.asarray(train_regressor.dihedral(images, turns, flip))
+    for i in range(8):
+        expect = np.rot90(images[i], turns[i], axes=(0, 1))
+        np.testing.assert_array_equal(out[i], expect[:, ::-1] if flip[i] else expect)
+    assert len({o.tobytes() for o in out}) == 8
