@@ -88,8 +88,9 @@ def main(argv=None):
     rng = np.random.default_rng(args.seed)
     best, best_loss, best_step = params, float(validation_loss(params)), 0
     for i in tqdm(range(1, args.steps + 1), desc="train regressor"):
+        idx = rng.choice(train_i, args.batch)
         turns, flip = rng.integers(0, 4, args.batch), rng.integers(0, 2, args.batch)
-        params, state, _ = step(params, state, jnp.asarray(rng.choice(train_i, args.batch)), turns, flip)
+        params, state, _ = step(params, state, idx, turns, flip)
         if i % args.val_every == 0 or i == args.steps:
             loss = float(validation_loss(params))
             if loss < best_loss:
