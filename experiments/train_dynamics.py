@@ -20,7 +20,7 @@ from dynres_jax.cnn_dynamics import CNNDynamicsConfig
 from dynres_jax.dynamics import DynamicsConfig
 from dynres_jax.train import MODEL_CLASSES, TrainConfig, train
 
-GNN_ONLY, CNN_ONLY = ("hidden", "propagation_steps", "push_frame"), ("grid", "channels")
+GNN_ONLY, CNN_ONLY = ("hidden", "propagation_steps", "push_frame", "world_edges"), ("grid", "channels")
 
 
 def main(argv=None):
@@ -41,6 +41,9 @@ def main(argv=None):
                         help=f"gnn: message-passing steps (DynamicsConfig.steps, default {DynamicsConfig.steps})")
     parser.add_argument("--push-frame", action="store_true", default=None,
                         help="gnn: DynamicsConfig.push_frame (push-frame inputs)")
+    parser.add_argument("--world-edges", action="store_true", default=None,
+                        help="gnn: DynamicsConfig.world_edges (with --push-frame: edges stay in the world frame, so "
+                             "the planner builds their codes once per plan)")
     parser.add_argument("--residual", action=argparse.BooleanOptionalAction, default=None,
                         help="correct the sweep heuristic (default: off for gnn, on for cnn)")
     parser.add_argument("--grid", type=int, default=None,
