@@ -13,12 +13,14 @@ A state z is a padded particle set: positions [N, 3] (metres, world frame) with 
    node effect = ReLU(W_n [node code, sum of incoming edge effects, code] + node effect), starting from the node code.
 5. Predictor H -> H -> 3: a displacement added to the current position.
 
-Options (``DynamicsConfig``; both off by default, which is the architecture above). ``push_frame``: everything is
+Options (``DynamicsConfig``; all off by default, which is the architecture above). ``push_frame``: everything is
 expressed in the push's frame (axes: along the push, its left normal, up; origin at the push start), so the model is
 invariant to the push's direction and every particle, not only the swept ones, knows where the plate passes. Node
 input: [guess along the push (1), s, t, s - L, L (1 each; s along and t sideways from the start, L the push length),
 attribute (1), resolution code (1)] -> MLP 7 -> H -> H; edge p_r - p_s in the push frame; the predicted displacement
-is rotated back to the world frame. ``residual``: the network predicts a correction added to the sweep's guess; the
+is rotated back to the world frame. ``world_edges`` (with ``push_frame``): the edges' p_r - p_s stay in the world
+frame, so edge codes do not depend on the push (the shipped model: as accurate, and the planner builds its edge codes
+once per plan, "Pair table" below). ``residual``: the network predicts a correction added to the sweep's guess; the
 predictor's last layer starts at zero, so an untrained model is exactly the sweep heuristic.
 
 Defaults (H = 64, 3 steps) give 38,403 parameters, the reference's "about 38k".
@@ -41,6 +43,14 @@ input.
 Evaluation: the propagators are linear layers on concatenated inputs, as in PropNet, but evaluated by splitting their
 kernels: the terms that do not change across steps (edge code, node code, resolution code, bias) are computed once,
 and the receiver and sender terms per node before gathering, so propagation does no per-edge matrix product.
+
+Pair table (``pair_table=True``; the same result): an edge's code depends on the particles' positions before the
+push, and on the push only through which pairs are edges (the kNN on the swept positions) unless the edges are in the
+push frame. The planner scores many pushes from the same particles, so it computes the edge encoder and the edge
+propagator's constant terms once on all N x N pairs (they depend on the positions and the resolution only, and
+``jax.vmap`` over pushes leaves them unbatched) and each push gathers its [N, k] rows from that table: the per-push
+cost of the edge encoder is gone. A table is N / k = 10 times the edges of one push, so training and single
+predictions do without it.
 
 Mixed precision (``edge_dtype``, float32 by default): the per-edge tensors, N·k rows against N for everything else,
 carry almost all of the memory traffic and matrix products, so they may be bfloat16. With ``edge_dtype=bfloat16``

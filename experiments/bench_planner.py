@@ -24,7 +24,9 @@ per-edge network in bfloat16 (``mpc.learned_dynamics(model, "bfloat16")``, the `
 precision"), the ``jax_bf16`` section; it also says how far that is from float32 on the same inputs: predicted
 positions (mm) and the best cost of a full plan (pixels), measured on the shipped checkpoint when there is one (a
 trained model's numbers; the timed random weights blow a pile metres apart). Speed-up = torch ms per step / JAX ms
-per step (``speedup``, and ``speedup_bf16`` for the bfloat16 section). ``run(quick=True)`` uses tiny sizes so it
+per step (``speedup``, and ``speedup_bf16`` for the bfloat16 section). When a checkpoint is shipped, the
+``jax_shipped`` section times the planner in float32 with it (its architecture may differ from the reference's, e.g.
+push-frame inputs) and ``speedup_shipped`` is its ratio. ``run(quick=True)`` uses tiny sizes so it
 finishes in seconds on a CPU; without torch the reference is skipped (noted in the result).
 """
 

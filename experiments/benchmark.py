@@ -61,7 +61,13 @@ def report_table(results: dict) -> str:
                       f"predictions {b['prediction_mean_mm']:.2f} mm mean, {b['prediction_max_mm']:.2f} mm max; "
                       f"best plan cost {b['best_cost_in_float32']:.2f} vs {b['float32_best_cost']:.2f} px): ms",
                       f"JAX: {b['ms_per_step']:.2f}", torch_cell, pl.get("speedup_bf16")))
-    for name, x in (("", j), (", bfloat16 edges", b)):
+    plans = [("", j), (", bfloat16 edges", b)]
+    if "jax_shipped" in pl:  # the shipped checkpoint's architecture, when it differs from the reference's
+        shipped = pl["jax_shipped"]
+        lines.append(_row(f"planner, one Adam step over {batch}, {shipped['model']}: ms",
+                          f"JAX: {shipped['ms_per_step']:.2f}", torch_cell, pl.get("speedup_shipped")))
+        plans.append((f", {shipped['model']}", shipped))
+    for name, x in plans:
         lines.append(_row(f"planner, a {pl['steps']}-step plan over {batch}{name}: s (compile {x['compile_s']:.1f} s)",
                           f"JAX: {x['plan_s']:.2f}", f"goal: {pl['plan_goal_s']:.1f}", pl["plan_goal_s"] / x["plan_s"]))
     return "\n".join(lines)

@@ -1,5 +1,5 @@
 """The planner benchmark runs end to end at its quick sizes and reports positive timings, at float32 and with
-bfloat16 edges, and how close the bfloat16 plan is to the float32 one."""
+bfloat16 edges, and how close the bfloat16 plan is to the float32 one; the shipped checkpoint is timed too."""
 
 import pytest
 
@@ -42,3 +42,11 @@ def test_torch_section(result):
     assert result["speedup"] == pytest.approx(torch_part["ms_per_step"] / result["jax"]["ms_per_step"])
     assert result["speedup_bf16"] == pytest.approx(torch_part["ms_per_step"] / result["jax_bf16"]["ms_per_step"])
     assert isinstance(result["speedup_meets_goal"], bool) and isinstance(result["speedup_bf16_meets_goal"], bool)
+    assert result["speedup_shipped"] == pytest.approx(torch_part["ms_per_step"] / result["jax_shipped"]["ms_per_step"])
+
+
+def test_shipped_section(result):
+    """The shipped checkpoint's architecture is timed too (the repository ships one)."""
+    shipped = result["jax_shipped"]
+    assert shipped["ms_per_step"] > 0 and shipped["plan_s"] > 0 and shipped["edge_dtype"] == "float32"
+    assert shipped["model"].startswith("shipped checkpoint") and shipped["config"]["world_edges"]

@@ -23,7 +23,9 @@ def _results():
                    jax=dict(device="gpu: H200", jax_version="0", ms_per_step=4.29, plan_s=0.86, compile_s=2.5),
                    jax_bf16=dict(ms_per_step=2.61, plan_s=0.55, compile_s=2.7, quality_model="shipped checkpoint",
                                  prediction_mean_mm=0.03, prediction_max_mm=0.4, best_cost_in_float32=7.5,
-                                 float32_best_cost=7.4))
+                                 float32_best_cost=7.4),
+                   jax_shipped=dict(ms_per_step=5.02, plan_s=1.01, compile_s=2.9, model="shipped checkpoint"),
+                   speedup_shipped=31.73 / 5.02)
     return sim, per, planner
 
 
@@ -50,7 +52,8 @@ def test_all_writes_json_and_one_table(written):
     result, table = written
     assert set(result) == {"quick", "sim", "perception", "planner"}
     rows = [r for r in table.splitlines() if r.startswith("| ") and not r.startswith("| benchmark")]
-    assert len(rows) == 2 + 6  # a row per simulator variant, FPS, h, and the planner step and whole plan at each dtype
+    assert len(rows) == 2 + 8  # a row per simulator variant, FPS, h, and the planner step and whole plan at each dtype
+    # and with the shipped model
     assert "bfloat16 edges (vs float32, shipped checkpoint: predictions 0.03 mm mean" in table
     assert "gpu: H200" in table
 

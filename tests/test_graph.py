@@ -5,7 +5,15 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from dynres_jax.graph import SWEEP_END_OFFSET, SWEEP_FALLOFF, build_edges, sweep_displacement
+from dynres_jax.graph import (
+    SWEEP_END_OFFSET,
+    SWEEP_FALLOFF,
+    _smallest_by_argmin,
+    _smallest_by_top_k,
+    build_edges,
+    k_smallest,
+    sweep_displacement,
+)
 
 PLATE = 0.04
 
@@ -54,6 +62,22 @@ def test_edges_match_brute_force(seed, radius, k):
     assert np.all(np.diff(np.where(np.asarray(edge_mask), d, 1e9), axis=1) >= 0)
     np.testing.assert_array_equal(np.asarray(neighbours)[~np.asarray(edge_mask)],
                                   np.nonzero(~np.asarray(edge_mask))[0])
+
+
+@pytest.mark.parametrize("smallest", [_smallest_by_top_k, _smallest_by_argmin, k_smallest])
+def test_k_smallest_matches_a_stable_sort(smallest):
+    """Both ways of taking the k smallest (lax.top_k on CPU, argmin rounds elsewhere) and the dispatcher return a
+    stable NumPy sort's first k (ascending, lower index first on ties), rows with +inf entries included, vmapped."""
+    rng = np.random.default_rng(0)
+    d2 = rng.integers(0, 6, (5, 7, 12)).astype(np.float32)  # small integers: many ties
+    d2[:, :, 3] = np.inf
+    d2[0, 0, :] = np.inf  # a row with nothing allowed
+    values, index = jax.vmap(lambda x: smallest(x, k=4) if smallest is not k_smallest else smallest(x, 4))(d2)
+    expect = np.argsort(d2, axis=-1, kind="stable")[..., :4]
+    finite = np.isfinite(np.take_along_axis(d2, expect, -1))
+    np.testing.assert_array_equal(np.asarray(index)[finite], expect[finite])
+    np.testing.assert_array_equal(np.asarray(values), np.take_along_axis(d2, expect, -1))
+    assert np.asarray(index).dtype == np.int32
 
 
 def test_edges_padding_inert():
