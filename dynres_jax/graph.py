@@ -69,7 +69,7 @@ def k_smallest(d2, k: int):
     """(values, indices) [..., k] of the k smallest entries of each row of d2 [..., M] (k <= M), ascending, the lower
     index first on ties. Entries that are +inf may come back in any order (repeated indices included): callers mask
     them. lax.top_k on CPU; elsewhere k rounds of argmin, which XLA runs about 1.5x faster than its top_k on an H100
-    for the planner's rows of 100 particles (and twice as slow on CPU)."""
+    for the planner's rows of 100 particles (and about 1.5x slower on CPU)."""
     return jax.lax.platform_dependent(d2, cpu=functools.partial(_smallest_by_top_k, k=k),
                                       default=functools.partial(_smallest_by_argmin, k=k))
 
