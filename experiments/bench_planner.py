@@ -26,7 +26,8 @@ positions (mm) and the best cost of a full plan (pixels), measured on the shippe
 trained model's numbers; the timed random weights blow a pile metres apart). Speed-up = torch ms per step / JAX ms
 per step (``speedup``, and ``speedup_bf16`` for the bfloat16 section). When a checkpoint is shipped, the
 ``jax_shipped`` section times the planner in float32 with it (its architecture may differ from the reference's, e.g.
-push-frame inputs) and ``speedup_shipped`` is its ratio. ``run(quick=True)`` uses tiny sizes so it
+push-frame inputs) and ``speedup_shipped`` is its ratio. ``jax_stages`` splits a step's time into its stages
+(``_stage_times``). ``run(quick=True)`` uses tiny sizes so it
 finishes in seconds on a CPU; without torch the reference is skipped (noted in the result).
 """
 
@@ -205,6 +206,52 @@ def _quality_model(timed_model):
     return model, f"shipped checkpoint (step {meta.get('step')})"
 
 
+def _stage_times(positions: np.ndarray, samples: int, repeats: int) -> dict:
+    """Where a planner step's time goes: ms (median of ``repeats`` calls, each stage jitted alone, float32, the
+    reference architecture) over the planner's batch of ``samples`` pushes x R re-samplings. edges: the sweep
+    heuristic and the radius + kNN edges of every candidate; cost: the task cost c and its gradient w.r.t. the
+    particles of every candidate; dynamics: f (pair table included, as the planner calls it) and its gradient w.r.t.
+    the pushes. A step also runs the chain rule between them, Adam and the projection."""
+    import jax
+    import jax.numpy as jnp
+    from flax import nnx
+
+    from dynres_jax.dynamics import Dynamics, DynamicsConfig
+    from dynres_jax.graph import build_edges, sweep_displacement
+    from dynres_jax.mpc import goal_cost, learned_dynamics
+    from dynres_jax.objective import disc_goal, make_goal
+    from dynres_jax.planner import sample_actions
+    from dynres_jax.sim.camera import Camera, CameraConfig
+
+    model = Dynamics(DynamicsConfig(), rngs=nnx.Rngs(0))
+    camera = Camera.top_down(CameraConfig())
+    cost = goal_cost(make_goal(disc_goal(camera, GOAL_XY, GOAL_RADIUS), camera), camera)
+    dynamics = learned_dynamics(model)(PARTICLE_RADIUS)
+    pile = jnp.asarray(positions)
+    mask = jnp.ones(pile.shape[:2], bool)
+    pushes = sample_actions(jax.random.PRNGKey(0), samples, 1, 0.181, 0.05, 0.25, jnp.zeros(2))  # [M, 1, 4]
+
+    def per_candidate(fn):  # fn(positions [N, 3], mask [N], push [1, 4]) over M pushes x R re-samplings
+        return jax.vmap(lambda a: jax.vmap(lambda p, m: fn(p, m, a))(pile, mask))
+
+    def edges(p, m, a):
+        return build_edges(p + sweep_displacement(p, m, a[0], DynamicsConfig.plate_half_width), m)
+
+    def moved(a):
+        return jnp.sum(per_candidate(lambda p, m, a1: dynamics(p, m, a1)[-1])(a))
+
+    edges_fn, dynamics_fn = jax.jit(per_candidate(edges)), jax.jit(jax.value_and_grad(moved))
+    cost_fn = jax.jit(jax.vmap(jax.vmap(jax.value_and_grad(cost))))
+    piles, masks = jnp.broadcast_to(pile, (samples,) + pile.shape), jnp.broadcast_to(mask, (samples,) + mask.shape)
+    stages = dict(edges=lambda: edges_fn(pushes), cost=lambda: cost_fn(piles, masks),
+                  dynamics=lambda: dynamics_fn(pushes))
+    out = {}
+    for name, call in stages.items():
+        jax.block_until_ready(call())  # compile
+        out[f"{name}_ms"] = 1e3 * _median_s(lambda call=call: jax.block_until_ready(call()), repeats, lambda: None)
+    return out
+
+
 def _jax_planner(positions: np.ndarray, samples: int, steps: int, repeats: int) -> tuple[dict, dict]:
     """Time ``planner.plan`` at ``steps`` and at a tenth of it, ms per step from the difference, with the model's
     per-edge network in float32 and in bfloat16 (``mpc.learned_dynamics``'s edge_dtype) -> (float32 section,
@@ -296,6 +343,9 @@ def run(quick: bool) -> dict:
               flush=True)
     j, b, shipped = _jax_planner(positions, sizes["samples"], sizes["steps"], sizes["repeats"])
     result["jax"], result["jax_bf16"] = j, b
+    result["jax_stages"] = _stage_times(positions, sizes["samples"], sizes["repeats"])
+    print("  JAX stages (float32): " + ", ".join(f"{k[:-3]} {v:.2f} ms" for k, v in result["jax_stages"].items()),
+          flush=True)
     sections = [("JAX", j), ("JAX, bfloat16 edges", b)]
     if shipped is not None:
         result["jax_shipped"] = shipped

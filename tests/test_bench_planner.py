@@ -45,6 +45,11 @@ def test_torch_section(result):
     assert result["speedup_shipped"] == pytest.approx(torch_part["ms_per_step"] / result["jax_shipped"]["ms_per_step"])
 
 
+def test_stage_times(result):
+    assert set(result["jax_stages"]) == {"edges_ms", "cost_ms", "dynamics_ms"}
+    assert all(v > 0 for v in result["jax_stages"].values())
+
+
 def test_shipped_section(result):
     """The shipped checkpoint's architecture is timed too (the repository ships one)."""
     shipped = result["jax_shipped"]
