@@ -27,8 +27,8 @@ trained model's numbers; the timed random weights blow a pile metres apart). Spe
 per step (``speedup``, and ``speedup_bf16`` for the bfloat16 section). When a checkpoint is shipped, the
 ``jax_shipped`` section times the planner in float32 with it (its architecture may differ from the reference's, e.g.
 push-frame inputs) and ``speedup_shipped`` is its ratio. ``jax_stages`` splits a step's time into its stages
-(``_stage_times``). ``run(quick=True)`` uses tiny sizes so it
-finishes in seconds on a CPU; without torch the reference is skipped (noted in the result).
+(``_stage_times``). ``run(quick=True)`` uses tiny sizes so it finishes in seconds on a CPU; without torch the
+reference is skipped (noted in the result).
 """
 
 from __future__ import annotations
@@ -206,6 +206,21 @@ def _quality_model(timed_model):
     return model, f"shipped checkpoint (step {meta.get('step')})"
 
 
+def _timed_model_and_cost():
+    """(model, cost) that the JAX sections time: the GNN with the reference's architecture (random weights) and the
+    task cost c on a disc goal."""
+    from flax import nnx
+
+    from dynres_jax.dynamics import Dynamics, DynamicsConfig
+    from dynres_jax.mpc import goal_cost
+    from dynres_jax.objective import disc_goal, make_goal
+    from dynres_jax.sim.camera import Camera, CameraConfig
+
+    camera = Camera.top_down(CameraConfig())
+    cost = goal_cost(make_goal(disc_goal(camera, GOAL_XY, GOAL_RADIUS), camera), camera)
+    return Dynamics(DynamicsConfig(), rngs=nnx.Rngs(0)), cost
+
+
 def _stage_times(positions: np.ndarray, samples: int, repeats: int) -> dict:
     """Where a planner step's time goes: ms (median of ``repeats`` calls, each stage jitted alone, float32, the
     reference architecture) over the planner's batch of ``samples`` pushes x R re-samplings. edges: the sweep
@@ -214,28 +229,23 @@ def _stage_times(positions: np.ndarray, samples: int, repeats: int) -> dict:
     the pushes. A step also runs the chain rule between them, Adam and the projection."""
     import jax
     import jax.numpy as jnp
-    from flax import nnx
 
-    from dynres_jax.dynamics import Dynamics, DynamicsConfig
     from dynres_jax.graph import build_edges, sweep_displacement
-    from dynres_jax.mpc import goal_cost, learned_dynamics
-    from dynres_jax.objective import disc_goal, make_goal
-    from dynres_jax.planner import sample_actions
-    from dynres_jax.sim.camera import Camera, CameraConfig
+    from dynres_jax.mpc import learned_dynamics
+    from dynres_jax.planner import PlannerConfig, sample_actions
 
-    model = Dynamics(DynamicsConfig(), rngs=nnx.Rngs(0))
-    camera = Camera.top_down(CameraConfig())
-    cost = goal_cost(make_goal(disc_goal(camera, GOAL_XY, GOAL_RADIUS), camera), camera)
+    model, cost = _timed_model_and_cost()
     dynamics = learned_dynamics(model)(PARTICLE_RADIUS)
     pile = jnp.asarray(positions)
     mask = jnp.ones(pile.shape[:2], bool)
-    pushes = sample_actions(jax.random.PRNGKey(0), samples, 1, 0.181, 0.05, 0.25, jnp.zeros(2))  # [M, 1, 4]
+    c = PlannerConfig()
+    pushes = sample_actions(jax.random.PRNGKey(0), samples, 1, c.bound, c.min_length, c.max_length, jnp.zeros(2))
 
     def per_candidate(fn):  # fn(positions [N, 3], mask [N], push [1, 4]) over M pushes x R re-samplings
         return jax.vmap(lambda a: jax.vmap(lambda p, m: fn(p, m, a))(pile, mask))
 
     def edges(p, m, a):
-        return build_edges(p + sweep_displacement(p, m, a[0], DynamicsConfig.plate_half_width), m)
+        return build_edges(p + sweep_displacement(p, m, a[0], model.config.plate_half_width), m)
 
     def moved(a):
         return jnp.sum(per_candidate(lambda p, m, a1: dynamics(p, m, a1)[-1])(a))
@@ -263,17 +273,12 @@ def _jax_planner(positions: np.ndarray, samples: int, steps: int, repeats: int) 
     costs in pixels, the mean over the re-samplings)."""
     import jax
     import jax.numpy as jnp
-    from flax import nnx
 
-    from dynres_jax.dynamics import Dynamics, DynamicsConfig, count_params
-    from dynres_jax.mpc import EDGE_DTYPES, goal_cost, learned_dynamics
-    from dynres_jax.objective import disc_goal, make_goal
+    from dynres_jax.dynamics import count_params
+    from dynres_jax.mpc import EDGE_DTYPES, learned_dynamics
     from dynres_jax.planner import PlannerConfig, plan
-    from dynres_jax.sim.camera import Camera, CameraConfig
 
-    model = Dynamics(DynamicsConfig(), rngs=nnx.Rngs(0))
-    camera = Camera.top_down(CameraConfig())
-    cost = goal_cost(make_goal(disc_goal(camera, GOAL_XY, GOAL_RADIUS), camera), camera)
+    model, cost = _timed_model_and_cost()
     resamples = positions.shape[0]
     config = PlannerConfig(samples=samples, resamples=resamples)
     pile, mask = jax.device_put(positions), jax.device_put(np.ones(positions.shape[:2], bool))

@@ -135,7 +135,7 @@ def test_pair_table_equals_per_edge_codes(config, edge_dtype):
     pushes = np.concatenate([rng.uniform(-0.06, 0.0, (6, 2)), rng.uniform(0.0, 0.06, (6, 2))], 1).astype(np.float32)
     code = resolution_code(0.01)
 
-    def run(actions, pair_table):  # actions [6, T, 4] -> mean final x of the valid particles per sequence
+    def run(actions, pair_table):  # actions [6, T, 4] -> (final positions, summed x of the valid particles) per push
         final = jax.vmap(lambda a: rollout(graphdef, state, positions, mask, a, code, edge_dtype=edge_dtype,
                                            pair_table=pair_table)[-1])(actions)
         return final, jnp.sum(jnp.where(mask[:, None], final, 0.0)[..., 0], axis=-1)
