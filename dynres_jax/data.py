@@ -418,6 +418,23 @@ def load_shards(data_dir: str, split: str = "all", val_every: int = 10) -> Datas
     return Dataset(**cat, camera=camera)
 
 
+def without_kinds(dataset: Dataset, kinds) -> Dataset:
+    """The episodes of ``dataset`` with no piece of any of ``kinds`` (names from KIND_NAMES): a data set on which a
+    model never sees those kinds, to measure how it does on them. ValueError for an unknown name or when nothing is
+    left."""
+    unknown = [k for k in kinds if k not in KIND_NAMES]
+    if unknown:
+        raise ValueError(f"unknown piece kind(s) {unknown}; known: {', '.join(KIND_NAMES)}")
+    if not kinds:
+        return dataset
+    drop = np.isin(dataset.kind, [KIND_NAMES.index(k) for k in kinds]).any(axis=1)
+    if drop.all():
+        raise ValueError(f"every episode has a piece of {', '.join(kinds)}: nothing is left to train on")
+    keep = ~drop
+    return Dataset(**{f.name: getattr(dataset, f.name)[keep] for f in dataclasses.fields(Dataset) if f.name != "camera"},
+                   camera=dataset.camera)
+
+
 # ---------------------------------------------------------------------------------------------------------------
 # Training targets
 # ---------------------------------------------------------------------------------------------------------------

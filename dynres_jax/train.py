@@ -48,7 +48,9 @@ class TrainConfig:
     (reference 5); lr: Adam learning rate (reference 1e-3), cosine-decayed to ``lr * lr_final`` at ``steps``;
     n_max: particle slots; omega_min: smallest ω drawn; max_points: perception's point cap (``sample_particles``);
     eval_every / ckpt_every: steps between validation and checkpoints; val_batches: validation batches per
-    evaluation; seed: everything random; loss: "mse" (the reference's mean squared error) or "distance" (the mean
+    evaluation; seed: everything random; held_out_kinds: piece kinds (``data.KIND_NAMES``) kept out of training
+    and validation (episodes with any piece of them are dropped), so ``eval_dynamics`` can report the model on kinds
+    it never saw; loss: "mse" (the reference's mean squared error) or "distance" (the mean
     Euclidean error that ``eval_dynamics`` reports; less pulled by the few pieces that end far from any guess);
     model: the GNN's ``DynamicsConfig`` or the CNN's ``CNNDynamicsConfig``."""
 
@@ -65,6 +67,7 @@ class TrainConfig:
     val_batches: int = 4
     seed: int = 0
     loss: str = "mse"
+    held_out_kinds: tuple[str, ...] = ()
     model: DynamicsConfig | CNNDynamicsConfig = field(default_factory=DynamicsConfig)
 
     def __post_init__(self):
@@ -73,6 +76,9 @@ class TrainConfig:
             raise ValueError(f"loss must be one of {', '.join(LOSSES)}, got {self.loss!r}")
         if not 1 <= self.omega_min <= self.n_max:
             raise ValueError(f"omega_min={self.omega_min} must lie in [1, n_max={self.n_max}]")
+        unknown = [k for k in self.held_out_kinds if k not in data.KIND_NAMES]
+        if unknown:
+            raise ValueError(f"held_out_kinds: unknown kind(s) {unknown}; known: {', '.join(data.KIND_NAMES)}")
         if self.steps < 1 or self.batch < 1 or self.horizon < 1:
             raise ValueError("steps, batch and horizon must be positive")
 
@@ -184,7 +190,8 @@ def train(cfg: TrainConfig, data_dir: str, out_dir: str, progress: bool = True,
     """Train (or resume) into ``out_dir``; returns the final metrics. Checkpoints in ``out_dir/ckpt``.
     ``max_minutes``: stop early once this much wall time has passed, after a validation and a checkpoint (run
     again to go on)."""
-    train_set, val_set = data.load_shards(data_dir, "train"), data.load_shards(data_dir, "val")
+    train_set, val_set = (data.without_kinds(data.load_shards(data_dir, split), cfg.held_out_kinds)
+                          for split in ("train", "val"))
     if cfg.horizon > train_set.pushes:
         raise ValueError(f"horizon {cfg.horizon} exceeds the data's {train_set.pushes} pushes per episode")
     os.makedirs(out_dir, exist_ok=True)

@@ -23,7 +23,8 @@ METHODS = ("model", "nothing moves", "sweep heuristic")
 
 
 def errors(graphdef, state, samples: data.Sample, plate_half_width) -> dict:
-    """Mean particle position error (mm) after each push, per method: {method: [horizon]} and per-kind sums."""
+    """Mean particle position error (mm) after each push, per method: {method: [horizon]}; and "per_kind": {kind:
+    {method: one-step error (mm), "particles": how many particle-windows it averages}} over each kind's particles."""
 
     def one(s):
         preds = {"model": rollout(graphdef, state, s.positions[0], s.mask, s.action, resolution_code(s.radius)),
@@ -36,18 +37,33 @@ def errors(graphdef, state, samples: data.Sample, plate_half_width) -> dict:
     valid = np.asarray(samples.mask & (samples.error == 0)[:, None])
     out = {m: (np.asarray(e).sum((0, 2)) / max(valid.sum(), 1) * 1000).tolist() for m, e in per.items()}
     kinds = np.asarray(samples.kind)
-    out["per_kind"] = {data.KIND_NAMES[k]: {m: float(np.asarray(e)[:, 0][valid & (kinds == k)].mean() * 1000)
-                                            for m, e in per.items()}
+    out["per_kind"] = {data.KIND_NAMES[k]: {**{m: float(np.asarray(e)[:, 0][valid & (kinds == k)].mean() * 1000)
+                                               for m, e in per.items()},
+                                            "particles": int((valid & (kinds == k)).sum())}
                        for k in np.unique(kinds[valid])}
     return out
 
 
 def table(result: dict) -> str:
+    """Markdown: errors per ω and method, then one-step errors per piece kind, kinds held out of training marked."""
     h = result["horizon"]
     lines = [f"| ω | {' | '.join(f'{m}: 1 step / {h} steps (mm)' for m in METHODS)} |",
              "|---:|" + "---:|" * len(METHODS)]
     for omega, r in result["omegas"].items():
         lines.append(f"| {omega} | " + " | ".join(f"{r[m][0]:.2f} / {r[m][-1]:.2f}" for m in METHODS) + " |")
+    held_out = set(result.get("held_out_kinds", ()))
+    lines += ["", "One step, per piece kind (all ω together):", "",
+              f"| kind | {' | '.join(METHODS)} | model / heuristic |", "|---|" + "---:|" * (len(METHODS) + 1)]
+    kinds = {}
+    for r in result["omegas"].values():
+        for kind, e in r["per_kind"].items():
+            kinds.setdefault(kind, []).append(e)
+    for kind, per_omega in kinds.items():
+        weights = np.array([e["particles"] for e in per_omega], float)
+        mean = {m: float(np.average([e[m] for e in per_omega], weights=weights)) for m in METHODS}
+        name = f"{kind} (held out)" if kind in held_out else kind
+        lines.append(f"| {name} | " + " | ".join(f"{mean[m]:.2f}" for m in METHODS) +
+                     f" | {mean['model'] / mean['sweep heuristic']:.2f} |")
     return "\n".join(lines)
 
 
@@ -93,7 +109,8 @@ def main(argv=None):
                                                              max_points=tcfg["max_points"]), in_axes=(0, None, 0)))
     keys = jax.random.split(jax.random.PRNGKey(args.seed), args.windows)
     hw = meta["dynamics"]["plate_half_width"]
-    result = {"horizon": tcfg["horizon"], "windows": args.windows, "step": meta.get("step"), "omegas": {}}
+    result = {"horizon": tcfg["horizon"], "windows": args.windows, "step": meta.get("step"),
+              "held_out_kinds": list(tcfg.get("held_out_kinds", ())), "omegas": {}}
     for omega in args.omegas:
         result["omegas"][str(omega)] = errors(graphdef, state, make(windows, omega, keys), hw)
     os.makedirs(args.out, exist_ok=True)

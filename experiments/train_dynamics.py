@@ -30,11 +30,13 @@ def main(argv=None):
     parser.add_argument("--out", required=True, help="run folder: ckpt/, metrics.jsonl, curves.png")
     defaults = TrainConfig()
     for f in dataclasses.fields(TrainConfig):
-        if f.name != "model":
+        if f.name not in ("model", "held_out_kinds"):
             value = getattr(defaults, f.name)
             kind = int if f.name == "max_points" else type(value)
             parser.add_argument("--" + f.name.replace("_", "-"), type=kind, default=value,
                                 help=f"TrainConfig.{f.name} (default {value})")
+    parser.add_argument("--held-out-kinds", nargs="+", default=(), metavar="KIND",
+                        help="TrainConfig.held_out_kinds: piece kinds never trained on (eval_dynamics reports them)")
     parser.add_argument("--model", default="gnn", choices=list(MODEL_CLASSES), help="gnn (PropNet) or cnn (baseline)")
     parser.add_argument("--hidden", type=int, default=None, help=f"gnn: width (default {DynamicsConfig.hidden})")
     parser.add_argument("--propagation-steps", type=int, default=None,
@@ -55,6 +57,7 @@ def main(argv=None):
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     args = parser.parse_args(argv)
     fields = {f.name: getattr(args, f.name) for f in dataclasses.fields(TrainConfig) if f.name != "model"}
+    fields["held_out_kinds"] = tuple(args.held_out_kinds)
     wrong = [name for name in (CNN_ONLY if args.model == "gnn" else GNN_ONLY) if getattr(args, name) is not None]
     if wrong:
         parser.error(f"--{', --'.join(n.replace('_', '-') for n in wrong)} do not apply to --model {args.model}")

@@ -328,6 +328,20 @@ def test_load_pads_shards_with_fewer_pieces(generated, tmp_path):
     sample = data.make_sample(jax.tree.map(lambda x: x[0], win), 3, jax.random.PRNGKey(0), d.camera, N_MAX)
     assert int(sample.error) == 0 and np.all(np.asarray(sample.kind)[:3] == data.KIND_NAMES.index("almond"))
 
+    # Holding a kind out keeps exactly the episodes with no piece of it (an episode loop as the reference).
+    for held, kept in ((("almond",), "coffee"), (("coffee",), "almond"), ((), None)):
+        rest = data.without_kinds(d, held)
+        want = [e for e in range(len(d)) if not any(data.KIND_NAMES[k] in held for k in d.kind[e] if k >= 0)]
+        np.testing.assert_array_equal(rest.episode, d.episode[want])
+        np.testing.assert_array_equal(rest.pos, d.pos[want])
+        np.testing.assert_array_equal(rest.action, d.action[want])
+        if kept:
+            assert {data.KIND_NAMES[k] for k in np.unique(rest.kind[rest.piece_mask])} == {kept}
+    with pytest.raises(ValueError, match="nothing is left"):
+        data.without_kinds(d, ("coffee", "almond"))
+    with pytest.raises(ValueError, match="unknown piece kind"):
+        data.without_kinds(d, ("pebble",))
+
 
 # ----------------------------------------------------------------------------------------------------------------
 # Bad input

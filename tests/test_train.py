@@ -68,11 +68,29 @@ def test_eval_reports_every_method_and_resolution(run, shards, tmp_path):
     assert (tmp_path / "eval.md").read_text().startswith("| ω |")
 
 
+def test_eval_table_marks_held_out_kinds_and_weighs_omegas_by_particles():
+    """The per-kind rows average the ω's one-step errors weighted by their particle counts (by hand here)."""
+    per_method = {m: [1.0, 2.0] for m in eval_dynamics.METHODS}
+    result = {"horizon": 2, "held_out_kinds": ["candy"], "omegas": {
+        "10": {**per_method, "per_kind": {"candy": {"model": 2.0, "nothing moves": 9.0, "sweep heuristic": 4.0,
+                                                    "particles": 10},
+                                          "coffee": {"model": 1.0, "nothing moves": 9.0, "sweep heuristic": 2.0,
+                                                     "particles": 5}}},
+        "50": {**per_method, "per_kind": {"candy": {"model": 5.0, "nothing moves": 9.0, "sweep heuristic": 4.0,
+                                                    "particles": 30}}}}}
+    rows = {line.split(" | ")[0].lstrip("| "): line for line in eval_dynamics.table(result).splitlines()}
+    model, heuristic = (2.0 * 10 + 5.0 * 30) / 40, 4.0
+    assert rows["candy (held out)"] == f"| candy (held out) | {model:.2f} | 9.00 | 4.00 | {model / heuristic:.2f} |"
+    assert rows["coffee"] == "| coffee | 1.00 | 9.00 | 2.00 | 0.50 |"
+
+
 def test_bad_config_names_the_problem():
     with pytest.raises(ValueError, match="omega_min"):
         TrainConfig(omega_min=0)
     with pytest.raises(ValueError, match="loss must be one of"):
         TrainConfig(loss="huber")
+    with pytest.raises(ValueError, match="held_out_kinds: unknown kind"):
+        TrainConfig(held_out_kinds=("pebble",))
 
 
 def test_rollout_errors_equal_a_loop_over_samples_and_particles(shards):
