@@ -430,9 +430,8 @@ def without_kinds(dataset: Dataset, kinds) -> Dataset:
     drop = np.isin(dataset.kind, [KIND_NAMES.index(k) for k in kinds]).any(axis=1)
     if drop.all():
         raise ValueError(f"every episode has a piece of {', '.join(kinds)}: nothing is left to train on")
-    keep = ~drop
-    return Dataset(**{f.name: getattr(dataset, f.name)[keep] for f in dataclasses.fields(Dataset) if f.name != "camera"},
-                   camera=dataset.camera)
+    per_episode = [f.name for f in dataclasses.fields(Dataset) if f.name != "camera"]
+    return Dataset(**{name: getattr(dataset, name)[~drop] for name in per_episode}, camera=dataset.camera)
 
 
 # ---------------------------------------------------------------------------------------------------------------
