@@ -70,6 +70,13 @@ from dynres_jax.sim.env import PileEnv
 from dynres_jax.sim.pool import WorldPool, process_pool
 
 KIND_NAMES = tuple(KINDS)  # global kind index used by Dataset.kind and Sample.kind
+
+
+def check_kind_names(kinds, field: str) -> None:
+    """A ValueError naming ``field`` and the entries of ``kinds`` that are not piece kinds (KIND_NAMES)."""
+    unknown = [k for k in kinds if k not in KIND_NAMES]
+    if unknown:
+        raise ValueError(f"{field}: unknown piece kind(s) {unknown}; known: {', '.join(KIND_NAMES)}")
 LAYOUTS = ("blob", "two_blobs", "spread")
 SHARD_GLOB = "shard_*.npz"
 ZIP_DATE = (1980, 1, 1, 0, 0, 0)
@@ -116,8 +123,9 @@ class DataConfig:
             value = getattr(self, name)
             if not isinstance(value, int | np.integer) or value < 1:
                 raise ValueError(f"DataConfig.{name} must be a positive int, got {value!r}")
-        if not self.kinds or any(k not in KINDS for k in self.kinds):
-            raise ValueError(f"DataConfig.kinds must be non-empty names from {KIND_NAMES}, got {self.kinds}")
+        if not self.kinds:
+            raise ValueError("DataConfig.kinds must name at least one piece kind")
+        check_kind_names(self.kinds, "DataConfig.kinds")
         if len(self.pieces) != 2 or not 1 <= self.pieces[0] <= self.pieces[1]:
             raise ValueError(f"DataConfig.pieces must be (min, max) with 1 <= min <= max, got {self.pieces}")
         if not self.layouts or any(lay not in LAYOUTS for lay in self.layouts):
@@ -422,9 +430,7 @@ def without_kinds(dataset: Dataset, kinds) -> Dataset:
     """The episodes of ``dataset`` with no piece of any of ``kinds`` (names from KIND_NAMES): a data set on which a
     model never sees those kinds, to measure how it does on them. ValueError for an unknown name or when nothing is
     left."""
-    unknown = [k for k in kinds if k not in KIND_NAMES]
-    if unknown:
-        raise ValueError(f"unknown piece kind(s) {unknown}; known: {', '.join(KIND_NAMES)}")
+    check_kind_names(kinds, "kinds")
     if not kinds:
         return dataset
     drop = np.isin(dataset.kind, [KIND_NAMES.index(k) for k in kinds]).any(axis=1)

@@ -76,9 +76,7 @@ class TrainConfig:
             raise ValueError(f"loss must be one of {', '.join(LOSSES)}, got {self.loss!r}")
         if not 1 <= self.omega_min <= self.n_max:
             raise ValueError(f"omega_min={self.omega_min} must lie in [1, n_max={self.n_max}]")
-        unknown = [k for k in self.held_out_kinds if k not in data.KIND_NAMES]
-        if unknown:
-            raise ValueError(f"held_out_kinds: unknown kind(s) {unknown}; known: {', '.join(data.KIND_NAMES)}")
+        data.check_kind_names(self.held_out_kinds, "held_out_kinds")
         if self.steps < 1 or self.batch < 1 or self.horizon < 1:
             raise ValueError("steps, batch and horizon must be positive")
 

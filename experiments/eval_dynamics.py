@@ -51,7 +51,7 @@ def table(result: dict) -> str:
              "|---:|" + "---:|" * len(METHODS)]
     for omega, r in result["omegas"].items():
         lines.append(f"| {omega} | " + " | ".join(f"{r[m][0]:.2f} / {r[m][-1]:.2f}" for m in METHODS) + " |")
-    held_out = set(result.get("held_out_kinds", ()))
+    held_out = set(result["held_out_kinds"])
     lines += ["", "One step, per piece kind (all ω together):", "",
               f"| kind | {' | '.join(METHODS)} | model / heuristic |", "|---|" + "---:|" * (len(METHODS) + 1)]
     kinds = {}

@@ -89,7 +89,7 @@ def test_bad_config_names_the_problem():
         TrainConfig(omega_min=0)
     with pytest.raises(ValueError, match="loss must be one of"):
         TrainConfig(loss="huber")
-    with pytest.raises(ValueError, match="held_out_kinds: unknown kind"):
+    with pytest.raises(ValueError, match="held_out_kinds: unknown piece kind"):
         TrainConfig(held_out_kinds=("pebble",))
 
 
