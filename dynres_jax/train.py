@@ -183,6 +183,36 @@ def _trim_metrics(path: str, last_step: int) -> None:
     files.write_text(path, "".join(keep))
 
 
+class _Speed:
+    """Training samples/s without compilation, validation and checkpoints: the clock starts when the first step
+    (which compiles) is done and stops between ``pause`` and ``resume``."""
+
+    def __init__(self, batch: int):
+        self.batch, self.samples, self.seconds, self.since, self.started = batch, 0, 0.0, None, False
+
+    def stepped(self, params) -> None:
+        if self.started:
+            self.samples += self.batch
+        else:
+            jax.block_until_ready(params)
+            self.started, self.since = True, time.perf_counter()
+
+    def pause(self, params) -> None:
+        """Stop the clock once the queued steps are done (they count as training)."""
+        jax.block_until_ready(params)
+        if self.since is not None:
+            self.seconds += time.perf_counter() - self.since
+            self.since = None
+
+    def resume(self) -> None:
+        if self.started:
+            self.since = time.perf_counter()
+
+    def samples_per_s(self) -> float | None:
+        """Samples per second of training so far; None before any timed step."""
+        return self.samples / self.seconds if self.samples and self.seconds > 0 else None
+
+
 def train(cfg: TrainConfig, data_dir: str, out_dir: str, progress: bool = True,
           max_minutes: float | None = None) -> dict:
     """Train (or resume) into ``out_dir``; returns the final metrics. Checkpoints in ``out_dir/ckpt``.
@@ -212,26 +242,31 @@ def train(cfg: TrainConfig, data_dir: str, out_dir: str, progress: bool = True,
     key = jax.random.PRNGKey(cfg.seed)
     last = {}
     bar = tqdm(range(start, cfg.steps), initial=start, total=cfg.steps, desc="train", disable=not progress)
-    t0, samples = time.perf_counter(), 0
+    t0 = time.perf_counter()
+    speed = _Speed(cfg.batch)
     for i in bar:
         rng = np.random.default_rng([cfg.seed, i])  # a step's batch depends on (seed, step) only: resumable
         params, opt_state, errors = step_fn(params, opt_state, *_batch(train_set, rng, cfg, jax.random.fold_in(key, i)))
-        samples += cfg.batch
+        speed.stepped(params)
         done = i + 1
         out_of_time = max_minutes is not None and time.perf_counter() - t0 > 60 * max_minutes
         if done % cfg.eval_every == 0 or done == cfg.steps or out_of_time:
+            speed.pause(params)
             val = [eval_fn(params, *_batch(val_set, np.random.default_rng([cfg.seed, VAL_STREAM, b]), cfg,
                                            jax.random.fold_in(key, VAL_STREAM + b)))
                    for b in range(cfg.val_batches)]
             val = {name: float(np.mean([v[name] for v in val])) for name in LOSSES}
             last = dict(step=done, horizon=cfg.horizon, train_rmse_mm=float(np.sqrt(errors["mse"])) * 1000,
                         val_rmse_mm=float(np.sqrt(val["mse"])) * 1000, val_distance_mm=val["distance"] * 1000,
-                        samples_per_s=samples / (time.perf_counter() - t0))
+                        samples_per_s=speed.samples_per_s())
             with open(metrics_path, "a") as f:
                 f.write(json.dumps(last) + "\n")
             bar.set_postfix(train=f"{last['train_rmse_mm']:.2f}mm", val=f"{last['val_rmse_mm']:.2f}mm")
+            speed.resume()
         if done % cfg.ckpt_every == 0 or done == cfg.steps or out_of_time:
+            speed.pause(params)
             ckpt.save(ckpt_dir, done, {"module": params, "opt": opt_state}, card(cfg, step=done))
+            speed.resume()
         if out_of_time:
             break
     if os.path.exists(metrics_path):

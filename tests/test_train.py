@@ -2,6 +2,7 @@
 
 import dataclasses
 import json
+import time
 
 import jax
 import numpy as np
@@ -10,7 +11,7 @@ from flax import nnx
 
 from dynres_jax import ckpt, data
 from dynres_jax.dynamics import Dynamics, DynamicsConfig, resolution_code
-from dynres_jax.train import DISTANCE_EPS, TrainConfig, _batch, build_model, make_step, rollout_errors, train
+from dynres_jax.train import DISTANCE_EPS, TrainConfig, _batch, _Speed, build_model, make_step, rollout_errors, train
 from experiments import eval_dynamics
 
 CFG = TrainConfig(steps=4, batch=4, horizon=2, n_max=8, max_points=256, eval_every=2, ckpt_every=2, val_batches=1,
@@ -36,6 +37,23 @@ def test_training_writes_metrics_curves_and_checkpoints(run):
     assert [r["step"] for r in rows] == [2, 4] and np.isfinite(last["val_rmse_mm"])
     assert ckpt.latest_step(f"{out}/ckpt") == 4
     assert (f"{out}/curves.png") and open(f"{out}/curves.png", "rb").read(4) == b"\x89PNG"
+
+
+def test_speed_leaves_out_the_first_step_and_pauses(monkeypatch):
+    """samples/s on a fake clock: the first step (compilation) and the paused spans (validation, checkpoints) are
+    not training time."""
+    clock = iter([10.0, 13.0, 50.0, 54.0])  # start after step 1; pause; resume; pause
+    monkeypatch.setattr(time, "perf_counter", lambda: next(clock))
+    speed, params = _Speed(batch=8), np.zeros(2)
+    speed.stepped(params)
+    assert speed.samples_per_s() is None
+    speed.stepped(params)
+    speed.stepped(params)
+    speed.pause(params)  # 2 timed steps in 3 s
+    speed.resume()
+    speed.stepped(params)
+    speed.pause(params)  # 1 more in 4 s
+    assert speed.samples_per_s() == pytest.approx(3 * 8 / 7)
 
 
 def test_resumed_run_equals_an_uninterrupted_one(shards, run, tmp_path):

@@ -1,0 +1,198 @@
+"""How well can any model predict a push? The physics noise floor of the dynamics target (issue 4).
+
+A pushed pile is chaotic: two worlds whose pieces differ by far less than a camera pixel end a push in visibly
+different places. This measures that spread and turns it into a lower bound on the one-step error that any
+predictor working from the observation can reach, next to the sweep heuristic and a trained model on the same pushes.
+
+For scenes drawn as the training data's (``DataConfig`` defaults, C MuJoCo), each world is reset and pushed
+``--pushes`` times along random pushes (``PileEnv.sample_push``). Before each push, particles are sampled from the
+observation at every ω (perception h) and attached to their pieces; then, besides the push itself, two twins of
+the world are pushed the same way, each with every piece's centre moved by independent Gaussian noise of standard
+deviation σ in x and y (``--sigmas``, millimetres; sub-pixel: a pixel is about 3 mm). Reported per ω, over all
+particles, in mm:
+
+- the sweep heuristic's and the model's error against the unperturbed outcome (as ``eval_dynamics`` measures it);
+- the twins' distance E|X1 - X2| between where the same particle ends in the two twins;
+- the floor E|X1 - X2| / 2. For outcomes X1, X2 drawn independently given the observation and any prediction p made
+  from it, |X1 - X2| <= |X1 - p| + |X2 - p|, so E|X - p| >= E|X1 - X2| / 2: no predictor beats the floor on worlds
+  known only to within σ.
+
+Each scene's sums are written atomically to ``OUT/scenes/``; a killed run resumes where it stopped.
+
+    python -m experiments.noise_floor --out runs/noise_floor --scenes 48 --worlds 8
+"""
+
+from __future__ import annotations
+
+import argparse
+import glob
+import json
+import os
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import nnx
+from tqdm import tqdm
+
+from dynres_jax import ckpt, data, files
+from dynres_jax.dynamics import predict, resolution_code
+from dynres_jax.graph import sweep_rollout
+from dynres_jax.perception import sample_particles
+from dynres_jax.sim.env import State
+from dynres_jax.sim.pool import WorldPool, process_pool
+from dynres_jax.train import build_model
+
+SHIPPED = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "checkpoints", "dynamics")
+
+
+def perturb(states: State, qpos_adr, sigma: float, key) -> State:
+    """Batched states [B] with every piece's centre moved by N(0, σ²) in x and y: qpos_adr [N] (each piece's first
+    qpos), sigma in metres. Velocities and poses are kept (poses are recomputed by the next push)."""
+    adr = jnp.asarray(qpos_adr)
+    noise = sigma * jax.random.normal(key, (states.qpos.shape[0], len(adr), 2))
+    qpos = states.qpos.at[:, adr].add(noise[..., 0]).at[:, adr + 1].add(noise[..., 1])
+    return states._replace(qpos=qpos)
+
+
+def distance_sum(a, b, valid) -> float:
+    """Sum over valid entries of |a - b| (metres): a, b [..., 3], valid [...] bool."""
+    d = np.linalg.norm(np.asarray(a, np.float64) - np.asarray(b, np.float64), axis=-1)
+    return float(d[np.asarray(valid, bool)].sum())
+
+
+def _tracks(worlds: WorldPool, n_max: int, max_points):
+    """Jitted (obs [B], pos [B, N, 3], mat [B, N, 3, 3], omega, keys [B]) -> (particles [B, n_max, 3], mask, piece
+    index, local offsets, radius [B]): perception h at ω, each particle attached to its piece."""
+    piece_mask = jnp.ones(worlds.scene.n_pieces, bool)
+
+    def one(obs, pos, mat, omega, key):
+        p = sample_particles(obs, worlds.camera, omega, key, n_max, max_points=max_points)
+        index, local = data.attach_particles(p.positions, p.mask, pos, mat, obs.piece, worlds.camera, piece_mask)
+        return p.positions, p.mask & (p.error == 0), index, local, p.radius
+
+    return jax.jit(jax.vmap(one, in_axes=(0, 0, 0, None, 0)))
+
+
+@jax.jit
+@jax.vmap
+def trajectories(index, local, pos, mat):
+    """Particles carried with their pieces to one new pose: index [B, n], local [B, n, 3], pos [B, N, 3], mat [B, N, 3,
+    3] -> [B, n, 3] (``data.particle_trajectory`` per world)."""
+    return data.particle_trajectory(index, local, pos[None], mat[None])[0]
+
+
+def measure_scene(config: data.DataConfig, scene: int, args, model, pool) -> dict:
+    """One scene's sums: {ω: {quantity: metres summed over particles, "particles": count}}."""
+    sim = data.shard_sim_config(config, scene)
+    worlds = WorldPool(sim, pool)
+    graphdef, params, n_max, max_points, plate_half_width = model
+    tracks = _tracks(worlds, n_max, max_points)
+    step = jax.jit(jax.vmap(lambda x, m, a, c: predict(graphdef, params, x, m, a, c)))
+    sweep = jax.jit(jax.vmap(lambda x, m, a: sweep_rollout(x, m, a[None], plate_half_width)[0]))
+    key = jax.random.fold_in(jax.random.PRNGKey(args.seed), scene)
+    k_reset, key = jax.random.split(key)
+    states = worlds.reset(jax.random.split(k_reset, args.worlds))
+    sums = {str(o): {} for o in args.omegas}
+    for _ in range(args.pushes):
+        k_push, k_twin, k_h, key = jax.random.split(key, 4)
+        actions = jax.vmap(worlds.env.sample_push)(jax.random.split(k_push, args.worlds), states.pos)
+        outcome = worlds.push(states, actions)
+        twins = {}
+        for i, sigma in enumerate(args.sigmas):
+            k1, k2 = jax.random.split(jax.random.fold_in(k_twin, i))
+            twins[sigma] = [worlds.push(perturb(states, worlds.scene.qpos_adr, sigma / 1000, k), actions)
+                            for k in (k1, k2)]
+        ok = ~np.asarray(outcome.broken) & ~np.any([np.asarray(t.broken) for pair in twins.values() for t in pair], 0)
+        for omega in args.omegas:
+            x, mask, index, local, radius = tracks(states.obs, states.pos, states.mat, omega,
+                                                   jax.random.split(k_h, args.worlds))
+            valid = np.asarray(mask) & ok[:, None]
+            truth = trajectories(index, local, outcome.pos, outcome.mat)
+            pairs = [("sweep heuristic", sweep(x, mask, actions), truth),
+                     ("model", step(x, mask, actions, resolution_code(radius)), truth)]
+            pairs += [(f"twins {sigma:g} mm", trajectories(index, local, t1.pos, t1.mat),
+                       trajectories(index, local, t2.pos, t2.mat)) for sigma, (t1, t2) in twins.items()]
+            row = sums[str(omega)]
+            for name, a, b in pairs:
+                row[name] = row.get(name, 0.0) + distance_sum(a, b, valid)
+            row["particles"] = row.get("particles", 0) + int(valid.sum())
+        states = outcome
+    return {"scene": scene, "kinds": list(sim.scene.kinds), "pieces": list(sim.scene.pieces), "sums": sums}
+
+
+def summarise(results: list[dict], omegas, sigmas) -> dict:
+    """Scene sums -> {ω: {quantity: mean over particles in mm}}, plus each σ's floor (half the twins' distance)."""
+    out = {}
+    for omega in omegas:
+        rows = [r["sums"][str(omega)] for r in results]
+        n = max(sum(r["particles"] for r in rows), 1)
+        mean = {k: sum(r[k] for r in rows) / n * 1000 for k in rows[0] if k != "particles"}
+        for sigma in sigmas:
+            mean[f"floor {sigma:g} mm"] = mean[f"twins {sigma:g} mm"] / 2
+        out[str(omega)] = dict(mean, particles=n)
+    return out
+
+
+def table(summary: dict, sigmas) -> str:
+    """Markdown: per ω the heuristic, the model, and per σ the twins' distance and the floor (mm), with ratios."""
+    head = ["sweep heuristic", "model"] + [f"{q} {s:g} mm" for s in sigmas for q in ("twins", "floor")]
+    lines = [f"| ω | {' | '.join(head)} | model / heuristic | floor / heuristic (σ = {sigmas[0]:g} mm) |",
+             "|---:|" + "---:|" * (len(head) + 2)]
+    for omega, m in summary.items():
+        lines.append(f"| {omega} | " + " | ".join(f"{m[k]:.2f}" for k in head) +
+                     f" | {m['model'] / m['sweep heuristic']:.2f} |"
+                     f" {m[f'floor {sigmas[0]:g} mm'] / m['sweep heuristic']:.2f} |")
+    return "\n".join(lines)
+
+
+def main(argv=None) -> dict:
+    parser = argparse.ArgumentParser(prog="python -m experiments.noise_floor", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--out", required=True)
+    parser.add_argument("--ckpt", default=SHIPPED, help="dynamics checkpoint (default: the shipped one)")
+    parser.add_argument("--scenes", type=int, default=48, help="scenes, drawn as the training data's shards")
+    parser.add_argument("--worlds", type=int, default=8, help="worlds per scene")
+    parser.add_argument("--pushes", type=int, default=2, help="pushes per world")
+    parser.add_argument("--sigmas", type=float, nargs="+", default=[0.01, 1.0],
+                        help="twins' perturbation, standard deviation per axis (mm)")
+    parser.add_argument("--omegas", type=int, nargs="+", default=[10, 25, 50, 100])
+    parser.add_argument("--seed", type=int, default=1, help="scene seed (training data uses 0)")
+    parser.add_argument("--workers", type=int, default=None, help="C MuJoCo processes (default: every core)")
+    parser.add_argument("--no-progress", action="store_true")
+    args = parser.parse_args(argv)
+    for name in ("scenes", "worlds", "pushes"):
+        if getattr(args, name) < 1:
+            parser.error(f"--{name} must be at least 1")
+    if any(s < 0 for s in args.sigmas):
+        parser.error(f"--sigmas must be non-negative, got {args.sigmas}")
+    module, meta, _ = ckpt.load_module(args.ckpt, build_model)
+    n_max = meta["train"]["n_max"]
+    if max(args.omegas) > n_max or min(args.omegas) < 1:
+        parser.error(f"--omegas must lie in [1, the model's n_max = {n_max}]")
+    model = (*nnx.split(module), n_max, meta["train"]["max_points"], meta["dynamics"]["plate_half_width"])
+    config = data.DataConfig(seed=args.seed, backend="mujoco")
+    folder = os.path.join(args.out, "scenes")
+    os.makedirs(folder, exist_ok=True)
+    settings = {k: getattr(args, k) for k in ("ckpt", "worlds", "pushes", "sigmas", "omegas", "seed")}
+    settings_path = os.path.join(args.out, "settings.json")
+    if os.path.exists(settings_path) and json.load(open(settings_path)) != settings:
+        parser.error(f"{args.out} holds a run with other settings ({settings_path}); use another --out")
+    files.write_json(settings_path, settings)
+    with process_pool(args.workers) as pool:
+        for scene in tqdm(range(args.scenes), desc="scenes", disable=args.no_progress):
+            path = os.path.join(folder, f"scene_{scene:05d}.json")
+            if not os.path.exists(path):
+                files.write_json(path, measure_scene(config, scene, args, model, pool))
+    results = [json.load(open(p)) for p in sorted(glob.glob(os.path.join(folder, "scene_*.json")))[:args.scenes]]
+    summary = {"scenes": len(results), "settings": settings,
+               "omegas": summarise(results, args.omegas, args.sigmas)}
+    files.write_json(os.path.join(args.out, "floor.json"), summary)
+    text = table(summary["omegas"], args.sigmas)
+    files.write_text(os.path.join(args.out, "floor.md"), text)
+    print(text)
+    return summary
+
+
+if __name__ == "__main__":
+    main()

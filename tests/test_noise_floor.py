@@ -1,0 +1,69 @@
+"""The physics noise floor experiment: twin worlds, perturbation, sums and the floor (CPU, a tiny scene)."""
+
+import argparse
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from flax import nnx
+
+from dynres_jax import data
+from dynres_jax.dynamics import Dynamics, DynamicsConfig
+from dynres_jax.sim.env import State
+from experiments import noise_floor
+
+CONFIG = data.quick_config(backend="mujoco")
+
+
+def _args(**kw):
+    base = dict(worlds=2, pushes=2, sigmas=[0.0, 1.0], omegas=[3, 6], seed=0)
+    return argparse.Namespace(**{**base, **kw})
+
+
+@pytest.fixture(scope="module")
+def model():
+    module = Dynamics(DynamicsConfig(hidden=8, residual=True), rngs=nnx.Rngs(0))
+    return (*nnx.split(module), 8, 256, module.config.plate_half_width)
+
+
+@pytest.fixture(scope="module")
+def scene(model):
+    return noise_floor.measure_scene(CONFIG, 0, _args(), model, pool=None)
+
+
+def test_perturb_moves_only_piece_centres_in_the_plane():
+    qpos = jnp.arange(2 * 15, dtype=jnp.float32).reshape(2, 15)
+    states = State(qpos, jnp.zeros((2, 12)), None, None, None, jnp.zeros(2, bool))
+    adr = np.array([0, 7])
+    moved = np.asarray(noise_floor.perturb(states, adr, 0.5, jax.random.PRNGKey(0)).qpos) - np.asarray(qpos)
+    changed = np.zeros(15, bool)
+    changed[[0, 1, 7, 8]] = True
+    assert np.all(moved[:, changed] != 0) and np.all(moved[:, ~changed] == 0)
+    assert np.all(np.asarray(noise_floor.perturb(states, adr, 0.0, jax.random.PRNGKey(0)).qpos) == qpos)
+
+
+def test_distance_sum_equals_a_loop():
+    rng = np.random.default_rng(0)
+    a, b, valid = rng.normal(size=(3, 5, 3)), rng.normal(size=(3, 5, 3)), rng.uniform(size=(3, 5)) < 0.6
+    loop = sum(np.sqrt(sum((a[i, j, c] - b[i, j, c]) ** 2 for c in range(3)))
+               for i in range(3) for j in range(5) if valid[i, j])
+    assert noise_floor.distance_sum(a, b, valid) == pytest.approx(loop)
+
+
+def test_unperturbed_twins_agree_and_perturbed_ones_do_not(scene):
+    """C MuJoCo is deterministic: twins with σ = 0 end the push exactly alike, so their distance is 0; σ = 1 mm
+    moves the outcome."""
+    for omega in ("3", "6"):
+        s = scene["sums"][omega]
+        assert s["particles"] > 0 and s["twins 0 mm"] == 0.0 and s["twins 1 mm"] > 0.0
+        assert s["sweep heuristic"] > 0.0 and s["model"] > 0.0
+
+
+def test_summary_is_sums_over_particles_and_the_floor_half_the_twins():
+    scenes = [{"sums": {"5": {"model": 0.2, "sweep heuristic": 0.4, "twins 1 mm": 0.1, "particles": 10}}},
+              {"sums": {"5": {"model": 0.1, "sweep heuristic": 0.2, "twins 1 mm": 0.3, "particles": 30}}}]
+    got = noise_floor.summarise(scenes, [5], [1.0])["5"]
+    assert got["model"] == pytest.approx(0.3 / 40 * 1000) and got["sweep heuristic"] == pytest.approx(0.6 / 40 * 1000)
+    assert got["floor 1 mm"] == pytest.approx(0.4 / 40 * 1000 / 2) and got["particles"] == 40
+    assert "| 5 |" in noise_floor.table({"5": got}, [1.0])
