@@ -27,10 +27,12 @@ variant() {  # NAME FLAGS: probe the speed, train to the time box, evaluate, pac
   # shellcheck disable=SC2086
   python -m experiments.train_dynamics --data "$DATA" --out "$run" --batch "$BATCH" $flags --steps "$PROBE" \
     --eval-every "$PROBE" --quiet
-  steps=$(python - "$run/metrics.jsonl" "$TRAIN_MINUTES" "$BATCH" "$PROBE" <<'PY'
+  steps=$(python - "$run" "$TRAIN_MINUTES" "$PROBE" <<'PY'
 import json, sys
-rate = json.loads(open(sys.argv[1]).readlines()[-1])["samples_per_s"]
-print(int(0.85 * rate * 60 * float(sys.argv[2]) / int(sys.argv[3])) // 100 * 100 + int(sys.argv[4]))
+from dynres_jax import ckpt
+rate = json.loads(open(sys.argv[1] + "/metrics.jsonl").readlines()[-1])["samples_per_s"]
+batch = ckpt.load_meta(sys.argv[1] + "/ckpt")["train"]["batch"]  # the variant's own --batch, if it has one
+print(int(0.85 * rate * 60 * float(sys.argv[2]) / batch) // 100 * 100 + int(sys.argv[3]))
 PY
 )
   echo "$name: training to $steps steps"
