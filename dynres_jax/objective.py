@@ -272,8 +272,11 @@ def _cost(pixels, valid, goal: Goal):
     Q, P = goal.samples.shape[0], pixels.shape[0]
     active = goal.sample_mask & (jnp.arange(Q) < SAMPLES_PER_PARTICLE * omega)
 
-    def nearest(q):  # the root of the smallest squared distance: one square root per goal sample, not per pair
-        return _root(jnp.min(jnp.where(valid, jnp.sum(jnp.square(pixels - q), axis=-1), jnp.inf)))
+    def nearest(q):
+        """|p - q| to the nearest valid p: found without gradients, then differentiated through that one p (so the
+        backward pass touches one point per goal sample, not all P; a tie sends the gradient to the lower index)."""
+        d2 = jnp.where(valid, jnp.sum(jnp.square(jax.lax.stop_gradient(pixels) - q), axis=-1), jnp.inf)
+        return _root(jnp.sum(jnp.square(pixels[jnp.argmin(d2)] - q)))
 
     nearest_distance = jax.lax.map(nearest, goal.samples, batch_size=max(1, min(Q, MAX_PAIRS // P)))
     coverage_term = jnp.sum(jnp.where(active, nearest_distance, 0.0))

@@ -96,14 +96,21 @@ def measure_scene(config: data.DataConfig, scene: int, args, model, pool) -> dic
     sums = {str(o): {} for o in args.omegas}
     for _ in range(args.pushes):
         k_push, k_twin, k_h, key = jax.random.split(key, 4)
-        actions = jax.vmap(worlds.env.sample_push)(jax.random.split(k_push, args.worlds), states.pos)
+        actions = np.array(jax.vmap(worlds.env.sample_push)(jax.random.split(k_push, args.worlds), states.pos))
+        # A push clipped at the bin's wall may come out shorter than the simulator takes (data generation makes it a
+        # no-op): such a world is pushed the shortest allowed way towards the bin's centre instead and left out of
+        # this push's sums.
+        short = np.hypot(*(actions[:, 2:] - actions[:, :2]).T) < sim.push.min_length
+        actions[short, 2:] = actions[short, :2]
+        actions[short, 2] -= np.where(actions[short, 0] > 0, 1, -1) * sim.push.min_length
         outcome = worlds.push(states, actions)
         twins = {}
         for i, sigma in enumerate(args.sigmas):
             k1, k2 = jax.random.split(jax.random.fold_in(k_twin, i))
             twins[sigma] = [worlds.push(perturb(states, worlds.scene.qpos_adr, sigma / 1000, k), actions)
                             for k in (k1, k2)]
-        ok = ~np.asarray(outcome.broken) & ~np.any([np.asarray(t.broken) for pair in twins.values() for t in pair], 0)
+        broken = [outcome.broken] + [t.broken for pair in twins.values() for t in pair]
+        ok = ~short & ~np.any(np.asarray(broken), 0)
         for omega in args.omegas:
             x, mask, index, local, radius = tracks(states.obs, states.pos, states.mat, omega,
                                                    jax.random.split(k_h, args.worlds))

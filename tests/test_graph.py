@@ -8,10 +8,12 @@ import pytest
 from dynres_jax.graph import (
     SWEEP_END_OFFSET,
     SWEEP_FALLOFF,
+    _nearest_by_matrix,
     _smallest_by_argmin,
     _smallest_by_top_k,
     build_edges,
     k_smallest,
+    knn_kernel,
     sweep_displacement,
 )
 
@@ -78,6 +80,27 @@ def test_k_smallest_matches_a_stable_sort(smallest):
     np.testing.assert_array_equal(np.asarray(index)[finite], expect[finite])
     np.testing.assert_array_equal(np.asarray(values), np.take_along_axis(d2, expect, -1))
     assert np.asarray(index).dtype == np.int32
+
+
+@pytest.mark.parametrize("n, k, rows", [(60, 10, 8), (100, 10, 16), (17, 3, 128)])
+def test_knn_kernel_equals_the_distance_matrix_way(n, k, rows):
+    """The GPU's kNN kernel (run in Pallas' interpreter) picks what k_smallest picks on the masked distance matrix,
+    vmapped over scenes: one with a duplicated particle (a tie), one with every particle masked, row tiles of
+    several sizes; gradients through it are zero, not an error."""
+    scenes = [random_particles(s, n) for s in range(3)]
+    positions, mask = (np.stack(x) for x in zip(*scenes, strict=True))
+    positions[0, 3] = positions[0, 5]
+    mask[0, [3, 5]] = True
+    mask[1] = False
+    got = jax.vmap(lambda p, m: knn_kernel(p, m, k, interpret=True, rows=rows))(positions, mask)
+    want = jax.vmap(lambda p, m: _nearest_by_matrix(p, m, k))(positions, mask)
+    finite = np.isfinite(np.asarray(want[0]))
+    np.testing.assert_allclose(np.asarray(got[0]), np.asarray(want[0]), rtol=1e-6)
+    np.testing.assert_array_equal(np.asarray(got[1])[finite], np.asarray(want[1])[finite])
+    grad = jax.grad(lambda p: jnp.sum(knn_kernel(p, mask[2], k, interpret=True)[0]))(jnp.asarray(positions[2]))
+    assert np.all(np.asarray(grad) == 0)
+    with pytest.raises(ValueError, match="knn_kernel takes"):
+        knn_kernel(np.zeros((200, 3), np.float32), np.ones(200, bool), k)
 
 
 def test_edges_padding_inert():
