@@ -17,7 +17,8 @@ particles, in mm:
   from it, |X1 - X2| <= |X1 - p| + |X2 - p|, so E|X - p| >= E|X1 - X2| / 2: no predictor beats the floor on worlds
   known only to within σ.
 
-Each scene's sums are written atomically to ``OUT/scenes/``; a killed run resumes where it stopped.
+Each scene's sums are written atomically to ``OUT/scenes/``; a killed run resumes where it stopped. At the end:
+``OUT/floor.json``, ``floor.md`` (the table) and ``floor.png`` (the floor against σ, as a share of the heuristic).
 
     python -m experiments.noise_floor --out runs/noise_floor --scenes 48 --worlds 8
 """
@@ -153,6 +154,27 @@ def table(summary: dict, sigmas) -> str:
     return "\n".join(lines)
 
 
+def plot(summary: dict, sigmas, path: str) -> None:
+    """Floor against σ (log axis) per ω, beside the heuristic, the model and the issue's target (half the
+    heuristic), all as a share of the heuristic's error."""
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(6, 3.8))
+    ax = fig.subplots()
+    for i, (omega, m) in enumerate(summary.items()):
+        colour = f"C{i}"
+        ax.plot(sigmas, [m[f"floor {s:g} mm"] / m["sweep heuristic"] for s in sigmas], "o-", color=colour,
+                label=f"floor, ω = {omega}")
+        ax.axhline(m["model"] / m["sweep heuristic"], color=colour, ls=":", lw=1)
+    ax.axhline(0.5, color="k", ls="--", lw=1, label="target: half the heuristic")
+    ax.plot([], [], "k:", lw=1, label="model (dotted, per ω)")
+    ax.set(xscale="log", xlabel="σ of the twins' piece moves (mm)", ylabel="one-step error / sweep heuristic's",
+           ylim=(0, 1), title="The floor no predictor beats")
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+
+
 def main(argv=None) -> dict:
     parser = argparse.ArgumentParser(prog="python -m experiments.noise_floor", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -195,6 +217,7 @@ def main(argv=None) -> dict:
     summary = {"scenes": len(results), "settings": settings,
                "omegas": summarise(results, args.omegas, args.sigmas)}
     files.write_json(os.path.join(args.out, "floor.json"), summary)
+    plot(summary["omegas"], args.sigmas, os.path.join(args.out, "floor.png"))
     text = table(summary["omegas"], args.sigmas)
     files.write_text(os.path.join(args.out, "floor.md"), text)
     print(text)

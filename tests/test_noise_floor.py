@@ -67,3 +67,9 @@ def test_summary_is_sums_over_particles_and_the_floor_half_the_twins():
     assert got["model"] == pytest.approx(0.3 / 40 * 1000) and got["sweep heuristic"] == pytest.approx(0.6 / 40 * 1000)
     assert got["floor 1 mm"] == pytest.approx(0.4 / 40 * 1000 / 2) and got["particles"] == 40
     assert "| 5 |" in noise_floor.table({"5": got}, [1.0])
+
+
+def test_plot_writes_a_png(tmp_path):
+    summary = {"5": {"model": 3.0, "sweep heuristic": 4.0, "floor 0.1 mm": 0.5, "floor 1 mm": 1.0}}
+    noise_floor.plot(summary, [0.1, 1.0], str(tmp_path / "floor.png"))
+    assert (tmp_path / "floor.png").read_bytes()[:4] == b"\x89PNG"
