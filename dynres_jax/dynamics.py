@@ -21,7 +21,10 @@ attribute (1), resolution code (1)] -> MLP 7 -> H -> H; edge p_r - p_s in the pu
 is rotated back to the world frame. ``world_edges`` (with ``push_frame``): the edges' p_r - p_s stay in the world
 frame, so edge codes do not depend on the push (the shipped model: as accurate, and the planner builds its edge codes
 once per plan, "Pair table" below). ``residual``: the network predicts a correction added to the sweep's guess; the
-predictor's last layer starts at zero, so an untrained model is exactly the sweep heuristic.
+predictor's last layer starts at zero, so an untrained model is exactly the sweep heuristic. ``bin_position``: the
+node input also holds where the particle is in the bin, before and after the sweep's guess (x, y of each over
+``bin_half_width``: 4 more inputs), so the model can learn where the walls stop a pile; the push frame alone does not
+say where the walls are.
 
 Defaults (H = 64, 3 steps) give 38,403 parameters, the reference's "about 38k".
 
@@ -88,7 +91,8 @@ EDGE_IN = 6  # receiver attribute (1), sender attribute (1), p_r - p_s (3), reso
 @dataclass(frozen=True)
 class DynamicsConfig:
     """Static configuration of f. hidden: width H of every layer; steps: propagation steps; plate_half_width (m):
-    the sweep heuristic's plate; edge_radius (m) and k: the graph; length_scale (m): the model's unit of length."""
+    the sweep heuristic's plate; edge_radius (m) and k: the graph; length_scale (m): the model's unit of length;
+    bin_half_width (m): the unit of the ``bin_position`` inputs. The flags: module docstring, "Options"."""
 
     hidden: int = 64
     steps: int = 3
@@ -99,6 +103,8 @@ class DynamicsConfig:
     push_frame: bool = False
     residual: bool = False
     world_edges: bool = False
+    bin_position: bool = False
+    bin_half_width: float = SceneConfig.bin_half_width
 
     @property
     def edges_in_push_frame(self) -> bool:
@@ -150,7 +156,7 @@ class Dynamics(nnx.Module):
     def __init__(self, config: DynamicsConfig = DynamicsConfig(), *, rngs: nnx.Rngs):
         h = config.hidden
         self.config = config
-        node_in = NODE_IN_PUSH_FRAME if config.push_frame else NODE_IN
+        node_in = (NODE_IN_PUSH_FRAME if config.push_frame else NODE_IN) + (4 if config.bin_position else 0)
         self.node_encoder = _mlp((node_in, h, h), rngs, final_relu=True)
         self.edge_encoder = _mlp((EDGE_IN, h, h, h), rngs, final_relu=True)
         self.edge_propagator = nnx.Linear(3 * h + 1, h, rngs=rngs)  # [edge code, receiver, sender, code]
@@ -188,6 +194,8 @@ class Dynamics(nnx.Module):
             node_in = [jnp.where(mask[:, None], x, 0.0) for x in node_in]
         else:
             node_in = [guess / cfg.length_scale]
+        if cfg.bin_position:
+            node_in += [jnp.where(mask[:, None], xy[:, :2] / cfg.bin_half_width, 0.0) for xy in (clean, clean + guess)]
         node_code = self.node_encoder(jnp.concatenate(node_in + [attr, jnp.broadcast_to(code, (n, 1))], axis=-1))
 
         w_e, b_e = self.edge_propagator.kernel[...], self.edge_propagator.bias[...]

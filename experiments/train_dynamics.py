@@ -5,9 +5,9 @@
     python -m experiments.train_dynamics --data data/piles --out runs/cnn_dynamics --model cnn   # the CNN baseline
 
 --model gnn (default): the PropNet GNN (``dynres_jax.dynamics``; --hidden, --propagation-steps, --push-frame,
---residual). --model cnn: the CNN baseline (``dynres_jax.cnn_dynamics``; --grid, --channels, and --no-residual to
-predict whole displacements instead of correcting the sweep heuristic). --loss mse (default) or distance: the
-training loss (``TrainConfig.loss``).
+--world-edges, --bin-position, --residual). --model cnn: the CNN baseline (``dynres_jax.cnn_dynamics``; --grid,
+--channels, and --no-residual to predict whole displacements instead of correcting the sweep heuristic). --loss mse
+(default) or distance: the training loss (``TrainConfig.loss``).
 """
 
 from __future__ import annotations
@@ -20,7 +20,7 @@ from dynres_jax.cnn_dynamics import CNNDynamicsConfig
 from dynres_jax.dynamics import DynamicsConfig
 from dynres_jax.train import MODEL_CLASSES, TrainConfig, train
 
-GNN_ONLY, CNN_ONLY = ("hidden", "propagation_steps", "push_frame", "world_edges"), ("grid", "channels")
+GNN_ONLY, CNN_ONLY = ("hidden", "propagation_steps", "push_frame", "world_edges", "bin_position"), ("grid", "channels")
 
 
 def main(argv=None):
@@ -46,6 +46,8 @@ def main(argv=None):
     parser.add_argument("--world-edges", action="store_true", default=None,
                         help="gnn: DynamicsConfig.world_edges (with --push-frame: edges stay in the world frame, so "
                              "the planner builds their codes once per plan)")
+    parser.add_argument("--bin-position", action="store_true", default=None,
+                        help="gnn: DynamicsConfig.bin_position (node inputs say where in the bin a particle is)")
     parser.add_argument("--residual", action=argparse.BooleanOptionalAction, default=None,
                         help="correct the sweep heuristic (default: off for gnn, on for cnn)")
     parser.add_argument("--grid", type=int, default=None,

@@ -338,3 +338,23 @@ def test_residual_model_starts_as_the_sweep_heuristic_and_push_frame_is_rotation
     rot = jnp.array([[c, -s, 0], [s, c, 0], [0, 0, 1]], jnp.float32)
     turned = trained(p @ rot.T, mask, jnp.concatenate([a[:2] @ rot[:2, :2].T, a[2:] @ rot[:2, :2].T]), 0.3)
     np.testing.assert_allclose(np.asarray(turned), np.asarray(trained(p, mask, a, 0.3) @ rot.T), atol=2e-5)
+
+
+def test_bin_position_breaks_translation_invariance_only_where_asked():
+    """Push-frame nodes with world-frame edges see only relative positions: moving the scene and the push together
+    moves the prediction with them. bin_position adds where the particles are in the bin, so the same move changes
+    what the model predicts (it can learn the walls); padding stays inert either way."""
+    p = jax.random.uniform(jax.random.PRNGKey(2), (20, 3), minval=-0.05, maxval=0.05).at[:, 2].set(0.005)
+    mask = jnp.ones(20, bool).at[-3:].set(False)
+    a = jnp.array([-0.06, 0.0, 0.06, 0.02])
+    shift = jnp.array([0.08, -0.05, 0.0])
+    for bin_position in (False, True):
+        model = Dynamics(DynamicsConfig(hidden=H, push_frame=True, world_edges=True, bin_position=bin_position),
+                         rngs=nnx.Rngs(3))
+        moved = model(p + shift, mask, a + jnp.tile(shift[:2], 2), 0.3) - shift
+        here = model(p, mask, a, 0.3)
+        gap = float(jnp.abs(moved - here)[mask].max())
+        assert (gap > 1e-3) if bin_position else (gap < 1e-5), (bin_position, gap)
+        garbage = p.at[~mask].set(1e4)
+        np.testing.assert_array_equal(np.asarray(model(garbage, mask, a, 0.3))[np.asarray(mask)],
+                                      np.asarray(here)[np.asarray(mask)])
