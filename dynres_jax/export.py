@@ -56,6 +56,7 @@ from jax import export as jax_export
 
 from dynres_jax import files
 from dynres_jax.config import CameraConfig, SceneConfig
+from dynres_jax.graph import no_gpu_kernels
 from dynres_jax.mpc import goal_cost
 from dynres_jax.objective import Goal
 from dynres_jax.planner import PlannerConfig, plan
@@ -141,7 +142,8 @@ def export_planner(dynamics: Callable, n_max: int, camera: Camera, config: Plann
     specs = [jax.ShapeDtypeStruct(tuple(s["shape"]), np.dtype(s["dtype"]))
              for s in input_specs(n_max, camera, config, goal_samples)]
     fn = jax.jit(planner_step(dynamics, camera, config))
-    return jax_export.export(fn, platforms=None if platforms is None else tuple(platforms))(*specs)
+    with no_gpu_kernels():  # a file must lower for every platform named, on any machine
+        return jax_export.export(fn, platforms=None if platforms is None else tuple(platforms))(*specs)
 
 
 def export_checkpoint(ckpt_dir: str, config: PlannerConfig | None = None, camera: Camera | None = None, *,

@@ -6,11 +6,13 @@ Units are metres; an action is (x_start, y_start, x_end, y_end) of the plate's c
 
 The k nearest neighbours come from the [N, N] distance matrix (``k_smallest``), except on CUDA GPUs for N <= 128,
 where a Pallas (Triton) kernel computes a tile of the matrix in registers and picks from it (``knn_kernel``: the same
-edges, 2.2x faster at the planner's batch); tests run the kernel in Pallas' interpreter.
+edges, 2.2x faster at the planner's batch); tests run the kernel in Pallas' interpreter, and ``no_gpu_kernels``
+leaves it out of traces meant for other machines (``jax.export``).
 """
 
 from __future__ import annotations
 
+import contextlib
 import functools
 
 import jax
@@ -151,15 +153,29 @@ def _nearest_by_matrix(positions, mask, k: int):
     return k_smallest(jnp.where(allowed, d2, jnp.inf), k)
 
 
-def _nearest(positions, mask, k: int):
-    """``_nearest_by_matrix``, by the kNN kernel on CUDA GPUs (up to KNN_KERNEL_MAX_PARTICLES particles)."""
-    if positions.shape[0] > KNN_KERNEL_MAX_PARTICLES:
+_GPU_KERNELS = [True]  # whether traces may use knn_kernel on CUDA; ``no_gpu_kernels`` clears it
+
+
+@contextlib.contextmanager
+def no_gpu_kernels():
+    """Within it, new traces leave the Pallas kNN kernel out (the same edges, from the distance matrix): for
+    ``jax.export``, which lowers for platforms the machine may lack (Pallas lowers for CUDA only on a CUDA machine)."""
+    _GPU_KERNELS.append(False)
+    try:
+        yield
+    finally:
+        _GPU_KERNELS.pop()
+
+
+def _nearest(positions, mask, k: int, kernel: bool):
+    """``_nearest_by_matrix``, by the kNN kernel on CUDA GPUs when ``kernel`` (up to KNN_KERNEL_MAX_PARTICLES
+    particles)."""
+    if not kernel or positions.shape[0] > KNN_KERNEL_MAX_PARTICLES:
         return _nearest_by_matrix(positions, mask, k)
     return jax.lax.platform_dependent(positions, mask, cuda=functools.partial(knn_kernel, k=k),
                                       default=functools.partial(_nearest_by_matrix, k=k))
 
 
-@functools.partial(jax.jit, static_argnames="k")
 def build_edges(positions, mask, radius=R_EDGE, k: int = K_NEIGHBOURS):
     """Radius + kNN edges. positions [N, 3] m (the guessed, swept positions), mask [N] bool, radius m, k static ->
     (neighbours [N, k] int32, edge_mask [N, k] bool).
@@ -168,9 +184,14 @@ def build_edges(positions, mask, radius=R_EDGE, k: int = K_NEIGHBOURS):
     particles. Rows are sorted by distance (nearest first; lowest index on ties); an entry without an edge holds i
     itself, so gathers stay in range. k may exceed N - 1: the extra entries are empty.
     """
+    return _build_edges(positions, mask, radius, k, _GPU_KERNELS[-1])  # the kernel switch is a static argument
+
+
+@functools.partial(jax.jit, static_argnames=("k", "kernel"))
+def _build_edges(positions, mask, radius, k: int, kernel: bool):
     positions = jnp.asarray(positions, jnp.float32)
     n = positions.shape[0]
-    nearest_d2, neighbours = _nearest(positions, mask, min(k, n))
+    nearest_d2, neighbours = _nearest(positions, mask, min(k, n), kernel)
     edge_mask = nearest_d2 < jnp.square(radius)
     neighbours = jnp.where(edge_mask, neighbours, jnp.arange(n)[:, None]).astype(jnp.int32)
     if k > n:
