@@ -122,8 +122,9 @@ def knn_kernel(positions, mask, k: int, *, interpret: bool = False, rows: int = 
     from jax.experimental import pallas as pl
 
     n = positions.shape[0]
-    if n > KNN_KERNEL_MAX_PARTICLES or k > n:
-        raise ValueError(f"knn_kernel takes k <= N <= {KNN_KERNEL_MAX_PARTICLES}, got N = {n}, k = {k}")
+    if n > KNN_KERNEL_MAX_PARTICLES or k > n or rows < 1 or rows & (rows - 1):
+        raise ValueError(f"knn_kernel takes k <= N <= {KNN_KERNEL_MAX_PARTICLES} and rows a power of two, got N = {n}, "
+                         f"k = {k}, rows = {rows}")
     p, slots = max(16, 1 << (n - 1).bit_length()), max(16, 1 << (k - 1).bit_length())  # Triton: powers of two
     rows = min(rows, p)
     pad = lambda x: jnp.pad(x, (0, p - n))  # noqa: E731

@@ -43,8 +43,7 @@ from dynres_jax.perception import sample_particles
 from dynres_jax.sim.env import State
 from dynres_jax.sim.pool import WorldPool, process_pool
 from dynres_jax.train import build_model
-
-SHIPPED = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "checkpoints", "dynamics")
+from experiments.task import DEFAULT_CKPT
 
 
 def perturb(states: State, qpos_adr, sigma: float, key) -> State:
@@ -179,7 +178,7 @@ def main(argv=None) -> dict:
     parser = argparse.ArgumentParser(prog="python -m experiments.noise_floor", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--out", required=True)
-    parser.add_argument("--ckpt", default=SHIPPED, help="dynamics checkpoint (default: the shipped one)")
+    parser.add_argument("--ckpt", default=DEFAULT_CKPT, help="dynamics checkpoint (default: the shipped one)")
     parser.add_argument("--scenes", type=int, default=48, help="scenes, drawn as the training data's shards")
     parser.add_argument("--worlds", type=int, default=8, help="worlds per scene")
     parser.add_argument("--pushes", type=int, default=2, help="pushes per world")
