@@ -70,6 +70,10 @@ from dynres_jax.sim.env import PileEnv
 from dynres_jax.sim.pool import WorldPool, process_pool
 
 KIND_NAMES = tuple(KINDS)  # global kind index used by Dataset.kind and Sample.kind
+LAYOUTS = ("blob", "two_blobs", "spread")
+SHARD_GLOB = "shard_*.npz"
+ZIP_DATE = (1980, 1, 1, 0, 0, 0)
+PER_EPISODE = ("depth", "piece", "pos", "mat", "action", "broken", "episode")  # shard members with an episode axis
 
 
 def check_kind_names(kinds, field: str) -> None:
@@ -77,10 +81,6 @@ def check_kind_names(kinds, field: str) -> None:
     unknown = [k for k in kinds if k not in KIND_NAMES]
     if unknown:
         raise ValueError(f"{field}: unknown piece kind(s) {unknown}; known: {', '.join(KIND_NAMES)}")
-LAYOUTS = ("blob", "two_blobs", "spread")
-SHARD_GLOB = "shard_*.npz"
-ZIP_DATE = (1980, 1, 1, 0, 0, 0)
-PER_EPISODE = ("depth", "piece", "pos", "mat", "action", "broken", "episode")  # shard members with an episode axis
 
 
 @dataclass(frozen=True)

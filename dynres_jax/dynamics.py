@@ -195,7 +195,7 @@ class Dynamics(nnx.Module):
         else:
             node_in = [guess / cfg.length_scale]
         if cfg.bin_position:
-            node_in += [jnp.where(mask[:, None], xy[:, :2] / cfg.bin_half_width, 0.0) for xy in (clean, clean + guess)]
+            node_in += [xy[:, :2] / cfg.bin_half_width for xy in (clean, clean + guess)]  # 0 where masked, as both are
         node_code = self.node_encoder(jnp.concatenate(node_in + [attr, jnp.broadcast_to(code, (n, 1))], axis=-1))
 
         w_e, b_e = self.edge_propagator.kernel[...], self.edge_propagator.bias[...]
