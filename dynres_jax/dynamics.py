@@ -71,6 +71,7 @@ scenes, actions and resolution codes.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import jax
@@ -150,6 +151,46 @@ def _mlp(sizes, rngs, *, final_relu):
     return nnx.Sequential(*layers)
 
 
+def _edge_input(pair, constant, neighbours, node_terms):
+    """The edge propagator's input before its ReLU [N, k, H] in the constant's dtype: c_ij + r_i + s_j, with c_ij
+    row j of the pair table's row i when ``pair`` (constant [N, N, H]), else constant [N, k, H] itself; node_terms
+    [N, 2H] float32 holds the receiver terms r and the sender terms s side by side (one matrix product makes both,
+    and the gather reads s out of it without a copy). The node terms are cast after the broadcast and the gather."""
+    h = node_terms.shape[-1] // 2
+    c = jnp.take_along_axis(constant, neighbours[..., None], axis=1) if pair else constant
+    return c + node_terms[:, None, :h].astype(c.dtype) + node_terms[neighbours][..., h:].astype(c.dtype)
+
+
+@functools.partial(jax.custom_vjp, nondiff_argnums=(0,))
+def _incoming(pair, constant, neighbours, edge_mask, node_terms):
+    """One propagation step's summed edge effects: Σ over i's edges j of ReLU(c_ij + r_i + s_j) -> [N, H] float32
+    (neighbours [N, k], edge_mask [N, k]; ``_edge_input`` for the rest). Its gradient recomputes which edge effects
+    are active instead of storing them, and adds the per-edge gradients up in float32."""
+    return _incoming_fwd(pair, constant, neighbours, edge_mask, node_terms)[0]
+
+
+def _incoming_fwd(pair, constant, neighbours, edge_mask, node_terms):
+    effect = nnx.relu(_edge_input(pair, constant, neighbours, node_terms))
+    incoming = jnp.sum(jnp.where(edge_mask[..., None], effect, 0.0), axis=1, dtype=jnp.float32)
+    return incoming, (constant, neighbours, edge_mask, node_terms)
+
+
+def _incoming_bwd(pair, residuals, grad):
+    constant, neighbours, edge_mask, node_terms = residuals
+    active = edge_mask[..., None] & (_edge_input(pair, constant, neighbours, node_terms) > 0)
+    per_edge = jnp.where(active, grad[:, None, :], 0.0)  # [N, k, H] float32
+    grad_sender = jnp.zeros(grad.shape, jnp.float32).at[neighbours].add(per_edge)  # [N, H] (into [N, 2H]: 3x slower)
+    grad_terms = jnp.concatenate([jnp.sum(per_edge, axis=1), grad_sender], axis=-1)
+    grad_constant = per_edge.astype(constant.dtype)
+    if pair:
+        rows = jnp.arange(neighbours.shape[0])[:, None]
+        grad_constant = jnp.zeros_like(constant).at[rows, neighbours].add(grad_constant)
+    return grad_constant, None, None, grad_terms.astype(node_terms.dtype)
+
+
+_incoming.defvjp(_incoming_fwd, _incoming_bwd)
+
+
 class Dynamics(nnx.Module):
     """f(z, u, ω) as a flax NNX module; see the module docstring for the architecture."""
 
@@ -167,15 +208,15 @@ class Dynamics(nnx.Module):
             last.kernel[...] = jnp.zeros_like(last.kernel[...])
             last.bias[...] = jnp.zeros_like(last.bias[...])
 
-    def __call__(self, positions, mask, action, code, *, edge_dtype=jnp.float32, pair_table=False):
+    def __call__(self, positions, mask, action, code, *, edge_dtype=jnp.float32, pair_table=False, table=None):
         """positions [N, 3] m, mask [N] bool, action [4] m, code [] (``resolution_code``) -> next positions [N, 3] m
         (float32). Masked rows are returned unchanged. edge_dtype: float32 or bfloat16, the per-edge network's
         dtype (module docstring, "Mixed precision"). pair_table: edge codes gathered from a table over all N x N
-        pairs (module docstring, "Pair table"); the same result, for edges not in the push frame only."""
+        pairs (module docstring, "Pair table"); the same result, for edges not in the push frame only. table: that
+        table, already built by ``edge_table`` for these positions, mask, code and edge_dtype (implies pair_table)."""
         cfg, h, dt = self.config, self.config.hidden, jnp.dtype(edge_dtype)
-        if pair_table and cfg.edges_in_push_frame:
-            raise ValueError("pair_table needs edge codes that do not depend on the push: a model with push_frame=True "
-                             "and world_edges=False rotates its edges into the push frame")
+        if pair_table or table is not None:
+            self._check_pair_table()
         positions = jnp.asarray(positions, jnp.float32)
         mask = jnp.asarray(mask, bool)
         code = jnp.asarray(code, jnp.float32)
@@ -198,34 +239,23 @@ class Dynamics(nnx.Module):
             node_in += [xy[:, :2] / cfg.bin_half_width for xy in (clean, clean + guess)]  # 0 where masked, as both are
         node_code = self.node_encoder(jnp.concatenate(node_in + [attr, jnp.broadcast_to(code, (n, 1))], axis=-1))
 
-        w_e, b_e = self.edge_propagator.kernel[...], self.edge_propagator.bias[...]
+        w_e = self.edge_propagator.kernel[...]
         w_n, b_n = self.node_propagator.kernel[...], self.node_propagator.bias[...]
-        edge_encoder = _cast(self.edge_encoder, dt)
-
-        def edge_constant(rel, sender_attr):
-            """rel [..., 3] (p_r - p_s in length units), sender_attr [..., 1] -> the edge propagator's terms that
-            do not change across propagation steps [..., H] dt: edge code, resolution code and bias."""
-            edge_code = edge_encoder(jnp.concatenate(
-                [jnp.broadcast_to(attr[:, None], sender_attr.shape), sender_attr, rel,
-                 jnp.broadcast_to(code, sender_attr.shape)], axis=-1).astype(dt))
-            return edge_code @ w_e[:h].astype(dt) + (code * w_e[3 * h]).astype(dt) + b_e.astype(dt)
-
-        if pair_table:
-            table = edge_constant((clean[:, None, :] - clean[None, :, :]) / cfg.length_scale,
-                                  jnp.broadcast_to(attr[None], (n, n, 1)))  # [N, N, H]: receiver i, sender j
-            edge_const = jnp.take_along_axis(table, neighbours[..., None], axis=1)  # [N, k, H] dt
+        if table is None and pair_table:
+            table = self.edge_table(clean, mask, code, edge_dtype=dt)
+        if table is not None:
+            edge_const = table  # [N, N, H] dt: _incoming gathers each edge's row
         else:
             rel = (clean[:, None, :] - clean[neighbours]) / cfg.length_scale  # [N, k, 3]: receiver i minus sender j
             if cfg.edges_in_push_frame:
                 rel = rel @ frame.T
-            edge_const = edge_constant(rel, attr[neighbours])  # [N, k, H] dt
+            edge_const = self._edge_constant(rel, attr, attr[neighbours], code, dt)  # [N, k, H] dt
         node_const = node_code @ w_n[:h] + code * w_n[2 * h] + b_n  # [N, H]
+        w_terms = jnp.concatenate([w_e[h:2 * h], w_e[2 * h:3 * h]], axis=1)  # [H, 2H]: receiver | sender
         effect = node_code
         for _ in range(cfg.steps):
-            receiver, sender = effect @ w_e[h:2 * h], effect @ w_e[2 * h:3 * h]  # [N, H] each
-            # Cast after the broadcast and the gather, so their gradients add up in float32.
-            edge_effect = nnx.relu(edge_const + receiver[:, None, :].astype(dt) + sender[neighbours].astype(dt))
-            incoming = jnp.sum(jnp.where(edge_mask[..., None], edge_effect, 0.0), axis=1, dtype=jnp.float32)  # [N, H]
+            node_terms = effect @ w_terms  # [N, 2H]: receiver and sender terms
+            incoming = _incoming(table is not None, edge_const, neighbours, edge_mask, node_terms)  # [N, H]
             effect = nnx.relu(node_const + incoming @ w_n[h:2 * h] + effect)
 
         displacement = self.predictor(effect) * cfg.length_scale
@@ -235,31 +265,68 @@ class Dynamics(nnx.Module):
             displacement = displacement + guess  # the network predicts the correction to the sweep heuristic
         return jnp.where(mask[:, None], positions + displacement, positions)
 
+    def _check_pair_table(self):
+        if self.config.edges_in_push_frame:
+            raise ValueError("pair_table needs edge codes that do not depend on the push: a model with push_frame=True "
+                             "and world_edges=False rotates its edges into the push frame")
+
+    def _edge_constant(self, rel, receiver_attr, sender_attr, code, dt):
+        """rel [R, S, 3] (p_r - p_s in length units), receiver_attr [R, 1], sender_attr [R, S, 1], code [] -> the
+        edge propagator's terms that do not change across propagation steps [R, S, H] in dt: the edge code, the
+        resolution code's and the bias."""
+        h, w_e, b_e = self.config.hidden, self.edge_propagator.kernel[...], self.edge_propagator.bias[...]
+        edge_code = _cast(self.edge_encoder, dt)(jnp.concatenate(
+            [jnp.broadcast_to(receiver_attr[:, None], sender_attr.shape), sender_attr, rel,
+             jnp.broadcast_to(code, sender_attr.shape)], axis=-1).astype(dt))
+        return edge_code @ w_e[:h].astype(dt) + (code * w_e[3 * h]).astype(dt) + b_e.astype(dt)
+
+    def edge_table(self, positions, mask, code, *, edge_dtype=jnp.float32):
+        """The pair table (module docstring, "Pair table"): positions [N, 3] m, mask [N], code [] -> the edge
+        propagator's constant terms for every pair, [N, N, H] in edge_dtype (receiver i, sender j). Edges in the
+        push frame have no table (ValueError)."""
+        cfg, dt = self.config, jnp.dtype(edge_dtype)
+        self._check_pair_table()
+        mask = jnp.asarray(mask, bool)
+        clean = jnp.where(mask[:, None], jnp.asarray(positions, jnp.float32), 0.0)
+        attr = mask.astype(jnp.float32)[:, None]
+        rel = (clean[:, None, :] - clean[None, :, :]) / cfg.length_scale
+        return self._edge_constant(rel, attr, jnp.broadcast_to(attr[None], rel.shape[:2] + (1,)),
+                                   jnp.asarray(code, jnp.float32), dt)
+
     def rollout(self, positions, mask, actions, code, *, edge_dtype=jnp.float32):
         """positions [N, 3] m, mask [N], actions [T, 4] m, code [] -> positions after each action [T, N, 3] m."""
         return rollout(*nnx.split(self), positions, mask, actions, code, edge_dtype=edge_dtype)
 
 
-def predict(graphdef, state, positions, mask, action, code, *, edge_dtype=jnp.float32, pair_table=False):
+def predict(graphdef, state, positions, mask, action, code, *, edge_dtype=jnp.float32, pair_table=False, table=None):
     """Pure f of ``nnx.split(model)``: positions [N, 3] m, mask [N], action [4] m, code [] -> next positions [N, 3].
-    edge_dtype, pair_table: ``Dynamics.__call__``'s; only the GNN takes them, so the defaults call any model of that
-    signature."""
+    edge_dtype, pair_table, table: ``Dynamics.__call__``'s; only the GNN takes them, so the defaults call any model
+    of that signature."""
     model = nnx.merge(graphdef, state)
     options = {}
     if jnp.dtype(edge_dtype) != jnp.float32:
         options["edge_dtype"] = edge_dtype
     if pair_table:
         options["pair_table"] = True
+    if table is not None:
+        options["table"] = table
     return model(positions, mask, action, code, **options)
 
 
-def rollout(graphdef, state, positions, mask, actions, code, *, edge_dtype=jnp.float32, pair_table=False):
+def edge_table(graphdef, state, positions, mask, code, *, edge_dtype=jnp.float32):
+    """Pure ``Dynamics.edge_table`` of ``nnx.split(model)``: positions [N, 3] m, mask [N], code [] -> [N, N, H]."""
+    return nnx.merge(graphdef, state).edge_table(positions, mask, code, edge_dtype=edge_dtype)
+
+
+def rollout(graphdef, state, positions, mask, actions, code, *, edge_dtype=jnp.float32, pair_table=False,
+            table=None):
     """Pure multi-step f (``lax.scan``): positions [N, 3] m, mask [N], actions [T, 4] m, code [] -> [T, N, 3] m,
     the positions after each action (the initial positions not included). edge_dtype: as in ``predict``;
     pair_table: the first push's edge codes from a table (``Dynamics.__call__``), the only push whose particles do
-    not depend on the actions."""
-    if pair_table:
-        first = predict(graphdef, state, positions, mask, actions[0], code, edge_dtype=edge_dtype, pair_table=True)
+    not depend on the actions; table: that table, already built (``edge_table``; implies pair_table)."""
+    if pair_table or table is not None:
+        first = predict(graphdef, state, positions, mask, actions[0], code, edge_dtype=edge_dtype, pair_table=True,
+                        table=table)
         rest = rollout(graphdef, state, first, mask, actions[1:], code, edge_dtype=edge_dtype)
         return jnp.concatenate([first[None], rest], axis=0)
 

@@ -21,7 +21,7 @@ import numpy as np
 from flax import nnx
 from jax.tree_util import Partial
 
-from dynres_jax.dynamics import Dynamics, resolution_code, rollout
+from dynres_jax.dynamics import Dynamics, edge_table, resolution_code, rollout
 from dynres_jax.graph import sweep_rollout
 from dynres_jax.objective import Goal, distribution_distance, inside_share, objective
 from dynres_jax.perception import sample_particles
@@ -52,15 +52,26 @@ class MPCConfig:
 EDGE_DTYPES = ("float32", "bfloat16")  # ``learned_dynamics``'s choices for the GNN's per-edge network
 
 
-def _learned(graphdef, state, code, positions, mask, actions, *, edge_dtype, pair_table):
-    return rollout(graphdef, state, positions, mask, actions, code, edge_dtype=edge_dtype, pair_table=pair_table)
+@dataclass(frozen=True)
+class _Learned:
+    """A trained model's rollout as a planner dynamics, called with ``(graphdef, state, code)`` bound by
+    ``learned_dynamics``' Partial. With ``pair_table`` it offers the planner's per-plan hook ``prepare``: the pair
+    table of each re-sampling, built once per plan instead of once per Adam step (XLA does not hoist it out of the
+    step loop itself: the table is larger than its inputs). Instances compare by value, so equal options share one
+    compiled plan."""
 
+    edge_dtype: str
+    pair_table: bool
 
-@functools.cache
-def _learned_in(edge_dtype: str, pair_table: bool):
-    """One function object per option pair: the planner's compile cache keys a dynamics by its function's
-    identity."""
-    return functools.partial(_learned, edge_dtype=edge_dtype, pair_table=pair_table)
+    def __call__(self, graphdef, state, code, positions, mask, actions, context=None):
+        return rollout(graphdef, state, positions, mask, actions, code, edge_dtype=self.edge_dtype,
+                       pair_table=self.pair_table, table=context)
+
+    def prepare(self, graphdef, state, code, positions, mask):
+        """positions [N, 3], mask [N] -> the context of ``__call__``: the pair table [N, N, H], or None."""
+        if not self.pair_table:
+            return None
+        return edge_table(graphdef, state, positions, mask, code, edge_dtype=self.edge_dtype)
 
 
 def _sweep(plate_half_width, positions, mask, actions):
@@ -80,7 +91,7 @@ def learned_dynamics(model: Dynamics, edge_dtype: str = "float32"):
         raise ValueError(f"edge_dtype={edge_dtype!r} needs the graph network (Dynamics), got {type(model).__name__}")
     pair_table = isinstance(model, Dynamics) and not model.config.edges_in_push_frame
     graphdef, state = nnx.split(model)
-    return lambda radius: Partial(_learned_in(edge_dtype, pair_table), graphdef, state, resolution_code(radius))
+    return lambda radius: Partial(_Learned(edge_dtype, pair_table), graphdef, state, resolution_code(radius))
 
 
 def sweep_dynamics(plate_half_width: float):

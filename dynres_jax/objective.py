@@ -264,6 +264,18 @@ def _root(d2):
     return jnp.where(positive, jnp.sqrt(jnp.where(positive, d2, 1.0)), 0.0)
 
 
+def _argmin_nonnegative(values):
+    """The index of the smallest of values [P] (each >= 0 or +inf) by one plain integer min: a non-negative float's
+    bits order as an int32 does, so each value's bits with the lowest ceil(log2 P) replaced by its index reduce to
+    the index of the smallest (on a GPU several times faster than ``argmin``'s two-operand reduction). Values within
+    2^ceil(log2 P) units in the last place of the smallest (a relative 1.5e-5 for P = 100) count as ties, which go
+    to the lower index."""
+    p = values.shape[-1]
+    low = (1 << max(1, (p - 1).bit_length())) - 1
+    packed = (jax.lax.bitcast_convert_type(values.astype(jnp.float32), jnp.int32) & ~low) | jnp.arange(p)
+    return jnp.min(packed, axis=-1) & low
+
+
 def _cost(pixels, valid, goal: Goal):
     """The formula of c on points at pixel coordinates pixels [P, 2] with valid [P] -> scalar (pixels)."""
     omega = jnp.sum(valid)
@@ -275,8 +287,9 @@ def _cost(pixels, valid, goal: Goal):
     def nearest(q):
         """|p - q| to the nearest valid p: found without gradients, then differentiated through that one p (so the
         backward pass touches one point per goal sample, not all P; a tie sends the gradient to the lower index)."""
-        d2 = jnp.where(valid, jnp.sum(jnp.square(jax.lax.stop_gradient(pixels) - q), axis=-1), jnp.inf)
-        return _root(jnp.sum(jnp.square(pixels[jnp.argmin(d2)] - q)))
+        u, v = jax.lax.stop_gradient(pixels).T  # [P] each: a sum of two squares, not a reduction over an axis of 2
+        d2 = jnp.where(valid, jnp.square(u - q[0]) + jnp.square(v - q[1]), jnp.inf)
+        return _root(jnp.sum(jnp.square(pixels[_argmin_nonnegative(d2)] - q)))
 
     nearest_distance = jax.lax.map(nearest, goal.samples, batch_size=max(1, min(Q, MAX_PAIRS // P)))
     coverage_term = jnp.sum(jnp.where(active, nearest_distance, 0.0))

@@ -11,7 +11,16 @@ import optax
 import pytest
 from flax import nnx
 
-from dynres_jax.dynamics import R_REF, Dynamics, DynamicsConfig, count_params, predict, resolution_code, rollout
+from dynres_jax.dynamics import (
+    R_REF,
+    Dynamics,
+    DynamicsConfig,
+    count_params,
+    edge_table,
+    predict,
+    resolution_code,
+    rollout,
+)
 from dynres_jax.graph import build_edges, sweep_displacement
 
 N, N_VALID, H = 24, 18, 16
@@ -127,7 +136,8 @@ WORLD_EDGES = DynamicsConfig(hidden=H, push_frame=True, world_edges=True, residu
 def test_pair_table_equals_per_edge_codes(config, edge_dtype):
     """Edge codes gathered from the pair table give the per-edge predictions (to float rounding) and gradients
     w.r.t. the push, vmapped over pushes from one padded pile as the planner calls it; a two-push rollout uses the
-    table for the first push only. A model whose edges are in the push frame refuses the table by name."""
+    table for the first push only; a table built beforehand (``edge_table``, as the planner's per-plan hook) gives the
+    same as one built in the call. A model whose edges are in the push frame refuses the table by name."""
     graphdef, state = perturbed(config)
     positions, mask = scene(5, n=40, n_valid=30, half_width=0.05)
     positions[~mask] = np.nan  # padding stays inert with the table too
@@ -135,21 +145,53 @@ def test_pair_table_equals_per_edge_codes(config, edge_dtype):
     pushes = np.concatenate([rng.uniform(-0.06, 0.0, (6, 2)), rng.uniform(0.0, 0.06, (6, 2))], 1).astype(np.float32)
     code = resolution_code(0.01)
 
-    def run(actions, pair_table):  # actions [6, T, 4] -> (final positions, summed x of the valid particles) per push
+    def run(actions, pair_table, prebuilt=False):  # actions [6, T, 4] -> (final positions, summed x of valid ones)
+        table = edge_table(graphdef, state, positions, mask, code, edge_dtype=edge_dtype) if prebuilt else None
         final = jax.vmap(lambda a: rollout(graphdef, state, positions, mask, a, code, edge_dtype=edge_dtype,
-                                           pair_table=pair_table)[-1])(actions)
+                                           pair_table=pair_table, table=table)[-1])(actions)
         return final, jnp.sum(jnp.where(mask[:, None], final, 0.0)[..., 0], axis=-1)
 
     for horizon in (1, 2):
         actions = np.stack([pushes] + [pushes[::-1]] * (horizon - 1), 1)
-        (a, _), (b, _) = (jax.jit(run, static_argnums=1)(actions, t) for t in (False, True))
+        (a, _), (b, _), (c, _) = (jax.jit(run, static_argnums=(1, 2))(actions, *t)
+                                  for t in ((False, False), (True, False), (False, True)))
         np.testing.assert_allclose(b, a, atol=2e-6 if edge_dtype == "float32" else 1e-4)
+        np.testing.assert_allclose(c, b, atol=1e-7)
         assert np.all(np.isnan(np.asarray(b)[:, ~mask])) and np.all(np.isfinite(np.asarray(b)[:, mask]))
     grads = [jax.jit(jax.grad(lambda x, t=t: run(x, t)[1].sum()))(pushes[:, None]) for t in (False, True)]
     np.testing.assert_allclose(grads[1], grads[0], rtol=1e-3, atol=1e-5)
     with pytest.raises(ValueError, match="pair_table needs edge codes that do not depend on the push"):
         Dynamics(DynamicsConfig(hidden=H, push_frame=True), rngs=nnx.Rngs(0))(positions, mask, PUSH, code,
                                                                               pair_table=True)
+    with pytest.raises(ValueError, match="pair_table needs edge codes that do not depend on the push"):
+        Dynamics(DynamicsConfig(hidden=H, push_frame=True), rngs=nnx.Rngs(0)).edge_table(positions, mask, code)
+
+
+@pytest.mark.parametrize("pair", [False, True])
+def test_incoming_gradient_equals_autodiff_of_the_formula(pair):
+    """The propagation step's hand-written gradient (``_incoming``: active edges recomputed, not stored) equals
+    autodiff of the plain formula Σ_j edge_mask_ij ReLU(c_ij + r_i + s_nij) in every input (r and s side by side),
+    with repeated and masked neighbours, on the per-edge constants and on the pair table."""
+    from dynres_jax.dynamics import _incoming
+
+    rng = np.random.default_rng(1)
+    n, k, h = 12, 4, 8
+    neighbours = jnp.asarray(rng.integers(0, n, (n, k)), jnp.int32)
+    edge_mask = jnp.asarray(rng.uniform(size=(n, k)) < 0.7)
+    constant = jnp.asarray(rng.normal(size=(n, n if pair else k, h)), jnp.float32)
+    node_terms = jnp.asarray(rng.normal(size=(n, 2 * h)), jnp.float32)  # receiver | sender
+    grad = jnp.asarray(rng.normal(size=(n, h)), jnp.float32)
+
+    def formula(c, terms):
+        c = jnp.take_along_axis(c, neighbours[..., None], axis=1) if pair else c
+        r, s = terms[:, :h], terms[:, h:]
+        return jnp.sum(jnp.where(edge_mask[..., None], jax.nn.relu(c + r[:, None] + s[neighbours]), 0.0), axis=1)
+
+    ours = lambda c, terms: _incoming(pair, c, neighbours, edge_mask, terms)  # noqa: E731
+    (a, vjp_a), (b, vjp_b) = (jax.vjp(f, constant, node_terms) for f in (formula, ours))
+    np.testing.assert_allclose(b, a, rtol=1e-6, atol=1e-6)
+    for x, y in zip(vjp_b(grad), vjp_a(grad), strict=True):
+        np.testing.assert_allclose(x, y, rtol=1e-5, atol=1e-6)
 
 
 def test_float32_edges_are_the_default_path(split):

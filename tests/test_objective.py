@@ -257,6 +257,19 @@ def test_coverage_chunking_changes_nothing(disc, monkeypatch):
     np.testing.assert_allclose(float(obj._cost(pixels, valid, disc)), whole, rtol=1e-6)
 
 
+@pytest.mark.parametrize("p", [1, 2, 100, 128, 129, 1000])
+def test_argmin_by_packed_min_matches_numpy(p):
+    """The coverage term's argmin (float bits with the index in the low bits, one int min): the smallest value's
+    index where it is clear, the lower index on exact ties, index 0 when every value is +inf (as np.argmin)."""
+    rng = np.random.default_rng(p)
+    for _ in range(20):
+        values = rng.uniform(0.0, 100.0, p).astype(np.float32) ** 2
+        values[rng.uniform(size=p) < 0.3] = np.inf
+        values[rng.integers(p, size=2)] = values.min()  # an exact tie, possibly with itself
+        assert int(obj._argmin_nonnegative(jnp.asarray(values))) == int(np.argmin(values))
+    assert int(obj._argmin_nonnegative(jnp.full(p, jnp.inf))) == 0
+
+
 def test_inside_share_matches_numpy_count(scene):
     env, state = scene
     cam = env.camera

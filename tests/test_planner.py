@@ -157,6 +157,21 @@ def test_real_dynamics_end_to_end():
     assert np.all((lengths(best) >= MIN_LEN - 1e-6) & (lengths(best) <= MAX_LEN + 1e-6))
 
 
+def test_pair_table_prepared_once_per_plan_plans_the_same():
+    """``learned_dynamics`` builds each re-sampling's pair table once per plan (the planner's ``prepare`` hook, outside
+    the step loop); the plan equals one through the same model that builds no table (per-edge codes), to float
+    rounding, over two re-samplings with padding."""
+    model = Dynamics(DynamicsConfig(hidden=16), rngs=nnx.Rngs(0))
+    piles = [pile(jax.random.PRNGKey(s), n=12) for s in (7, 8)]
+    positions, mask = jnp.stack([p for p, _ in piles]), jnp.stack([m for _, m in piles]).at[1, -3:].set(False)
+    config = PlannerConfig(samples=4, horizon=2, steps=3, bound=BOUND, resamples=2)
+    plain = Partial(_model_dynamics, *nnx.split(model), resolution_code(0.01))
+    a, b = (plan(d, centroid_cost, positions, mask, jax.random.PRNGKey(0), config)
+            for d in (plain, learned_dynamics(model)(0.01)))
+    np.testing.assert_allclose(b.actions, a.actions, rtol=1e-4, atol=1e-6)
+    np.testing.assert_allclose(b.costs, a.costs, rtol=1e-4, atol=1e-9)
+
+
 def test_bfloat16_edges_plan():
     """The MPC's option ``learned_dynamics(model, "bfloat16")``: the sampled pushes cost what float32 says to within
     2 % (measured: under 1 %), the plan's pushes are in bounds and garbage in the masked slots changes nothing; dtypes
