@@ -260,6 +260,11 @@ def _plan(dynamics_fn, cost_fn, positions, mask, key, init, active, config, step
 _plan_jit = jax.jit(_plan, static_argnames=("config", "steps"))
 
 
+def _traced(config: PlannerConfig) -> PlannerConfig:
+    """The static config ``_plan_jit`` gets: the fields its trace ignores zeroed, so they share one compile."""
+    return replace(config, steps=0, max_particle_steps=None, seed=0)
+
+
 def plan(dynamics_fn, cost_fn, positions, mask, key, config: PlannerConfig = PlannerConfig(), init=None, *,
          steps=None, active_steps=None) -> PlanResult:
     """Optimise M action sequences for one MPC step (paper Algorithm 1); returns a ``PlanResult``.
@@ -286,9 +291,8 @@ def plan(dynamics_fn, cost_fn, positions, mask, key, config: PlannerConfig = Pla
             raise ValueError(f"init must be [T, 4] = [{config.horizon}, 4], got {init.shape}")
     if key is None:
         key = jax.random.PRNGKey(config.seed)
-    traced = replace(config, steps=0, max_particle_steps=None, seed=0)  # fields the trace ignores: one compile
     return _plan_jit(_as_pytree_fn(dynamics_fn), _as_pytree_fn(cost_fn), positions, mask, key, init,
-                     active_steps, config=traced, steps=int(steps))
+                     active_steps, config=_traced(config), steps=int(steps))
 
 
 def plan_within(seconds, dynamics_fn, cost_fn, positions, mask, key, config: PlannerConfig = PlannerConfig(),

@@ -13,7 +13,6 @@ import argparse
 import json
 import os
 import time
-from dataclasses import replace
 
 os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")  # torch and JAX share the GPU
 
@@ -21,7 +20,7 @@ import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 
 from dynres_jax.mpc import EDGE_DTYPES, learned_dynamics  # noqa: E402
-from dynres_jax.planner import PlannerConfig, _as_pytree_fn, _plan_jit, plan  # noqa: E402
+from dynres_jax.planner import PlannerConfig, _as_pytree_fn, _plan_jit, _traced, plan  # noqa: E402
 from experiments.bench_planner import FULL, PARTICLE_RADIUS, _piles, _timed_model_and_cost  # noqa: E402
 
 
@@ -48,9 +47,8 @@ def main():
         t0 = time.perf_counter()
         run()
         wall = time.perf_counter() - t0
-        traced = replace(config, steps=0, max_particle_steps=None, seed=0)  # as ``plan`` calls it
         hlo = _plan_jit.lower(_as_pytree_fn(dynamics), _as_pytree_fn(cost), pile, mask, key, None, None,
-                              config=traced, steps=args.steps).compile().as_text()
+                              config=_traced(config), steps=args.steps).compile().as_text()
         with open(os.path.join(args.out, f"plan_{edge_dtype}.hlo.txt"), "w") as f:
             f.write(hlo)
         with profile(activities=[ProfilerActivity.CUDA]) as trace:
