@@ -169,9 +169,10 @@ def test_pair_table_equals_per_edge_codes(config, edge_dtype):
 
 @pytest.mark.parametrize("pair", [False, True])
 def test_incoming_gradient_equals_autodiff_of_the_formula(pair):
-    """The propagation step's hand-written gradient (``_incoming``: active edges recomputed, not stored) equals
-    autodiff of the plain formula Σ_j edge_mask_ij ReLU(c_ij + r_i + s_nij) in every input (r and s side by side),
-    with repeated and masked neighbours, on the per-edge constants and on the pair table."""
+    """The propagation step's hand-written gradient (``_incoming``: receiver terms through the forward pass's
+    active-edge counts, sender terms through recomputed active edges) equals autodiff of the plain formula
+    Σ_j edge_mask_ij ReLU(c_ij + r_i + s_nij) in every input (r and s side by side), with repeated and masked
+    neighbours, on the per-edge constants and on the pair table."""
     from dynres_jax.dynamics import _incoming
 
     rng = np.random.default_rng(1)
