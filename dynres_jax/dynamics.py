@@ -249,7 +249,7 @@ class Dynamics(nnx.Module):
         w_e = self.edge_propagator.kernel[...]
         w_n, b_n = self.node_propagator.kernel[...], self.node_propagator.bias[...]
         if table is None and pair_table:
-            table = self.edge_table(clean, mask, code, edge_dtype=dt)
+            table = self._table(clean, attr, code, dt)
         if table is not None:
             edge_const = table  # [N, N, H] dt: _incoming gathers each edge's row
         else:
@@ -291,14 +291,16 @@ class Dynamics(nnx.Module):
         """The pair table (module docstring, "Pair table"): positions [N, 3] m, mask [N], code [] -> the edge
         propagator's constant terms for every pair, [N, N, H] in edge_dtype (receiver i, sender j). Edges in the
         push frame have no table (ValueError)."""
-        cfg, dt = self.config, jnp.dtype(edge_dtype)
         self._check_pair_table()
         mask = jnp.asarray(mask, bool)
         clean = jnp.where(mask[:, None], jnp.asarray(positions, jnp.float32), 0.0)
-        attr = mask.astype(jnp.float32)[:, None]
-        rel = (clean[:, None, :] - clean[None, :, :]) / cfg.length_scale
-        return self._edge_constant(rel, attr, jnp.broadcast_to(attr[None], rel.shape[:2] + (1,)),
-                                   jnp.asarray(code, jnp.float32), dt)
+        return self._table(clean, mask.astype(jnp.float32)[:, None], jnp.asarray(code, jnp.float32),
+                           jnp.dtype(edge_dtype))
+
+    def _table(self, clean, attr, code, dt):
+        """``edge_table`` of masked positions clean [N, 3] (zeros where masked) with attributes attr [N, 1]."""
+        rel = (clean[:, None, :] - clean[None, :, :]) / self.config.length_scale
+        return self._edge_constant(rel, attr, jnp.broadcast_to(attr[None], rel.shape[:2] + (1,)), code, dt)
 
     def rollout(self, positions, mask, actions, code, *, edge_dtype=jnp.float32):
         """positions [N, 3] m, mask [N], actions [T, 4] m, code [] -> positions after each action [T, N, 3] m."""

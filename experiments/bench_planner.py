@@ -225,14 +225,15 @@ def _stage_times(positions: np.ndarray, samples: int, repeats: int) -> dict:
     """Where a planner step's time goes: ms (median of ``repeats`` calls, each stage jitted alone, float32, the
     reference architecture) over the planner's batch of ``samples`` pushes x R re-samplings. edges: the sweep
     heuristic and the radius + kNN edges of every candidate; cost: the task cost c and its gradient w.r.t. the
-    particles of every candidate; dynamics: f (pair table included, as the planner calls it) and its gradient w.r.t.
-    the pushes. A step also runs the chain rule between them, Adam and the projection."""
+    particles of every candidate; dynamics: f and its gradient w.r.t. the pushes, with the pair table built
+    beforehand, as the planner builds it once per plan. A step also runs the chain
+    rule between them, Adam and the projection."""
     import jax
     import jax.numpy as jnp
 
     from dynres_jax.graph import build_edges, sweep_displacement
     from dynres_jax.mpc import learned_dynamics
-    from dynres_jax.planner import PlannerConfig, sample_actions
+    from dynres_jax.planner import PlannerConfig, _prepared, sample_actions
 
     model, cost = _timed_model_and_cost()
     dynamics = learned_dynamics(model)(PARTICLE_RADIUS)
@@ -247,14 +248,19 @@ def _stage_times(positions: np.ndarray, samples: int, repeats: int) -> dict:
     def edges(p, m, a):
         return build_edges(p + sweep_displacement(p, m, a[0], model.config.plate_half_width), m)
 
-    def moved(a):
-        return jnp.sum(per_candidate(lambda p, m, a1: dynamics(p, m, a1)[-1])(a))
+    with_context, context = _prepared(dynamics, pile, mask)  # the pair table of every re-sampling
 
-    edges_fn, dynamics_fn = jax.jit(per_candidate(edges)), jax.jit(jax.value_and_grad(moved))
+    def moved(a, context):
+        def per_push(a1):
+            return jax.vmap(lambda p, m, ctx: with_context(p, m, a1, ctx)[-1])(pile, mask, context)
+
+        return jnp.sum(jax.vmap(per_push)(a))
+
+    edges_fn, moved_fn = jax.jit(per_candidate(edges)), jax.jit(jax.value_and_grad(moved))
     cost_fn = jax.jit(jax.vmap(jax.vmap(jax.value_and_grad(cost))))
     piles, masks = jnp.broadcast_to(pile, (samples,) + pile.shape), jnp.broadcast_to(mask, (samples,) + mask.shape)
     stages = dict(edges=lambda: edges_fn(pushes), cost=lambda: cost_fn(piles, masks),
-                  dynamics=lambda: dynamics_fn(pushes))
+                  dynamics=lambda: moved_fn(pushes, context))
     out = {}
     for name, call in stages.items():
         jax.block_until_ready(call())  # compile
