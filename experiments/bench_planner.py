@@ -226,8 +226,8 @@ def _stage_times(positions: np.ndarray, samples: int, repeats: int) -> dict:
     reference architecture) over the planner's batch of ``samples`` pushes x R re-samplings. edges: the sweep
     heuristic and the radius + kNN edges of every candidate; cost: the task cost c and its gradient w.r.t. the
     particles of every candidate; dynamics: f and its gradient w.r.t. the pushes, with the pair table built
-    beforehand, as the planner builds it once per plan. A step also runs the chain
-    rule between them, Adam and the projection."""
+    beforehand, as the planner builds it once per plan. A step also runs the chain rule between them, Adam and the
+    projection."""
     import jax
     import jax.numpy as jnp
 
