@@ -242,8 +242,8 @@ def _stage_times(positions: np.ndarray, samples: int, repeats: int) -> dict:
     c = PlannerConfig()
     pushes = sample_actions(jax.random.PRNGKey(0), samples, 1, c.bound, c.min_length, c.max_length, jnp.zeros(2))
 
-    def per_candidate(fn):  # fn(positions [N, 3], mask [N], push [1, 4]) over M pushes x R re-samplings
-        return jax.vmap(lambda a: jax.vmap(lambda p, m: fn(p, m, a))(pile, mask))
+    def per_candidate(fn, *per_pile):  # fn(positions [N, 3], mask [N], push [1, 4], *per_pile[r]) over M x R
+        return jax.vmap(lambda a: jax.vmap(lambda p, m, *x: fn(p, m, a, *x))(pile, mask, *per_pile))
 
     def edges(p, m, a):
         return build_edges(p + sweep_displacement(p, m, a[0], model.config.plate_half_width), m)
@@ -251,10 +251,7 @@ def _stage_times(positions: np.ndarray, samples: int, repeats: int) -> dict:
     with_context, context = _prepared(dynamics, pile, mask)  # the pair table of every re-sampling
 
     def moved(a, context):
-        def per_push(a1):
-            return jax.vmap(lambda p, m, ctx: with_context(p, m, a1, ctx)[-1])(pile, mask, context)
-
-        return jnp.sum(jax.vmap(per_push)(a))
+        return jnp.sum(per_candidate(lambda p, m, a1, ctx: with_context(p, m, a1, ctx)[-1], context)(a))
 
     edges_fn, moved_fn = jax.jit(per_candidate(edges)), jax.jit(jax.value_and_grad(moved))
     cost_fn = jax.jit(jax.vmap(jax.vmap(jax.value_and_grad(cost))))
