@@ -54,7 +54,7 @@ def report_table(results: dict) -> str:
                       f"every pixel a candidate: {h['median_ms']:,.1f}", h["median_ms"] / packed["median_ms"]))
     batch = f"{pl['batch']:,} pushes x {pl['particles']} particles"
     t, b = pl["torch"], pl["jax_bf16"]
-    torch_cell = f"PyTorch reference PropNet: {t['ms_per_step']:.2f}" if "ms_per_step" in t else t["skipped"]
+    torch_cell = f"PyTorch reference (PropNet + c): {t['ms_per_step']:.2f}" if "ms_per_step" in t else t["skipped"]
     lines.append(_row(f"planner, one Adam step over {batch}: ms", f"JAX: {j['ms_per_step']:.2f}", torch_cell,
                       pl.get("speedup")))
     lines.append(_row(f"planner, one Adam step over {batch}, bfloat16 edges (vs float32, {b['quality_model']}: "

@@ -39,6 +39,15 @@ def test_torch_section(result):
     torch_part = result["torch"]
     assert torch_part["ms_per_step"] > 0 and torch_part["device"]
     assert torch_part["params"] == result["jax"]["params"]
+    # The peer scores its pushes with the planner's own objective c: on the same piles it agrees with JAX's c (to
+    # the rounding of JAX's default matmul precision on GPUs, TF32, in the projection to pixels: about 0.02 px).
+    assert len(torch_part["objective_px"]) == result["resamples"]
+    assert torch_part["objective_max_abs_px"] < 1e-3 * max(map(abs, torch_part["objective_px"]))
+    by_coverage = torch_part["ms_per_step_by_coverage"]
+    assert set(by_coverage) == {"broadcast", "cdist"} and torch_part["ms_per_step"] == min(by_coverage.values())
+    assert torch_part["ms_per_step_network_only"] > 0
+    assert result["speedup_vs_network_only_peer"] == pytest.approx(
+        torch_part["ms_per_step_network_only"] / result["jax"]["ms_per_step"])
     assert result["speedup"] == pytest.approx(torch_part["ms_per_step"] / result["jax"]["ms_per_step"])
     assert result["speedup_bf16"] == pytest.approx(torch_part["ms_per_step"] / result["jax_bf16"]["ms_per_step"])
     assert isinstance(result["speedup_meets_goal"], bool) and isinstance(result["speedup_bf16_meets_goal"], bool)
