@@ -328,6 +328,50 @@ def _stage_times(positions: np.ndarray, samples: int, repeats: int) -> dict:
     return out
 
 
+def _plan_section(model, cost, edge_dtype, positions: np.ndarray, samples: int, steps: int, repeats: int) -> dict:
+    """Time ``planner.plan`` of ``model`` (per-edge network in edge_dtype) scoring ``cost`` over ``samples`` pushes x
+    the R re-samplings positions [R, N, 3], at ``steps`` and at a tenth of it -> a section of the result: ms per step
+    from the difference, both plans' median wall time and compile time (first call less the median)."""
+    import jax
+
+    from dynres_jax.dynamics import count_params
+    from dynres_jax.mpc import learned_dynamics
+    from dynres_jax.planner import PlannerConfig, plan
+
+    config = PlannerConfig(samples=samples, resamples=positions.shape[0])
+    pile, mask = jax.device_put(positions), jax.device_put(np.ones(positions.shape[:2], bool))
+    key, device, short = jax.random.PRNGKey(0), jax.devices()[0], max(1, steps // 10)
+    dynamics = learned_dynamics(model, edge_dtype)(PARTICLE_RADIUS)
+
+    def timed(n):
+        """(compile s, median s) of a plan of n steps."""
+        t0 = time.perf_counter()
+        jax.block_until_ready(plan(dynamics, cost, pile, mask, key, config, steps=n))
+        first = time.perf_counter() - t0
+        wall = _median_s(lambda: jax.block_until_ready(plan(dynamics, cost, pile, mask, key, config, steps=n)),
+                         repeats, lambda: None)
+        return first - wall, wall
+
+    compile_short, wall_short = timed(short)
+    compile_full, wall_full = timed(steps)
+    return dict(device=f"{device.platform}: {device.device_kind}", jax_version=jax.__version__, edge_dtype=edge_dtype,
+                params=count_params(model), ms_per_step=1e3 * (wall_full - wall_short) / (steps - short),
+                short_steps=short, short_plan_s=wall_short, steps=steps, plan_s=wall_full,
+                plan_ms_per_step=1e3 * wall_full / steps, compile_s=compile_full, compile_short_s=compile_short)
+
+
+def plan_step(quick: bool, shipped: bool = False) -> dict:
+    """The benchmark's float32 planner timing alone (its ``jax`` section; with shipped=True the ``jax_shipped`` one,
+    or the reference architecture when no checkpoint is shipped): what ``scripts/ab_planner.py`` times in each code
+    version."""
+    sizes = QUICK if quick else FULL
+    model, cost = _timed_model_and_cost()
+    if shipped:
+        model, _ = _quality_model(model)
+    return _plan_section(model, cost, "float32", _piles(sizes["particles"], sizes["resamples"]), sizes["samples"],
+                         sizes["steps"], sizes["repeats"])
+
+
 def _jax_planner(positions: np.ndarray, samples: int, steps: int, repeats: int) -> tuple[dict, dict]:
     """Time ``planner.plan`` at ``steps`` and at a tenth of it, ms per step from the difference, with the model's
     per-edge network in float32 and in bfloat16 (``mpc.learned_dynamics``'s edge_dtype) -> (float32 section,
@@ -340,36 +384,16 @@ def _jax_planner(positions: np.ndarray, samples: int, steps: int, repeats: int) 
     import jax
     import jax.numpy as jnp
 
-    from dynres_jax.dynamics import count_params
     from dynres_jax.mpc import EDGE_DTYPES, learned_dynamics
     from dynres_jax.planner import PlannerConfig, plan
 
     model, cost = _timed_model_and_cost()
-    resamples = positions.shape[0]
-    config = PlannerConfig(samples=samples, resamples=resamples)
+    config = PlannerConfig(samples=samples, resamples=positions.shape[0])
     pile, mask = jax.device_put(positions), jax.device_put(np.ones(positions.shape[:2], bool))
     key = jax.random.PRNGKey(0)
-    device = jax.devices()[0]
-    short = max(1, steps // 10)
-
-    def timed(dynamics, n):
-        """(compile s, median s) of a plan of n steps."""
-        t0 = time.perf_counter()
-        jax.block_until_ready(plan(dynamics, cost, pile, mask, key, config, steps=n))
-        first = time.perf_counter() - t0
-        wall = _median_s(lambda: jax.block_until_ready(plan(dynamics, cost, pile, mask, key, config, steps=n)),
-                         repeats, lambda: None)
-        return first - wall, wall
 
     def section(model, edge_dtype):
-        dynamics = learned_dynamics(model, edge_dtype)(PARTICLE_RADIUS)
-        compile_short, wall_short = timed(dynamics, short)
-        compile_full, wall_full = timed(dynamics, steps)
-        return dict(device=f"{device.platform}: {device.device_kind}", jax_version=jax.__version__,
-                    edge_dtype=edge_dtype, params=count_params(model),
-                    ms_per_step=1e3 * (wall_full - wall_short) / (steps - short), short_steps=short,
-                    short_plan_s=wall_short, steps=steps, plan_s=wall_full, plan_ms_per_step=1e3 * wall_full / steps,
-                    compile_s=compile_full, compile_short_s=compile_short)
+        return _plan_section(model, cost, edge_dtype, positions, samples, steps, repeats)
 
     f32, bf16 = (section(model, edge_dtype) for edge_dtype in EDGE_DTYPES)
 

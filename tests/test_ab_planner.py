@@ -1,0 +1,26 @@
+"""scripts/ab_planner.py times each code version in its own process against that version's own package."""
+
+import json
+import math
+import os
+import subprocess
+import sys
+
+REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+
+def test_each_version_is_timed_on_its_own_package(tmp_path):
+    log = tmp_path / "ab.jsonl"
+    out = subprocess.run([sys.executable, os.path.join(REPO, "scripts", "ab_planner.py"), "HEAD", "WORKTREE",
+                          "--quick", "--rounds", "1", "--json", str(log)], capture_output=True, text=True, cwd=REPO)
+    assert out.returncode == 0, out.stderr[-3000:]
+    runs = {r["version"]: r for r in map(json.loads, log.read_text().splitlines())}
+    assert set(runs) == {"HEAD", "WORKTREE"}
+    # HEAD ran from the extracted revision, WORKTREE from the repository: neither imported the other's package.
+    assert runs["WORKTREE"]["code"] == os.path.join(REPO, "dynres_jax", "__init__.py")
+    assert not runs["HEAD"]["code"].startswith(REPO + os.sep) and runs["HEAD"]["code"].endswith(
+        os.path.join("HEAD", "dynres_jax", "__init__.py"))
+    for run in runs.values():  # the benchmark's float32 row at its quick sizes
+        assert run["edge_dtype"] == "float32" and run["params"] == 38403 and math.isfinite(run["ms_per_step"])
+        assert run["plan_s"] > 0 and run["steps"] > run["short_steps"]
+    assert "HEAD: " in out.stdout and "WORKTREE: " in out.stdout  # the summary lines
