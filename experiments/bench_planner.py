@@ -7,23 +7,22 @@ with respect to its push, and the pushes take one Adam step and are clamped to t
 - PyTorch reference (``torch.nn``, eager, CUDA when available): one step of the reference code's planner
   (``PlannerGD.trajectory_optimization_ptcl_multi_traj``) with PAPER.md's PropNet ("Graph and dynamics") written in the
   reference code's style. The sweep heuristic and the edges (``cdist`` + ``topk`` + radius) are computed in torch for
-  the whole batch; the edges become dense one-hot relation matrices Rr, Rs [B, n_rel, N] (n_rel = N·k, padded with
-  zero rows) and every gather and sum is a ``bmm``: edge inputs ``Rr @ x`` and ``Rs @ x``, incoming effects
-  ``Rr^T @ effect``. Node encoder 5→64→64, edge encoder 6→64→64→64, 3 propagation steps with a residual, predictor
-  64→64→3. The predicted particles are scored with the task objective c exactly as the JAX planner scores them (the
-  reference's ``config_reward_ptcl``: projected to pixels with our camera, the goal's signed distance field read by
-  ``grid_sample``, plus the distance from each of the first 5 ω FPS goal samples to its nearest particle, over ω; the
-  same disc goal; ``objective_px`` holds its values on the unpushed piles, with exact distances, so ``run`` can check
-  them against JAX's c);
-  a push's cost is the mean over its R re-samplings, the best push seen so far is kept, and the step is ``backward``
+  the whole batch; the edges become dense one-hot relation matrices Rr, Rs [B, n_rel, N] (n_rel = N·k, padded with zero
+  rows) and every gather and sum is a ``bmm``: edge inputs ``Rr @ x`` and ``Rs @ x``, incoming effects ``Rr^T @
+  effect``. Node encoder 5→64→64, edge encoder 6→64→64→64, 3 propagation steps with a residual, predictor 64→64→3. The
+  predicted particles are scored with the task objective c exactly as the JAX planner scores them (the reference's
+  ``config_reward_ptcl``: projected to pixels with our camera, the goal's signed distance field read by ``grid_sample``,
+  plus the distance from each of the first 5 ω FPS goal samples to its nearest particle, over ω; the same disc goal;
+  ``objective_px`` holds its values on the unpushed piles, with exact distances, so ``run`` can check them against JAX's
+  c); a push's cost is the mean over its R re-samplings, the best push seen so far is kept, and the step is ``backward``
   to the actions (the model's weights are frozen), ``torch.optim.Adam`` and a clamp. The coverage term's distances are
-  timed two ways, the reference's (``torch.norm`` of the broadcast differences) and ``torch.cdist``, and the faster
-  one is the peer (``ms_per_step``). ``ms_per_step_network_only`` is the same step scored by the mean squared distance
-  to a point instead of c, without the best-push record (the peer of earlier versions of this benchmark, kept so its
-  figures can be compared). Time per step: the median of single steps after warm-up, with ``torch.cuda.synchronize``
-  around each. The reference's per-step host round trips (a Python loop over the batch to build its relation
-  matrices and to keep the best push, ``.item()`` reads) are left out: they cost time without doing work. It is a
-  speed peer, not numerically equal to our model (different weights).
+  timed two ways, the reference's (``torch.norm`` of the broadcast differences) and ``torch.cdist``, and the faster one
+  is the peer (``ms_per_step``). ``ms_per_step_network_only`` is the same step scored by the mean squared distance to a
+  point instead of c, without the best-push record (the peer of earlier versions of this benchmark, kept so its figures
+  can be compared). Time per step: the median of single steps after warm-up, with ``torch.cuda.synchronize`` around
+  each. The reference's per-step host round trips (a Python loop over the batch to build its relation matrices and to
+  keep the best push, ``.item()`` reads) are left out: they cost time without doing work. It is a speed peer, not
+  numerically equal to our model (different weights).
 - JAX: ``planner.plan`` with the real ``Dynamics`` (random weights) and the task objective c on a disc goal, on the
   device JAX sees. ``plan`` is timed (median of repeated calls after a compiling first call) at the full step count
   and at a tenth of it; the time per Adam step is the difference divided by the difference in steps, which removes
@@ -44,6 +43,7 @@ reference is skipped (noted in the result).
 
 from __future__ import annotations
 
+import functools
 import os
 import time
 
@@ -263,8 +263,10 @@ def _quality_model(timed_model):
     return model, f"shipped checkpoint (step {meta.get('step')})"
 
 
+@functools.cache
 def _camera_and_goal():
-    """(camera, Goal): the default top-down camera and the disc goal both sides score against."""
+    """(camera, Goal): the default top-down camera and the disc goal both sides score against (built once: the goal's
+    FPS samples are computed on the host)."""
     from dynres_jax.objective import disc_goal, make_goal
     from dynres_jax.sim.camera import Camera, CameraConfig
 
@@ -328,6 +330,18 @@ def _stage_times(positions: np.ndarray, samples: int, repeats: int) -> dict:
     return out
 
 
+def _plan_inputs(positions: np.ndarray, samples: int):
+    """(PlannerConfig, piles, mask, key) of a timed plan: ``samples`` pushes over the R re-samplings positions [R, N, 3]
+    (all particles valid), on the device, PRNG key 0."""
+    import jax
+
+    from dynres_jax.planner import PlannerConfig
+
+    config = PlannerConfig(samples=samples, resamples=positions.shape[0])
+    return (config, jax.device_put(positions), jax.device_put(np.ones(positions.shape[:2], bool)),
+            jax.random.PRNGKey(0))
+
+
 def _plan_section(model, cost, edge_dtype, positions: np.ndarray, samples: int, steps: int, repeats: int) -> dict:
     """Time ``planner.plan`` of ``model`` (per-edge network in edge_dtype) scoring ``cost`` over ``samples`` pushes x
     the R re-samplings positions [R, N, 3], at ``steps`` and at a tenth of it -> a section of the result: ms per step
@@ -336,11 +350,10 @@ def _plan_section(model, cost, edge_dtype, positions: np.ndarray, samples: int, 
 
     from dynres_jax.dynamics import count_params
     from dynres_jax.mpc import learned_dynamics
-    from dynres_jax.planner import PlannerConfig, plan
+    from dynres_jax.planner import plan
 
-    config = PlannerConfig(samples=samples, resamples=positions.shape[0])
-    pile, mask = jax.device_put(positions), jax.device_put(np.ones(positions.shape[:2], bool))
-    key, device, short = jax.random.PRNGKey(0), jax.devices()[0], max(1, steps // 10)
+    config, pile, mask, key = _plan_inputs(positions, samples)
+    device, short = jax.devices()[0], max(1, steps // 10)
     dynamics = learned_dynamics(model, edge_dtype)(PARTICLE_RADIUS)
 
     def timed(n):
@@ -385,12 +398,10 @@ def _jax_planner(positions: np.ndarray, samples: int, steps: int, repeats: int) 
     import jax.numpy as jnp
 
     from dynres_jax.mpc import EDGE_DTYPES, learned_dynamics
-    from dynres_jax.planner import PlannerConfig, plan
+    from dynres_jax.planner import plan
 
     model, cost = _timed_model_and_cost()
-    config = PlannerConfig(samples=samples, resamples=positions.shape[0])
-    pile, mask = jax.device_put(positions), jax.device_put(np.ones(positions.shape[:2], bool))
-    key = jax.random.PRNGKey(0)
+    config, pile, mask, key = _plan_inputs(positions, samples)
 
     def section(model, edge_dtype):
         return _plan_section(model, cost, edge_dtype, positions, samples, steps, repeats)
