@@ -154,11 +154,13 @@ def _mlp(sizes, rngs, *, final_relu):
 def _edge_input(pair, constant, neighbours, node_terms):
     """The edge propagator's input before its ReLU [N, k, H] in the constant's dtype: c_ij + r_i + s_j, with c_ij
     row j of the pair table's row i when ``pair`` (constant [N, N, H]), else constant [N, k, H] itself; node_terms
-    [N, 2H] float32 holds the receiver terms r and the sender terms s side by side (one matrix product makes both,
-    and the gather reads s out of it without a copy). The node terms are cast after the broadcast and the gather."""
-    h = node_terms.shape[-1] // 2
+    [N, 2H] float32 holds the receiver terms r and the sender terms s side by side (one matrix product makes both).
+    The senders are gathered from its [2N, H] view, where row 2j + 1 is s_j: a gather of the sender half would
+    first copy it out. The node terms are cast after the broadcast and the gather."""
+    n, h = node_terms.shape[0], node_terms.shape[-1] // 2
     c = jnp.take_along_axis(constant, neighbours[..., None], axis=1) if pair else constant
-    return c + node_terms[:, None, :h].astype(c.dtype) + node_terms[neighbours][..., h:].astype(c.dtype)
+    senders = node_terms.reshape(2 * n, h)[2 * neighbours + 1]  # [N, k, H]
+    return c + node_terms[:, None, :h].astype(c.dtype) + senders.astype(c.dtype)
 
 
 @functools.partial(jax.custom_vjp, nondiff_argnums=(0,))
@@ -170,7 +172,8 @@ def _incoming(pair, constant, neighbours, edge_mask, node_terms):
     k <= 127: a quarter of a float32 count's memory traffic), so the gradient w.r.t. r is the incoming gradient times
     that count, with no pass over the edges. The only per-edge work of the backward pass is the senders' sum: it
     recomputes which edges are active (XLA fuses that into the scatter-add) instead of storing them, and adds the
-    per-edge gradients up in float32."""
+    per-edge gradients up in float32, straight into the odd rows of the gradient's [2N, H] view (the even rows
+    start as r's gradient), so no zeroed buffer is copied in and no concatenation follows."""
     return _incoming_fwd(pair, constant, neighbours, edge_mask, node_terms)[0]
 
 
@@ -188,8 +191,10 @@ def _incoming_bwd(pair, residuals, grad):
     constant, neighbours, edge_mask, node_terms, count = residuals
     active = edge_mask[..., None] & (_edge_input(pair, constant, neighbours, node_terms) > 0)
     per_edge = jnp.where(active, grad[:, None, :], 0.0)  # [N, k, H] float32
-    grad_sender = jnp.zeros(grad.shape, jnp.float32).at[neighbours].add(per_edge)  # [N, H] (into [N, 2H]: 3x slower)
-    grad_terms = jnp.concatenate([grad * count.astype(jnp.float32), grad_sender], axis=-1)
+    n, h = grad.shape
+    grad_receivers = grad * count.astype(jnp.float32)
+    start = jnp.stack([grad_receivers, jnp.zeros_like(grad)], axis=1).reshape(2 * n, h)  # rows: r_0, s_0, r_1, ...
+    grad_terms = start.at[2 * neighbours + 1].add(per_edge).reshape(n, 2 * h)  # the senders' sum into rows 2j + 1
     grad_constant = per_edge.astype(constant.dtype)
     if pair:
         rows = jnp.arange(neighbours.shape[0])[:, None]
