@@ -4,8 +4,9 @@
 
 Each version is a git revision (its dynres_jax, experiments and checkpoints/dynamics, extracted with ``git archive``),
 WORKTREE (the files as they are now) or a folder holding those three (a copy of another tree: the GPU machine gets
-the working tree with main's history only, so other branches travel as folders). Every run is a fresh process (XLA's options and caches start clean) that
-imports that version's package and times it with this tree's ``experiments.bench_planner.plan_step``: the
+the working tree with main's history only, so other branches travel as folders). Every run is a fresh process (XLA's
+options and caches start clean) that imports that version's package and times it with this tree's
+``experiments.bench_planner.plan_step``: the
 benchmark's float32 row, ms per Adam step from plans of the full and a tenth of the steps over 50 pushes x 30
 re-samplings of 100 particles, on the reference architecture (``--shipped``: the version's shipped checkpoint).
 The versions take turns over ``--rounds`` rounds, so drift of the machine hits them alike. One JSON line per run
@@ -70,7 +71,8 @@ def time_version(tree: str, quick: bool, shipped: bool) -> dict:
 def main(argv=None) -> dict:
     """Run the A/B; returns {version: [ms per step of each round]} (also printed)."""
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("versions", nargs="+", help=f"git revisions, folders, or {WORKTREE} for the files as they are now")
+    parser.add_argument("versions", nargs="+",
+                        help=f"git revisions, folders, or {WORKTREE} for the files as they are now")
     parser.add_argument("--rounds", type=int, default=2, help="times each version is timed, taking turns")
     parser.add_argument("--shipped", action="store_true", help="time the shipped checkpoint's architecture")
     parser.add_argument("--quick", action="store_true", help="the benchmark's tiny sizes (checks the A/B runs)")
