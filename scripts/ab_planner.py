@@ -8,8 +8,9 @@ the working tree with main's history only, so other branches travel as folders).
 options and caches start clean) that imports that version's package and times it with this tree's
 ``experiments.bench_planner.plan_step``: the benchmark's float32 row, ms per Adam step from plans of the full and a
 tenth of the steps over 50 pushes x 30 re-samplings of 100 particles, on the reference architecture (``--shipped``:
-the version's shipped checkpoint). The versions take turns over ``--rounds`` rounds, so drift of the machine hits them alike. One JSON line per run
-(with the file each run imported, as a check), then the median and range of each version's ms per step.
+the version's shipped checkpoint). The versions take turns over ``--rounds`` rounds, so drift of the machine hits them
+alike. One JSON line per run (with the file each run imported, as a check), then the median and range of each
+version's ms per step.
 """
 
 from __future__ import annotations
