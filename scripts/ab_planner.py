@@ -1,6 +1,6 @@
 """A/B of the planner's float32 Adam step across code versions, on whatever device JAX sees.
 
-    python scripts/ab_planner.py HEAD WORKTREE [REV ...] [--rounds 2] [--shipped] [--quick] [--json FILE]
+    python scripts/ab_planner.py HEAD WORKTREE [REV or FOLDER ...] [--rounds 2] [--shipped] [--quick] [--json FILE]
 
 Each version is a git revision (its dynres_jax, experiments and checkpoints/dynamics, extracted with ``git archive``),
 WORKTREE (the files as they are now) or a folder holding those three (a copy of another tree: the GPU machine gets
@@ -50,6 +50,10 @@ def extract(rev: str, into: str) -> str:
     if rev == WORKTREE:
         return REPO
     if os.path.isdir(rev):
+        missing = [p for p in PATHS if not os.path.isdir(os.path.join(rev, p))]
+        if missing:
+            raise SystemExit(f"the folder {rev} lacks {', '.join(missing)}: a version's folder holds "
+                             f"{', '.join(PATHS)}")
         return os.path.abspath(rev)
     archive = subprocess.run(["git", "-C", REPO, "archive", "--format=tar", rev, *PATHS], capture_output=True,
                              check=True).stdout

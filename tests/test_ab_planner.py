@@ -30,3 +30,11 @@ def test_each_version_is_timed_on_its_own_package(tmp_path):
         assert run["edge_dtype"] == "float32" and run["params"] == 38403 and math.isfinite(run["ms_per_step"])
         assert run["plan_s"] > 0 and run["steps"] > run["short_steps"]
     assert "HEAD: " in out.stdout and "WORKTREE: " in out.stdout  # the summary lines
+
+
+def test_a_folder_without_a_tree_is_refused_by_name(tmp_path):
+    (tmp_path / "dynres_jax").mkdir()
+    out = subprocess.run([sys.executable, os.path.join(REPO, "scripts", "ab_planner.py"), str(tmp_path), "--quick"],
+                         capture_output=True, text=True, cwd=REPO)
+    assert out.returncode != 0
+    assert f"the folder {tmp_path} lacks experiments, checkpoints/dynamics" in out.stderr
