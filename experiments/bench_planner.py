@@ -298,14 +298,12 @@ def _stage_times(positions: np.ndarray, samples: int, repeats: int) -> dict:
 
     from dynres_jax.graph import build_edges, sweep_displacement
     from dynres_jax.mpc import learned_dynamics
-    from dynres_jax.planner import PlannerConfig, _prepared, sample_actions
+    from dynres_jax.planner import _prepared, sample_actions
 
     model, cost = _timed_model_and_cost()
     dynamics = learned_dynamics(model)(PARTICLE_RADIUS)
-    pile = jnp.asarray(positions)
-    mask = jnp.ones(pile.shape[:2], bool)
-    c = PlannerConfig()
-    pushes = sample_actions(jax.random.PRNGKey(0), samples, 1, c.bound, c.min_length, c.max_length, jnp.zeros(2))
+    c, pile, mask, key = _plan_inputs(positions, samples)
+    pushes = sample_actions(key, samples, 1, c.bound, c.min_length, c.max_length, jnp.zeros(2))
 
     def per_candidate(fn, *per_pile):  # fn(positions [N, 3], mask [N], push [1, 4], *per_pile[r]) over M x R
         return jax.vmap(lambda a: jax.vmap(lambda p, m, *x: fn(p, m, a, *x))(pile, mask, *per_pile))
