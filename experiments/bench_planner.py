@@ -386,13 +386,13 @@ def plan_step(quick: bool, shipped: bool = False) -> dict:
 def _jax_planner(positions: np.ndarray, samples: int, steps: int, repeats: int) -> tuple[dict, dict, dict | None]:
     """Time ``planner.plan`` at ``steps`` and at a tenth of it, ms per step from the difference, with the model's
     per-edge network in float32 and in bfloat16 (``mpc.learned_dynamics``'s edge_dtype) -> (float32 section,
-    bfloat16 section, the shipped checkpoint's float32 section or None when it has the reference's architecture or
-    none is shipped). The bfloat16 section also holds its agreement with float32 on the same piles, goal, key and
-    steps (on ``_quality_model``): prediction_mean_mm and prediction_max_mm, |bfloat16 - float32| of the predicted
-    positions at the float32 plan's final pushes (every push on every re-sampling); float32_best_cost, the float32
-    plan's best cost; best_cost_in_float32, the bfloat16 plan's best push scored by the float32 model (the honest
-    peer of float32_best_cost); best_cost, as the bfloat16 model scores it; initial_cost, the piles unpushed (all
-    costs in pixels, the mean over the re-samplings)."""
+    bfloat16 section, the shipped checkpoint's float32 section or None when no checkpoint is shipped). The bfloat16
+    section also holds its agreement with float32 on the same piles, goal, key and steps (on ``_quality_model``):
+    prediction_mean_mm and prediction_max_mm, |bfloat16 - float32| of the predicted positions at the float32 plan's
+    final pushes (every push on every re-sampling); float32_best_cost, the float32 plan's best cost;
+    best_cost_in_float32, the bfloat16 plan's best push scored by the float32 model (the honest peer of
+    float32_best_cost); best_cost, as the bfloat16 model scores it; initial_cost, the piles unpushed (all costs in
+    pixels, the mean over the re-samplings)."""
     import jax
     import jax.numpy as jnp
 
