@@ -95,6 +95,7 @@ class SceneConfig:
     contact_cap: float = 3.0
     sphere_yaw: bool = False
     cone: str = "pyramidal"
+    condim: int = 3
     solver: str = "Newton"
     size_seed: int = 0
 
@@ -112,6 +113,8 @@ class SceneConfig:
             raise ValueError(f"solver must be 'CG' or 'Newton', got {self.solver!r}")
         if self.cone not in ("pyramidal", "elliptic"):
             raise ValueError(f"cone must be 'pyramidal' or 'elliptic', got {self.cone!r}")
+        if self.condim not in (1, 3):
+            raise ValueError(f"condim must be 1 or 3, got {self.condim!r}")
         if self.joints not in ("planar", "free"):
             raise ValueError(f"joints must be 'planar' or 'free', got {self.joints!r}")
 

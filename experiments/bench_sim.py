@@ -29,7 +29,19 @@ VARIANTS = {
     "planar-Newton-3N-4it": dict(joints="planar", solver="Newton", contact_cap=3.0, solver_iterations=4),
     "planar-CG-3N": dict(joints="planar", solver="CG", contact_cap=3.0),
     "planar-CG-1.5N-yaw": dict(joints="planar", solver="CG", contact_cap=1.5, sphere_yaw=True),
+    "planar-Newton-3N-dense": dict(joints="planar", solver="Newton", contact_cap=3.0, contact_jacobian="dense"),
+    "planar-CG-2N-c1": dict(joints="planar", solver="CG", contact_cap=2.0, condim=1),
+    "planar-CG-2N-c1-dense": dict(joints="planar", solver="CG", contact_cap=2.0, condim=1, contact_jacobian="dense"),
+    "planar-CG-2N-c1-ls3": dict(joints="planar", solver="CG", contact_cap=2.0, condim=1, ls_iterations=3),
+    "planar-CG-1.5N-c1": dict(joints="planar", solver="CG", contact_cap=1.5, condim=1),
 }
+
+
+def variant(name: str, pieces: int = 100) -> tuple[SimConfig, str]:
+    """A variant's SimConfig and PileEnv's contact_jacobian ("sparse" unless the variant says "dense")."""
+    overrides = dict(VARIANTS[name])
+    jacobian = overrides.pop("contact_jacobian", "sparse")
+    return SimConfig(scene=replace(SceneConfig(pieces=(pieces,)), **overrides)), jacobian
 
 
 def _timed(fn, *args, repeats: int):
@@ -54,8 +66,9 @@ def _batch(env: PileEnv, worlds: int, seed: int = 0):
     return states, actions
 
 
-def mjx_rates(cfg: SimConfig, worlds: list[int], steps: int, repeats: int, whole_push_at: int | None) -> dict:
-    env = PileEnv(cfg, backend="mjx", render=False)
+def mjx_rates(cfg: SimConfig, worlds: list[int], steps: int, repeats: int, whole_push_at: int | None,
+              contact_jacobian: str = "sparse") -> dict:
+    env = PileEnv(cfg, backend="mjx", render=False, contact_jacobian=contact_jacobian)
     per_push = env.steps_per_push
     rows = []
     for w in worlds:
@@ -136,10 +149,11 @@ def run(quick: bool = False, pieces: int = 100, variants: list[str] | None = Non
     full_sweep = full_sweep if full_sweep is not None else variants[:1]
     result = dict(device=jax.devices()[0].device_kind, host_cores=os.cpu_count(), pieces=pieces, variants={})
     for name in variants:
-        cfg = SimConfig(scene=replace(SceneConfig(pieces=(pieces,)), **VARIANTS[name]))
-        print(f"{name}: {cfg.scene}", flush=True)
+        cfg, jacobian = variant(name, pieces)
+        print(f"{name}: {cfg.scene}, {jacobian} contact Jacobians", flush=True)
         sizes = worlds if name in full_sweep else worlds[-1:]
-        mjx = mjx_rates(cfg, sizes, steps, repeats=2, whole_push_at=sizes[-1] // 4 if name in full_sweep else None)
+        mjx = mjx_rates(cfg, sizes, steps, repeats=2, whole_push_at=sizes[-1] // 4 if name in full_sweep else None,
+                        contact_jacobian=jacobian)
         c = c_reference(cfg, c_seconds)
         best = max(r["pushes_per_s"] for r in mjx["rows"])
         result["variants"][name] = dict(scene=VARIANTS[name], mjx=mjx, c_mujoco=c,

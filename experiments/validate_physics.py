@@ -107,11 +107,13 @@ def main(argv=None):
     parser.add_argument("--solver-iterations", type=int, default=12)
     parser.add_argument("--ls-iterations", type=int, default=6)
     parser.add_argument("--contact-cap", type=float, default=3.0)
+    parser.add_argument("--condim", type=int, default=3, choices=[1, 3],
+                        help="pieces' contacts: 3 with friction, 1 frictionless (a third of the constraint rows)")
     parser.add_argument("--json")
     args = parser.parse_args(argv)
     rounds = max(1, -(-args.pushes // args.worlds))
     overrides = dict(joints=args.joints, solver=args.solver, solver_iterations=args.solver_iterations,
-                     ls_iterations=args.ls_iterations, contact_cap=args.contact_cap)
+                     ls_iterations=args.ls_iterations, contact_cap=args.contact_cap, condim=args.condim)
     out = dict(device=jax.devices()[0].device_kind, pieces=args.pieces, scene=overrides, kinds=[])
     for kind in tqdm(args.kinds, desc="kinds"):
         t0 = time.perf_counter()

@@ -124,7 +124,7 @@ def scene_xml(cfg: SceneConfig) -> str:
     <numeric name="max_contact_points" data="{cap}"/>
     <numeric name="max_geom_pairs" data="{cap}"/>
   </custom>
-  <default><geom solref="{cfg.solref:.6g} 1" condim="3"/></default>
+  <default><geom solref="{cfg.solref:.6g} 1" condim="{cfg.condim}"/></default>
   <worldbody>
     <geom name="table" type="plane" size="{b + 0.1:.6g} {b + 0.1:.6g} 0.01" contype="1" conaffinity="0"
           group="{GROUP_TABLE}" friction="0.1" rgba="0.9 0.9 0.88 1"/>
