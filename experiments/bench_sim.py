@@ -30,10 +30,8 @@ VARIANTS = {
     "planar-CG-3N": dict(joints="planar", solver="CG", contact_cap=3.0),
     "planar-CG-1.5N-yaw": dict(joints="planar", solver="CG", contact_cap=1.5, sphere_yaw=True),
     "planar-Newton-3N-dense": dict(joints="planar", solver="Newton", contact_cap=3.0, contact_jacobian="dense"),
-    "planar-CG-2N-c1": dict(joints="planar", solver="CG", contact_cap=2.0, condim=1),
-    "planar-CG-2N-c1-dense": dict(joints="planar", solver="CG", contact_cap=2.0, condim=1, contact_jacobian="dense"),
-    "planar-CG-2N-c1-ls3": dict(joints="planar", solver="CG", contact_cap=2.0, condim=1, ls_iterations=3),
-    "planar-CG-1.5N-c1": dict(joints="planar", solver="CG", contact_cap=1.5, condim=1),
+    "fast": dict(preset="fast"),  # SceneConfig.fast(): CG, frictionless contacts, caps 2N, 3 line-search steps
+    "fast-dense": dict(preset="fast", contact_jacobian="dense"),
 }
 
 
@@ -41,7 +39,9 @@ def variant(name: str, pieces: int = 100) -> tuple[SimConfig, str]:
     """A variant's SimConfig and PileEnv's contact_jacobian ("sparse" unless the variant says "dense")."""
     overrides = dict(VARIANTS[name])
     jacobian = overrides.pop("contact_jacobian", "sparse")
-    return SimConfig(scene=replace(SceneConfig(pieces=(pieces,)), **overrides)), jacobian
+    base = SceneConfig.fast(pieces=(pieces,)) if overrides.pop("preset", None) == "fast" else SceneConfig(
+        pieces=(pieces,))
+    return SimConfig(scene=replace(base, **overrides)), jacobian
 
 
 def _timed(fn, *args, repeats: int):

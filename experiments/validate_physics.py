@@ -15,6 +15,7 @@ For every piece kind, random pushes through random piles (MJX, worlds batched), 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import time
 
 import jax
@@ -62,8 +63,10 @@ def push_metrics(env: PileEnv, before, pressing, after, action) -> dict:
     )
 
 
-def validate_kind(kind: str, pieces: int, worlds: int, rounds: int, scene_overrides: dict, seed: int = 0) -> dict:
-    cfg = SimConfig(scene=replace(SceneConfig(kinds=(kind,), pieces=(pieces,)), **scene_overrides))
+def validate_kind(kind: str, pieces: int, worlds: int, rounds: int, scene_overrides: dict, seed: int = 0,
+                  fast: bool = False) -> dict:
+    base = (SceneConfig.fast if fast else SceneConfig)(kinds=(kind,), pieces=(pieces,))
+    cfg = SimConfig(scene=replace(base, **scene_overrides))
     env = PileEnv(cfg, backend="mjx", render=False)
     reset, sample = jax.jit(jax.vmap(env.reset)), jax.jit(jax.vmap(env.sample_push))
 
@@ -86,7 +89,9 @@ def validate_kind(kind: str, pieces: int, worlds: int, rounds: int, scene_overri
         rows.append(jax.tree.map(np.asarray, m))
     m = {k: np.concatenate([row[k] for row in rows]) for k in rows[0]}
     return dict(
-        kind=kind, pushes=worlds * rounds, broken=int(m["broken"].sum()), nan_free=bool(np.all(np.isfinite(m["sink"]))),
+        kind=kind, scene={k: v for k, v in dataclasses.asdict(cfg.scene).items() if k not in ("kinds", "pieces")},
+        pushes=worlds * rounds, broken=int(m["broken"].sum()),
+        nan_free=bool(np.all(np.isfinite(m["sink"]))),
         max_sink_mm=float(np.nanmax(m["sink"]) * 1000), in_path=int(m["in_path"].sum()),
         followed_share=float(m["followed"].sum() / max(1, m["in_path"].sum())), outside=int(m["outside"].sum()),
         outside_moved_5mm_share=float(m["outside_moved_5mm"].sum() / max(1, m["outside"].sum())),
@@ -102,22 +107,26 @@ def main(argv=None):
     parser.add_argument("--worlds", type=int, default=250, help="worlds simulated at once")
     parser.add_argument("--pieces", type=int, default=100)
     parser.add_argument("--kinds", nargs="*", default=list(KINDS))
-    parser.add_argument("--joints", default="planar", choices=["planar", "free"])
-    parser.add_argument("--solver", default="Newton", choices=["Newton", "CG"])
-    parser.add_argument("--solver-iterations", type=int, default=12)
-    parser.add_argument("--ls-iterations", type=int, default=6)
-    parser.add_argument("--contact-cap", type=float, default=3.0)
-    parser.add_argument("--condim", type=int, default=3, choices=[1, 3],
-                        help="pieces' contacts: 3 with friction, 1 frictionless (a third of the constraint rows)")
+    parser.add_argument("--scene", default="default", choices=["default", "fast"],
+                        help="SceneConfig() or SceneConfig.fast(); the flags below override either")
+    parser.add_argument("--joints", choices=["planar", "free"])
+    parser.add_argument("--solver", choices=["Newton", "CG"])
+    parser.add_argument("--solver-iterations", type=int)
+    parser.add_argument("--ls-iterations", type=int)
+    parser.add_argument("--contact-cap", type=float)
+    parser.add_argument("--condim", type=int, choices=[1, 3],
+                        help="pieces' contacts: 3 with friction, 1 frictionless (a quarter of the constraint rows)")
     parser.add_argument("--json")
     args = parser.parse_args(argv)
     rounds = max(1, -(-args.pushes // args.worlds))
-    overrides = dict(joints=args.joints, solver=args.solver, solver_iterations=args.solver_iterations,
-                     ls_iterations=args.ls_iterations, contact_cap=args.contact_cap, condim=args.condim)
-    out = dict(device=jax.devices()[0].device_kind, pieces=args.pieces, scene=overrides, kinds=[])
+    overrides = {k: v for k, v in dict(joints=args.joints, solver=args.solver, solver_iterations=args.solver_iterations,
+                                       ls_iterations=args.ls_iterations, contact_cap=args.contact_cap,
+                                       condim=args.condim).items() if v is not None}
+    out = dict(device=jax.devices()[0].device_kind, pieces=args.pieces, scene=dict(preset=args.scene, **overrides),
+               kinds=[])
     for kind in tqdm(args.kinds, desc="kinds"):
         t0 = time.perf_counter()
-        res = validate_kind(kind, args.pieces, args.worlds, rounds, overrides)
+        res = validate_kind(kind, args.pieces, args.worlds, rounds, overrides, fast=args.scene == "fast")
         res["seconds"] = time.perf_counter() - t0
         tqdm.write(str(res))
         out["kinds"].append(res)
