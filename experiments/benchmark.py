@@ -23,6 +23,10 @@ def sim_table(result: dict) -> str:
         for r in v["mjx"]["rows"]:
             lines.append(f"| {name} | {r['worlds']} | {r['world_steps_per_s']:,.0f} | {r['pushes_per_s']:,.1f} | "
                          f"{c:,.1f} | {r['pushes_per_s'] / c:.2f}x |")
+        if "whole_push" in v["mjx"]:
+            w = v["mjx"]["whole_push"]
+            lines.append(f"| {name}, whole pushes | {w['worlds']} | - | {w['pushes_per_s']:,.1f} | {c:,.1f} | "
+                         f"{w['pushes_per_s'] / c:.2f}x |")
     return "\n".join(lines)
 
 
@@ -38,10 +42,11 @@ def report_table(results: dict) -> str:
              f"{' (quick sizes: checks only)' if results.get('quick') else ''}.", "",
              "| benchmark | ours | peer, measured in the same run | ours, times faster |", "|---|---|---|---:|"]
     for name, v in sim["variants"].items():
-        best = max(v["mjx"]["rows"], key=lambda r: r["pushes_per_s"])
+        best = v["mjx"].get("whole_push") or max(v["mjx"]["rows"], key=lambda r: r["pushes_per_s"])
         c = v["c_mujoco"]
+        how = "whole pushes" if "whole_push" in v["mjx"] else "from the first steps"
         lines.append(_row(f"simulator `{name}`, {sim['pieces']} pieces: pushes/s",
-                          f"MJX, {best['worlds']:,} worlds: {best['pushes_per_s']:,.1f}",
+                          f"MJX, {best['worlds']:,} worlds ({how}): {best['pushes_per_s']:,.1f}",
                           f"C MuJoCo, {c['cores']} cores: {c['pushes_per_s']:,.1f}",
                           best["pushes_per_s"] / c["pushes_per_s"]))
     f, npy = per["fps"], per["fps_numpy"]
