@@ -23,6 +23,8 @@ from dynres_jax.sim.env import FULL_STATE, PileEnv, c_rollout
 
 # Scene variants compared (all 100 coffee beans unless --pieces says otherwise).
 VARIANTS = {
+    "fast": dict(preset="fast"),  # SceneConfig.fast(): CG (8 x 3 line-search steps), frictionless contacts, caps 2N
+    "fast-dense": dict(preset="fast", contact_jacobian="dense"),
     "free-CG-3N": dict(joints="free", solver="CG", contact_cap=3.0),  # the plain MJX set-up of DESIGN.md
     "planar-Newton-3N": dict(joints="planar", solver="Newton", contact_cap=3.0),  # the default scene
     "planar-Newton-1.5N": dict(joints="planar", solver="Newton", contact_cap=1.5),
@@ -30,8 +32,6 @@ VARIANTS = {
     "planar-CG-3N": dict(joints="planar", solver="CG", contact_cap=3.0),
     "planar-CG-1.5N-yaw": dict(joints="planar", solver="CG", contact_cap=1.5, sphere_yaw=True),
     "planar-Newton-3N-dense": dict(joints="planar", solver="Newton", contact_cap=3.0, contact_jacobian="dense"),
-    "fast": dict(preset="fast"),  # SceneConfig.fast(): CG (8 x 3 line-search steps), frictionless contacts, caps 2N
-    "fast-dense": dict(preset="fast", contact_jacobian="dense"),
 }
 
 
@@ -84,7 +84,7 @@ def mjx_rates(cfg: SimConfig, worlds: list[int], steps: int, repeats: int, whole
     if whole_push_at:
         states, actions = _batch(env, whole_push_at)
         push = jax.jit(jax.vmap(env.push))
-        first, t = _timed(push, states, actions, repeats=2)
+        first, t = _timed(push, states, actions, repeats=1)
         out["whole_push"] = dict(worlds=whole_push_at, pushes_per_s=whole_push_at / t, seconds=t)
         print(f"  MJX whole pushes at {whole_push_at} worlds: {whole_push_at / t:.1f} pushes/s", flush=True)
     return out
