@@ -11,10 +11,11 @@ from experiments import bench_perception, bench_planner, bench_sim, benchmark
 def _results():
     """Inputs shaped like the three benchmarks' results (different numbers in every field)."""
     sim = dict(device="dev", host_cores=16, pieces=100, variants={
-        name: dict(mjx=dict(rows=[dict(worlds=16, pushes_per_s=3.0 * i + 1),
-                                  dict(worlds=4096, pushes_per_s=50.0 * i + 7)]),
+        name: dict(mjx=dict(rows=[dict(worlds=w, world_steps_per_s=590 * p, pushes_per_s=p)
+                                  for w, p in [(16, 3.0 * i + 1), (4096, 50.0 * i + 7)]]),
                    c_mujoco=dict(cores=16, pushes_per_s=20.0 + i))
         for i, name in enumerate(["a", "b"])})
+    sim["variants"]["b"]["mjx"]["whole_push"] = dict(worlds=4096, pushes_per_s=44.0, seconds=93.1)
     per = dict(fps=dict(clouds=1024, points=20000, n=100, median_ms=12.5), fps_numpy=dict(batch_ms_scaled=33280.0),
                h=dict(omega=50, observations=1024, image=256, median_ms=81.6),
                h_max_points=dict(max_points=8192, median_ms=17.3))
@@ -66,4 +67,12 @@ def test_every_ratio_is_how_many_times_faster_ours_is(written):
         expected = a / b if "pushes/s" in what else b / a  # a rate: ours over peer; a time: peer over ours
         assert float(ratio.rstrip("x").replace(",", "")) == pytest.approx(expected, rel=0.02, abs=0.06), what
     sim_rows = [r for r in rows if r[0].startswith("simulator")]
-    assert [_number(r[1]) for r in sim_rows] == [7.0, 57.0]  # the best world count of each variant
+    # a: its best world count; b: its whole pushes, which are what C MuJoCo (whole pushes) is compared with
+    assert [_number(r[1]) for r in sim_rows] == [7.0, 44.0]
+
+
+def test_sim_table_adds_the_whole_pushes_row():
+    table = benchmark.sim_table(_results()[0])
+    assert "| b | 4096 | 33,630 | 57.0 | 21.0 | 2.71x |" in table
+    assert "| b, whole pushes | 4096 | - | 44.0 | 21.0 | 2.10x |" in table
+    assert "a, whole pushes" not in table
