@@ -36,13 +36,15 @@ def _row(what: str, ours: str, peer: str, ratio: float | None) -> str:
 
 def report_table(results: dict) -> str:
     """One Markdown table of ``benchmark all``'s results: {"sim": ..., "perception": ..., "planner": ...}."""
+    from experiments.bench_sim import compared_rate
+
     sim, per, pl = results["sim"], results["perception"], results["planner"]
     j = pl["jax"]
     lines = [f"Device: {j['device']} (JAX {j['jax_version']}); host: {sim['host_cores']} cores"
              f"{' (quick sizes: checks only)' if results.get('quick') else ''}.", "",
              "| benchmark | ours | peer, measured in the same run | ours, times faster |", "|---|---|---|---:|"]
     for name, v in sim["variants"].items():
-        best = v["mjx"].get("whole_push") or max(v["mjx"]["rows"], key=lambda r: r["pushes_per_s"])
+        best = compared_rate(v["mjx"])
         c = v["c_mujoco"]
         how = "whole pushes" if "whole_push" in v["mjx"] else "from the first steps"
         lines.append(_row(f"simulator `{name}`, {sim['pieces']} pieces: pushes/s",

@@ -2,7 +2,7 @@
 ``experiments.bench_sim`` (CUPTI trace through ``torch.profiler``), with the optimised HLO that names each fusion and
 the MJX function each fusion comes from. README, "Speed".
 
-    python scripts/profile_sim.py OUT_DIR --variants planar-CG-2N-c1 [--worlds 4096] [--steps 50]
+    python scripts/profile_sim.py OUT_DIR --variants fast [--worlds 4096] [--steps 50]
 
 Writes OUT_DIR/kernels_VARIANT.json ([name, µs per step, launches per step, source], slowest first) and
 OUT_DIR/sim_VARIANT.hlo.txt; prints the 30 slowest kernels.
@@ -34,7 +34,7 @@ def _sources(hlo: str) -> dict[str, str]:
 def main():
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("out")
-    parser.add_argument("--variants", nargs="+", default=["planar-CG-2N-c1"])
+    parser.add_argument("--variants", nargs="+", default=["fast"])
     parser.add_argument("--worlds", type=int, default=4096)
     parser.add_argument("--steps", type=int, default=50)
     args = parser.parse_args()

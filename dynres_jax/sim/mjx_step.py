@@ -8,7 +8,7 @@ bodies can only move their own dofs and their ancestors', a set fixed by the mod
 their order, impedances, reference accelerations) is MJX's own, so ``step`` matches ``mujoco.mjx.step`` to float
 rounding (tested).
 
-``step(m, d)`` supports what the pile scenes use: dof friction loss, contacts of dimension 1 or 3 (pyramidal or
+``step(m, d, dofs)`` supports what the pile scenes use: dof friction loss, contacts of dimension 1 or 3 (pyramidal or
 elliptic), the Euler integrator, no equality constraints, limits, tendons, actuators or sensors.
 ``check_supported`` names whatever else a model has.
 """
@@ -108,6 +108,7 @@ def step(m, d, dofs: np.ndarray):
     """One simulator step, as ``mujoco.mjx.step(m, d)``; ``dofs = chain_dofs(model)``."""
     d = smooth.kinematics(m, d)
     d = smooth.com_pos(m, d)
+    d = smooth.camlight(m, d)
     d = smooth.crb(m, d)
     d = smooth.factor_m(m, d)
     d = collision_driver.collision(m, d)
