@@ -24,7 +24,14 @@ once per plan, "Pair table" below). ``residual``: the network predicts a correct
 predictor's last layer starts at zero, so an untrained model is exactly the sweep heuristic. ``bin_position``: the
 node input also holds where the particle is in the bin, before and after the sweep's guess (x, y of each over
 ``bin_half_width``: 4 more inputs), so the model can learn where the walls stop a pile; the push frame alone does not
-say where the walls are.
+say where the walls are. ``height``: the node input also holds the particle's height above the table (z over
+``length_scale``; 1 more input): particles lie on the pile's top surface, so this is the pile's thickness there, which
+edges (relative positions only) cannot tell. ``global_context``: every propagation step also feeds each node the
+pile's pooled state, [masked mean of the node effects, their sum weighted by the area a particle stands for,
+r² / POOL_AREA] -> a linear layer 2H -> H added inside the node propagator's ReLU, so a particle knows how much material
+the push gathers, not only what its 3-hop neighbourhood holds. ``radius_scale``: edges reach
+max(``edge_radius``, radius_scale · r), r the FPS covering radius, instead of ``edge_radius`` alone, so sparse
+samples (r of several cm at small ω, against the 3.2 cm radius) still have neighbours.
 
 Defaults (H = 64, 3 steps) give 38,403 parameters, the reference's "about 38k".
 
@@ -83,6 +90,7 @@ from dynres_jax.graph import K_NEIGHBOURS, R_EDGE, build_edges, sweep_displaceme
 
 LENGTH_SCALE = 0.05  # m: displacements and relative positions are divided by this inside the model
 R_REF = 0.02  # m: covering radius whose resolution code is 0
+POOL_AREA = 0.01  # m²: about a pile's area, the unit of the global context's area-weighted sum
 R_MIN = 1e-3  # m: radii below this (including the 0 of bad perception input) are clipped in ``resolution_code``
 NODE_IN = 5  # guessed displacement (3), attribute (1), resolution code (1)
 NODE_IN_PUSH_FRAME = 7  # push_frame: guess along the push, s, t, s - L, L (1 each), attribute (1), code (1)
@@ -106,6 +114,19 @@ class DynamicsConfig:
     world_edges: bool = False
     bin_position: bool = False
     bin_half_width: float = SceneConfig.bin_half_width
+    height: bool = False
+    global_context: bool = False
+    radius_scale: float = 0.0
+
+    def __post_init__(self):
+        if self.radius_scale < 0:
+            raise ValueError(f"radius_scale must be >= 0, got {self.radius_scale}")
+
+    @property
+    def node_inputs(self) -> int:
+        """Width of the node encoder's input."""
+        return ((NODE_IN_PUSH_FRAME if self.push_frame else NODE_IN) + (4 if self.bin_position else 0)
+                + (1 if self.height else 0))
 
     @property
     def edges_in_push_frame(self) -> bool:
@@ -119,6 +140,11 @@ def resolution_code(radius):
     the density 1/r² relative to 1/R_REF². Radii below R_MIN are clipped, so the code is always finite."""
     radius = jnp.asarray(radius, jnp.float32)
     return jnp.log(R_REF / jnp.maximum(radius, R_MIN))
+
+
+def code_radius(code):
+    """The covering radius (m) a resolution code stands for: the inverse of ``resolution_code`` above R_MIN."""
+    return R_REF * jnp.exp(-jnp.asarray(code, jnp.float32))
 
 
 def _push_frame(action):
@@ -211,11 +237,12 @@ class Dynamics(nnx.Module):
     def __init__(self, config: DynamicsConfig = DynamicsConfig(), *, rngs: nnx.Rngs):
         h = config.hidden
         self.config = config
-        node_in = (NODE_IN_PUSH_FRAME if config.push_frame else NODE_IN) + (4 if config.bin_position else 0)
-        self.node_encoder = _mlp((node_in, h, h), rngs, final_relu=True)
+        self.node_encoder = _mlp((config.node_inputs, h, h), rngs, final_relu=True)
         self.edge_encoder = _mlp((EDGE_IN, h, h, h), rngs, final_relu=True)
         self.edge_propagator = nnx.Linear(3 * h + 1, h, rngs=rngs)  # [edge code, receiver, sender, code]
         self.node_propagator = nnx.Linear(2 * h + 1, h, rngs=rngs)  # [node code, summed edge effects, code]
+        if config.global_context:  # [mean, area-weighted sum] of the node effects -> the node update
+            self.global_propagator = nnx.Linear(2 * h, h, use_bias=False, rngs=rngs)
         self.predictor = _mlp((h, h, 3), rngs, final_relu=False)
         if config.residual:  # the correction starts at zero: an untrained model is the sweep heuristic
             last = self.predictor.layers[-1]
@@ -237,7 +264,10 @@ class Dynamics(nnx.Module):
         n = positions.shape[0]
         clean = jnp.where(mask[:, None], positions, 0.0)
         guess = sweep_displacement(clean, mask, action, cfg.plate_half_width)
-        neighbours, edge_mask = build_edges(clean + guess, mask, cfg.edge_radius, cfg.k)
+        radius = cfg.edge_radius
+        if cfg.radius_scale:
+            radius = jnp.maximum(radius, cfg.radius_scale * code_radius(code))
+        neighbours, edge_mask = build_edges(clean + guess, mask, radius, cfg.k)
 
         attr = mask.astype(jnp.float32)[:, None]  # [N, 1]: 1 for a particle
         if cfg.push_frame:
@@ -251,6 +281,8 @@ class Dynamics(nnx.Module):
             node_in = [guess / cfg.length_scale]
         if cfg.bin_position:
             node_in += [xy[:, :2] / cfg.bin_half_width for xy in (clean, clean + guess)]  # 0 where masked, as both are
+        if cfg.height:
+            node_in.append(clean[:, 2:] / cfg.length_scale)
         node_code = self.node_encoder(jnp.concatenate(node_in + [attr, jnp.broadcast_to(code, (n, 1))], axis=-1))
 
         w_e = self.edge_propagator.kernel[...]
@@ -270,7 +302,10 @@ class Dynamics(nnx.Module):
         for _ in range(cfg.steps):
             node_terms = effect @ w_terms  # [N, 2H]: receiver and sender terms
             incoming = _incoming(table is not None, edge_const, neighbours, edge_mask, node_terms)  # [N, H]
-            effect = nnx.relu(node_const + incoming @ w_n[h:2 * h] + effect)
+            update = node_const + incoming @ w_n[h:2 * h] + effect
+            if cfg.global_context:
+                update = update + self._pooled(effect, mask, code)
+            effect = nnx.relu(update)
 
         displacement = self.predictor(effect) * cfg.length_scale
         if cfg.push_frame:
@@ -278,6 +313,14 @@ class Dynamics(nnx.Module):
         if cfg.residual:
             displacement = displacement + guess  # the network predicts the correction to the sweep heuristic
         return jnp.where(mask[:, None], positions + displacement, positions)
+
+    def _pooled(self, effect, mask, code):
+        """The global context's term of the node update (module docstring, "Options"): effect [N, H], mask [N],
+        code [] -> [H], the same for every node; masked rows take no part."""
+        w = mask.astype(jnp.float32)[:, None]
+        mean = jnp.sum(effect * w, axis=0) / jnp.maximum(jnp.sum(w), 1.0)
+        area = jnp.square(code_radius(code)) / POOL_AREA  # the area a particle stands for, in units of a pile's
+        return self.global_propagator(jnp.concatenate([mean, area * jnp.sum(effect * w, axis=0)]))
 
     def _check_pair_table(self):
         if self.config.edges_in_push_frame:

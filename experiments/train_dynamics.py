@@ -5,7 +5,8 @@
     python -m experiments.train_dynamics --data data/piles --out runs/cnn_dynamics --model cnn   # the CNN baseline
 
 --model gnn (default): the PropNet GNN (``dynres_jax.dynamics``; --hidden, --propagation-steps, --push-frame,
---world-edges, --bin-position, --residual). --model cnn: the CNN baseline (``dynres_jax.cnn_dynamics``; --grid,
+--world-edges, --bin-position, --height, --global-context, --radius-scale,
+--residual). --model cnn: the CNN baseline (``dynres_jax.cnn_dynamics``; --grid,
 --channels, and --no-residual to predict whole displacements instead of correcting the sweep heuristic). --loss mse
 (default) or distance: the training loss (``TrainConfig.loss``).
 """
@@ -20,7 +21,9 @@ from dynres_jax.cnn_dynamics import CNNDynamicsConfig
 from dynres_jax.dynamics import DynamicsConfig
 from dynres_jax.train import MODEL_CLASSES, TrainConfig, train
 
-GNN_ONLY, CNN_ONLY = ("hidden", "propagation_steps", "push_frame", "world_edges", "bin_position"), ("grid", "channels")
+GNN_ONLY = ("hidden", "propagation_steps", "push_frame", "world_edges", "bin_position", "height", "global_context",
+            "radius_scale")
+CNN_ONLY = ("grid", "channels")
 
 
 def main(argv=None):
@@ -48,6 +51,12 @@ def main(argv=None):
                              "the planner builds their codes once per plan)")
     parser.add_argument("--bin-position", action="store_true", default=None,
                         help="gnn: DynamicsConfig.bin_position (node inputs say where in the bin a particle is)")
+    parser.add_argument("--height", action="store_true", default=None,
+                        help="gnn: DynamicsConfig.height (node inputs say how high above the table a particle is)")
+    parser.add_argument("--global-context", action="store_true", default=None,
+                        help="gnn: DynamicsConfig.global_context (every node update sees the pile's pooled state)")
+    parser.add_argument("--radius-scale", type=float, default=None,
+                        help="gnn: DynamicsConfig.radius_scale (edges reach max(edge radius, this x FPS radius))")
     parser.add_argument("--residual", action=argparse.BooleanOptionalAction, default=None,
                         help="correct the sweep heuristic (default: off for gnn, on for cnn)")
     parser.add_argument("--grid", type=int, default=None,

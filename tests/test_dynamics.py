@@ -2,6 +2,7 @@
 split/merge API, gradients through edges, bfloat16 edges against float32 and a tiny training run. Small sizes
 (N = 24, H = 16) keep it fast on CPU."""
 
+import dataclasses
 import functools
 
 import jax
@@ -12,6 +13,7 @@ import pytest
 from flax import nnx
 
 from dynres_jax.dynamics import (
+    POOL_AREA,
     R_REF,
     Dynamics,
     DynamicsConfig,
@@ -129,10 +131,12 @@ def test_bfloat16_edges_agree_with_float32(config):
 
 
 WORLD_EDGES = DynamicsConfig(hidden=H, push_frame=True, world_edges=True, residual=True)
+CONTEXT = DynamicsConfig(hidden=H, push_frame=True, world_edges=True, residual=True, bin_position=True, height=True,
+                         global_context=True, radius_scale=2.5)  # every node-side option on
 
 
 @pytest.mark.parametrize("config,edge_dtype", [(DynamicsConfig(hidden=H), "float32"), (WORLD_EDGES, "float32"),
-                                               (WORLD_EDGES, "bfloat16")])
+                                               (WORLD_EDGES, "bfloat16"), (CONTEXT, "float32")])
 def test_pair_table_equals_per_edge_codes(config, edge_dtype):
     """Edge codes gathered from the pair table give the per-edge predictions (to float rounding) and gradients
     w.r.t. the push, vmapped over pushes from one padded pile as the planner calls it; a two-push rollout uses the
@@ -403,3 +407,79 @@ def test_bin_position_breaks_translation_invariance_only_where_asked():
         garbage = p.at[~mask].set(1e4)
         np.testing.assert_array_equal(np.asarray(model(garbage, mask, a, 0.3))[np.asarray(mask)],
                                       np.asarray(here)[np.asarray(mask)])
+
+
+@pytest.fixture(scope="module")
+def context_split():
+    return perturbed(CONTEXT)
+
+
+def test_context_options_keep_padding_inert_equivariance_and_vmap(context_split):
+    """With height, global context and scaled edge radii: garbage (even NaN) in padded rows changes nothing, the
+    output is permutation equivariant (the pooled context is a symmetric function) and vmap over scenes of different
+    resolutions equals one call each."""
+    f = jax.jit(functools.partial(predict, *context_split))
+    positions, mask = scene(4)
+    reference = np.asarray(f(positions, mask, PUSH, 0.4))
+    garbage = positions.copy()
+    garbage[~mask] = np.nan
+    out = np.asarray(f(garbage, mask, PUSH, 0.4))
+    np.testing.assert_array_equal(out[mask], reference[mask])
+    assert np.all(np.isnan(out[~mask]))
+    perm = np.random.default_rng(5).permutation(N)
+    np.testing.assert_allclose(np.asarray(f(positions[perm], mask[perm], PUSH, 0.4)), reference[perm], atol=1e-6)
+    check_vmap_over_scenes(context_split, f, scene, PUSH, 10)
+
+
+def pooled_reference(model, effect, mask, code):
+    """The global context's term written out by loops: [mean of valid rows, Σ valid rows · r² / POOL_AREA] @ W."""
+    valid = [np.asarray(effect[i], np.float64) for i in range(len(mask)) if mask[i]]
+    r = R_REF * np.exp(-code)
+    pooled = np.concatenate([sum(valid) / len(valid), sum(valid) * r**2 / POOL_AREA])
+    return pooled @ np.asarray(model.global_propagator.kernel[...], np.float64)
+
+
+def test_global_context_term_matches_loops_and_reaches_past_the_graph(context_split):
+    """The pooled term equals a loop over valid rows; and through it a particle's prediction depends on a far
+    particle it shares no path of edges with, which a model without the context ignores."""
+    model = nnx.merge(*context_split)
+    effect = jax.random.normal(jax.random.PRNGKey(0), (N, H))
+    _, mask = scene()
+    np.testing.assert_allclose(model._pooled(effect, jnp.asarray(mask), 0.3),
+                               pooled_reference(model, effect, mask, 0.3), rtol=1e-4, atol=1e-5)
+    positions = np.zeros((4, 3), np.float32)
+    positions[:, :2] = [[-0.15, -0.15], [-0.14, -0.15], [0.15, 0.15], [0.14, 0.15]]  # two pairs 42 cm apart
+    far = positions.copy()
+    far[3, :2] = [0.15, 0.14]
+    mask = np.ones(4, bool)
+    push = np.array([-0.17, -0.15, -0.10, -0.15], np.float32)
+    for config in (CONTEXT, dataclasses.replace(CONTEXT, global_context=False)):
+        graphdef, state = perturbed(config)
+        near = [np.asarray(predict(graphdef, state, p, mask, push, 0.3))[:2] for p in (positions, far)]
+        gap = np.abs(near[0] - near[1]).max()
+        assert (gap > 1e-6) if config.global_context else (gap == 0), (config.global_context, gap)
+
+
+def test_radius_scale_links_sparse_particles_and_height_is_an_input():
+    """radius_scale: particles 6 cm apart (past the 3.2 cm edge radius) influence each other when the covering radius
+    r = 3 cm makes the reach 2.5 r; without it, or with a small r, they do not. height: lifting the whole scene
+    changes the prediction only when the model is told the height. A negative radius_scale is refused."""
+    positions = np.array([[0.0, 0.0, 0.005], [0.06, 0.0, 0.005], [0.0, 0.06, 0.005]], np.float32)
+    moved = positions.copy()
+    moved[1, 1] = 0.005
+    mask = np.ones(3, bool)
+    push = np.array([-0.05, 0.0, 0.0, 0.0], np.float32)
+    base = dataclasses.replace(CONTEXT, global_context=False, height=False)
+    for scale, radius, linked in ((2.5, 0.03, True), (2.5, 0.005, False), (0.0, 0.03, False)):
+        graphdef, state = perturbed(dataclasses.replace(base, radius_scale=scale))
+        code = resolution_code(radius)
+        first = [np.asarray(predict(graphdef, state, p, mask, push, code))[0] for p in (positions, moved)]
+        assert (np.abs(first[0] - first[1]).max() > 1e-6) == linked, (scale, radius)
+    lifted = positions + np.array([0, 0, 0.01], np.float32)
+    for height in (False, True):
+        graphdef, state = perturbed(dataclasses.replace(base, height=height))
+        a, b = (np.asarray(predict(graphdef, state, p, mask, push, 0.0)) for p in (positions, lifted))
+        gap = np.abs((b - lifted) - (a - positions)).max()
+        assert (gap > 1e-6) if height else (gap < 1e-6), (height, gap)
+    with pytest.raises(ValueError, match="radius_scale must be >= 0"):
+        DynamicsConfig(radius_scale=-1.0)
