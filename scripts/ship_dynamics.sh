@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # Dynamics models end to end on one GPU machine: one data set (C MuJoCo on every host core, frames rendered on the
-# GPU), then every variant trained side by side on the GPU (a time-boxed run whose step count is set from the speed
-# it measures), then its held-out evaluation. Each variant's run folder is packed as $OUT/NAME.tar.gz (its log too).
+# GPU), then every variant trained side by side (a time-boxed run whose step count is set from the speed it measures;
+# variant i on GPU i mod the GPU count, so a machine with several GPUs shares each among fewer), then its held-out
+# evaluation. Each variant's run folder is packed as $OUT/NAME.tar.gz (its log too).
 #   OUT=runs/ship bash scripts/ship_dynamics.sh                 # one variant, "dynamics", with MODEL_FLAGS
 #   OUT=runs/ship VARIANTS="gnn:--residual --push-frame;cnn:--model cnn" bash scripts/ship_dynamics.sh
 # Env: EPISODES (2000), TRAIN_MINUTES (4), BATCH (64), PROBE_STEPS (300), DATA (/tmp/piles), VARIANTS
@@ -49,14 +50,16 @@ PY
 }
 
 IFS=';' read -ra specs <<< "$VARIANTS"
-# Side by side on one GPU: each process may take an equal share of its memory.
-XLA_PYTHON_CLIENT_MEM_FRACTION=$(python -c "print(round(0.9 / ${#specs[@]}, 3))")
+gpus=$(nvidia-smi -L 2>/dev/null | grep -c '^GPU' || true); gpus=$((gpus > 0 ? gpus : 1))
+# Side by side on a GPU: each process may take an equal share of its memory.
+XLA_PYTHON_CLIENT_MEM_FRACTION=$(python -c "print(round(0.9 / -(-${#specs[@]} // $gpus), 3))")
 export XLA_PYTHON_CLIENT_MEM_FRACTION
 pids=()
-for spec in "${specs[@]}"; do
-  name=${spec%%:*}
+for i in "${!specs[@]}"; do
+  spec=${specs[$i]} name=${specs[$i]%%:*}
   mkdir -p "$RUNS/$name"
-  (set +e; (set -e; variant "$name" "${spec#*:}" > "$RUNS/$name/log.txt" 2>&1); rc=$?
+  (set +e; export CUDA_VISIBLE_DEVICES=$((i % gpus))
+   (set -e; variant "$name" "${spec#*:}" > "$RUNS/$name/log.txt" 2>&1); rc=$?
    tar -czf "$OUT/$name.tar.gz" -C "$RUNS" "$name"; exit $rc) &
   pids+=($!)
 done
