@@ -5,7 +5,8 @@
 # evaluation. Each variant's run folder is packed as $OUT/NAME.tar.gz (its log too).
 #   OUT=runs/ship bash scripts/ship_dynamics.sh                 # one variant, "dynamics", with MODEL_FLAGS
 #   OUT=runs/ship VARIANTS="gnn:--residual --push-frame;cnn:--model cnn" bash scripts/ship_dynamics.sh
-# Env: EPISODES (2000), TRAIN_MINUTES (4), BATCH (64), PROBE_STEPS (300), DATA (/tmp/piles), VARIANTS
+# Env: EPISODES (2000), TRAIN_MINUTES (4), STEPS (every variant trains exactly this many steps, the box only a safety
+# stop; default: as many as fill the box at the probed speed), BATCH (64), PROBE_STEPS (300), DATA (/tmp/piles), VARIANTS
 # ("NAME:flags;NAME:flags", default "dynamics:$MODEL_FLAGS"), RUNS (run folders, default $OUT):
 # $RUNS/NAME/{ckpt,metrics.jsonl,curves.png,eval/,log.txt,timing.json}.
 set -euo pipefail
@@ -30,14 +31,14 @@ variant() {  # NAME FLAGS: probe the speed, train to the time box, evaluate, pac
   # shellcheck disable=SC2086
   python -m experiments.train_dynamics --data "$DATA" --out "$run" --batch "$BATCH" $flags --steps "$PROBE" \
     --eval-every "$PROBE" --quiet
-  steps=$(python - "$run" "$TRAIN_MINUTES" "$PROBE" <<'PY'
+  steps=${STEPS:-$(python - "$run" "$TRAIN_MINUTES" "$PROBE" <<'PY'
 import json, sys
 from dynres_jax import ckpt
 rate = json.loads(open(sys.argv[1] + "/metrics.jsonl").readlines()[-1])["samples_per_s"]
 batch = ckpt.load_meta(sys.argv[1] + "/ckpt")["train"]["batch"]  # the variant's own --batch, if it has one
 print(int(0.95 * rate * max(60 * float(sys.argv[2]) - 25, 0) / batch) // 100 * 100 + int(sys.argv[3]))
 PY
-)
+)}
   echo "$name: training to $steps steps"
   t2=$(date +%s)
   # shellcheck disable=SC2086
