@@ -539,3 +539,22 @@ def make_sample(window: Window, omega, key, camera: Camera, n_max: int, **percep
     positions = particle_trajectory(index, local, jnp.asarray(window.pos), jnp.asarray(window.mat))
     return Sample(positions, p.mask, jnp.where(index >= 0, kind[jnp.maximum(index, 0)], -1),
                   jnp.asarray(window.action), p.radius, p.error)
+
+
+def piece_sample(window: Window, n_max: int) -> Sample:
+    """The full state as a Sample, a diagnostic of what f learns from perfect knowledge (``TrainConfig.state``
+    "pieces"): every piece's centre, buried ones included, at frames t..t+horizon in the first of ``n_max`` slots;
+    radius: the mean distance from a piece to its nearest neighbour, the density of such a sample. Pure JAX."""
+    pos = jnp.asarray(window.pos, jnp.float32)
+    n = pos.shape[-2]
+    if n > n_max:
+        raise ValueError(f"the data hold {n} piece slots, more than n_max={n_max}")
+    mask = jnp.asarray(window.piece_mask, bool)
+    d2 = jnp.sum(jnp.square(pos[0][:, None] - pos[0][None]), -1)
+    d2 = jnp.where(mask[None] & ~jnp.eye(n, dtype=bool), d2, jnp.inf)
+    nearest = jnp.where(mask & (jnp.sum(mask) > 1), jnp.sqrt(jnp.min(d2, axis=1)), 0.0)
+    radius = jnp.sum(nearest) / jnp.maximum(jnp.sum(mask), 1)
+    kind = jnp.where(mask, jnp.asarray(window.kind, jnp.int32), -1)
+    return Sample(jnp.pad(jnp.where(mask[:, None], pos, 0.0), ((0, 0), (0, n_max - n), (0, 0))),
+                  jnp.pad(mask, (0, n_max - n)), jnp.pad(kind, (0, n_max - n), constant_values=-1),
+                  jnp.asarray(window.action), radius, jnp.int32(0))

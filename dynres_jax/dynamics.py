@@ -29,7 +29,8 @@ say where the walls are. ``height``: the node input also holds the particle's he
 edges (relative positions only) cannot tell. ``global_context``: every propagation step also feeds each node the
 pile's pooled state, [masked mean of the node effects, their sum weighted by the area a particle stands for,
 r² / POOL_AREA] -> a linear layer 2H -> H added inside the node propagator's ReLU, so a particle knows how much material
-the push gathers, not only what its 3-hop neighbourhood holds. ``radius_scale``: edges reach
+the push gathers, not only what its 3-hop neighbourhood holds. The layer starts at zero (so training starts from the
+model without it: with a random start, training diverged). ``radius_scale``: edges reach
 max(``edge_radius``, radius_scale · r), r the FPS covering radius, instead of ``edge_radius`` alone, so sparse
 samples (r of several cm at small ω, against the 3.2 cm radius) still have neighbours.
 
@@ -241,8 +242,9 @@ class Dynamics(nnx.Module):
         self.edge_encoder = _mlp((EDGE_IN, h, h, h), rngs, final_relu=True)
         self.edge_propagator = nnx.Linear(3 * h + 1, h, rngs=rngs)  # [edge code, receiver, sender, code]
         self.node_propagator = nnx.Linear(2 * h + 1, h, rngs=rngs)  # [node code, summed edge effects, code]
-        if config.global_context:  # [mean, area-weighted sum] of the node effects -> the node update
-            self.global_propagator = nnx.Linear(2 * h, h, use_bias=False, rngs=rngs)
+        if config.global_context:  # [mean, area-weighted sum] of the node effects -> the node update, from zero
+            self.global_propagator = nnx.Linear(2 * h, h, use_bias=False, kernel_init=nnx.initializers.zeros,
+                                                rngs=rngs)
         self.predictor = _mlp((h, h, 3), rngs, final_relu=False)
         if config.residual:  # the correction starts at zero: an untrained model is the sweep heuristic
             last = self.predictor.layers[-1]

@@ -19,6 +19,7 @@ metrics go to ``metrics.jsonl`` (one JSON object a line; on resume, lines past t
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
 import os
 import time
@@ -38,6 +39,7 @@ from dynres_jax.dynamics import Dynamics, DynamicsConfig, resolution_code, rollo
 SCHEDULE = ("steps", "eval_every", "ckpt_every", "val_batches")  # may change when a run resumes; nothing else may
 VAL_STREAM = 2**30  # seeds of validation batches: (seed, VAL_STREAM, b), apart from training steps' (seed, step)
 LOSSES = ("mse", "distance")  # TrainConfig.loss: see rollout_errors
+STATES = ("particles", "pieces")  # TrainConfig.state: what the model sees and predicts
 DISTANCE_EPS = 1e-4  # m: smoothing of the "distance" loss at zero error
 MODEL_CLASSES = {"gnn": (DynamicsConfig, Dynamics), "cnn": (CNNDynamicsConfig, CNNDynamics)}  # card name -> classes
 
@@ -52,6 +54,8 @@ class TrainConfig:
     and validation (episodes with any piece of them are dropped), so ``eval_dynamics`` can report the model on kinds
     it never saw; loss: "mse" (the reference's mean squared error) or "distance" (the mean
     Euclidean error that ``eval_dynamics`` reports; less pulled by the few pieces that end far from any guess);
+    state: "particles" (perception h at ω, what the paper's f sees) or "pieces" (every piece's centre, buried ones
+    too, known exactly: ``data.piece_sample``, a diagnostic of how far the model gets with perfect knowledge);
     model: the GNN's ``DynamicsConfig`` or the CNN's ``CNNDynamicsConfig``."""
 
     steps: int = 20_000
@@ -67,6 +71,7 @@ class TrainConfig:
     val_batches: int = 4
     seed: int = 0
     loss: str = "mse"
+    state: str = "particles"
     held_out_kinds: tuple[str, ...] = ()
     model: DynamicsConfig | CNNDynamicsConfig = field(default_factory=DynamicsConfig)
 
@@ -74,6 +79,8 @@ class TrainConfig:
         model_class(self.model)  # a ValueError for anything but a model config
         if self.loss not in LOSSES:
             raise ValueError(f"loss must be one of {', '.join(LOSSES)}, got {self.loss!r}")
+        if self.state not in STATES:
+            raise ValueError(f"state must be one of {', '.join(STATES)}, got {self.state!r}")
         if not 1 <= self.omega_min <= self.n_max:
             raise ValueError(f"omega_min={self.omega_min} must lie in [1, n_max={self.n_max}]")
         data.check_kind_names(self.held_out_kinds, "held_out_kinds")
@@ -126,11 +133,19 @@ def rollout_errors(graphdef, state, samples: data.Sample) -> dict:
     return {"mse": jnp.sum(sq) / count, "distance": jnp.sum(dist) / count}
 
 
+def make_sample(window: data.Window, omega, key, camera, cfg: TrainConfig) -> data.Sample:
+    """One window's training sample as ``cfg.state`` says: perception h at ω (``data.make_sample``) or the full
+    state (``data.piece_sample``; ω and the key unused)."""
+    if cfg.state == "pieces":
+        return data.piece_sample(window, cfg.n_max)
+    return data.make_sample(window, omega, key, camera, cfg.n_max, max_points=cfg.max_points)
+
+
 def make_step(graphdef, optimizer: optax.GradientTransformation, camera, cfg: TrainConfig):
     """The jitted training step (params, opt_state, windows, omegas, keys) -> (params, opt_state, errors) and
     evaluation (params, windows, omegas, keys) -> errors; errors as ``rollout_errors``; the loss is
     ``errors[cfg.loss]``."""
-    sample = jax.vmap(lambda w, o, k: data.make_sample(w, o, k, camera, cfg.n_max, max_points=cfg.max_points))
+    sample = jax.vmap(functools.partial(make_sample, camera=camera, cfg=cfg))
 
     @jax.jit
     def step(params, opt_state, windows, omegas, keys):

@@ -109,6 +109,37 @@ def test_bad_config_names_the_problem():
         TrainConfig(loss="huber")
     with pytest.raises(ValueError, match="held_out_kinds: unknown piece kind"):
         TrainConfig(held_out_kinds=("pebble",))
+    with pytest.raises(ValueError, match="state must be one of"):
+        TrainConfig(state="depth")
+
+
+def test_piece_sample_is_the_full_state_by_loops(shards):
+    """The full-state sample: every real piece's centre in its slot at every frame, padding zero and masked, and the
+    radius the mean nearest-neighbour distance computed by loops; more piece slots than n_max is refused."""
+    train_set = data.load_shards(shards, "train")
+    window = jax.tree.map(lambda x: x[0], data.windows(train_set, [1], [0], horizon=2))
+    n = window.pos.shape[1]
+    s = data.piece_sample(window, n + 3)
+    real = np.flatnonzero(window.piece_mask)
+    assert np.array_equal(np.flatnonzero(s.mask), real) and int(s.error) == 0
+    np.testing.assert_array_equal(np.asarray(s.positions)[:, real], window.pos[:, real])
+    assert not np.asarray(s.positions)[:, ~np.asarray(s.mask)].any()
+    assert np.array_equal(np.asarray(s.kind)[real], window.kind[real]) and np.all(np.asarray(s.kind)[n:] == -1)
+    centres = window.pos[0].astype(np.float64)
+    nearest = [min(np.linalg.norm(centres[i] - centres[j]) for j in real if j != i) for i in real]
+    np.testing.assert_allclose(float(s.radius), np.mean(nearest), rtol=1e-5)
+    with pytest.raises(ValueError, match="more than n_max"):
+        data.piece_sample(window, n - 1)
+
+
+def test_full_state_model_trains_and_evaluates_on_pieces(shards, tmp_path):
+    """state="pieces": training runs on the full state and the evaluation reports one row, "pieces"."""
+    cfg = dataclasses.replace(CFG, steps=2, n_max=data.load_shards(shards, "val").pos.shape[2], state="pieces")
+    train(cfg, shards, str(tmp_path / "run"), progress=False)
+    result = eval_dynamics.main(["--ckpt", str(tmp_path / "run/ckpt"), "--data", shards, "--out",
+                                 str(tmp_path / "eval"), "--windows", "4"])
+    assert list(result["omegas"]) == ["pieces"]
+    assert all(np.isfinite(result["omegas"]["pieces"][m]).all() for m in eval_dynamics.METHODS)
 
 
 def test_rollout_errors_equal_a_loop_over_samples_and_particles(shards):
