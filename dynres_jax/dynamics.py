@@ -32,7 +32,10 @@ r² / POOL_AREA] -> a linear layer 2H -> H added inside the node propagator's Re
 the push gathers, not only what its 3-hop neighbourhood holds. The layer starts at zero (so training starts from the
 model without it: with a random start, training diverged). ``radius_scale``: edges reach
 max(``edge_radius``, radius_scale · r), r the FPS covering radius, instead of ``edge_radius`` alone, so sparse
-samples (r of several cm at small ω, against the 3.2 cm radius) still have neighbours.
+samples (r of several cm at small ω, against the 3.2 cm radius) still have neighbours. ``substeps`` = S: a push is
+predicted as S sub-pushes, each 1/S of the plate's way, by S passes of the same network (each with its own sweep
+guess, edges and push frame), so contacts propagate through the pile as the plate advances rather than in one jump;
+it costs S times one pass.
 
 Defaults (H = 64, 3 steps) give 38,403 parameters, the reference's "about 38k".
 
@@ -118,10 +121,13 @@ class DynamicsConfig:
     height: bool = False
     global_context: bool = False
     radius_scale: float = 0.0
+    substeps: int = 1
 
     def __post_init__(self):
         if self.radius_scale < 0:
             raise ValueError(f"radius_scale must be >= 0, got {self.radius_scale}")
+        if self.substeps < 1:
+            raise ValueError(f"substeps must be >= 1, got {self.substeps}")
 
     @property
     def node_inputs(self) -> int:
@@ -257,13 +263,23 @@ class Dynamics(nnx.Module):
         dtype (module docstring, "Mixed precision"). pair_table: edge codes gathered from a table over all N x N
         pairs (module docstring, "Pair table"); the same result, for edges not in the push frame only. table: that
         table, already built by ``edge_table`` for these positions, mask, code and edge_dtype (implies pair_table)."""
-        cfg, h, dt = self.config, self.config.hidden, jnp.dtype(edge_dtype)
         if pair_table or table is not None:
             self._check_pair_table()
         positions = jnp.asarray(positions, jnp.float32)
         mask = jnp.asarray(mask, bool)
         code = jnp.asarray(code, jnp.float32)
-        n = positions.shape[0]
+        action = jnp.asarray(action, jnp.float32)
+        dt, substeps = jnp.dtype(edge_dtype), self.config.substeps
+        for i in range(substeps):  # sub-push i: the plate's way from i / S to (i + 1) / S of the push
+            sub = jnp.concatenate([action[:2] + (action[2:] - action[:2]) * (i / substeps),
+                                   action[:2] + (action[2:] - action[:2]) * ((i + 1) / substeps)])
+            first = i == 0  # only the first sub-push starts from the positions a table was built on
+            positions = self._push(positions, mask, sub, code, dt, pair_table and first, table if first else None)
+        return positions
+
+    def _push(self, positions, mask, action, code, dt, pair_table, table):
+        """One network pass: ``__call__``'s arguments (arrays, dt the edge dtype) for one (sub-)push."""
+        cfg, h, n = self.config, self.config.hidden, positions.shape[0]
         clean = jnp.where(mask[:, None], positions, 0.0)
         guess = sweep_displacement(clean, mask, action, cfg.plate_half_width)
         radius = cfg.edge_radius

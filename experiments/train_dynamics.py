@@ -5,10 +5,10 @@
     python -m experiments.train_dynamics --data data/piles --out runs/cnn_dynamics --model cnn   # the CNN baseline
 
 --model gnn (default): the PropNet GNN (``dynres_jax.dynamics``; --hidden, --propagation-steps, --push-frame,
---world-edges, --bin-position, --height, --global-context, --radius-scale,
---residual). --model cnn: the CNN baseline (``dynres_jax.cnn_dynamics``; --grid,
---channels, and --no-residual to predict whole displacements instead of correcting the sweep heuristic). --loss mse
-(default) or distance: the training loss (``TrainConfig.loss``).
+--world-edges, --bin-position, --height, --global-context, --radius-scale, --substeps, --residual). --model cnn: the
+CNN baseline (``dynres_jax.cnn_dynamics``; --grid, --channels, and --no-residual to predict whole displacements
+instead of correcting the sweep heuristic). --loss mse (default) or distance: the training loss
+(``TrainConfig.loss``). --state pieces trains on the full state instead of particles (``TrainConfig.state``).
 """
 
 from __future__ import annotations
@@ -22,7 +22,7 @@ from dynres_jax.dynamics import DynamicsConfig
 from dynres_jax.train import MODEL_CLASSES, TrainConfig, train
 
 GNN_ONLY = ("hidden", "propagation_steps", "push_frame", "world_edges", "bin_position", "height", "global_context",
-            "radius_scale")
+            "radius_scale", "substeps")
 CNN_ONLY = ("grid", "channels")
 
 
@@ -57,6 +57,8 @@ def main(argv=None):
                         help="gnn: DynamicsConfig.global_context (every node update sees the pile's pooled state)")
     parser.add_argument("--radius-scale", type=float, default=None,
                         help="gnn: DynamicsConfig.radius_scale (edges reach max(edge radius, this x FPS radius))")
+    parser.add_argument("--substeps", type=int, default=None,
+                        help="gnn: DynamicsConfig.substeps (a push predicted as this many sub-pushes)")
     parser.add_argument("--residual", action=argparse.BooleanOptionalAction, default=None,
                         help="correct the sweep heuristic (default: off for gnn, on for cnn)")
     parser.add_argument("--grid", type=int, default=None,

@@ -132,7 +132,7 @@ def test_bfloat16_edges_agree_with_float32(config):
 
 WORLD_EDGES = DynamicsConfig(hidden=H, push_frame=True, world_edges=True, residual=True)
 CONTEXT = DynamicsConfig(hidden=H, push_frame=True, world_edges=True, residual=True, bin_position=True, height=True,
-                         global_context=True, radius_scale=2.5)  # every node-side option on
+                         global_context=True, radius_scale=2.5, substeps=2)  # every option on
 
 
 @pytest.mark.parametrize("config,edge_dtype", [(DynamicsConfig(hidden=H), "float32"), (WORLD_EDGES, "float32"),
@@ -483,3 +483,29 @@ def test_radius_scale_links_sparse_particles_and_height_is_an_input():
         assert (gap > 1e-6) if height else (gap < 1e-6), (height, gap)
     with pytest.raises(ValueError, match="radius_scale must be >= 0"):
         DynamicsConfig(radius_scale=-1.0)
+
+
+def test_substeps_chain_passes_over_the_sub_pushes(context_split):
+    """A model of S sub-steps equals the one-pass model with the same parameters applied to the push's S equal
+    pieces in turn (S = 2 and 3), garbage padding included."""
+    graphdef, state = context_split
+    positions, mask = scene(7)
+    positions[~mask] = 1e3
+
+    def with_substeps(substeps):  # the same parameters, another sub-step count (the config is static)
+        model = nnx.merge(graphdef, state)
+        model.config = dataclasses.replace(CONTEXT, substeps=substeps)
+        return nnx.split(model)
+
+    single = with_substeps(1)
+    for substeps in (2, 3):
+        got = np.asarray(predict(*with_substeps(substeps), positions, mask, PUSH, 0.4))
+        current = positions
+        for i in range(substeps):
+            sub = np.concatenate([PUSH[:2] + (PUSH[2:] - PUSH[:2]) * i / substeps,
+                                  PUSH[:2] + (PUSH[2:] - PUSH[:2]) * (i + 1) / substeps])
+            current = predict(*single, current, mask, sub, 0.4)
+        np.testing.assert_allclose(got, np.asarray(current), atol=2e-6)
+        np.testing.assert_array_equal(got[~mask], positions[~mask])
+    with pytest.raises(ValueError, match="substeps must be >= 1"):
+        DynamicsConfig(substeps=0)
