@@ -436,8 +436,24 @@ def without_kinds(dataset: Dataset, kinds) -> Dataset:
     drop = np.isin(dataset.kind, [KIND_NAMES.index(k) for k in kinds]).any(axis=1)
     if drop.all():
         raise ValueError(f"every episode has a piece of {', '.join(kinds)}: nothing is left to train on")
+    return _episodes(dataset, ~drop)
+
+
+def thinned(dataset: Dataset, share: float, period: int = 20) -> Dataset:
+    """The episodes whose global id e has e mod period < share * period: about ``share`` of them, thinned alike in
+    every shard (so every scene kind keeps its share), to measure how the model scales with data. share in (0, 1]."""
+    if not 0 < share <= 1:
+        raise ValueError(f"share must lie in (0, 1], got {share}")
+    keep = np.asarray(dataset.episode) % period < share * period
+    if not keep.any():
+        raise ValueError(f"share {share} keeps none of the {len(dataset)} episodes")
+    return _episodes(dataset, keep)
+
+
+def _episodes(dataset: Dataset, keep) -> Dataset:
+    """The episodes where keep [E] bool is True."""
     per_episode = [f.name for f in dataclasses.fields(Dataset) if f.name != "camera"]
-    return Dataset(**{name: getattr(dataset, name)[~drop] for name in per_episode}, camera=dataset.camera)
+    return Dataset(**{name: getattr(dataset, name)[keep] for name in per_episode}, camera=dataset.camera)
 
 
 # ---------------------------------------------------------------------------------------------------------------

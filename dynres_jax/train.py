@@ -56,6 +56,8 @@ class TrainConfig:
     Euclidean error that ``eval_dynamics`` reports; less pulled by the few pieces that end far from any guess);
     state: "particles" (perception h at ω, what the paper's f sees) or "pieces" (every piece's centre, buried ones
     too, known exactly: ``data.piece_sample``, a diagnostic of how far the model gets with perfect knowledge);
+    train_share: the share of training episodes used (``data.thinned``; validation is unchanged), to measure how the
+    model scales with data;
     model: the GNN's ``DynamicsConfig`` or the CNN's ``CNNDynamicsConfig``."""
 
     steps: int = 20_000
@@ -72,6 +74,7 @@ class TrainConfig:
     seed: int = 0
     loss: str = "mse"
     state: str = "particles"
+    train_share: float = 1.0
     held_out_kinds: tuple[str, ...] = ()
     model: DynamicsConfig | CNNDynamicsConfig = field(default_factory=DynamicsConfig)
 
@@ -79,6 +82,8 @@ class TrainConfig:
         model_class(self.model)  # a ValueError for anything but a model config
         if self.loss not in LOSSES:
             raise ValueError(f"loss must be one of {', '.join(LOSSES)}, got {self.loss!r}")
+        if not 0 < self.train_share <= 1:
+            raise ValueError(f"train_share must lie in (0, 1], got {self.train_share}")
         if self.state not in STATES:
             raise ValueError(f"state must be one of {', '.join(STATES)}, got {self.state!r}")
         if not 1 <= self.omega_min <= self.n_max:
@@ -235,6 +240,8 @@ def train(cfg: TrainConfig, data_dir: str, out_dir: str, progress: bool = True,
     again to go on)."""
     train_set, val_set = (data.without_kinds(data.load_shards(data_dir, split), cfg.held_out_kinds)
                           for split in ("train", "val"))
+    if cfg.train_share < 1:
+        train_set = data.thinned(train_set, cfg.train_share)
     if cfg.horizon > train_set.pushes:
         raise ValueError(f"horizon {cfg.horizon} exceeds the data's {train_set.pushes} pushes per episode")
     os.makedirs(out_dir, exist_ok=True)

@@ -342,6 +342,17 @@ def test_load_pads_shards_with_fewer_pieces(generated, tmp_path):
     with pytest.raises(ValueError, match="unknown piece kind"):
         data.without_kinds(d, ("pebble",))
 
+    # Thinning keeps the episodes whose id e has e mod period < share * period (a loop as the reference).
+    for share, period in ((0.5, 4), (1.0, 20), (0.3, 10)):
+        rest = data.thinned(d, share, period)
+        want = [e for e in range(len(d)) if d.episode[e] % period < share * period]
+        np.testing.assert_array_equal(rest.episode, d.episode[want])
+        np.testing.assert_array_equal(rest.depth, d.depth[want])
+    with pytest.raises(ValueError, match="share must lie in"):
+        data.thinned(d, 0.0)
+    with pytest.raises(ValueError, match="keeps none"):  # the almond episodes' ids are 100 and up
+        data.thinned(data.without_kinds(d, ("coffee",)), 0.01, period=1000)
+
 
 # ----------------------------------------------------------------------------------------------------------------
 # Bad input
