@@ -270,11 +270,15 @@ class Dynamics(nnx.Module):
         code = jnp.asarray(code, jnp.float32)
         action = jnp.asarray(action, jnp.float32)
         dt, substeps = jnp.dtype(edge_dtype), self.config.substeps
+        start = action[:2]
         for i in range(substeps):  # sub-push i: the plate's way from i / S to (i + 1) / S of the push
-            sub = jnp.concatenate([action[:2] + (action[2:] - action[:2]) * (i / substeps),
-                                   action[:2] + (action[2:] - action[:2]) * ((i + 1) / substeps)])
+            # Each sub-push starts where the last ended and the last ends at the push's end exactly, so S = 1 is the
+            # push itself.
+            end = action[2:] if i == substeps - 1 else action[:2] + (action[2:] - action[:2]) * ((i + 1) / substeps)
             first = i == 0  # only the first sub-push starts from the positions a table was built on
-            positions = self._push(positions, mask, sub, code, dt, pair_table and first, table if first else None)
+            positions = self._push(positions, mask, jnp.concatenate([start, end]), code, dt, pair_table and first,
+                                   table if first else None)
+            start = end
         return positions
 
     def _push(self, positions, mask, action, code, dt, pair_table, table):
@@ -336,9 +340,9 @@ class Dynamics(nnx.Module):
         """The global context's term of the node update (module docstring, "Options"): effect [N, H], mask [N],
         code [] -> [H], the same for every node; masked rows take no part."""
         w = mask.astype(jnp.float32)[:, None]
-        mean = jnp.sum(effect * w, axis=0) / jnp.maximum(jnp.sum(w), 1.0)
+        total = jnp.sum(effect * w, axis=0)
         area = jnp.square(code_radius(code)) / POOL_AREA  # the area a particle stands for, in units of a pile's
-        return self.global_propagator(jnp.concatenate([mean, area * jnp.sum(effect * w, axis=0)]))
+        return self.global_propagator(jnp.concatenate([total / jnp.maximum(jnp.sum(w), 1.0), area * total]))
 
     def _check_pair_table(self):
         if self.config.edges_in_push_frame:

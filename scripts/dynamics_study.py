@@ -75,9 +75,10 @@ def main(argv: list[str]) -> None:
     out, rows = argv[0], collect(argv[1:])
     os.makedirs(out, exist_ok=True)
     files.write_json(os.path.join(out, "study.json"), rows)
-    files.write_text(os.path.join(out, "study.md"), table(rows) + "\n")
+    text = table(rows)
+    files.write_text(os.path.join(out, "study.md"), text + "\n")
     plot(rows, os.path.join(out, "study.png"))
-    print(table(rows))
+    print(text)
 
 
 if __name__ == "__main__":
