@@ -166,6 +166,17 @@ def _push_frame(action):
     return frame, start, length
 
 
+def split_push(action, substeps: int):
+    """action [..., 4] -> its ``substeps`` sub-pushes [..., S, 4] (float32): sub-push i takes the plate from i / S
+    to (i + 1) / S of its way, starting where the last ended; the last ends at the push's end exactly, so S = 1 gives
+    the action itself."""
+    action = jnp.asarray(action, jnp.float32)
+    start, end = action[..., None, :2], action[..., None, 2:]
+    way = jnp.arange(1, substeps, dtype=jnp.float32)[:, None] / substeps  # [S - 1, 1]
+    ends = jnp.concatenate([start + (end - start) * way, end], axis=-2)
+    return jnp.concatenate([jnp.concatenate([start, ends[..., :-1, :]], axis=-2), ends], axis=-1)
+
+
 def _cast(module: nnx.Module, dtype) -> nnx.Module:
     """module with its parameters cast to dtype (a copy; float32: the module itself)."""
     if jnp.dtype(dtype) == jnp.float32:
@@ -269,16 +280,10 @@ class Dynamics(nnx.Module):
         mask = jnp.asarray(mask, bool)
         code = jnp.asarray(code, jnp.float32)
         action = jnp.asarray(action, jnp.float32)
-        dt, substeps = jnp.dtype(edge_dtype), self.config.substeps
-        start = action[:2]
-        for i in range(substeps):  # sub-push i: the plate's way from i / S to (i + 1) / S of the push
-            # Each sub-push starts where the last ended and the last ends at the push's end exactly, so S = 1 is the
-            # push itself.
-            end = action[2:] if i == substeps - 1 else action[:2] + (action[2:] - action[:2]) * ((i + 1) / substeps)
+        dt = jnp.dtype(edge_dtype)
+        for i, sub in enumerate(split_push(action, self.config.substeps)):
             first = i == 0  # only the first sub-push starts from the positions a table was built on
-            positions = self._push(positions, mask, jnp.concatenate([start, end]), code, dt, pair_table and first,
-                                   table if first else None)
-            start = end
+            positions = self._push(positions, mask, sub, code, dt, pair_table and first, table if first else None)
         return positions
 
     def _push(self, positions, mask, action, code, dt, pair_table, table):

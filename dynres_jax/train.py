@@ -58,6 +58,9 @@ class TrainConfig:
     too, known exactly: ``data.piece_sample``, a diagnostic of how far the model gets with perfect knowledge);
     train_share: the share of training episodes used (``data.thinned``; validation is unchanged), to measure how the
     model scales with data;
+    sub_targets: for a GNN stepped in S sub-pushes (``DynamicsConfig.substeps``), the rollout and its loss go sub-push
+    by sub-push, scored also on the poses inside each push (data of ``DataConfig.substeps`` S): every pass of the
+    network learns its own sub-push instead of only the chain learning the whole push;
     model: the GNN's ``DynamicsConfig`` or the CNN's ``CNNDynamicsConfig``."""
 
     steps: int = 20_000
@@ -75,6 +78,7 @@ class TrainConfig:
     loss: str = "mse"
     state: str = "particles"
     train_share: float = 1.0
+    sub_targets: bool = False
     held_out_kinds: tuple[str, ...] = ()
     model: DynamicsConfig | CNNDynamicsConfig = field(default_factory=DynamicsConfig)
 
@@ -89,6 +93,8 @@ class TrainConfig:
         if not 1 <= self.omega_min <= self.n_max:
             raise ValueError(f"omega_min={self.omega_min} must lie in [1, n_max={self.n_max}]")
         data.check_kind_names(self.held_out_kinds, "held_out_kinds")
+        if self.sub_targets and (model_class(self.model) != "gnn" or self.model.substeps < 2):
+            raise ValueError("sub_targets needs a GNN stepped in sub-pushes (DynamicsConfig.substeps >= 2)")
         if self.steps < 1 or self.batch < 1 or self.horizon < 1:
             raise ValueError("steps, batch and horizon must be positive")
 
@@ -172,7 +178,7 @@ def make_step(graphdef, optimizer: optax.GradientTransformation, camera, cfg: Tr
 
 
 def _batch(dataset: data.Dataset, rng: np.random.Generator, cfg: TrainConfig, key):
-    windows = data.random_windows(dataset, rng, cfg.batch, cfg.horizon)
+    windows = data.random_windows(dataset, rng, cfg.batch, cfg.horizon, cfg.sub_targets)
     omegas = rng.integers(cfg.omega_min, cfg.n_max + 1, cfg.batch)
     return windows, jnp.asarray(omegas, jnp.int32), jax.random.split(key, cfg.batch)
 
@@ -244,9 +250,14 @@ def train(cfg: TrainConfig, data_dir: str, out_dir: str, progress: bool = True,
         train_set = data.thinned(train_set, cfg.train_share)
     if cfg.horizon > train_set.pushes:
         raise ValueError(f"horizon {cfg.horizon} exceeds the data's {train_set.pushes} pushes per episode")
+    if cfg.sub_targets and train_set.substeps != cfg.model.substeps:
+        raise ValueError(f"sub_targets: the model steps in {cfg.model.substeps} sub-pushes but {data_dir} holds poses "
+                         f"for {train_set.substeps} (generate it with --substeps {cfg.model.substeps})")
     os.makedirs(out_dir, exist_ok=True)
     ckpt_dir, metrics_path = os.path.join(out_dir, "ckpt"), os.path.join(out_dir, "metrics.jsonl")
     graphdef, params = nnx.split(make_model(cfg.model, cfg.seed))
+    if cfg.sub_targets:  # the same parameters, one pass a sub-push: the windows hold the sub-pushes
+        graphdef = nnx.split(make_model(dataclasses.replace(cfg.model, substeps=1)))[0]
     optimizer = optax.adam(optax.cosine_decay_schedule(cfg.lr, cfg.steps, alpha=cfg.lr_final))
     opt_state = optimizer.init(params)
     start = 0

@@ -9,6 +9,8 @@
 CNN baseline (``dynres_jax.cnn_dynamics``; --grid, --channels, and --no-residual to predict whole displacements
 instead of correcting the sweep heuristic). --loss mse (default) or distance: the training loss
 (``TrainConfig.loss``). --state pieces trains on the full state instead of particles (``TrainConfig.state``).
+--substeps S --sub-targets trains each of the S passes on its own sub-push, from data generated with --substeps S
+(``TrainConfig.sub_targets``).
 """
 
 from __future__ import annotations
@@ -35,9 +37,12 @@ def main(argv=None):
     for f in dataclasses.fields(TrainConfig):
         if f.name not in ("model", "held_out_kinds"):
             value = getattr(defaults, f.name)
-            kind = int if f.name == "max_points" else type(value)
-            parser.add_argument("--" + f.name.replace("_", "-"), type=kind, default=value,
-                                help=f"TrainConfig.{f.name} (default {value})")
+            flag, help_ = "--" + f.name.replace("_", "-"), f"TrainConfig.{f.name} (default {value})"
+            if isinstance(value, bool):
+                parser.add_argument(flag, action=argparse.BooleanOptionalAction, default=value, help=help_)
+            else:
+                parser.add_argument(flag, type=int if f.name == "max_points" else type(value), default=value,
+                                    help=help_)
     parser.add_argument("--held-out-kinds", nargs="+", default=(), metavar="KIND",
                         help="TrainConfig.held_out_kinds: piece kinds never trained on (eval_dynamics reports them)")
     parser.add_argument("--model", default="gnn", choices=list(MODEL_CLASSES), help="gnn (PropNet) or cnn (baseline)")

@@ -5,9 +5,10 @@
 # evaluation. Each variant's run folder is packed as $OUT/NAME.tar.gz (its log too).
 #   OUT=runs/ship bash scripts/ship_dynamics.sh                 # one variant, "dynamics", with MODEL_FLAGS
 #   OUT=runs/ship VARIANTS="gnn:--residual --push-frame;cnn:--model cnn" bash scripts/ship_dynamics.sh
-# Env: EPISODES (2000), TRAIN_MINUTES (4), STEPS (every variant trains exactly this many steps, the box only a safety
-# stop; default: as many as fill the box at the probed speed), BATCH (64), PROBE_STEPS (300), DATA (/tmp/piles), VARIANTS
-# ("NAME:flags;NAME:flags", default "dynamics:$MODEL_FLAGS"), RUNS (run folders, default $OUT):
+# Env: EPISODES (2000), DATA_FLAGS (more generate_data flags, e.g. "--substeps 4"), TRAIN_MINUTES (4), STEPS (every
+# variant trains exactly this many steps, the box only a safety stop; default: as many as fill the box at the probed
+# speed), BATCH (64), PROBE_STEPS (300), DATA (/tmp/piles), VARIANTS ("NAME:flags;NAME:flags", default
+# "dynamics:$MODEL_FLAGS"), RUNS (run folders, default $OUT):
 # $RUNS/NAME/{ckpt,metrics.jsonl,curves.png,eval/,log.txt,timing.json}.
 set -euo pipefail
 OUT=${OUT:-runs/ship}; DATA=${DATA:-/tmp/piles}; RUNS=${RUNS:-$OUT}
@@ -15,8 +16,9 @@ EPISODES=${EPISODES:-2000}; TRAIN_MINUTES=${TRAIN_MINUTES:-4}; BATCH=${BATCH:-64
 VARIANTS=${VARIANTS:-"dynamics:${MODEL_FLAGS:-}"}
 mkdir -p "$OUT"
 t0=$(date +%s)
+# shellcheck disable=SC2086
 python -m experiments.generate_data --out "$DATA" --backend mujoco --episodes "$EPISODES" --pushes 10 --worlds 64 \
-  --no-progress > "$OUT/data_summary.json"
+  ${DATA_FLAGS:-} --no-progress > "$OUT/data_summary.json"
 cat "$OUT/data_summary.json"
 t1=$(date +%s)
 echo "{\"data_s\": $((t1 - t0))}" > "$OUT/timing.json"

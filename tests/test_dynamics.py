@@ -22,6 +22,7 @@ from dynres_jax.dynamics import (
     predict,
     resolution_code,
     rollout,
+    split_push,
 )
 from dynres_jax.graph import build_edges, sweep_displacement
 
@@ -509,3 +510,18 @@ def test_substeps_chain_passes_over_the_sub_pushes(context_split):
         np.testing.assert_array_equal(got[~mask], positions[~mask])
     with pytest.raises(ValueError, match="substeps must be >= 1"):
         DynamicsConfig(substeps=0)
+
+
+def test_split_push_cuts_a_push_into_equal_chained_pieces():
+    """split_push: S = 1 is the action itself; for S = 3 every sub-push runs from i / S to (i + 1) / S of the way
+    (by a loop), each starting where the last ended, over a batch of actions."""
+    np.testing.assert_array_equal(np.asarray(split_push(PUSH, 1)), np.float32(PUSH)[None])
+    batch = np.stack([PUSH, PUSH[[2, 3, 0, 1]]]).astype(np.float32)
+    subs = np.asarray(split_push(batch, 3))
+    assert subs.shape == (2, 3, 4)
+    for b, a in enumerate(batch):
+        for i in range(3):
+            np.testing.assert_allclose(subs[b, i], np.concatenate([a[:2] + (a[2:] - a[:2]) * i / 3,
+                                                                   a[:2] + (a[2:] - a[:2]) * (i + 1) / 3]), atol=1e-7)
+        np.testing.assert_array_equal(subs[b, 1:, :2], subs[b, :-1, 2:])
+        np.testing.assert_array_equal(subs[b, -1, 2:], a[2:])

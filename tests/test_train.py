@@ -166,3 +166,24 @@ def test_rollout_errors_equal_a_loop_over_samples_and_particles(shards):
     np.testing.assert_allclose(float(got["distance"]), np.mean(dist), rtol=1e-4)
     _, evaluate = make_step(graphdef, None, train_set.camera, cfg)  # the jitted evaluation gives the same errors
     np.testing.assert_allclose(float(evaluate(params, windows, omegas, keys)["distance"]), np.mean(dist), rtol=1e-4)
+
+
+def test_sub_targets_train_each_pass_on_its_sub_push(tmp_path):
+    """sub_targets: batches are windows of sub-pushes (horizon x S actions, the poses inside each push as targets);
+    the run saves the S-pass model, which eval_dynamics scores on whole pushes; mismatched data are named."""
+    shards = str(tmp_path / "sub")
+    data.generate(data.quick_config(backend="mujoco", episodes=10, worlds=5, pushes=2, substeps=2), shards,
+                  progress=False, workers=1)
+    cfg = dataclasses.replace(CFG, steps=2, sub_targets=True, model=DynamicsConfig(hidden=16, substeps=2))
+    windows, _, _ = _batch(data.load_shards(shards, "train"), np.random.default_rng(0), cfg, jax.random.PRNGKey(0))
+    assert windows.action.shape == (cfg.batch, cfg.horizon * 2, 4) and windows.pos.shape[1] == cfg.horizon * 2 + 1
+    train(cfg, shards, str(tmp_path / "run"), progress=False)
+    assert ckpt.load_meta(str(tmp_path / "run/ckpt"))["dynamics"]["substeps"] == 2
+    result = eval_dynamics.main(["--ckpt", str(tmp_path / "run/ckpt"), "--data", shards, "--out",
+                                 str(tmp_path / "eval"), "--windows", "4", "--omegas", "4"])
+    assert np.isfinite(result["omegas"]["4"]["model"]).all()
+    three = dataclasses.replace(cfg, model=DynamicsConfig(hidden=16, substeps=3))
+    with pytest.raises(ValueError, match="holds poses for 2"):
+        train(three, shards, str(tmp_path / "three"), progress=False)
+    with pytest.raises(ValueError, match="sub_targets needs a GNN"):
+        dataclasses.replace(CFG, sub_targets=True)

@@ -324,10 +324,10 @@ class PileEnv:
         return self._state_mjx(self._run_mjx(d, plate_pos, plate_quat), state.broken)
 
     # --- C MuJoCo ---
-    def _run_c(self, qpos, qvel, plate_pos, plate_quat, frame_every: int = 0):
+    def _run_c(self, qpos, qvel, plate_pos, plate_quat, frames_at=()):
         """Step the C engine along a plate trajectory (one ``mujoco.rollout`` call, no Python per step). Returns
-        (qpos, qvel, pos, mat) as float32 arrays and, when frame_every > 0, (piece pos, piece mat, plate pos,
-        plate quat) every frame_every steps."""
+        (qpos, qvel, pos, mat) as float32 arrays and (piece pos, piece mat, plate pos, plate quat) after each step
+        index in ``frames_at``."""
         m, d = self.scene.model, self._data
         mujoco.mj_resetData(m, d)
         d.qpos[:], d.qvel[:] = np.asarray(qpos, np.float64), np.asarray(qvel, np.float64)
@@ -336,15 +336,14 @@ class PileEnv:
             states = c_rollout(m, d, plate[None])[0]
         except mujoco.FatalError:  # an unstable world overflowed MuJoCo's arena: report it as NaN (broken)
             states = np.full((len(plate), mujoco.mj_stateSize(m, FULL_STATE)), np.nan)
-        gid, frames = self.scene.geom_id, []
+        gid = self.scene.geom_id
 
         def poses(state):
             mujoco.mj_setState(m, d, state, FULL_STATE)
             mujoco.mj_kinematics(m, d)
             return d.geom_xpos[gid].copy(), d.geom_xmat[gid].reshape(-1, 3, 3).copy()
 
-        if frame_every:
-            frames = [(*poses(states[i]), plate[i, :3], plate[i, 3:]) for i in range(0, len(plate), frame_every)]
+        frames = [(*poses(states[i]), plate[i, :3], plate[i, 3:]) for i in frames_at]
         pos, mat = poses(states[-1])
         f32 = lambda x: jnp.asarray(x, jnp.float32)  # noqa: E731
         return (f32(d.qpos), f32(d.qvel), f32(pos), f32(mat)), frames
@@ -353,13 +352,36 @@ class PileEnv:
         arrays, _ = self._run_c(state.qpos, state.qvel, plate_pos, plate_quat)
         return self._finish_jit(*arrays, state.broken)
 
+    def sub_push_steps(self, action, substeps: int) -> np.ndarray:
+        """The simulator steps (indices into ``plate_trajectory``'s rows) after which the plate has covered i /
+        substeps of the push's way, i = 1 .. substeps - 1: [substeps - 1] int."""
+        length = float(np.hypot(*(np.asarray(action[2:], np.float64) - np.asarray(action[:2], np.float64))))
+        per_step = self.config.push.speed * self.config.scene.timestep
+        way = np.arange(1, substeps) / substeps * length
+        return self.n_lower + np.clip(np.ceil(way / per_step - 1e-9).astype(int) - 1, 0, self.n_move - 1)
+
+    def push_poses(self, state: State, action, substeps: int) -> tuple[State, np.ndarray, np.ndarray]:
+        """``simulate`` along the push's plate trajectory (backend "mujoco" only; the action as ``sample_push``
+        gives it, unchecked) that also returns the pieces' poses inside the push, when the plate has covered
+        i / substeps of its way (``sub_push_steps``): (state after the push, pos [substeps - 1, N, 3], mat
+        [substeps - 1, N, 3, 3]), the training targets of a model stepped in sub-pushes."""
+        if self.backend != "mujoco":
+            raise ValueError("push_poses needs backend='mujoco' (MJX pushes run as one compiled scan)")
+        action = jnp.asarray(action, jnp.float32)
+        arrays, frames = self._run_c(state.qpos, state.qvel, *self.plate_trajectory(action),
+                                     frames_at=self.sub_push_steps(action, substeps))
+        pos = np.array([f[0] for f in frames], np.float32).reshape(substeps - 1, -1, 3)
+        mat = np.array([f[1] for f in frames], np.float32).reshape(substeps - 1, -1, 3, 3)
+        return self._finish_jit(*arrays, state.broken), pos, mat
+
     def push_frames(self, state: State, action, n_frames: int = 12) -> tuple[State, list[Observation]]:
         """Like ``push`` (backend "mujoco" only) but also renders ``n_frames`` frames with the plate drawn."""
         if self.backend != "mujoco":
             raise ValueError("push_frames needs backend='mujoco' (MJX pushes run as one compiled scan)")
         action = jnp.asarray(self.check_action(action))
         every = max(1, (self.steps_per_push - self.n_settle) // n_frames)
-        arrays, frames = self._run_c(state.qpos, state.qvel, *self.plate_trajectory(action), frame_every=every)
+        arrays, frames = self._run_c(state.qpos, state.qvel, *self.plate_trajectory(action),
+                                     frames_at=range(0, self.steps_per_push, every))
         frames = [self.observe(State(None, None, jnp.asarray(p, jnp.float32), jnp.asarray(r, jnp.float32), None,
                                      None), plate=(pp, pq) if pp[2] < PARK[2] else None)
                   for p, r, pp, pq in frames]
