@@ -60,7 +60,8 @@ class TrainConfig:
     model scales with data;
     sub_targets: for a GNN stepped in S sub-pushes (``DynamicsConfig.substeps``), the rollout and its loss go sub-push
     by sub-push, scored also on the poses inside each push (data of ``DataConfig.substeps`` S): every pass of the
-    network learns its own sub-push instead of only the chain learning the whole push;
+    network learns its own sub-push instead of only the chain learning the whole push (metrics.jsonl's validation
+    errors are then per sub-push; ``eval_dynamics`` scores whole pushes);
     model: the GNN's ``DynamicsConfig`` or the CNN's ``CNNDynamicsConfig``."""
 
     steps: int = 20_000

@@ -79,7 +79,8 @@ def _random_episode(job) -> dict:
     frames, actions, inside = [s], [], []
     for k in jax.random.split(k_push, pushes):
         action = env.sample_push(k, s.pos) if not s.broken else jnp.array([0.0, 0, env.config.push.min_length, 0])
-        if s.broken:  # as MJX's traced push: sampled pushes are in bounds, too-short ones are no-ops
+        # As MJX's traced push: sampled pushes are in bounds, too-short ones are no-ops; a broken world stays put.
+        if s.broken:
             poses = (np.broadcast_to(s.pos, (substeps - 1,) + s.pos.shape),
                      np.broadcast_to(s.mat, (substeps - 1,) + s.mat.shape))
         elif substeps > 1:
