@@ -30,6 +30,20 @@ def _smoothstep(x):
     return x * x * (3.0 - 2.0 * x)
 
 
+def _sweep(particles, action, plate_half_width, end_offset, falloff):
+    """The sweep's geometry: (gate [N] in [0, 1], distance left to the end line [N] (m, >= 0), unit direction [2])."""
+    particles = jnp.asarray(particles, jnp.float32)
+    action = jnp.asarray(action, jnp.float32)
+    start, delta = action[:2], action[2:] - action[:2]
+    length = jnp.sqrt(jnp.sum(jnp.square(delta)) + 1e-12)
+    along = delta / length
+    side = jnp.stack([-along[1], along[0]])
+    rel = particles[:, :2] - start
+    s, t = rel @ along, rel @ side
+    gate = _smoothstep((plate_half_width + falloff - jnp.abs(t)) / falloff) * _smoothstep((s + falloff) / falloff)
+    return gate, jnp.maximum(length + end_offset - s, 0.0), along
+
+
 def sweep_displacement(particles, mask, action, plate_half_width, *, end_offset=SWEEP_END_OFFSET,
                        falloff=SWEEP_FALLOFF):
     """Guessed displacement of each particle under a push. particles [N, 3] m, mask [N] bool, action [4]
@@ -42,18 +56,22 @@ def sweep_displacement(particles, mask, action, plate_half_width, *, end_offset=
     s = -falloff); falloff must be > 0. Particles beyond the end line, far to the side or behind the start do not
     move; masked particles get zero. A zero-length push moves nothing; gradients in the action stay finite.
     """
-    particles = jnp.asarray(particles, jnp.float32)
-    action = jnp.asarray(action, jnp.float32)
-    start, delta = action[:2], action[2:] - action[:2]
-    length = jnp.sqrt(jnp.sum(jnp.square(delta)) + 1e-12)
-    along = delta / length
-    side = jnp.stack([-along[1], along[0]])
-    rel = particles[:, :2] - start
-    s, t = rel @ along, rel @ side
-    gate = _smoothstep((plate_half_width + falloff - jnp.abs(t)) / falloff) * _smoothstep((s + falloff) / falloff)
-    push = gate * jnp.maximum(length + end_offset - s, 0.0)
-    push = jnp.where(mask, push, 0.0)
+    gate, left, along = _sweep(particles, action, plate_half_width, end_offset, falloff)
+    push = jnp.where(mask, gate * left, 0.0)
     return jnp.concatenate([push[:, None] * along, jnp.zeros_like(push[:, None])], axis=-1)
+
+
+SWEEP_REGIONS = ("swept", "band edge", "off the path")
+
+
+def sweep_region(particles, action, plate_half_width):
+    """Where each particle lies relative to a push, as the sweep heuristic sees it: particles [N, 3], action [4] (m)
+    -> [N] int32 index into ``SWEEP_REGIONS``: 0 "swept", carried whole to the end line (gate 1); 1 "band edge", in
+    the gate's fall-off at the band's sides or behind its start (0 < gate < 1); 2 "off the path", left where it is
+    (gate 0, or already past the end line)."""
+    gate, left, _ = _sweep(particles, action, plate_half_width, SWEEP_END_OFFSET, SWEEP_FALLOFF)
+    moved = left > 0
+    return jnp.where(moved & (gate >= 1), 0, jnp.where(moved & (gate > 0), 1, 2)).astype(jnp.int32)
 
 
 def _smallest_by_top_k(d2, k):

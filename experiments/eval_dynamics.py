@@ -18,55 +18,81 @@ from flax import nnx
 
 from dynres_jax import ckpt, data, files, train
 from dynres_jax.dynamics import resolution_code, rollout
-from dynres_jax.graph import sweep_rollout
+from dynres_jax.graph import SWEEP_REGIONS, sweep_region, sweep_rollout
 from dynres_jax.train import build_model
 
 METHODS = ("model", "nothing moves", "sweep heuristic")
 
 
 def errors(graphdef, state, samples: data.Sample, plate_half_width) -> dict:
-    """Mean particle position error (mm) after each push, per method: {method: [horizon]}; and "per_kind": {kind:
-    {method: one-step error (mm), "particles": how many particle-windows it averages}} over each kind's particles."""
+    """Mean particle position error (mm) after each push, per method: {method: [horizon]}; and one-step errors over
+    subsets of the particles, {name: {method: mm, "particles": how many particle-windows it averages}}: "per_kind"
+    by piece kind, "per_region" by where the particle lies relative to the first push (``graph.sweep_region``)."""
 
     def one(s):
         preds = {"model": rollout(graphdef, state, s.positions[0], s.mask, s.action, resolution_code(s.radius)),
                  "nothing moves": jnp.broadcast_to(s.positions[0], s.positions[1:].shape),
                  "sweep heuristic": sweep_rollout(s.positions[0], s.mask, s.action, plate_half_width)}
         w = s.mask & (s.error == 0)
-        return {m: jnp.where(w[None], jnp.linalg.norm(p - s.positions[1:], axis=-1), 0.0) for m, p in preds.items()}
+        err = {m: jnp.where(w[None], jnp.linalg.norm(p - s.positions[1:], axis=-1), 0.0) for m, p in preds.items()}
+        return err, sweep_region(s.positions[0], s.action[0], plate_half_width)
 
-    per = jax.vmap(one)(samples)  # {method: [B, horizon, n_max]}
+    per, region = jax.vmap(one)(samples)  # {method: [B, horizon, n_max]}, [B, n_max]
+    per = {m: np.asarray(e) for m, e in per.items()}
     valid = np.asarray(samples.mask & (samples.error == 0)[:, None])
-    out = {m: (np.asarray(e).sum((0, 2)) / max(valid.sum(), 1) * 1000).tolist() for m, e in per.items()}
-    kinds = np.asarray(samples.kind)
-    out["per_kind"] = {data.KIND_NAMES[k]: {**{m: float(np.asarray(e)[:, 0][valid & (kinds == k)].mean() * 1000)
-                                               for m, e in per.items()},
-                                            "particles": int((valid & (kinds == k)).sum())}
-                       for k in np.unique(kinds[valid])}
+    out = {m: (e.sum((0, 2)) / max(valid.sum(), 1) * 1000).tolist() for m, e in per.items()}
+
+    def one_step(names, labels):
+        labels = np.asarray(labels)
+        return {names[k]: {**{m: float(e[:, 0][valid & (labels == k)].mean() * 1000) for m, e in per.items()},
+                           "particles": int((valid & (labels == k)).sum())}
+                for k in np.unique(labels[valid])}
+
+    out["per_kind"] = one_step(data.KIND_NAMES, samples.kind)
+    out["per_region"] = one_step(SWEEP_REGIONS, region)
     return out
 
 
 def table(result: dict) -> str:
-    """Markdown: errors per ω and method, then one-step errors per piece kind, kinds held out of training marked."""
+    """Markdown: errors per ω and method, then one-step errors per piece kind (kinds held out of training marked) and
+    per sweep region, each subset with its share of the particles and of the model's error, all ω together."""
     h = result["horizon"]
     lines = [f"| ω | {' | '.join(f'{m}: 1 step / {h} steps (mm)' for m in METHODS)} |",
              "|---:|" + "---:|" * len(METHODS)]
     for omega, r in result["omegas"].items():
         lines.append(f"| {omega} | " + " | ".join(f"{r[m][0]:.2f} / {r[m][-1]:.2f}" for m in METHODS) + " |")
     held_out = set(result["held_out_kinds"])
-    lines += ["", "One step, per piece kind (all ω together):", "",
-              f"| kind | {' | '.join(METHODS)} | model / heuristic |", "|---|" + "---:|" * (len(METHODS) + 1)]
-    kinds = {}
-    for r in result["omegas"].values():
-        for kind, e in r["per_kind"].items():
-            kinds.setdefault(kind, []).append(e)
-    for kind, per_omega in kinds.items():
-        weights = np.array([e["particles"] for e in per_omega], float)
-        mean = {m: float(np.average([e[m] for e in per_omega], weights=weights)) for m in METHODS}
-        name = f"{kind} (held out)" if kind in held_out else kind
-        lines.append(f"| {name} | " + " | ".join(f"{mean[m]:.2f}" for m in METHODS) +
-                     f" | {mean['model'] / mean['sweep heuristic']:.2f} |")
+    lines += subset_table(result, "per_kind", "piece kind", "kind", lambda k: f"{k} (held out)" if k in held_out else k)
+    lines += subset_table(result, "per_region", "place relative to the push (`graph.sweep_region`)", "where", str)
     return "\n".join(lines)
+
+
+def subset_table(result: dict, key: str, what: str, column: str, name) -> list[str]:
+    """Markdown lines for one-step errors over the subsets ``result["omegas"][ω][key]``: each subset's ω rows averaged
+    weighted by their particle counts, with its share of all particles and of the model's summed error; name(subset)
+    is the row's label under the column heading ``column``. No lines when the result has no such subsets."""
+    subsets = {}
+    for r in result["omegas"].values():
+        for subset, e in r.get(key, {}).items():
+            subsets.setdefault(subset, []).append(e)
+    if not subsets:
+        return []
+    rows = {}
+    for subset, per_omega in subsets.items():
+        weights = np.array([e["particles"] for e in per_omega], float)
+        rows[subset] = ({m: float(np.average([e[m] for e in per_omega], weights=weights)) for m in METHODS},
+                        weights.sum())
+    particles = sum(n for _, n in rows.values())
+    error = max(sum(mean["model"] * n for mean, n in rows.values()), 1e-12)
+    lines = ["", f"One step, per {what}, all ω together:", "",
+             f"| {column} | particles | model's error | {' | '.join(METHODS)} | model / heuristic |",
+             "|---|" + "---:|" * (len(METHODS) + 3)]
+    for subset, (mean, n) in rows.items():
+        heuristic = mean["sweep heuristic"]
+        ratio = f"{mean['model'] / heuristic:.2f}" if heuristic > 0 else "-"  # nothing moved, heuristic exact
+        lines.append(f"| {name(subset)} | {n / particles:.0%} | {mean['model'] * n / error:.0%} | " +
+                     " | ".join(f"{mean[m]:.2f}" for m in METHODS) + f" | {ratio} |")
+    return lines
 
 
 def plot(result: dict, path: str) -> None:

@@ -8,6 +8,7 @@ import pytest
 from dynres_jax.graph import (
     SWEEP_END_OFFSET,
     SWEEP_FALLOFF,
+    SWEEP_REGIONS,
     _nearest_by_matrix,
     _smallest_by_argmin,
     _smallest_by_top_k,
@@ -15,6 +16,7 @@ from dynres_jax.graph import (
     k_smallest,
     knn_kernel,
     sweep_displacement,
+    sweep_region,
 )
 
 PLATE = 0.04
@@ -156,6 +158,30 @@ def test_sweep_moves_the_band_past_the_end_line(action):
     # soft fall-off: partial moves only in the fringe, never past the end line
     fringe = mask & ~band & ~far
     assert np.all(s_new[fringe] <= length + SWEEP_END_OFFSET + 1e-5) and np.all(s_new >= s - 1e-6)
+
+
+def test_sweep_region_against_the_band_by_loops():
+    action = np.array([0.05, 0.1, -0.03, -0.05], np.float32)
+    rng = np.random.default_rng(1)
+    positions = np.concatenate([rng.uniform(-0.19, 0.19, (2000, 2)), np.full((2000, 1), 0.007)], 1).astype(np.float32)
+    region = np.asarray(sweep_region(positions, action, PLATE))
+    length = np.linalg.norm(action[2:] - action[:2])
+    expected = []
+    for s, t in zip(*along_side(positions, action), strict=True):
+        before_end = s < length + SWEEP_END_OFFSET
+        if before_end and s >= 0 and abs(t) <= PLATE:
+            expected.append("swept")
+        elif before_end and s > -SWEEP_FALLOFF and abs(t) < PLATE + SWEEP_FALLOFF:
+            expected.append("band edge")
+        else:
+            expected.append("off the path")
+    assert [SWEEP_REGIONS[r] for r in region] == expected
+    assert min(expected.count(name) for name in SWEEP_REGIONS) > 20
+    # the heuristic moves "swept" particles to the end line, "band edge" ones part of the way, the rest not at all
+    disp = np.linalg.norm(np.asarray(sweep_displacement(positions, np.ones(2000, bool), action, PLATE)), axis=1)
+    full = length + SWEEP_END_OFFSET - along_side(positions, action)[0]
+    np.testing.assert_allclose(disp[region == 0], full[region == 0], atol=1e-5)
+    assert np.all(disp[region == 2] == 0) and np.all(disp[region == 1] < full[region == 1])
 
 
 def test_sweep_fall_off_is_monotone_sideways():

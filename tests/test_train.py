@@ -11,6 +11,7 @@ from flax import nnx
 
 from dynres_jax import ckpt, data
 from dynres_jax.dynamics import Dynamics, DynamicsConfig, resolution_code
+from dynres_jax.graph import SWEEP_REGIONS
 from dynres_jax.train import DISTANCE_EPS, TrainConfig, _batch, _Speed, build_model, make_step, rollout_errors, train
 from experiments import eval_dynamics
 
@@ -83,6 +84,12 @@ def test_eval_reports_every_method_and_resolution(run, shards, tmp_path):
         for method in eval_dynamics.METHODS:
             assert len(r[method]) == CFG.horizon and all(np.isfinite(r[method]))
         assert r["nothing moves"][0] > 0, "pushes through the pile must move some particles"
+        for key in ("per_kind", "per_region"):  # the subsets split the particles: their weighted mean is the whole
+            subsets = r[key].values()
+            for method in eval_dynamics.METHODS:
+                mean = sum(e[method] * e["particles"] for e in subsets) / sum(e["particles"] for e in subsets)
+                assert mean == pytest.approx(r[method][0], rel=1e-4)
+        assert set(r["per_region"]) <= set(SWEEP_REGIONS) and "swept" in r["per_region"]
     assert (tmp_path / "eval.md").read_text().startswith("| ω |")
 
 
@@ -98,8 +105,11 @@ def test_eval_table_marks_held_out_kinds_and_weighs_omegas_by_particles():
                                                     "particles": 30}}}}}
     rows = {line.split(" | ")[0].lstrip("| "): line for line in eval_dynamics.table(result).splitlines()}
     model, heuristic = (2.0 * 10 + 5.0 * 30) / 40, 4.0
-    assert rows["candy (held out)"] == f"| candy (held out) | {model:.2f} | 9.00 | 4.00 | {model / heuristic:.2f} |"
-    assert rows["coffee"] == "| coffee | 1.00 | 9.00 | 2.00 | 0.50 |"
+    share = model * 40 / (model * 40 + 1.0 * 5)  # of the model's summed error
+    assert rows["candy (held out)"] == (f"| candy (held out) | 89% | {share:.0%} | {model:.2f} | 9.00 | 4.00 | "
+                                        f"{model / heuristic:.2f} |")
+    assert rows["coffee"] == f"| coffee | 11% | {1 - share:.0%} | 1.00 | 9.00 | 2.00 | 0.50 |"
+    assert not any("| where |" in line for line in rows), "no region rows in a result without them"
 
 
 def test_bad_config_names_the_problem():
