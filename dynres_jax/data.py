@@ -70,6 +70,7 @@ from dynres_jax.config import (
 )
 from dynres_jax.dynamics import split_push
 from dynres_jax.files import TMP_PREFIX, atomic_write, write_json, write_text
+from dynres_jax.graph import nearest_by_matrix
 from dynres_jax.perception import sample_particles
 from dynres_jax.sim.camera import Camera, Observation
 from dynres_jax.sim.env import PileEnv
@@ -620,9 +621,8 @@ def piece_sample(window: Window, n_max: int) -> Sample:
     if n > n_max:
         raise ValueError(f"the data hold {n} piece slots, more than n_max={n_max}")
     mask = jnp.asarray(window.piece_mask, bool)
-    d2 = jnp.sum(jnp.square(pos[0][:, None] - pos[0][None]), -1)
-    d2 = jnp.where(mask[None] & ~jnp.eye(n, dtype=bool), d2, jnp.inf)
-    nearest = jnp.where(mask & (jnp.sum(mask) > 1), jnp.sqrt(jnp.min(d2, axis=1)), 0.0)
+    d2, _ = nearest_by_matrix(pos[0], mask, 1)  # inf for padding and a lone piece
+    nearest = jnp.where(mask & (jnp.sum(mask) > 1), jnp.sqrt(d2[:, 0]), 0.0)
     radius = jnp.sum(nearest) / jnp.maximum(jnp.sum(mask), 1)
     kind = jnp.where(mask, jnp.asarray(window.kind, jnp.int32), -1)
     return Sample(jnp.pad(jnp.where(mask[:, None], pos, 0.0), ((0, 0), (0, n_max - n), (0, 0))),

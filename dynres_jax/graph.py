@@ -163,7 +163,7 @@ def knn_kernel(positions, mask, k: int, *, interpret: bool = False, rows: int = 
     return values[:n, :k], index[:n, :k]
 
 
-def _nearest_by_matrix(positions, mask, k: int):
+def nearest_by_matrix(positions, mask, k: int):
     """(squared distances, indices) [N, k] of each particle's k nearest valid others (k <= N), ascending:
     ``k_smallest`` of the masked [N, N] distance matrix."""
     n = positions.shape[0]
@@ -187,12 +187,12 @@ def no_gpu_kernels():
 
 
 def _nearest(positions, mask, k: int, kernel: bool):
-    """``_nearest_by_matrix``, by the kNN kernel on CUDA GPUs when ``kernel`` (up to KNN_KERNEL_MAX_PARTICLES
+    """``nearest_by_matrix``, by the kNN kernel on CUDA GPUs when ``kernel`` (up to KNN_KERNEL_MAX_PARTICLES
     particles)."""
     if not kernel or positions.shape[0] > KNN_KERNEL_MAX_PARTICLES:
-        return _nearest_by_matrix(positions, mask, k)
+        return nearest_by_matrix(positions, mask, k)
     return jax.lax.platform_dependent(positions, mask, cuda=functools.partial(knn_kernel, k=k),
-                                      default=functools.partial(_nearest_by_matrix, k=k))
+                                      default=functools.partial(nearest_by_matrix, k=k))
 
 
 def build_edges(positions, mask, radius=R_EDGE, k: int = K_NEIGHBOURS):

@@ -9,12 +9,12 @@ from dynres_jax.graph import (
     SWEEP_END_OFFSET,
     SWEEP_FALLOFF,
     SWEEP_REGIONS,
-    _nearest_by_matrix,
     _smallest_by_argmin,
     _smallest_by_top_k,
     build_edges,
     k_smallest,
     knn_kernel,
+    nearest_by_matrix,
     sweep_displacement,
     sweep_region,
 )
@@ -95,7 +95,7 @@ def test_knn_kernel_equals_the_distance_matrix_way(n, k, rows):
     mask[0, [3, 5]] = True
     mask[1] = False
     got = jax.vmap(lambda p, m: knn_kernel(p, m, k, interpret=True, rows=rows))(positions, mask)
-    want = jax.vmap(lambda p, m: _nearest_by_matrix(p, m, k))(positions, mask)
+    want = jax.vmap(lambda p, m: nearest_by_matrix(p, m, k))(positions, mask)
     finite = np.isfinite(np.asarray(want[0]))
     np.testing.assert_allclose(np.asarray(got[0]), np.asarray(want[0]), rtol=1e-6)
     np.testing.assert_array_equal(np.asarray(got[1])[finite], np.asarray(want[1])[finite])
