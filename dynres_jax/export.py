@@ -76,14 +76,11 @@ def planner_step(dynamics: Callable, camera: Camera, config: PlannerConfig) -> C
     dynamics: radius (m) -> planner dynamics (the first value of ``mpc.load_dynamics``, or
     ``mpc.learned_dynamics(model)``); its arrays are closed over, so they become constants of the export.
     camera: the camera the goal's pixels belong to (static). config: the planner's settings (static; one particle
-    set, so resamples must be 1; no max_particle_steps: the step count is ``config.steps``).
+    set, so resamples must be 1; the step count is ``config.steps``).
     """
     if config.resamples != 1:
         raise ValueError(f"the exported planner takes one particle set: PlannerConfig.resamples must be 1, got "
                          f"{config.resamples}")
-    if config.max_particle_steps is not None:
-        raise ValueError("the exported planner runs config.steps Adam steps: set PlannerConfig.max_particle_steps to "
-                         "None (use steps_for_budget to pick steps before exporting)")
 
     def step(positions, mask, radius, goal_mask, goal_distance, goal_samples, goal_sample_mask, key, init, warm):
         dyn = dynamics(radius)

@@ -1,9 +1,12 @@
 """Closed loop (model-predictive control) at a fixed resolution ω: observe -> h(y, ω) -> plan -> push, repeated.
 
-Each step samples ω particles from the current observation, plans pushes on the task objective c of the particles
-the dynamics model predicts (``planner.plan``), executes the first push of the best sequence in the simulator, and
-records: ω, c of the particles before planning, the c the planner predicted, the distribution distance d and the
-share of pieces inside the goal after the push, and the planning time. The previous plan, shifted, warm-starts the
+Each step samples ω particles from the current observation into the smallest resolution bucket that holds ω
+(``budget.bucket_for``), gives the planner the Adam steps its budget affords at that bucket (``budget.plan_steps``:
+a plain count, or a time budget in seconds through a ``budget.TimingTable``), plans pushes on the task objective c
+of the particles the dynamics model predicts (``planner.plan``), executes the first push of the best sequence in the
+simulator, and records: ω, the bucket, the Adam steps run, c of the particles before planning, the c the planner
+predicted, the distribution distance d and the share of pieces inside the goal after the push, and the planning
+time. The previous plan, shifted, warm-starts the
 next. Dynamics: a trained ``Dynamics`` model (``learned_dynamics``) or the sweep heuristic (``sweep_dynamics``).
 """
 
@@ -11,7 +14,7 @@ from __future__ import annotations
 
 import functools
 import time
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
 import cv2
@@ -21,11 +24,12 @@ import numpy as np
 from flax import nnx
 from jax.tree_util import Partial
 
+from dynres_jax import budget
 from dynres_jax.dynamics import Dynamics, edge_table, resolution_code, rollout
 from dynres_jax.graph import sweep_rollout
-from dynres_jax.objective import Goal, distribution_distance, inside_share, objective
-from dynres_jax.perception import sample_particles
-from dynres_jax.planner import PlannerConfig, budget_steps, plan, steps_for_budget
+from dynres_jax.objective import SAMPLES_PER_PARTICLE, Goal, distribution_distance, inside_share, objective
+from dynres_jax.perception import point_cloud, sample_particles
+from dynres_jax.planner import PlannerConfig, plan, sample_pushes
 
 if TYPE_CHECKING:  # annotations only: the planning half of this module needs no simulator (nor MuJoCo)
     from dynres_jax.sim.env import PileEnv, State
@@ -33,20 +37,30 @@ if TYPE_CHECKING:  # annotations only: the planning half of this module needs no
 
 @dataclass(frozen=True)
 class MPCConfig:
-    """steps: MPC steps per episode (reference 20); omega: particles (fixed resolution); n_max: particle slots;
-    max_points: perception's point cap; planner: the shooting optimiser's settings."""
+    """steps: MPC steps per episode (reference 20); omega: particles (fixed resolution); buckets: the particle
+    capacities ω is padded to (``budget``); max_points: perception's point cap; planner: the shooting optimiser's
+    settings (its steps: the Adam steps of a decision without a time budget, and the most with one); time_budget:
+    seconds per decision on the planning device (None: planner.steps every decision)."""
 
     steps: int = 20
     omega: int = 50
-    n_max: int = 100
+    buckets: tuple[int, ...] = budget.BUCKETS
     max_points: int | None = 4096
     planner: PlannerConfig = field(default_factory=PlannerConfig)
+    time_budget: float | None = None
 
     def __post_init__(self):
-        if not 1 <= self.omega <= self.n_max:
-            raise ValueError(f"omega={self.omega} must lie in [1, n_max={self.n_max}]")
+        object.__setattr__(self, "buckets", budget.check_buckets(self.buckets))
+        if not 1 <= self.omega <= self.buckets[-1]:
+            raise ValueError(f"omega={self.omega} must lie in [1, {self.buckets[-1]}] (the largest bucket)")
         if self.steps < 1:
             raise ValueError(f"steps must be positive, got {self.steps}")
+        if self.time_budget is not None and not self.time_budget > 0:
+            raise ValueError(f"time_budget must be a positive number of seconds or None, got {self.time_budget}")
+
+    def plan_steps(self, bucket: int, table: budget.TimingTable | None = None) -> int:
+        """The Adam steps of a decision at ``bucket`` (``budget.plan_steps`` with this config's budget)."""
+        return budget.plan_steps(bucket, self.planner.steps, self.time_budget, table)
 
 
 EDGE_DTYPES = ("float32", "bfloat16")  # ``learned_dynamics``'s choices for the GNN's per-edge network
@@ -127,9 +141,13 @@ def _camera_cost(camera):
     return functools.partial(_cost, camera)
 
 
-def goal_cost(goal: Goal, camera) -> Partial:
+def goal_cost(goal: Goal, camera, bucket: int | None = None) -> Partial:
     """The planner's cost: the task objective c of predicted particles against ``goal`` (a pytree argument, so a new
-    goal for the same camera reuses the compiled plan)."""
+    goal for the same camera reuses the compiled plan). bucket: the particle capacity; the goal's samples are cut to
+    the SAMPLES_PER_PARTICLE × bucket that c can use at ω <= bucket (the same c, on fewer samples)."""
+    if bucket is not None:
+        goal = goal._replace(samples=goal.samples[..., :SAMPLES_PER_PARTICLE * bucket, :],
+                             sample_mask=goal.sample_mask[..., :SAMPLES_PER_PARTICLE * bucket])
     return Partial(_camera_cost(camera), goal)
 
 
@@ -150,23 +168,46 @@ def overlay(rgb: np.ndarray, goal_mask: np.ndarray, particles: np.ndarray | None
     return img
 
 
-def decide(obs, goal: Goal, key, init, dynamics, cfg: MPCConfig, camera, omega=None):
-    """One MPC decision: particles from ``obs`` (h at ω), c of them, and the plan. Pure, so it vmaps over episodes.
-    omega: this step's ω (default cfg.omega; may be traced). With ``cfg.planner.max_particle_steps`` the plan gets
-    budget // ω Adam steps (``budget_steps``), so a higher resolution plans with fewer steps (paper Sec. IV-C).
-    Returns (Particles, c [], PlanResult)."""
+def decide(obs, goal: Goal, key, init, dynamics, cfg: MPCConfig, camera, omega=None, *, bucket=None, steps=None):
+    """One MPC decision: particles from ``obs`` (h at ω in ``bucket`` slots), c of them, and the plan. Pure, so it
+    vmaps over episodes. omega: this step's ω (default cfg.omega; may be traced); bucket: static particle slots
+    (default the smallest of cfg.buckets holding a concrete ω; with a traced ω, a bucket holding every ω);
+    steps: Adam steps (may be traced; default cfg.planner.steps). The planner's starting pushes pass through random
+    points of the perception cloud, not of the particles, so one key gives the same pushes at every ω (common random
+    numbers). Returns (Particles, c [], PlanResult)."""
     k_h, k_plan = jax.random.split(key)
     omega = cfg.omega if omega is None else omega
-    particles = sample_particles(obs, camera, omega, k_h, cfg.n_max, max_points=cfg.max_points)
+    if bucket is None:
+        if isinstance(omega, jax.core.Tracer):
+            raise ValueError("decide with a traced omega needs its bucket (a static capacity holding every ω)")
+        bucket = budget.bucket_for(int(omega), cfg.buckets)
+    particles = sample_particles(obs, camera, omega, k_h, bucket, max_points=cfg.max_points)
     c_now = objective(particles.positions, particles.mask, goal, camera)
-    budget, steps, active = cfg.planner.max_particle_steps, cfg.planner.steps, None
-    if budget is not None and isinstance(omega, int):  # a concrete ω: scan only the affordable steps
-        steps = steps_for_budget(omega, budget, steps)
-    elif budget is not None:  # a traced ω (vmapped episodes): one scan, steps past the budget are no-ops
-        active = budget_steps(omega, budget, steps)
-    result = plan(dynamics(particles.radius), goal_cost(goal, camera), particles.positions, particles.mask, k_plan,
-                  replace(cfg.planner, max_particle_steps=None), init=init, steps=steps, active_steps=active)
+    initial = sample_pushes(k_plan, *point_cloud(obs, camera, max_points=cfg.max_points), cfg.planner)
+    init = initial[0] if init is None else init  # no warm start: sample 0 stands in for itself (one compiled plan)
+    result = plan(dynamics(particles.radius), goal_cost(goal, camera, bucket), particles.positions, particles.mask,
+                  k_plan, cfg.planner, init=init, steps=steps, initial=initial)
     return particles, c_now, result
+
+
+def measure_timing(obs, goal: Goal, dynamics, cfg: MPCConfig, camera, repeats: int = 3) -> budget.TimingTable:
+    """A timing table of this device for decisions like ``cfg``'s on ``obs`` and ``goal`` (one decision per call, the
+    planner's batch), for every bucket of cfg.buckets, each at its largest ω that ``obs`` has the points for
+    (``budget.measure``)."""
+    key = jax.random.PRNGKey(0)
+    if cfg.planner.steps < 1:
+        raise ValueError("measuring a timing table needs PlannerConfig.steps >= 1")
+
+    points = int(np.sum(np.asarray(point_cloud(obs, camera, max_points=cfg.max_points)[1])))
+
+    def run(bucket, steps):  # as ``run_episode`` decides: a folded key, the first push of the best sequence
+        omega = min(bucket, points)  # a bucket's work does not depend on how many of its slots are valid
+        result = decide(obs, goal, jax.random.fold_in(key, 0), None, dynamics, cfg, camera, omega, bucket=bucket,
+                        steps=steps)[2]
+        return result.best[0]
+
+    return budget.measure(run, cfg.buckets, samples=cfg.planner.samples, horizon=cfg.planner.horizon,
+                          max_steps=cfg.planner.steps, repeats=repeats)
 
 
 def _shift(best):
@@ -175,33 +216,45 @@ def _shift(best):
 
 
 def run_episode(env: PileEnv, state: State, goal: Goal, goal_mask: np.ndarray, dynamics, cfg: MPCConfig, key,
-                log=print, choose_omega=None) -> tuple[State, list[dict], list[np.ndarray]]:
+                log=print, choose_omega=None, timing: budget.TimingTable | None = None
+                ) -> tuple[State, list[dict], list[np.ndarray]]:
     """One episode from ``state`` towards ``goal``. dynamics: ``learned_dynamics(model)`` or ``sweep_dynamics(hw)``.
     choose_omega: optional batched ``(obs [B], goals [B]) -> ω [B]`` (``resolution.load_chooser``) picking ω every
-    step; default cfg.omega. Returns the final state, one record per step, and GIF frames (observation, goal,
-    particles and ω)."""
+    step; default cfg.omega. timing: the table a time budget (cfg.time_budget) is spent by; measured here on the
+    first observation when None; refined from every decision unless frozen. Returns the final state, one record per
+    step (ω, bucket, plan_steps, planning_s: the decision's wall time, perception included) and GIF frames."""
     camera = env.camera
+    if cfg.time_budget is not None and timing is None:
+        timing = measure_timing(state.obs, goal, dynamics, cfg, camera)
+        rows = [f"bucket {b}: {1e3 * timing.fixed_s[b]:.1f} ms + {1e3 * timing.step_s[b]:.2f} ms/step"
+                for b in cfg.buckets]
+        log(f"timing table ({timing.device}): " + ", ".join(rows))
     records, frames, init = [], [], None
     batch = lambda tree: jax.tree.map(lambda x: jnp.asarray(x)[None], tree)  # noqa: E731
     for t in range(cfg.steps):
-        t0 = time.perf_counter()
         omega = cfg.omega if choose_omega is None else int(choose_omega(batch(state.obs), batch(goal))[0])
+        bucket = budget.bucket_for(omega, cfg.buckets)
+        steps = cfg.plan_steps(bucket, timing)
+        t0 = time.perf_counter()
         particles, c_now, result = decide(state.obs, goal, jax.random.fold_in(key, t), init, dynamics, cfg, camera,
-                                          omega)
+                                          omega, bucket=bucket, steps=steps)
         action = np.asarray(jax.block_until_ready(result.best[0]))
         planning = time.perf_counter() - t0
+        if timing is not None:
+            timing.refine(bucket, steps, planning)
         frames.append(overlay(np.asarray(state.obs.rgb), goal_mask, np.asarray(particles.positions)[
             np.asarray(particles.mask)], camera, label=f"step {t + 1}  ω = {omega}"))
         state = env.push(state, action)
         init = _shift(result.best)
-        record = dict(step=t, omega=omega, objective=float(c_now), predicted_objective=float(result.best_cost),
+        record = dict(step=t, omega=omega, bucket=bucket, plan_steps=steps, objective=float(c_now),
+                      predicted_objective=float(result.best_cost),
                       distance=float(distribution_distance(state.obs, goal, camera)),
                       success=float(inside_share(state.pos, jnp.ones(env.scene.n_pieces, bool), goal, camera)),
                       planning_s=planning, action=action.tolist(), broken=bool(state.broken))
         records.append(record)
-        log(f"step {t + 1:2d}/{cfg.steps}  ω={omega:3d}  c={record['objective']:7.2f} -> predicted "
-            f"{record['predicted_objective']:7.2f}  d={record['distance']:7.2f}  inside={record['success']:5.1%}  "
-            f"plan {planning:5.2f}s")
+        log(f"step {t + 1:2d}/{cfg.steps}  ω={omega:3d} (bucket {bucket:3d}, {steps:3d} Adam steps)  "
+            f"c={record['objective']:7.2f} -> predicted {record['predicted_objective']:7.2f}  "
+            f"d={record['distance']:7.2f}  inside={record['success']:5.1%}  plan {planning:5.2f}s")
         if record["broken"]:
             log("the simulated world broke (NaN or a piece out of the bin); stopping the episode")
             break
@@ -210,15 +263,20 @@ def run_episode(env: PileEnv, state: State, goal: Goal, goal_mask: np.ndarray, d
 
 
 def run_episodes(env, states: State, goals: Goal, dynamics, cfg: MPCConfig, keys, choose_omega=None,
-                 log=print) -> tuple[State, list[dict]]:
+                 log=print, timing: budget.TimingTable | None = None) -> tuple[State, list[dict]]:
     """Many episodes at once: states and goals batched on a leading axis [B], keys [B]. Each MPC step is one
     compiled call over all episodes (perception, planning, objective) and one batched push: ``env`` is a PileEnv
     with backend "mjx" (pushes vmapped on the device) or a ``WorldPool`` (pushes in C worker processes).
     choose_omega: optional ``(obs [B], goals [B]) -> ω [B]`` called every step (adaptive resolution); default
-    cfg.omega everywhere. Returns the final states and one record per step whose values are arrays [B] (ω, c,
-    predicted c, d, inside share, broken)."""
+    cfg.omega everywhere. Each episode's decision runs the Adam steps its own bucket affords (``cfg.plan_steps``,
+    with ``timing`` under a time budget: required then, as a batched run cannot time one decision); the call runs
+    at the largest bucket of the batch, which pads inertly. Returns the final states and one record per step whose
+    values are arrays [B] (ω, bucket, plan_steps, planning_s: the table's seconds for that decision, or NaN without
+    a budget; c, predicted c, d, inside share, broken) beside the batch's wall time ``seconds``."""
     from dynres_jax.sim.pool import WorldPool
 
+    if cfg.time_budget is not None and timing is None:
+        raise ValueError("run_episodes under a time budget needs a timing table (mpc.measure_timing, --timing FILE)")
     if isinstance(env, WorldPool):
         push = env.push
     elif env.backend == "mjx":
@@ -228,31 +286,41 @@ def run_episodes(env, states: State, goals: Goal, dynamics, cfg: MPCConfig, keys
     camera = env.camera
     n = env.scene.n_pieces
 
-    def step(obs, goal, key, init, omega):
-        return decide(obs, goal, key, init, dynamics, cfg, camera, omega)
+    def step(obs, goal, key, init, omega, steps, bucket):
+        return decide(obs, goal, key, init, dynamics, cfg, camera, omega, bucket=bucket, steps=steps)
 
     def measure(obs, pos, goal):
         return distribution_distance(obs, goal, camera), inside_share(pos, jnp.ones(n, bool), goal, camera)
 
-    first, later = jax.jit(jax.vmap(lambda o, g, k, w: step(o, g, k, None, w))), jax.jit(jax.vmap(step))
+    batched = jax.vmap(step, in_axes=(0, 0, 0, 0, 0, 0, None))
+    first = jax.jit(lambda o, g, k, w, s, bucket: jax.vmap(step, in_axes=(0, 0, 0, None, 0, 0, None))(
+        o, g, k, None, w, s, bucket), static_argnames="bucket")
+    later = jax.jit(batched, static_argnums=6)
     measure = jax.jit(jax.vmap(measure))
     records, init = [], None
     for t in range(cfg.steps):
         t0 = time.perf_counter()
         step_keys = jax.vmap(jax.random.fold_in, in_axes=(0, None))(keys, t)
-        omega = (jnp.full(len(keys), cfg.omega, jnp.int32) if choose_omega is None
-                 else jnp.asarray(choose_omega(states.obs, goals), jnp.int32))
+        omega = (np.full(len(keys), cfg.omega, np.int32) if choose_omega is None
+                 else np.asarray(choose_omega(states.obs, goals), np.int32))
+        buckets = np.array([budget.bucket_for(int(w), cfg.buckets) for w in omega])
+        steps = np.array([cfg.plan_steps(int(b), timing) for b in buckets], np.int32)
+        bucket = int(buckets.max())
         if init is None:
-            _, c_now, result = first(states.obs, goals, step_keys, omega)
+            _, c_now, result = first(states.obs, goals, step_keys, jnp.asarray(omega), jnp.asarray(steps),
+                                     bucket=bucket)
         else:
-            _, c_now, result = later(states.obs, goals, step_keys, init, omega)
+            _, c_now, result = later(states.obs, goals, step_keys, init, jnp.asarray(omega), jnp.asarray(steps), bucket)
         states = push(states, result.best[:, 0])
         init = _shift(result.best)
         distance, success = measure(states.obs, states.pos, goals)
-        record = {k: np.asarray(v) for k, v in dict(omega=omega, objective=c_now, predicted_objective=result.best_cost,
-                                                     distance=distance, success=success, broken=states.broken).items()}
+        planning = (np.array([timing.seconds(int(b), int(s)) for b, s in zip(buckets, steps, strict=True)])
+                    if timing is not None else np.full(len(keys), np.nan))
+        record = {k: np.asarray(v) for k, v in dict(
+            omega=omega, bucket=buckets, plan_steps=steps, planning_s=planning, objective=c_now,
+            predicted_objective=result.best_cost, distance=distance, success=success, broken=states.broken).items()}
         records.append(dict(step=t, seconds=time.perf_counter() - t0, **record))
-        log(f"step {t + 1:2d}/{cfg.steps}  {len(keys)} episodes  mean ω={record['omega'].mean():5.1f}  mean d="
-            f"{record['distance'].mean():7.2f}  mean inside={record['success'].mean():5.1%}  "
-            f"{records[-1]['seconds']:5.2f}s")
+        log(f"step {t + 1:2d}/{cfg.steps}  {len(keys)} episodes  mean ω={record['omega'].mean():5.1f}  mean Adam steps="
+            f"{record['plan_steps'].mean():5.1f}  mean d={record['distance'].mean():7.2f}  "
+            f"mean inside={record['success'].mean():5.1%}  {records[-1]['seconds']:5.2f}s")
     return states, records

@@ -9,8 +9,9 @@ Q the goal-mask pixels,
   with bilinear interpolation so c is differentiable w.r.t. the particle positions.
 - Q' is the first ``min(5 ω, |Q|)`` points of a fixed farthest-point subsample of Q (``Goal.samples``, FPS order, so
   every prefix is itself an FPS sample); ω is the number of valid particles. Dividing by ω follows the reference.
-- ``distribution_distance`` (the paper's metric d) is the same formula on every foreground pixel of an observation
-  (ω = the foreground pixel count), ``inside_share`` the share of pieces whose centre projects inside the goal
+- ``distribution_distance`` (the paper's metric d, as the supplement defines it) is unsigned: every foreground pixel's
+  distance to the goal plus every goal pixel's distance to the foreground, over the foreground pixel count;
+  ``inside_share`` the share of pieces whose centre projects inside the goal
   (Gather's success measure).
 
 Units: goal builders take metres on the table plane (z = 0, world frame); everything inside a ``Goal`` and every
@@ -35,7 +36,7 @@ from dynres_jax.sim.camera import Camera, Observation
 
 BIN_HALF_WIDTH = SceneConfig().bin_half_width  # m: goals must lie inside the bin [-b, b]^2
 SAMPLES_PER_PARTICLE = 5  # |Q'| = min(5 ω, |Q|) (reference code)
-MAX_PAIRS = 20_000_000  # the coverage term evaluates at most this many (goal sample, point) distances at once
+MAX_PAIRS = 20_000_000  # c's coverage term evaluates at most this many (goal sample, particle) distances at once
 TEXT_OVERSAMPLE = 8  # text is drawn on a canvas this many times finer than the image, then sampled per pixel
 
 
@@ -309,28 +310,44 @@ def objective(positions, mask, goal: Goal, camera: Camera):
     return _cost(uv, mask, goal)
 
 
-@functools.partial(jax.jit, static_argnames="camera")
-def _points_cost(points, valid, goal: Goal, camera: Camera):
-    uv, _ = camera.world_to_pixel(jnp.where(valid[:, None], points, 0.0))
-    return _cost(uv, valid, goal)
+def squared_distance_to(mask):
+    """Exact squared Euclidean distance (pixels²) from every pixel centre of mask [H, W] bool's grid to the nearest
+    True pixel centre -> [H, W] float32 (0 on True pixels, +inf everywhere when none is True). Separable: the
+    nearest True pixel of each column, then the best column for each pixel (O(H²W + HW²), memory O(HW))."""
+    mask = jnp.asarray(mask, bool)
+    H, W = mask.shape
+    rows, cols = jnp.arange(H, dtype=jnp.float32), jnp.arange(W, dtype=jnp.float32)
+    column = jax.lax.map(lambda i: jnp.min(jnp.where(mask, jnp.square(rows - i)[:, None], jnp.inf), axis=0), rows)
+    return jax.lax.map(lambda g: jnp.min(g[None, :] + jnp.square(cols[:, None] - cols[None, :]), axis=1), column)
 
 
-def distribution_distance(observation_or_points, goal: Goal, camera: Camera, **foreground_kw):
-    """The paper's metric d: the formula of c on every foreground pixel instead of particles -> scalar (pixels).
+@jax.jit
+def _mask_distance(current, goal_mask):
+    """d of two pixel masks [H, W] -> scalar (pixels): unsigned, each summed over its pixels, over |current|."""
+    to_goal = jnp.sqrt(squared_distance_to(goal_mask))
+    to_current = jnp.sqrt(squared_distance_to(current))
+    total = jnp.sum(jnp.where(current, to_goal, 0.0)) + jnp.sum(jnp.where(goal_mask, to_current, 0.0))
+    return jnp.where(jnp.any(current), total / jnp.maximum(jnp.sum(current), 1), jnp.inf)
 
-    observation_or_points: an Observation (its foreground pixels by ``perception.foreground``, ``foreground_kw``
-    passed on: kind= for one kind of a Sort scene), or (points [P, 3], valid [P]) world points (m), or points [P, 3]
-    all valid. ω is the number of foreground points; Q' = min(5 ω, Q) goal samples. The coverage term is evaluated
-    in chunks of at most ``MAX_PAIRS`` distances, so memory stays O(P · chunk), never [Q, H·W] for large images.
-    """
-    if isinstance(observation_or_points, Observation):
-        points, valid = foreground(observation_or_points, camera, **foreground_kw)
-    elif isinstance(observation_or_points, tuple):
-        points, valid = observation_or_points
+
+def distribution_distance(observation_or_mask, goal: Goal, camera: Camera, **foreground_kw):
+    """The paper's metric d (supplement, "Distribution Distance"), unsigned -> scalar (pixels).
+
+    d = (Σ_{f∈F} min_{q∈Q} |f − q| + Σ_{q∈Q} min_{f∈F} |f − q|) / |F|, with F the foreground pixels, Q every goal
+    pixel (not a subsample) and distances between pixel centres, exact (``squared_distance_to``). A foreground pixel
+    inside the goal adds 0 (no signed distance). The sum is divided by the foreground pixel count, as the reference
+    divides c by ω: a mean per foreground pixel. observation_or_mask: an Observation (its foreground by
+    ``perception.foreground``, ``foreground_kw`` passed on: kind= for one kind of a Sort scene) or a foreground
+    mask [H, W] bool. +inf when there is no foreground pixel. ``jax.vmap`` over observations and goals."""
+    if isinstance(observation_or_mask, Observation):
+        _, valid = foreground(observation_or_mask, camera, **foreground_kw)
+        current = valid.reshape(camera.height, camera.width)
     else:
-        points = observation_or_points
-        valid = jnp.ones(jnp.shape(points)[0], bool)
-    return _points_cost(jnp.asarray(points, jnp.float32), jnp.asarray(valid, bool), goal, camera)
+        current = jnp.asarray(observation_or_mask, bool)
+        if current.shape != (camera.height, camera.width):
+            raise ValueError(f"foreground mask has shape {current.shape}, the camera's image is "
+                             f"{(camera.height, camera.width)}")
+    return _mask_distance(current, goal.mask)
 
 
 @functools.partial(jax.jit, static_argnames="camera")

@@ -17,12 +17,11 @@ once per plan rather than once per Adam step (``_prepared``: the learned model's
 
 Compilation: ``plan`` is jitted with the functions passed as pytrees (``jax.tree_util.Partial``), so a
 ``Partial(f, arrays...)`` reuses one compiled plan for new arrays (model weights, resolution code, goal), while a
-plain function or lambda is keyed by identity (a new lambda compiles again). Positions are padded with a mask, so
-one compiled plan serves every ω; the step count is static (the scan length), so each distinct count compiles once
-(the config's steps, max_particle_steps and seed are not part of the compiled function's key).
-
-Budgets: ``PlannerConfig.steps`` (fixed); ``PlannerConfig.max_particle_steps`` (particles × steps, the same plan on
-any machine: ``steps_for_budget``); ``plan_within`` (wall clock: time a short compiled run, pick the step count).
+plain function or lambda is keyed by identity (a new lambda compiles again). The particle count N is the shape of
+the positions: a bucket (``budget``), so a coarse ω plans on fewer slots than a fine one, and the ω valid particles
+of a bucket are a mask (one compiled plan for every ω of a bucket). The Adam step count is traced (a
+``lax.fori_loop`` that runs exactly that many steps, at most ``PlannerConfig.steps``), so any step count, a time
+budget's included, reuses the compiled plan; the config's seed is not part of the compiled function's key.
 
 Units: metres. An action is (x_start, y_start, x_end, y_end); every coordinate lies within ±bound and every push
 length within [min_length, max_length].
@@ -30,7 +29,6 @@ length within [min_length, max_length].
 
 from __future__ import annotations
 
-import time
 from dataclasses import dataclass, replace
 from typing import NamedTuple
 
@@ -52,7 +50,7 @@ class PlannerConfig:
 
     samples: M action sequences optimised at once (paper 20, reference demo 50).
     horizon: T pushes per sequence (paper 1).
-    steps: N Adam steps (paper 200; the scan length, static).
+    steps: N Adam steps (paper 200); the most a plan may run (its history's length, static).
     lr: Adam learning rate in metres (the reference's 0.05 on its 1-unit bin, scaled to our 0.4 m bin).
     bound: every action coordinate within ±bound m (PileEnv.action_bound; 0.181 m for coffee).
     min_length, max_length: push length range in m (PushConfig).
@@ -60,7 +58,6 @@ class PlannerConfig:
       leading [R] axis when R > 1.
     near_pile: sample pushes through points near randomly chosen particles (else anywhere in the workspace).
     spread: m, the radius of the disc around the centroid the sampled pushes pass through.
-    max_particle_steps: optional compute budget, particles × steps (``steps_for_budget``); None: no budget.
     seed: PRNG seed used when ``plan`` gets key=None.
     """
 
@@ -74,7 +71,6 @@ class PlannerConfig:
     resamples: int = 1
     near_pile: bool = True
     spread: float = 0.03
-    max_particle_steps: int | None = None
     seed: int = 0
 
     def __post_init__(self):
@@ -91,13 +87,12 @@ class PlannerConfig:
         if not 0 < self.min_length <= self.max_length <= 2 * self.bound:
             raise ValueError(f"PlannerConfig push lengths must satisfy 0 < min_length <= max_length <= 2 * bound, got "
                              f"min_length={self.min_length}, max_length={self.max_length}, bound={self.bound}")
-        if self.max_particle_steps is not None and self.max_particle_steps < 0:
-            raise ValueError(f"PlannerConfig.max_particle_steps must be >= 0 or None, got {self.max_particle_steps}")
 
 
 class PlanResult(NamedTuple):
     """best [T, 4]: the lowest-cost sequence seen (projected); best_cost []: its cost; costs [M] and actions
-    [M, T, 4]: every sequence after the final step; history [steps]: the best cost seen up to each step."""
+    [M, T, 4]: every sequence after the final step; history [PlannerConfig.steps]: the best cost seen up to each
+    step run, NaN past the steps run (one slot when PlannerConfig.steps is 0)."""
 
     best: jax.Array
     best_cost: jax.Array
@@ -157,14 +152,6 @@ def sample_actions(key, m, t, bound, min_length, max_length, centre_xy=None, spr
     return project(jnp.concatenate([start, start + direction * length], axis=-1), bound, min_length, max_length)
 
 
-def steps_for_budget(omega, budget, max_steps):
-    """Adam steps affordable under a compute budget of particles × steps: min(max_steps, budget // omega), >= 0.
-    omega: particle count (>= 1); budget: particles × steps, or None for no budget."""
-    if budget is None:
-        return int(max_steps)
-    return int(max(0, min(max_steps, budget // max(int(omega), 1))))
-
-
 def _as_pytree_fn(fn):
     """A function as a jit argument: a ``Partial`` passes as is (its arrays traced), anything else is wrapped
     (keyed by identity)."""
@@ -185,20 +172,23 @@ def _batched(positions, mask, resamples):
     return positions, mask
 
 
-def _pile_points(key, positions, mask, shape):
-    """(x, y) [*shape, 2] m of valid particles drawn at random (first re-sampling), so sampled pushes pass through
-    the pile even when it is spread out and its centroid is empty table; the origin if no particle is valid."""
-    valid = mask[0]
+def _pile_points(key, points, valid, shape):
+    """(x, y) [*shape, 2] m of valid points [P, 3] (valid [P]) drawn at random, so sampled pushes pass through the
+    pile even when it is spread out and its centroid is empty table; the origin if no point is valid."""
     count = jnp.sum(valid)
-    k = jnp.minimum(jnp.floor(jax.random.uniform(key, shape) * count), count - 1)  # the k-th valid particle ...
+    k = jnp.minimum(jnp.floor(jax.random.uniform(key, shape) * count), count - 1)  # the k-th valid point ...
     index = jnp.searchsorted(jnp.cumsum(valid), k + 1)  # ... wherever it sits, so masked padding changes nothing
-    return jnp.where(count > 0, positions[0, jnp.minimum(index, valid.shape[0] - 1), :2], 0.0)
+    return jnp.where(count > 0, points[jnp.minimum(index, valid.shape[0] - 1), :2], 0.0)
 
 
-def budget_steps(omega, budget, max_steps):
-    """``steps_for_budget`` in JAX, for a traced ω (one compiled plan for every resolution): min(max_steps,
-    budget // ω), an int32 scalar."""
-    return jnp.clip(budget // jnp.maximum(jnp.asarray(omega, jnp.int32), 1), 0, max_steps).astype(jnp.int32)
+def sample_pushes(key, points, valid, config: PlannerConfig):
+    """The planner's M starting sequences [M, T, 4] m: ``sample_actions`` through random valid points [P, 3] (valid
+    [P]) of the pile when config.near_pile, else anywhere. ``plan`` draws them through the particles; drawn through
+    the perception cloud instead (``mpc.decide``), they are the same for every ω: common random numbers."""
+    c = config
+    k_points, k_actions = jax.random.split(key)
+    centre = _pile_points(k_points, points, valid, (c.samples, c.horizon)) if c.near_pile else None
+    return sample_actions(k_actions, c.samples, c.horizon, c.bound, c.min_length, c.max_length, centre, c.spread)
 
 
 def _prepared(dynamics_fn, positions, mask):
@@ -214,13 +204,12 @@ def _prepared(dynamics_fn, positions, mask):
     return dynamics_fn, context
 
 
-def _plan(dynamics_fn, cost_fn, positions, mask, key, init, active, config, steps):
-    """The jitted planner; see ``plan``. positions [R, N, 3], mask [R, N], init [T, 4] or None, active [] or
-    None: scan steps from ``active`` on leave the actions unchanged."""
+def _plan(dynamics_fn, cost_fn, positions, mask, key, init, initial, steps, config):
+    """The jitted planner; see ``plan``. positions [R, N, 3], mask [R, N], init [T, 4] or None, initial [M, T, 4] or
+    None, steps [] int32 (may be traced, at most config.steps)."""
     c = config
-    k_points, k_actions = jax.random.split(key)
-    centre = _pile_points(k_points, positions, mask, (c.samples, c.horizon)) if c.near_pile else None
-    actions = sample_actions(k_actions, c.samples, c.horizon, c.bound, c.min_length, c.max_length, centre, c.spread)
+    actions = sample_pushes(key, positions[0], mask[0], c) if initial is None else project(
+        initial, c.bound, c.min_length, c.max_length)
     if init is not None:
         actions = actions.at[0].set(project(init, c.bound, c.min_length, c.max_length))
 
@@ -238,87 +227,59 @@ def _plan(dynamics_fn, cost_fn, positions, mask, key, init, active, config, step
         better = costs[i] < best_cost
         return jnp.where(better, actions[i], best), jnp.where(better, costs[i], best_cost)
 
-    def step(carry, i):
-        actions, opt_state, best, best_cost = carry
+    def step(i, carry):
+        actions, opt_state, best, best_cost, history = carry
         costs, grads = value_and_grad(actions)
         best, best_cost = keep_best(best, best_cost, actions, costs)
-        updates, new_state = optimiser.update(grads, opt_state, actions)
-        new_actions = project(optax.apply_updates(actions, updates), c.bound, c.min_length, c.max_length)
-        if active is not None:  # past the budget: keep the actions (and the best) as they are
-            go = i < active
-            new_actions = jnp.where(go, new_actions, actions)
-            new_state = jax.tree.map(lambda a, b: jnp.where(go, a, b), new_state, opt_state)
-        return (new_actions, new_state, best, best_cost), best_cost
+        updates, opt_state = optimiser.update(grads, opt_state, actions)
+        actions = project(optax.apply_updates(actions, updates), c.bound, c.min_length, c.max_length)
+        return actions, opt_state, best, best_cost, history.at[i].set(best_cost)
 
-    carry = (actions, optimiser.init(actions), actions[0], jnp.asarray(jnp.inf, jnp.float32))
-    (actions, _, best, best_cost), history = jax.lax.scan(step, carry, jnp.arange(steps))
+    carry = (actions, optimiser.init(actions), actions[0], jnp.asarray(jnp.inf, jnp.float32),
+             jnp.full(max(c.steps, 1), jnp.nan, jnp.float32))  # one slot at least, so the loop body traces
+    steps = jnp.clip(jnp.asarray(steps, jnp.int32), 0, c.steps)
+    actions, _, best, best_cost, history = jax.lax.fori_loop(0, steps, step, carry)
     costs = jax.vmap(objective)(actions)
     best, best_cost = keep_best(best, best_cost, actions, costs)
     return PlanResult(best, best_cost, costs, history, actions)
 
 
-_plan_jit = jax.jit(_plan, static_argnames=("config", "steps"))
-
-
-def _traced(config: PlannerConfig) -> PlannerConfig:
-    """The static config ``_plan_jit`` gets: the fields its trace ignores zeroed, so they share one compile."""
-    return replace(config, steps=0, max_particle_steps=None, seed=0)
+_plan_jit = jax.jit(_plan, static_argnames="config")
 
 
 def plan(dynamics_fn, cost_fn, positions, mask, key, config: PlannerConfig = PlannerConfig(), init=None, *,
-         steps=None, active_steps=None) -> PlanResult:
+         steps=None, initial=None) -> PlanResult:
     """Optimise M action sequences for one MPC step (paper Algorithm 1); returns a ``PlanResult``.
 
     dynamics_fn(positions [N, 3], mask [N], actions [T, 4]) -> [T, N, 3] m; cost_fn(final [N, 3], mask [N]) -> [].
-    positions [N, 3] m and mask [N] bool, or [R, N, 3] and [R, N] with config.resamples = R.
+    positions [N, 3] m and mask [N] bool, or [R, N, 3] and [R, N] with config.resamples = R; N is the bucket.
     key: a jax.random key (None: PRNGKey(config.seed)). init [T, 4]: warm start, replaces sample 0 (projected).
-    steps: Adam steps (default config.steps, capped by config.max_particle_steps / ω, ω the valid particles per
-    re-sampling; the budget needs a concrete mask).
-    active_steps: optional int, may be traced (``budget_steps``): only the first ``active_steps`` of the ``steps``
-    scan steps move the actions, so one compiled plan of ``steps`` runs any budget up to it, vmapped over episodes
-    with different ω. The result equals a plan of ``active_steps`` steps.
-    The best is the lowest-cost sequence evaluated at any step, so its cost never exceeds the warm start's.
+    initial: optional [M, T, 4], the starting sequences (projected) instead of ``sample_pushes`` through the first
+    re-sampling's particles.
+    steps: Adam steps, an int or a traced int32 (``budget.plan_steps``; vmap it over episodes), within
+    [0, config.steps]; default config.steps. The best is the lowest-cost sequence evaluated at any step, so its cost
+    never exceeds the warm start's.
     """
     positions, mask = _batched(positions, mask, config.resamples)
     if steps is None:
         steps = config.steps
-        if config.max_particle_steps is not None:
-            omega = int(np.asarray(mask).sum(axis=-1).max())
-            steps = steps_for_budget(omega, config.max_particle_steps, steps)
+    concrete = not isinstance(steps, jax.core.Tracer)
+    if concrete and not 0 <= int(np.max(steps)) <= config.steps:
+        raise ValueError(f"steps={steps} must lie in [0, PlannerConfig.steps={config.steps}]")
     if init is not None:
         init = jnp.asarray(init, jnp.float32)
         if init.shape != (config.horizon, 4):
             raise ValueError(f"init must be [T, 4] = [{config.horizon}, 4], got {init.shape}")
+    if initial is not None:
+        initial = jnp.asarray(initial, jnp.float32)
+        if initial.shape != (config.samples, config.horizon, 4):
+            raise ValueError(f"initial must be [M, T, 4] = [{config.samples}, {config.horizon}, 4], got "
+                             f"{initial.shape}")
     if key is None:
         key = jax.random.PRNGKey(config.seed)
-    return _plan_jit(_as_pytree_fn(dynamics_fn), _as_pytree_fn(cost_fn), positions, mask, key, init,
-                     active_steps, config=_traced(config), steps=int(steps))
+    return _plan_jit(_as_pytree_fn(dynamics_fn), _as_pytree_fn(cost_fn), positions, mask, key, init, initial,
+                     jnp.asarray(steps, jnp.int32), config=replace(config, seed=0))
 
 
-def plan_within(seconds, dynamics_fn, cost_fn, positions, mask, key, config: PlannerConfig = PlannerConfig(),
-                init=None, *, probe_steps=5):
-    """Plan under a wall-clock budget of ``seconds`` on this machine -> (PlanResult, steps used).
-
-    Compiles and times one call of ``probe_steps`` steps (compilation excluded), takes its time per step as the
-    cost of a step (an upper bound: the call's fixed cost is included), and plans with
-    min(config steps/budget, seconds // per-step) steps. The chosen count is a new scan length, so that call compiles
-    again (compilation is not counted against ``seconds``; each count compiles once). Not reproducible across
-    machines: use ``max_particle_steps`` for that.
-    """
-    def run(n):
-        return plan(dynamics_fn, cost_fn, positions, mask, key, config, init, steps=n)
-
-    probe_steps = max(1, int(probe_steps))
-    jax.block_until_ready(run(probe_steps))  # compile
-    t0 = time.perf_counter()
-    jax.block_until_ready(run(probe_steps))
-    per_step = (time.perf_counter() - t0) / probe_steps
-    _, flat_mask = _batched(positions, mask, config.resamples)
-    omega = int(np.asarray(flat_mask).sum(axis=-1).max())
-    cap = steps_for_budget(omega, config.max_particle_steps, config.steps)
-    steps = int(min(cap, seconds // per_step))
-    return run(steps), steps
-
-
-__all__ = ["PlanResult", "PlannerConfig", "ZERO_LENGTH_DIRECTION", "budget_steps", "plan", "plan_within", "project",
-           "sample_actions", "steps_for_budget"]
+__all__ = ["PlanResult", "PlannerConfig", "ZERO_LENGTH_DIRECTION", "plan", "project", "sample_actions",
+           "sample_pushes"]

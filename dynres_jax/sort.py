@@ -30,8 +30,8 @@ import time
 
 import jax
 import numpy as np
-from jax.tree_util import Partial
 
+from dynres_jax.budget import TimingTable, bucket_for
 from dynres_jax.mpc import MPCConfig, goal_cost, overlay
 from dynres_jax.objective import disc_goal, inside_share, make_goal, objective, sort_goals
 from dynres_jax.perception import point_cloud, sample_particles
@@ -141,10 +141,12 @@ def sort_scores(piece_pos, kinds, goals, camera) -> tuple[list[float], float]:
 
 
 def _kind_particles(obs, camera, cfg: MPCConfig, key, kind: int):
-    """Particles of one kind: ω = min(cfg.omega, that kind's foreground points), so a small pile still samples."""
+    """Particles of one kind: ω = min(cfg.omega, that kind's foreground points), so a small pile still samples, in
+    the smallest bucket holding ω."""
     _, valid = point_cloud(obs, camera, max_points=cfg.max_points, kind=kind)
-    omega = min(cfg.omega, int(np.sum(np.asarray(valid))))
-    return sample_particles(obs, camera, max(omega, 1), key, cfg.n_max, max_points=cfg.max_points, kind=kind)
+    omega = max(min(cfg.omega, int(np.sum(np.asarray(valid)))), 1)
+    return sample_particles(obs, camera, omega, key, bucket_for(omega, cfg.buckets), max_points=cfg.max_points,
+                            kind=kind)
 
 
 def _next_waypoint(path: list[np.ndarray], goals_xy: np.ndarray, lookahead: int) -> tuple[int, np.ndarray]:
@@ -168,15 +170,17 @@ def _frame(rgb, goal_masks, target_mask, particles, camera) -> np.ndarray:
 
 
 def sort_episode(env: PileEnv, state: State, dynamics, cfg: MPCConfig, key, goals_xy, goal_radius: float, log=print,
-                 *, blob_radius: float | None = None, grid_step: float = 0.02,
-                 lookahead: int = 3) -> tuple[State, list[dict], list[np.ndarray]]:
+                 *, blob_radius: float | None = None, grid_step: float = 0.02, lookahead: int = 3,
+                 timing: TimingTable | None = None) -> tuple[State, list[dict], list[np.ndarray]]:
     """One Sort episode from ``state``: kind k to the disc of ``goal_radius`` (m) at goals_xy[k] (m).
     dynamics: ``mpc.learned_dynamics(model)`` or ``mpc.sweep_dynamics(hw)``; blob_radius: A*'s blob circle (m,
-    default goal_radius); grid_step: A*'s grid (m); lookahead: grid steps a waypoint may lie ahead (>= 1).
+    default goal_radius); grid_step: A*'s grid (m); lookahead: grid steps a waypoint may lie ahead (>= 1);
+    timing: the table a time budget (cfg.time_budget) is spent by.
     Returns the final state, one record per step and GIF frames. A record: step, phase ("path": following A*,
     "final": both at their goals, "direct": A* found no path, the farther pile heads straight to its goal), kind
-    moved, waypoint [2] m, centres [2, 2] m (perceived), astar_steps left, objective c before / predicted,
-    inside [2] (kind k's share inside goal k), mixing (share inside the other kind's goal), times, action, broken."""
+    moved, waypoint [2] m, centres [2, 2] m (perceived), astar_steps left, ω, bucket, plan_steps, objective c
+    before / predicted, inside [2] (kind k's share inside goal k), mixing (share inside the other kind's goal),
+    times, action, broken."""
     if lookahead < 1:
         raise ValueError(f"lookahead must be at least 1, got {lookahead}")
     camera, bin_half = env.camera, env.config.scene.bin_half_width
@@ -185,7 +189,6 @@ def sort_episode(env: PileEnv, state: State, dynamics, cfg: MPCConfig, key, goal
     goals = [make_goal(m, camera) for m in goal_masks]
     blob_radius = goal_radius if blob_radius is None else blob_radius
     bound = bin_half - goal_radius - WAYPOINT_EDGE
-    cost_fn = goal_cost(goals[0], camera).func
     records, frames, turn = [], [], 0
     for t in range(cfg.steps):
         k_h, k_plan = jax.random.split(jax.random.fold_in(key, t))
@@ -215,15 +218,20 @@ def sort_episode(env: PileEnv, state: State, dynamics, cfg: MPCConfig, key, goal
         c_now = float(objective(p.positions, p.mask, target, camera))
         frames.append(_frame(state.obs.rgb, goal_masks, target_mask,
                              np.asarray(p.positions)[np.asarray(p.mask)], camera))
+        bucket = int(p.mask.shape[0])
+        steps = cfg.plan_steps(bucket, timing)
         t0 = time.perf_counter()
-        cost = Partial(cost_fn, target)  # one cost function for every goal, so the planner compiles once
-        result = plan(dynamics(p.radius), cost, p.positions, p.mask, k_plan, cfg.planner)
+        cost = goal_cost(target, camera, bucket)  # one cost function for every goal, so the planner compiles once
+        result = plan(dynamics(p.radius), cost, p.positions, p.mask, k_plan, cfg.planner, steps=steps)
         action = np.asarray(jax.block_until_ready(result.best[0]))
         planning_s = time.perf_counter() - t0
+        if timing is not None:
+            timing.refine(bucket, steps, planning_s)
         state = env.push(state, action)
         inside, mixing = sort_scores(state.pos, env.scene.kind, goals, camera)
         record = dict(step=t, phase=phase, kind=kind, waypoint=np.asarray(waypoint).tolist(),
                       centres=centres.tolist(), astar_steps=steps_left, omega=int(np.sum(np.asarray(p.mask))),
+                      bucket=bucket, plan_steps=steps,
                       objective=c_now, predicted_objective=float(result.best_cost), inside=inside, mixing=mixing,
                       astar_s=astar_s, planning_s=planning_s, action=action.tolist(), broken=bool(state.broken))
         records.append(record)

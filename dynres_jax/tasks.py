@@ -29,10 +29,11 @@ def gather_goal(rng: np.random.Generator, env: PileEnv) -> tuple[np.ndarray, dic
     return disc_goal(env.camera, centre, radius), dict(shape="disc", centre=centre.tolist(), radius=radius)
 
 
-def redistribute_goal(rng: np.random.Generator, env: PileEnv, letter: str) -> tuple[np.ndarray, dict]:
-    """``letter`` near the bin centre, scaled so its ink covers the target area: (mask [H, W] bool, description)."""
+def redistribute_goal(rng: np.random.Generator, env: PileEnv, letter: str, centre=None) -> tuple[np.ndarray, dict]:
+    """``letter`` centred near the bin centre (or on ``centre`` [2], m), scaled so its ink covers the target area:
+    (mask [H, W] bool, description)."""
     target = _target_area(rng, env)
-    centre = rng.uniform(-0.03, 0.03, size=2)
+    centre = rng.uniform(-0.03, 0.03, size=2) if centre is None else np.asarray(centre, np.float64)
     pixel_area = (2 * env.config.camera.view_half_width / env.camera.width) ** 2
     height = 0.12
     for _ in range(3):  # a stroke's area grows with the square of the height (stroke width is height / 5)

@@ -2,11 +2,13 @@
 Redistribute, many episodes at once.
 
     python -m experiments.evaluate --task gather --episodes 64 --out runs/eval
-    python -m experiments.evaluate --task gather --methods 50 --budget 0 --plan-steps 100 --out runs/gather50
+    python -m experiments.evaluate --task gather --methods 50 --plan-steps 100 --out runs/gather50
 
 Episode i of a task has the same pile and goal for every method (seeded by i). Each method runs all episodes
-together: perception and planning vmapped on the JAX device, pushes in C worker processes (``WorldPool``). Planning
-is under the particle-step budget (``--budget``; 0: none), as in labelling: a higher ω plans with fewer Adam steps.
+together: perception and planning vmapped on the JAX device, pushes in C worker processes (``WorldPool``). With
+``--time-budget S`` every method plans under the same budget of S seconds per decision, spent by one timing table
+(``timing.json``, measured once per resolution bucket on this device or given by ``--timing``): a coarse ω affords
+more Adam steps. Without it every decision runs ``--plan-steps``.
 "adaptive" picks ω at every step with the regressor g (``--regressor``); "cnn" (not in the default list) is the
 paper's CNN-dynamics baseline: the same planner at ω = ``--cnn-omega`` (50) with the CNN checkpoint ``--cnn-ckpt``
 (``experiments.train_dynamics --model cnn``) as its model. Writes per method ``METHOD.json`` (final d
@@ -31,7 +33,7 @@ from dynres_jax.config import CameraConfig, PileConfig, SceneConfig, SimConfig
 from dynres_jax.mpc import load_dynamics, run_episodes
 from dynres_jax.objective import make_goal
 from dynres_jax.sim.pool import WorldPool, process_pool
-from experiments.label_resolution import add_planner_args, planner_config
+from experiments.label_resolution import add_planner_args, check_planner_args, planner_config, timing_table
 from experiments.task import DEFAULT_CKPT, DEFAULT_REGRESSOR
 
 SUCCESS = 0.9  # Gather succeeds when this share of the pieces is inside the goal
@@ -83,9 +85,8 @@ def plot(results: dict, task: str, out_dir: str) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    finals = np.concatenate([r["final_distance"] for r in results.values()])  # d is signed: negative inside
-    span = finals.max() - finals.min()
-    taus = np.linspace(finals.min() - 0.02 * span, finals.max() + 0.02 * span, 200)
+    finals = np.concatenate([r["final_distance"] for r in results.values()])  # d >= 0
+    taus = np.linspace(0.0, 1.02 * finals.max(), 200)
     fig, ax = plt.subplots(figsize=(5, 3.5))
     for method, r in results.items():
         d = np.array(r["final_distance"])
@@ -143,7 +144,7 @@ def main(argv=None):
     parser.add_argument("--out", required=True)
     parser.add_argument("--quick", action="store_true", help="tiny sizes for a CPU smoke run")
     args = parser.parse_args(argv)
-    args.budget = args.budget or None
+    check_planner_args(parser, args)
     for m in args.methods:
         fixed = m.isdigit() and resolution.OMEGA_MIN <= int(m) <= resolution.OMEGA_MAX
         if m not in ("adaptive", "cnn") and not fixed:
@@ -163,28 +164,34 @@ def main(argv=None):
         masks = episode_goals(args.task, args.episodes, args.seed, pool.env)
         goals = jax.tree.map(lambda *g: jnp.stack(g), *[make_goal(m, pool.camera) for m in masks])
         keys = jax.random.split(jax.random.PRNGKey(args.seed), args.episodes)
+        timing = None
         for method in args.methods:
             path = os.path.join(args.out, f"{method}.json")
             if os.path.exists(path):
                 with open(path) as f:
                     results[method] = json.load(f)
                 continue
-            dynamics, n_max, name = cnn_model if method == "cnn" else main_model
+            dynamics, _, name = cnn_model if method == "cnn" else main_model
             omega = 50 if method == "adaptive" else args.cnn_omega if method == "cnn" else int(method)
-            cfg = dataclasses.replace(planner_config(pool.env, args), steps=args.steps, n_max=n_max, omega=omega)
+            cfg = dataclasses.replace(planner_config(pool.env, args), steps=args.steps, omega=omega)
             chooser = resolution.load_chooser(args.regressor, pool.camera) if method == "adaptive" else None
             print(f"{args.task}: method {method}, {args.episodes} episodes, dynamics {name}")
             starts = pool.reset(jax.vmap(lambda i: jax.random.fold_in(jax.random.PRNGKey(args.seed), i))(
                 jnp.arange(args.episodes)))
-            states, records = run_episodes(pool, starts, goals, dynamics, cfg, keys, choose_omega=chooser)
+            if timing is None:  # one table for every method: measured with the main model on episode 0
+                timing = timing_table(args, args.out, starts.obs, goals, main_model[0], cfg, pool.camera)
+            states, records = run_episodes(pool, starts, goals, dynamics, cfg, keys, choose_omega=chooser,
+                                           timing=timing)
             r = dict(final_distance=records[-1]["distance"].tolist(), final_inside=records[-1]["success"].tolist(),
                      mean_distance=[float(x["distance"].mean()) for x in records],
                      mean_inside=[float(x["success"].mean()) for x in records],
                      omega=np.stack([x["omega"] for x in records]).tolist(), broken=records[-1]["broken"].tolist(),
+                     plan_steps=np.stack([x["plan_steps"] for x in records]).tolist(),
                      seconds=float(sum(x["seconds"] for x in records)), dynamics=name)
             files.write_json(path, r)
             results[method] = r
-    summary = dict(task=args.task, dynamics=main_model[2], device=jax.devices()[0].device_kind, budget=args.budget,
+    summary = dict(task=args.task, dynamics=main_model[2], device=jax.devices()[0].device_kind,
+                   time_budget=args.time_budget,
                    steps=args.steps, methods=summarise(results))
     files.write_json(os.path.join(args.out, "summary.json"), summary)
     plot(results, args.task, args.out)

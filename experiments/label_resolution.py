@@ -5,8 +5,10 @@
 
 For every scene (a settled pile and a goal), ``c+(ω) = c*(ω) + w_R · d_0 · ω`` is evaluated at ω = 2, 25, 50, 75,
 100 and then at ``--evals`` - 5 more ω chosen by Expected Improvement; c*(ω) is the distribution distance d after one
-push planned at ω under the particle-step budget (higher ω: fewer Adam steps) and executed in the simulator,
-averaged over ``--repeats`` plans; d_0 is d before the push. The label is the argmin of the GP posterior mean.
+push planned at ω under the time budget (``--time-budget`` seconds per decision on this device, spent by a timing
+table measured once per resolution bucket and saved as ``timing.json``: a coarse ω affords more Adam steps) and
+executed in the simulator, averaged over ``--repeats`` plans; d_0 is d before the push. The label is the argmin
+of the GP posterior mean.
 
 Scenes come in shards of ``--batch`` scenes, all simulated, planned and optimised together (vmapped; pushes in C
 worker processes). Pairs for the paper's Fig. 4: in every shard, scenes 2j and 2j + 1 share the pile and differ in
@@ -26,10 +28,10 @@ import jax.numpy as jnp
 import numpy as np
 from tqdm import tqdm
 
-from dynres_jax import files, resolution, tasks
+from dynres_jax import budget, files, resolution, tasks
 from dynres_jax.config import CameraConfig, PileConfig, PushConfig, SceneConfig, SimConfig
 from dynres_jax.data import parse_part, save_npz, shard_path, shards_todo
-from dynres_jax.mpc import MPCConfig, decide, load_dynamics
+from dynres_jax.mpc import MPCConfig, decide, load_dynamics, measure_timing
 from dynres_jax.objective import distribution_distance, make_goal
 from dynres_jax.planner import PlannerConfig
 from dynres_jax.sim.pool import WorldPool, process_pool
@@ -50,20 +52,58 @@ def scene_config(args, shard: int) -> SimConfig:
 
 def add_planner_args(parser) -> None:
     """The planner flags shared with ``experiments.evaluate``."""
-    parser.add_argument("--budget", type=int, default=1000,
-                        help="particle-steps per plan (ω x Adam steps; 0: no budget)")
+    parser.add_argument("--time-budget", type=float, default=None, metavar="S",
+                        help="seconds per decision on this device: each decision runs the Adam steps that fit, at "
+                             "most --plan-steps (default: none, --plan-steps every decision)")
+    parser.add_argument("--timing", default=None, metavar="FILE",
+                        help="a timing table (timing.json of an earlier run) to spend the time budget by, so the "
+                             "run's step counts are reproduced on any machine (default: measured here)")
     parser.add_argument("--samples", type=int, default=20, help="action sequences per plan (paper M = 20)")
-    parser.add_argument("--plan-steps", type=int, default=100, help="most Adam steps per plan")
+    parser.add_argument("--plan-steps", type=int, default=100, help="Adam steps per plan (the most, under a budget)")
     parser.add_argument("--horizon", type=int, default=1, help="pushes per planned sequence (paper T = 1)")
 
 
+def check_planner_args(parser, args) -> None:
+    """parser.error naming a bad planner flag, before any work."""
+    if args.time_budget is not None and not args.time_budget > 0:
+        parser.error(f"--time-budget must be a positive number of seconds, got {args.time_budget}")
+    if args.timing is not None:
+        if args.time_budget is None:
+            parser.error("--timing needs --time-budget (the table spends a time budget)")
+        try:
+            budget.TimingTable.load(args.timing)
+        except (OSError, ValueError, TypeError) as e:
+            parser.error(f"--timing {args.timing}: {e}")
+    if args.plan_steps < 1 or args.samples < 1:
+        parser.error("--plan-steps and --samples must be positive")
+
+
 def planner_config(env, args) -> MPCConfig:
-    """The planner under the particle-step budget, shared with ``experiments.evaluate``."""
+    """The planner the flags ask for (shared with ``experiments.evaluate``)."""
     planner = PlannerConfig(samples=args.samples, steps=args.plan_steps, horizon=args.horizon,
                             bound=env.action_bound, max_length=env.config.push.max_length,
-                            min_length=env.config.push.min_length, max_particle_steps=args.budget or None)
-    return MPCConfig(steps=1, omega=resolution.OMEGA_MAX, n_max=resolution.OMEGA_MAX, planner=planner,
-                     max_points=1024 if args.quick else 4096)
+                            min_length=env.config.push.min_length)
+    return MPCConfig(steps=1, omega=resolution.OMEGA_MAX, planner=planner, max_points=1024 if args.quick else 4096,
+                     time_budget=args.time_budget)
+
+
+def timing_table(args, out_dir: str, obs, goal, dynamics, cfg: MPCConfig, camera) -> budget.TimingTable | None:
+    """The run's timing table: ``--timing``'s, else the one an earlier run in ``out_dir`` saved (so a resumed run
+    spends the budget as it began), else measured here on one observation and goal (unbatched) and saved there as
+    ``timing.json``. None without a time budget."""
+    if cfg.time_budget is None:
+        return None
+    saved = os.path.join(out_dir, "timing.json")
+    path = args.timing or (saved if os.path.exists(saved) else None)
+    if path is not None:
+        table = budget.TimingTable.load(path)
+    else:
+        table = measure_timing(jax.tree.map(lambda x: x[0], obs), jax.tree.map(lambda x: x[0], goal), dynamics, cfg,
+                               camera)
+    table.save(saved)
+    print(f"timing table ({table.device}, {'from ' + path if path else 'measured'}): Adam steps in "
+          f"{cfg.time_budget} s: " + ", ".join(f"bucket {b}: {cfg.plan_steps(b, table)}" for b in cfg.buckets))
+    return table
 
 
 def shard_goals(args, shard: int, env) -> tuple[np.ndarray, np.ndarray]:
@@ -80,7 +120,9 @@ def shard_goals(args, shard: int, env) -> tuple[np.ndarray, np.ndarray]:
     return np.stack(masks), np.array(shapes)
 
 
-def label_shard(args, shard: int, dynamics, processes) -> dict:
+def label_shard(args, shard: int, dynamics, processes, timings: list) -> dict:
+    """Label one shard. timings: the run's timing table once known (``timing_table`` on the first shard's first
+    scene, appended here), empty before; a list so every shard spends the budget by the same table."""
     sim = scene_config(args, shard)
     pool = WorldPool(sim, processes)
     camera, cfg = pool.camera, planner_config(pool.env, args)
@@ -93,22 +135,29 @@ def label_shard(args, shard: int, dynamics, processes) -> dict:
     measure = jax.jit(jax.vmap(lambda obs, goal: distribution_distance(obs, goal, camera)))
     d0 = measure(start.obs, goals)
 
-    def plan_at(obs, goal, key, omega):
-        return decide(obs, goal, key, None, dynamics, cfg, camera, omega)[2].best[0]
+    if not timings:
+        timings.append(timing_table(args, args.out, start.obs, goals, dynamics, cfg, camera))
+    timing = timings[0]
 
-    plan_all = jax.jit(jax.vmap(plan_at))
+    def plan_at(obs, goal, key, omega, steps, bucket):
+        return decide(obs, goal, key, None, dynamics, cfg, camera, omega, bucket=bucket, steps=steps)[2].best[0]
+
+    plan_all = jax.jit(jax.vmap(plan_at, in_axes=(0, 0, 0, 0, 0, None)), static_argnums=5)
     rep = lambda x: jnp.repeat(x, r, axis=0)  # noqa: E731  [B] -> [B * R], repeats of a scene adjacent
     starts, goals_r = jax.tree.map(rep, start), jax.tree.map(rep, goals)
 
     def c_star(omega, i):
+        """c*(ω) [B] of every scene, and the Adam steps [B] each plan ran (its bucket's, under the budget)."""
         keys = jax.random.split(jax.random.fold_in(jax.random.PRNGKey(args.seed + 1), shard * 100 + i), b * r)
-        actions = plan_all(starts.obs, goals_r, keys, rep(omega))
+        buckets = [budget.bucket_for(int(w), cfg.buckets) for w in np.asarray(omega)]
+        steps = np.array([cfg.plan_steps(bk, timing) for bk in buckets], np.int32)
+        actions = plan_all(starts.obs, goals_r, keys, rep(omega), rep(jnp.asarray(steps)), max(buckets))
         after = pool.push(starts, actions)
-        return measure(after.obs, goals_r).reshape(b, r).mean(axis=1)
+        return measure(after.obs, goals_r).reshape(b, r).mean(axis=1), steps
 
     k = args.evals
     omega = jnp.zeros((b, k), jnp.int32)
-    target, c_stars = jnp.zeros((b, k)), jnp.zeros((b, k))
+    target, c_stars, plan_steps = jnp.zeros((b, k)), jnp.zeros((b, k)), np.zeros((b, k), np.int32)
     mask = jnp.zeros((b, k), bool)
     propose = jax.jit(jax.vmap(resolution.next_omega))
     for i in range(k):
@@ -116,7 +165,7 @@ def label_shard(args, shard: int, dynamics, processes) -> dict:
             w = jnp.full(b, FIRST[i], jnp.int32)
         else:
             w = propose(omega, target, mask, jax.random.split(jax.random.PRNGKey(i), b))
-        c = c_star(w, i)
+        c, plan_steps[:, i] = c_star(w, i)
         omega, mask = omega.at[:, i].set(w), mask.at[:, i].set(True)
         c_stars, target = c_stars.at[:, i].set(c), target.at[:, i].set(resolution.penalised(c, d0, w))
     label, mean = jax.jit(jax.vmap(resolution.best_omega))(omega, target, mask, jax.random.split(
@@ -124,6 +173,7 @@ def label_shard(args, shard: int, dynamics, processes) -> dict:
     inputs = jax.vmap(lambda o, m: resolution.observation_input(o, m, camera))(start.obs, jnp.asarray(goal_masks))
     return dict(inputs=np.asarray(inputs), label=np.asarray(label), gp_mean=np.asarray(mean),
                 omega=np.asarray(omega), c_plus=np.asarray(target), c_star=np.asarray(c_stars), d0=np.asarray(d0),
+                plan_steps=plan_steps,
                 goal_shape=shapes, layout=np.full(b, shard % 2), pile=np.arange(b) // 2, shard=np.int64(shard))
 
 
@@ -152,14 +202,16 @@ def main(argv=None):
         parser.error(str(e))
     if args.quick:
         args.scenes, args.batch, args.evals, args.repeats, args.pieces = 8, 4, 6, 1, 8
-        args.samples, args.plan_steps, args.budget = 4, 4, 16
+        args.samples, args.plan_steps = 4, 4
     if args.batch % 2 or args.batch < 2:
         parser.error("--batch must be even (scenes come in pairs)")
+    check_planner_args(parser, args)
     if args.evals <= len(FIRST):
         parser.error(f"--evals must exceed the {len(FIRST)} initial evaluations")
     dynamics, n_max, name = load_dynamics(args.dynamics, args.ckpt, SceneConfig.plate_half_width)
     if n_max < resolution.OMEGA_MAX:
         parser.error(f"the dynamics checkpoint holds {n_max} particles; labels need {resolution.OMEGA_MAX}")
+    timings = []
     os.makedirs(args.out, exist_ok=True)
     files.write_json(os.path.join(args.out, "config.json"), dict(vars(args), dynamics_name=name))
     n_shards = -(-args.scenes // args.batch)
@@ -167,7 +219,7 @@ def main(argv=None):
     t0 = time.perf_counter()
     with process_pool(args.workers) as processes:
         for s in tqdm(todo, desc="label shards", unit="shard"):
-            save_npz(shard_path(args.out, s), label_shard(args, s, dynamics, processes))
+            save_npz(shard_path(args.out, s), label_shard(args, s, dynamics, processes, timings))
     minutes = (time.perf_counter() - t0) / 60
     labels = np.concatenate([np.load(p)["label"] for p in sorted(glob.glob(os.path.join(args.out, "shard_*.npz")))])
     summary = dict(scenes=len(labels), shards_written=len(todo), minutes=minutes,

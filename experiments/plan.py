@@ -17,6 +17,7 @@ import jax
 import numpy as np
 
 from dynres_jax import frames
+from dynres_jax.budget import BUCKETS, bucket_for
 from dynres_jax.mpc import goal_cost, load_dynamics, overlay
 from dynres_jax.objective import make_goal
 from dynres_jax.perception import WORKSPACE_HALF_WIDTH, sample_particles
@@ -49,13 +50,15 @@ def main(argv=None):
     goal_mask = frames.load_goal(args.goal, camera)
     goal = make_goal(goal_mask, camera)
     dynamics, n_max, name = load_dynamics(args.dynamics, args.ckpt, args.plate_half_width, args.edge_dtype)
-    if not 1 <= args.resolution <= n_max:
-        parser.error(f"--resolution must lie in [1, {n_max}]")
+    largest = min(n_max, BUCKETS[-1])
+    if not 1 <= args.resolution <= largest:
+        parser.error(f"--resolution must lie in [1, {largest}] (the model's n_max and the largest resolution bucket)")
     key_h, key_plan = jax.random.split(jax.random.PRNGKey(args.seed))
-    particles = sample_particles(obs, camera, args.resolution, key_h, n_max, workspace=args.workspace)
+    bucket = bucket_for(args.resolution)
+    particles = sample_particles(obs, camera, args.resolution, key_h, bucket, workspace=args.workspace)
     config = PlannerConfig(samples=args.samples, steps=args.plan_steps, bound=args.bound, seed=args.seed)
-    result = plan(dynamics(particles.radius), goal_cost(goal, camera), particles.positions, particles.mask, key_plan,
-                  config)
+    result = plan(dynamics(particles.radius), goal_cost(goal, camera, bucket), particles.positions, particles.mask,
+                  key_plan, config)
     action = np.asarray(result.best[0], np.float64)
     image = overlay(np.asarray(obs.rgb), goal_mask, np.asarray(particles.positions)[np.asarray(particles.mask)],
                     camera)

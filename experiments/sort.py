@@ -24,6 +24,7 @@ import numpy as np
 
 from dynres_jax import files
 from dynres_jax.config import KINDS, CameraConfig, PileConfig, SceneConfig, SimConfig
+from dynres_jax.mpc import measure_timing
 from dynres_jax.objective import make_goal
 from dynres_jax.sort import sort_episode, sort_goal, sort_scores
 from experiments.task import add_loop_args, build_loop
@@ -41,7 +42,7 @@ def main(argv=None):
 
     sim = SimConfig(scene=SceneConfig(kinds=tuple(args.kinds), pieces=tuple(args.pieces)),
                     pile=PileConfig(layout="two_blobs"), camera=CameraConfig())
-    env, dynamics, name, cfg, _ = build_loop(args, sim, parser)
+    env, dynamics, name, cfg, _, timing = build_loop(args, sim, parser)
 
     goals_xy, radius, masks = sort_goal(np.random.default_rng(args.seed), env)
     goals = [make_goal(m, env.camera) for m in masks]
@@ -51,15 +52,20 @@ def main(argv=None):
           f"{np.round(goals_xy, 3).tolist()} radius {radius:.3f} m; dynamics: {name}; ω = {args.resolution}; "
           f"{args.samples} x {args.plan_steps} Adam steps")
     t0 = time.perf_counter()
+    if cfg.time_budget is not None and timing is None:
+        timing = measure_timing(state.obs, goals[0], dynamics, cfg, env.camera)
     state, records, frames = sort_episode(env, state, dynamics, cfg, jax.random.PRNGKey(args.seed), goals_xy, radius,
-                                          grid_step=args.grid_step)
+                                          grid_step=args.grid_step, timing=timing)
     os.makedirs(args.out, exist_ok=True)
+    if timing is not None:
+        timing.save(os.path.join(args.out, "timing.json"))
     iio.imwrite(os.path.join(args.out, "episode.gif"), np.stack(frames), duration=400, loop=0)
     cv2.imwrite(os.path.join(args.out, "final.png"), cv2.cvtColor(frames[-1], cv2.COLOR_RGB2BGR))
     summary = dict(task="sort", seed=args.seed, dynamics=name, kinds=args.kinds, pieces=args.pieces,
                    goals=goals_xy.tolist(), radius=radius, start_inside=start_inside, start_mixing=start_mixing,
                    final_inside=records[-1]["inside"], final_mixing=records[-1]["mixing"],
-                   seconds=time.perf_counter() - t0, mpc=dataclasses.asdict(cfg), steps=records)
+                   seconds=time.perf_counter() - t0, mpc=dataclasses.asdict(cfg),
+                   timing=timing.to_json() if timing else None, steps=records)
     files.write_json(os.path.join(args.out, "metrics.json"), summary)
     inside = summary["final_inside"]
     print(f"inside own goal: {args.kinds[0]} {start_inside[0]:.0%} -> {inside[0]:.0%}, {args.kinds[1]} "

@@ -21,9 +21,9 @@ import imageio.v3 as iio
 import jax
 import numpy as np
 
-from dynres_jax import files, tasks
+from dynres_jax import budget, files, tasks
 from dynres_jax.config import KINDS, CameraConfig, PileConfig, SceneConfig, SimConfig
-from dynres_jax.mpc import EDGE_DTYPES, MPCConfig, load_dynamics, run_episode
+from dynres_jax.mpc import EDGE_DTYPES, MPCConfig, load_dynamics, measure_timing, run_episode
 from dynres_jax.objective import inside_share, make_goal
 from dynres_jax.planner import PlannerConfig
 from dynres_jax.resolution import load_chooser
@@ -53,7 +53,15 @@ def add_loop_args(parser: argparse.ArgumentParser, task: str) -> None:
         parser.add_argument("--regressor", default=DEFAULT_REGRESSOR, help="regressor checkpoint for adaptive ω")
     parser.add_argument("--backend", default="mujoco", choices=["mujoco", "mjx"])
     parser.add_argument("--samples", type=int, default=50, help="action sequences optimised at once (M)")
-    parser.add_argument("--plan-steps", type=int, default=100, help="Adam steps per plan (N)")
+    parser.add_argument("--plan-steps", type=int, default=100,
+                        help="Adam steps per plan (N; the most a plan may run under --time-budget)")
+    parser.add_argument("--time-budget", type=float, default=None, metavar="S",
+                        help="seconds per decision on this device: each decision runs the Adam steps that fit, from a "
+                             "timing table measured once per resolution bucket and refined as the episode runs; the "
+                             "table is saved as timing.json (default: none, --plan-steps every decision)")
+    parser.add_argument("--timing", default=None, metavar="FILE",
+                        help="spend the time budget by this saved timing table, unrefined, to reproduce a run's step "
+                             "counts on another machine")
     parser.add_argument("--ckpt", default=None, help=f"dynamics checkpoint (default {DEFAULT_CKPT} if present)")
     parser.add_argument("--dynamics", default="auto", choices=["auto", "learned", "sweep"],
                         help="auto: the checkpoint when there is one, else the sweep heuristic")
@@ -79,12 +87,24 @@ def build_loop(args, sim: SimConfig, parser: argparse.ArgumentParser):
         if not os.path.isdir(args.regressor):
             parser.error(f"--resolution adaptive needs a regressor checkpoint; {args.regressor} does not exist")
         chooser, omega = load_chooser(args.regressor, env.camera), "50"
-    if not omega.isdigit() or not 1 <= int(omega) <= n_max:
-        parser.error(f"--resolution must be 'adaptive' or an integer in [1, {n_max}] (the model's n_max)")
+    largest = min(n_max, budget.BUCKETS[-1])
+    if not omega.isdigit() or not 1 <= int(omega) <= largest:
+        parser.error(f"--resolution must be 'adaptive' or an integer in [1, {largest}] (the model's n_max and the "
+                     "largest resolution bucket)")
+    if args.time_budget is not None and not args.time_budget > 0:
+        parser.error(f"--time-budget must be a positive number of seconds, got {args.time_budget}")
+    if args.timing is not None and args.time_budget is None:
+        parser.error("--timing needs --time-budget (the table spends a time budget)")
+    timing = None
+    if args.timing is not None:
+        try:
+            timing = budget.TimingTable.load(args.timing)
+        except (OSError, ValueError, TypeError) as e:
+            parser.error(f"--timing {args.timing}: {e}")
     planner = PlannerConfig(samples=args.samples, steps=args.plan_steps, bound=env.action_bound,
                             max_length=sim.push.max_length, min_length=sim.push.min_length, seed=args.seed)
-    cfg = MPCConfig(steps=args.steps, omega=int(omega), n_max=n_max, planner=planner)
-    return env, dynamics, name, cfg, chooser
+    cfg = MPCConfig(steps=args.steps, omega=int(omega), planner=planner, time_budget=args.time_budget)
+    return env, dynamics, name, cfg, chooser, timing
 
 
 def main(task: str, argv=None):
@@ -102,7 +122,7 @@ def main(task: str, argv=None):
 
     sim = SimConfig(scene=SceneConfig(kinds=(args.kind,), pieces=(args.pieces,)), pile=PileConfig(layout=args.layout),
                     camera=CameraConfig())
-    env, dynamics, name, cfg, chooser = build_loop(args, sim, parser)
+    env, dynamics, name, cfg, chooser, timing = build_loop(args, sim, parser)
 
     rng = np.random.default_rng(args.seed)
     if task == "gather":
@@ -112,18 +132,24 @@ def main(task: str, argv=None):
     goal = make_goal(goal_mask, env.camera)
     state = env.reset(jax.random.PRNGKey(args.seed))
     start_inside = float(inside_share(state.pos, np.ones(env.scene.n_pieces, bool), goal, env.camera))
+    budget_text = (f"{args.samples} samples, {args.plan_steps} Adam steps" if args.time_budget is None else
+                   f"{args.samples} samples, {args.time_budget} s per decision (at most {args.plan_steps} Adam steps)")
     print(f"{task}: {args.pieces} {args.kind} pieces, goal {goal_info}; dynamics: {name}; ω = {args.resolution}; "
-          f"{args.samples} x {args.plan_steps} Adam steps")
+          f"{budget_text}")
     t0 = time.perf_counter()
+    if cfg.time_budget is not None and timing is None:
+        timing = measure_timing(state.obs, goal, dynamics, cfg, env.camera)
     state, records, frames = run_episode(env, state, goal, goal_mask, dynamics, cfg, jax.random.PRNGKey(args.seed),
-                                         choose_omega=chooser)
+                                         choose_omega=chooser, timing=timing)
     os.makedirs(args.out, exist_ok=True)
+    if timing is not None:
+        timing.save(os.path.join(args.out, "timing.json"))
     iio.imwrite(os.path.join(args.out, "episode.gif"), np.stack(frames), duration=400, loop=0)
     cv2.imwrite(os.path.join(args.out, "final.png"), cv2.cvtColor(frames[-1], cv2.COLOR_RGB2BGR))
     summary = dict(task=task, seed=args.seed, dynamics=name, goal=goal_info,
                    start_inside=start_inside, final_inside=records[-1]["success"],
                    final_distance=records[-1]["distance"], seconds=time.perf_counter() - t0,
-                   mpc=dataclasses.asdict(cfg), steps=records)
+                   mpc=dataclasses.asdict(cfg), timing=timing.to_json() if timing else None, steps=records)
     files.write_json(os.path.join(args.out, "metrics.json"), summary)
     print(f"pieces inside the goal: {start_inside:.0%} -> {summary['final_inside']:.0%}; "
           f"wrote {args.out}/episode.gif, final.png, metrics.json")

@@ -7,15 +7,27 @@ import numpy as np
 import pytest
 
 from dynres_jax import resolution
+from dynres_jax.budget import TimingTable, bucket_for
 from experiments import evaluate, label_resolution, tradeoff, train_regressor
 
 QUICK = ["--quick", "--dynamics", "sweep", "--workers", "2"]
+# A hand-made timing table: under a 20 ms budget, buckets 16, 32, 64, 100 afford 10, 5, 2 and 1 Adam steps
+TABLE = TimingTable("test", 4, 1, fixed_s={16: 0.01, 32: 0.01, 64: 0.01, 100: 0.01},
+                    step_s={16: 0.001, 32: 0.002, 64: 0.004, 100: 0.008})
+AFFORDED = {16: 4, 32: 4, 64: 2, 100: 1}  # capped by --plan-steps 4 (the quick runs')
 
 
 @pytest.fixture(scope="module")
-def labels(tmp_path_factory):
+def timing(tmp_path_factory):
+    path = str(tmp_path_factory.mktemp("timing") / "timing.json")
+    TABLE.save(path)
+    return ["--time-budget", "0.02", "--timing", path]
+
+
+@pytest.fixture(scope="module")
+def labels(tmp_path_factory, timing):
     out = str(tmp_path_factory.mktemp("labels"))
-    return out, label_resolution.main(["--out", out, *QUICK])
+    return out, label_resolution.main(["--out", out, *QUICK, *timing])
 
 
 @pytest.fixture(scope="module")
@@ -39,6 +51,9 @@ def test_labels_follow_the_bo_recipe_and_resume(labels):
         assert np.all(z["label"] == resolution.CANDIDATES[np.argmin(z["gp_mean"], axis=1)])
         assert z["inputs"].shape == (4, resolution.FEATURE_SIZE, resolution.FEATURE_SIZE, 6)
         assert np.all(z["pile"] == [0, 0, 1, 1]) and np.all(z["goal_shape"] == [0, 1, 0, 1])
+        expect = np.vectorize(lambda w: AFFORDED[bucket_for(int(w))])(z["omega"])
+        assert np.array_equal(z["plan_steps"], expect)  # every ω planned with its bucket's share of the budget
+    assert TimingTable.load(os.path.join(out, "timing.json")).to_json() == TABLE.to_json()  # saved with the labels
     again = label_resolution.main(["--out", out, *QUICK])
     assert again["shards_written"] == 0 and again["scenes"] == 8
 
@@ -51,17 +66,21 @@ def test_regressor_checkpoint_and_metrics(regressor):
         assert json.load(f)["params"] == metrics["params"]
 
 
-def test_evaluation_fixed_and_adaptive(regressor, tmp_path):
+def test_evaluation_fixed_and_adaptive(regressor, timing, tmp_path):
     summary = evaluate.main(["--quick", "--episodes", "2", "--steps", "2", "--pieces", "8", "--samples", "4",
-                             "--plan-steps", "4", "--budget", "16", "--methods", "10", "adaptive", "--regressor",
+                             "--plan-steps", "4", *timing, "--methods", "10", "75", "adaptive", "--regressor",
                              os.path.join(regressor[0], "ckpt"), "--dynamics", "sweep", "--workers", "2",
                              "--out", str(tmp_path)])
-    assert set(summary["methods"]) == {"10", "adaptive"}
-    with open(tmp_path / "10.json") as f:
-        fixed = json.load(f)
-    with open(tmp_path / "adaptive.json") as f:
-        adaptive = json.load(f)
-    assert np.all(np.array(fixed["omega"]) == 10) and len(fixed["final_distance"]) == 2
+    assert set(summary["methods"]) == {"10", "75", "adaptive"} and summary["time_budget"] == 0.02
+    runs = {}
+    for method in summary["methods"]:
+        with open(tmp_path / f"{method}.json") as f:
+            runs[method] = json.load(f)
+        omega, steps = np.array(runs[method]["omega"]), np.array(runs[method]["plan_steps"])
+        assert np.array_equal(steps, np.vectorize(lambda w: AFFORDED[bucket_for(int(w))])(omega))
+    assert np.all(np.array(runs["10"]["omega"]) == 10) and len(runs["10"]["final_distance"]) == 2
+    assert np.all(np.array(runs["75"]["plan_steps"]) == 1)  # a fine ω affords fewer steps under the same budget
+    adaptive = runs["adaptive"]
     assert np.all((np.array(adaptive["omega"]) >= 2) & (np.array(adaptive["omega"]) <= 100))
     assert (tmp_path / "score.png").read_bytes()[:4] == b"\x89PNG"
     with pytest.raises(SystemExit):

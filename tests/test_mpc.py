@@ -19,7 +19,7 @@ def episode():
     mask = disc_goal(env.camera, np.array([0.0, 0.0]), 0.06)
     goal = make_goal(mask, env.camera, n_samples=64)
     planner = PlannerConfig(samples=8, steps=20, bound=env.action_bound, max_length=0.1)
-    cfg = MPCConfig(steps=3, omega=6, n_max=8, max_points=512, planner=planner)
+    cfg = MPCConfig(steps=3, omega=6, buckets=(4, 8), max_points=512, planner=planner)
     state = env.reset(jax.random.PRNGKey(0))
     lines = []
     final, records, frames = run_episode(env, state, goal, mask, sweep_dynamics(0.04), cfg, jax.random.PRNGKey(1),
@@ -32,6 +32,7 @@ def test_episode_records_every_step(episode):
     assert [r["step"] for r in records] == [0, 1, 2] and len(lines) == 3 and len(frames) == 4
     for r in records:
         assert r["omega"] == 6 and 0.0 <= r["success"] <= 1.0 and np.isfinite(r["distance"])
+        assert r["bucket"] == 8 and r["plan_steps"] == 20 and r["planning_s"] > 0
         assert np.all(np.abs(r["action"]) <= env.action_bound + 1e-5)
 
 
@@ -54,7 +55,7 @@ def test_batched_episodes_equal_one_at_a_time():
     masks = [disc_goal(env.camera, np.array(c), 0.06) for c in ([0.0, 0.0], [0.05, -0.03])]
     goals = [make_goal(m, env.camera, n_samples=32) for m in masks]
     planner = PlannerConfig(samples=4, steps=5, bound=env.action_bound, max_length=0.1)
-    cfg = MPCConfig(steps=1, omega=5, n_max=6, max_points=256, planner=planner)
+    cfg = MPCConfig(steps=1, omega=5, buckets=(6,), max_points=256, planner=planner)
     keys = jax.random.split(jax.random.PRNGKey(2), 2)
     starts = jax.vmap(env.reset)(jax.random.split(jax.random.PRNGKey(3), 2))
     batched_goals = jax.tree.map(lambda *x: np.stack(x), *goals)
@@ -69,8 +70,10 @@ def test_batched_episodes_equal_one_at_a_time():
 
 
 def test_pool_episodes_with_per_episode_omega_and_budget_equal_one_at_a_time():
-    """run_episodes on a WorldPool with ω chosen per episode (adaptive) and a particle-step budget makes the same
-    decisions as run_episode at each episode's ω, where the budget becomes budget // ω Adam steps."""
+    """run_episodes on a WorldPool with ω chosen per episode (adaptive) in different buckets and a time budget makes
+    the same decisions as run_episode at each episode's ω in its own bucket: every episode runs the Adam steps its
+    bucket affords (from the same frozen timing table), and the batch's larger bucket pads inertly."""
+    from dynres_jax.budget import TimingTable
     from dynres_jax.sim.pool import WorldPool
 
     sim = SimConfig(scene=SceneConfig(pieces=(6,)), pile=PileConfig(layout="spread"),
@@ -78,22 +81,34 @@ def test_pool_episodes_with_per_episode_omega_and_budget_equal_one_at_a_time():
     pool, env = WorldPool(sim), PileEnv(sim, backend="mujoco")
     masks = [disc_goal(env.camera, np.array(c), 0.06) for c in ([0.0, 0.0], [0.05, -0.03])]
     goals = [make_goal(m, env.camera, n_samples=32) for m in masks]
-    planner = PlannerConfig(samples=4, steps=6, bound=env.action_bound, max_length=0.1, max_particle_steps=12)
-    cfg = MPCConfig(steps=2, omega=5, n_max=6, max_points=256, planner=planner)
+    planner = PlannerConfig(samples=4, steps=6, bound=env.action_bound, max_length=0.1)
+    cfg = MPCConfig(steps=2, omega=5, buckets=(2, 6), max_points=256, planner=planner, time_budget=0.016)
+    timing = TimingTable("test", 4, 1, fixed_s={2: 0.01, 6: 0.01}, step_s={2: 0.0015, 6: 0.003}, frozen=True)
     keys = jax.random.split(jax.random.PRNGKey(2), 2)
     starts = pool.reset(jax.random.split(jax.random.PRNGKey(3), 2))
     omegas = np.array([2, 6])
     _, records = run_episodes(pool, starts, jax.tree.map(lambda *x: np.stack(x), *goals), sweep_dynamics(0.04), cfg,
-                              keys, choose_omega=lambda obs, goals: omegas, log=lambda s: None)
+                              keys, choose_omega=lambda obs, goals: omegas, log=lambda s: None, timing=timing)
     assert [r["omega"].tolist() for r in records] == [[2, 6], [2, 6]]
+    assert [r["bucket"].tolist() for r in records] == [[2, 6], [2, 6]]
+    assert [r["plan_steps"].tolist() for r in records] == [[4, 2], [4, 2]]  # floor(6 ms / 1.5 ms), floor(6 / 3)
+    np.testing.assert_allclose(records[0]["planning_s"], [0.016, 0.016])
     for b in range(2):
         start = jax.tree.map(lambda x, b=b: x[b], starts)
-        one_cfg = MPCConfig(steps=2, omega=int(omegas[b]), n_max=6, max_points=256, planner=planner)
+        one_cfg = MPCConfig(steps=2, omega=int(omegas[b]), buckets=(2, 6), max_points=256, planner=planner,
+                            time_budget=0.016)
         _, one, _ = run_episode(env, start, goals[b], masks[b], sweep_dynamics(0.04), one_cfg, keys[b],
-                                log=lambda s: None)
+                                log=lambda s: None, timing=timing)
         for t in range(2):
+            assert one[t]["bucket"] == omegas[b] and one[t]["plan_steps"] == records[t]["plan_steps"][b]
             np.testing.assert_allclose(records[t]["predicted_objective"][b], one[t]["predicted_objective"], rtol=1e-3)
             np.testing.assert_allclose(records[t]["success"][b], one[t]["success"], atol=1e-6)
+
+
+def test_time_budget_needs_a_table_for_batched_episodes():
+    cfg = MPCConfig(steps=1, omega=5, buckets=(6,), time_budget=0.1)
+    with pytest.raises(ValueError, match="timing table"):
+        run_episodes(None, None, None, None, cfg, None)
 
 
 def test_a_new_goal_reuses_the_compiled_plan(episode):

@@ -18,6 +18,7 @@ from dynres_jax.objective import (
     polygon_goal,
     random_polygon_goal,
     sort_goals,
+    squared_distance_to,
     text_goal,
 )
 from dynres_jax.perception import foreground
@@ -234,19 +235,54 @@ def scene():
     return env, env.reset(jax.random.PRNGKey(0))
 
 
+def np_distance(current, goal_mask):
+    """The supplement's d by loops over pixels: unsigned, every foreground and every goal pixel, over |F|."""
+    fg, goal = np.argwhere(current).astype(np.float64), np.argwhere(goal_mask).astype(np.float64)
+    to_goal = sum(min(np.hypot(*(f - q)) for q in goal) for f in fg)
+    to_fg = sum(min(np.hypot(*(q - f)) for f in fg) for q in goal)
+    return (to_goal + to_fg) / len(fg)
+
+
 def test_distribution_distance_matches_loop_formula(scene):
     env, state = scene
     cam = env.camera
     centre = np.asarray(state.pos[:, :2]).mean(0)
     goal = make_goal(disc_goal(cam, np.clip(centre + 0.03, -0.1, 0.1), 0.05), cam, n_samples=64)
-    points, valid = foreground(state.obs, cam)
-    valid = np.asarray(valid)
-    assert valid.sum() > 0
-    pixels = cam.pixel_centres().reshape(-1, 2)[valid]
-    ref = np_cost(pixels, goal)
-    np.testing.assert_allclose(float(distribution_distance(state.obs, goal, cam)), ref, rtol=1e-4)
-    np.testing.assert_allclose(float(distribution_distance((points, valid), goal, cam)), ref, rtol=1e-4)
-    np.testing.assert_allclose(float(distribution_distance(np.asarray(points)[valid], goal, cam)), ref, rtol=1e-4)
+    _, valid = foreground(state.obs, cam)
+    current = np.asarray(valid).reshape(cam.height, cam.width)
+    assert current.sum() > 0 and (current & np.asarray(goal.mask)).sum() > 0  # some pixels inside: 0 there
+    ref = np_distance(current, np.asarray(goal.mask))
+    np.testing.assert_allclose(float(distribution_distance(state.obs, goal, cam)), ref, rtol=1e-5)
+    np.testing.assert_allclose(float(distribution_distance(current, goal, cam)), ref, rtol=1e-5)
+
+
+def test_distribution_distance_unsigned_and_edge_cases():
+    """d is 0 when the foreground is the goal exactly (a signed d would be negative), grows as the pile leaves the
+    goal, is +inf with no foreground, and names a mask of the wrong shape."""
+    cam = CAM
+    goal = make_goal(disc_goal(cam, (0.0, 0.0), 0.05), cam)
+    mask = np.asarray(goal.mask)
+    assert float(distribution_distance(mask, goal, cam)) == 0.0
+    shifted = [float(distribution_distance(np.roll(mask, k, axis=1), goal, cam)) for k in (2, 6, 12)]
+    assert 0 < shifted[0] < shifted[1] < shifted[2]
+    assert float(distribution_distance(np.zeros_like(mask), goal, cam)) == np.inf
+    with pytest.raises(ValueError, match="foreground mask has shape"):
+        distribution_distance(mask[:-1], goal, cam)
+
+
+def test_squared_distance_to_matches_brute_force():
+    rng = np.random.default_rng(3)
+    for shape, p in [((9, 14), 0.1), ((16, 5), 0.02), ((7, 7), 0.0)]:
+        mask = rng.uniform(size=shape) < p
+        got = np.asarray(squared_distance_to(mask))
+        if not mask.any():
+            assert np.all(np.isinf(got))
+            continue
+        ii, jj = np.nonzero(mask)
+        for i in range(shape[0]):
+            for j in range(shape[1]):
+                assert got[i, j] == np.min((i - ii) ** 2 + (j - jj) ** 2)
+
 
 
 def test_coverage_chunking_changes_nothing(disc, monkeypatch):

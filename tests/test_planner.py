@@ -1,5 +1,5 @@
 """The shooting planner (paper Algorithm 1): projection, sampling, optimisation through a stand-in dynamics, padding
-and re-sampling invariants, a real model end to end (float32 and bfloat16 edges), warm start, budgets and
+and re-sampling invariants, a real model end to end (float32 and bfloat16 edges), warm start, traced step counts and
 configuration errors."""
 
 import jax
@@ -15,12 +15,9 @@ from dynres_jax.mpc import learned_dynamics
 from dynres_jax.planner import (
     ZERO_LENGTH_DIRECTION,
     PlannerConfig,
-    budget_steps,
     plan,
-    plan_within,
     project,
     sample_actions,
-    steps_for_budget,
 )
 
 BOUND, MIN_LEN, MAX_LEN = 0.181, 0.01, 0.25
@@ -98,7 +95,7 @@ def test_plan_reduces_cost_and_gradient_beats_sampling():
     result = plan(sweep_dynamics, centroid_cost, positions, mask, key, CFG)
     sampled_only = plan(sweep_dynamics, centroid_cost, positions, mask, key, CFG, steps=0)
     assert result.best.shape == (1, 4) and result.costs.shape == (16,) and result.actions.shape == (16, 1, 4)
-    assert result.history.shape == (40,) and sampled_only.history.shape == (0,)
+    assert result.history.shape == (40,) and np.all(np.isnan(np.asarray(sampled_only.history)))
     assert float(result.best_cost) <= 0.5 * initial
     np.testing.assert_allclose(centroid_cost(sweep_dynamics(positions, mask, result.best)[-1], mask),
                                result.best_cost, rtol=1e-4, atol=1e-9)
@@ -213,34 +210,24 @@ def test_warm_start():
         plan(sweep_dynamics, centroid_cost, positions, mask, key, CFG, init=jnp.zeros((2, 4)))
 
 
-def test_budgets():
-    assert steps_for_budget(100, 1300, 200) == 13
-    assert steps_for_budget(2, 1300, 200) == 200
-    assert steps_for_budget(100, 50, 200) == 0
-    assert steps_for_budget(100, None, 200) == 200
-    positions, mask = pile(jax.random.PRNGKey(1))
-    mask = mask.at[-2:].set(False)  # ω = 10 valid particles
-    config = PlannerConfig(samples=16, steps=40, bound=BOUND, max_particle_steps=75)
-    assert plan(sweep_dynamics, centroid_cost, positions, mask, None, config).history.shape == (7,)
-    result, steps = plan_within(0.0, sweep_dynamics, centroid_cost, positions, mask, None, config, probe_steps=7)
-    assert steps == 0 and result.history.shape == (0,) and np.all(np.isfinite(np.asarray(result.best)))
-
-
-def test_traced_budget_equals_a_plan_of_that_many_steps():
-    """active_steps (traced, vmapped over per-episode ω) inside a longer scan gives exactly the plan of that many
-    steps; budget_steps matches steps_for_budget."""
+def test_traced_step_counts_equal_plans_of_that_many_steps():
+    """Step counts traced and vmapped (one compiled plan of at most CFG.steps) give exactly the plans whose config
+    runs that many steps (each compiled alone); the history past the steps run is NaN."""
     positions, mask = pile(jax.random.PRNGKey(4))
     key = jax.random.PRNGKey(5)
-    omegas = jnp.array([3, 10, 40])
-    actives = jax.vmap(lambda w: budget_steps(w, 75, 40))(omegas)
-    assert actives.tolist() == [steps_for_budget(int(w), 75, 40) for w in omegas] == [25, 7, 1]
-    batched = jax.vmap(lambda n: plan(sweep_dynamics, centroid_cost, positions, mask, key, CFG, active_steps=n))(
-        actives)
-    for i, n in enumerate(actives.tolist()):
-        alone = plan(sweep_dynamics, centroid_cost, positions, mask, key, CFG, steps=n)
+    counts = jnp.array([25, 7, 0, 40])
+    batched = jax.vmap(lambda n: plan(sweep_dynamics, centroid_cost, positions, mask, key, CFG, steps=n))(counts)
+    for i, n in enumerate(counts.tolist()):
+        alone = plan(sweep_dynamics, centroid_cost, positions, mask, key, PlannerConfig(samples=16, steps=n,
+                                                                                        bound=BOUND))
         np.testing.assert_allclose(np.asarray(batched.best[i]), np.asarray(alone.best), atol=1e-6)
         np.testing.assert_allclose(float(batched.best_cost[i]), float(alone.best_cost), rtol=1e-6)
         np.testing.assert_allclose(np.asarray(batched.actions[i]), np.asarray(alone.actions), atol=1e-6)
+        np.testing.assert_allclose(np.asarray(batched.history[i, :n]), np.asarray(alone.history[:n]), rtol=1e-6)
+        assert np.all(np.isnan(np.asarray(batched.history[i, n:])))
+    assert plan(sweep_dynamics, centroid_cost, positions, mask, key, CFG, steps=7).history.shape == (40,)
+    with pytest.raises(ValueError, match="steps=41"):
+        plan(sweep_dynamics, centroid_cost, positions, mask, key, CFG, steps=41)
 
 
 def test_config_errors():

@@ -116,7 +116,7 @@ def test_sort_goal_gives_two_disjoint_discs_in_the_bin(env, seed):
 def test_tiny_sort_episode_runs_and_records_every_step(env):
     goals, radius, _ = sort_goal(np.random.default_rng(0), env)
     planner = PlannerConfig(samples=8, steps=10, bound=env.action_bound, max_length=0.1)
-    cfg = MPCConfig(steps=3, omega=20, n_max=32, max_points=512, planner=planner)
+    cfg = MPCConfig(steps=3, omega=20, buckets=(8, 32), max_points=512, planner=planner)
     lines = []
     _, records, frames = sort_episode(env, env.reset(jax.random.PRNGKey(0)), sweep_dynamics(0.04), cfg,
                                       jax.random.PRNGKey(1), goals, radius, log=lines.append)
@@ -126,6 +126,7 @@ def test_tiny_sort_episode_runs_and_records_every_step(env):
         assert r["phase"] in ("path", "final", "direct") and r["kind"] in (0, 1)
         assert len(r["waypoint"]) == 2 and np.all(np.abs(r["waypoint"]) <= BIN_HALF_WIDTH)
         assert np.shape(r["centres"]) == (2, 2) and 1 <= r["omega"] <= 20
+        assert r["bucket"] == (8 if r["omega"] <= 8 else 32) and r["plan_steps"] == 10
         assert all(0.0 <= s <= 1.0 for s in r["inside"]) and 0.0 <= r["mixing"] <= 1.0
         assert np.isfinite(r["objective"]) and np.isfinite(r["predicted_objective"])
         assert np.all(np.abs(r["action"]) <= env.action_bound + 1e-5)

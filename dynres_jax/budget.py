@@ -1,0 +1,171 @@
+"""Resolution buckets and the planner's time budget: what makes a coarse ω cheaper than a fine one.
+
+Buckets. Perception, the model and the planner run at a static particle capacity: the smallest bucket that holds ω
+(``bucket_for``; default ``BUCKETS``). Inside a bucket ω stays a traced prefix mask, so one compiled function serves
+every ω of the bucket and ``jax.vmap`` over them still works; a run compiles at most one decision per bucket it
+visits. Padding is inert: a plan at ω in a small bucket equals the same plan in a larger one (tests/test_budget.py).
+
+Time budget. ``TimingTable`` holds, per bucket and for one device and planner batch, the seconds a decision spends
+outside the Adam steps (``fixed_s``: perception, sampling the pushes, scoring the last ones) and the seconds of one
+Adam step (``step_s``). ``measure`` fills it after compiling, from the wall time of decisions of two step counts;
+``TimingTable.refine`` updates a bucket's step time from the decisions a run makes. ``plan_steps`` is the one
+budget function: the Adam steps a decision at a bucket runs under a budget in seconds (or the plain count when
+there is no budget). A table saved beside the labels or evaluation it drove (``save``, ``--timing FILE``) re-derives
+their step counts on any machine.
+"""
+
+from __future__ import annotations
+
+import math
+import statistics
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import asdict, dataclass, field
+
+import jax
+
+from dynres_jax import files
+
+BUCKETS = (16, 32, 64, 100)  # particle capacities; 100 = resolution.OMEGA_MAX, so ω = 100 pads nothing
+REFINE_WEIGHT = 0.5  # weight of a decision's own step time when a table is refined from it
+REFINE_CLIP = 2.0  # a decision's own step time counts within [1/2, 2] x the table's (one slow outlier moves it little)
+
+
+def check_buckets(buckets: Sequence[int]) -> tuple[int, ...]:
+    """buckets as a strictly increasing tuple of positive ints, or a ValueError naming the problem."""
+    out = tuple(buckets)
+    if not out or any(not isinstance(b, int) or isinstance(b, bool) or b < 1 for b in out):
+        raise ValueError(f"buckets must be positive ints, got {buckets!r}")
+    if any(a >= b for a, b in zip(out, out[1:], strict=False)):
+        raise ValueError(f"buckets must be strictly increasing, got {buckets!r}")
+    return out
+
+
+def bucket_for(omega: int, buckets: Sequence[int] = BUCKETS) -> int:
+    """The smallest bucket holding ω particles. ValueError when ω < 1 or ω exceeds the largest bucket."""
+    if int(omega) != omega or omega < 1:
+        raise ValueError(f"omega must be a positive integer, got {omega!r}")
+    for b in buckets:
+        if omega <= b:
+            return int(b)
+    raise ValueError(f"omega={omega} exceeds the largest resolution bucket {buckets[-1]} (buckets {tuple(buckets)})")
+
+
+@dataclass
+class TimingTable:
+    """Seconds per decision, per bucket, on one device at one planner batch.
+
+    device: where it was measured (``jax.devices()[0]``); samples, horizon: the planner batch (M, T) it holds for;
+    fixed_s, step_s: {bucket: s}, a decision takes fixed_s + steps × step_s; refined: decisions it was refined from;
+    frozen: loaded from a file to reproduce a run, so ``refine`` leaves it as it is."""
+
+    device: str
+    samples: int
+    horizon: int
+    fixed_s: dict[int, float]
+    step_s: dict[int, float]
+    refined: dict[int, int] = field(default_factory=dict)
+    frozen: bool = False
+
+    def __post_init__(self):
+        self.fixed_s = {int(b): float(s) for b, s in self.fixed_s.items()}
+        self.step_s = {int(b): float(s) for b, s in self.step_s.items()}
+        self.refined = {int(b): int(n) for b, n in self.refined.items()}
+        if set(self.fixed_s) != set(self.step_s):
+            raise ValueError(f"timing table: fixed_s has buckets {sorted(self.fixed_s)}, step_s {sorted(self.step_s)}")
+        bad = {b: s for b, s in self.step_s.items() if not (math.isfinite(s) and s > 0)}
+        bad |= {b: s for b, s in self.fixed_s.items() if not (math.isfinite(s) and s >= 0)}
+        if bad:
+            raise ValueError(f"timing table: times must be finite, step_s > 0 and fixed_s >= 0; got {bad}")
+
+    def seconds(self, bucket: int, steps: int) -> float:
+        """The predicted wall time (s) of a decision of ``steps`` Adam steps at ``bucket``."""
+        self._check(bucket)
+        return self.fixed_s[bucket] + steps * self.step_s[bucket]
+
+    def steps(self, bucket: int, seconds: float, max_steps: int) -> int:
+        """The Adam steps that fit a decision at ``bucket`` into ``seconds``: floor((seconds - fixed) / step), clipped
+        to [0, max_steps]."""
+        self._check(bucket)
+        fit = math.floor((seconds - self.fixed_s[bucket]) / self.step_s[bucket])
+        return int(min(max(fit, 0), max_steps))
+
+    def refine(self, bucket: int, steps: int, seconds: float) -> None:
+        """Update ``bucket``'s step time from a decision of ``steps`` steps that took ``seconds`` (no-op when frozen,
+        for zero steps, or when the decision took less than the fixed time)."""
+        self._check(bucket)
+        if self.frozen or steps < 1 or seconds <= self.fixed_s[bucket]:
+            return
+        own = (seconds - self.fixed_s[bucket]) / steps
+        own = min(max(own, self.step_s[bucket] / REFINE_CLIP), self.step_s[bucket] * REFINE_CLIP)
+        self.step_s[bucket] = (1 - REFINE_WEIGHT) * self.step_s[bucket] + REFINE_WEIGHT * own
+        self.refined[bucket] = self.refined.get(bucket, 0) + 1
+
+    def _check(self, bucket: int) -> None:
+        if bucket not in self.step_s:
+            raise ValueError(f"the timing table has no bucket {bucket} (it holds {sorted(self.step_s)}); measure it "
+                             "with the run's buckets")
+
+    def to_json(self) -> dict:
+        out = asdict(self)
+        out.pop("frozen")
+        return out
+
+    def save(self, path: str) -> None:
+        """Write the table as JSON, atomically."""
+        files.write_json(path, self.to_json())
+
+    @classmethod
+    def load(cls, path: str, *, frozen: bool = True) -> TimingTable:
+        """A table saved by ``save``; frozen (not refined) by default, so a run reproduces the step counts."""
+        import json
+
+        with open(path) as f:
+            data = json.load(f)
+        missing = {"device", "samples", "horizon", "fixed_s", "step_s"} - set(data)
+        if missing:
+            raise ValueError(f"{path} is not a timing table: it lacks {sorted(missing)}")
+        return cls(**data, frozen=frozen)
+
+
+def plan_steps(bucket: int, max_steps: int, seconds: float | None = None, table: TimingTable | None = None) -> int:
+    """The one budget function: the Adam steps a decision at ``bucket`` runs. No budget (seconds None): max_steps.
+    A budget of ``seconds`` per decision: as many steps as ``table`` says fit, at most max_steps."""
+    if seconds is None:
+        return int(max_steps)
+    if table is None:
+        raise ValueError("a time budget needs a timing table (budget.measure, or --timing FILE)")
+    return table.steps(bucket, seconds, max_steps)
+
+
+def measure(decide: Callable[[int, int], object], buckets: Sequence[int], *, samples: int, horizon: int,
+            max_steps: int, repeats: int = 3) -> TimingTable:
+    """Fill a timing table on this device. decide(bucket, steps) runs one whole decision (perception and plan) and
+    returns its result; it is compiled first (untimed), then timed ``repeats`` times (medians) at 0 steps (fixed_s)
+    and at a probe of 10 steps, then 4 times as many, until the steps take at least as long as the fixed part (or
+    the probe reaches max_steps): step_s from the difference. samples, horizon: the planner batch."""
+    fixed, step = {}, {}
+
+    def wall(bucket, steps):
+        times = []
+        for _ in range(repeats):
+            t0 = time.perf_counter()
+            jax.block_until_ready(decide(bucket, steps))
+            times.append(time.perf_counter() - t0)
+        return statistics.median(times)
+
+    for b in check_buckets(buckets):
+        jax.block_until_ready(decide(b, 0))  # compile (the step count is traced: one compile serves every count)
+        short = wall(b, 0)
+        probe = min(10, max_steps)
+        while True:
+            long = wall(b, probe)
+            if long - short >= max(short, 1e-3) or probe >= max_steps:
+                break
+            probe = min(4 * probe, max_steps)
+        fixed[b], step[b] = short, max((long - short) / probe, 1e-9)
+    device = jax.devices()[0]
+    return TimingTable(f"{device.platform}: {device.device_kind}", samples, horizon, fixed, step)
+
+
+__all__ = ["BUCKETS", "TimingTable", "bucket_for", "check_buckets", "measure", "plan_steps"]

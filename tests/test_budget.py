@@ -1,0 +1,124 @@
+"""Resolution buckets and the time budget: bucket choice, padding inert across buckets with the shipped model, common
+random numbers across ω, the timing table (formula, refinement, round trip, errors) and a time-budgeted decision
+returning within its budget plus one step."""
+
+import json
+import math
+
+import jax
+import numpy as np
+import pytest
+
+from dynres_jax import budget
+from dynres_jax.budget import TimingTable, bucket_for, check_buckets, plan_steps
+from dynres_jax.config import CameraConfig, PileConfig, PushConfig, SceneConfig, SimConfig
+from dynres_jax.mpc import MPCConfig, decide, load_dynamics, measure_timing, run_episode, sweep_dynamics
+from dynres_jax.objective import disc_goal, make_goal
+from dynres_jax.planner import PlannerConfig
+from dynres_jax.sim.env import PileEnv
+from experiments.task import DEFAULT_CKPT
+
+
+@pytest.fixture(scope="module")
+def scene():
+    sim = SimConfig(scene=SceneConfig(pieces=(30,)), pile=PileConfig(layout="spread"),
+                    push=PushConfig(max_length=0.1, settle_time=0.04), camera=CameraConfig(width=64, height=64))
+    env = PileEnv(sim, backend="mujoco")
+    mask = disc_goal(env.camera, np.array([0.02, -0.01]), 0.06)
+    planner = PlannerConfig(samples=6, steps=8, bound=env.action_bound, max_length=0.1)
+    return env, env.reset(jax.random.PRNGKey(0)), mask, make_goal(mask, env.camera), planner
+
+
+def test_bucket_choice():
+    assert [bucket_for(w) for w in (1, 16, 17, 32, 33, 64, 65, 100)] == [16, 16, 32, 32, 64, 64, 100, 100]
+    assert bucket_for(5, (4, 8)) == 8 and bucket_for(4, (4, 8)) == 4
+    for bad in (0, -3, 2.5):
+        with pytest.raises(ValueError, match="positive integer"):
+            bucket_for(bad)
+    with pytest.raises(ValueError, match="exceeds the largest resolution bucket 100"):
+        bucket_for(101)
+    for bad in ((), (16, 16), (32, 16), (0, 8), (4.0, 8)):
+        with pytest.raises(ValueError, match="buckets"):
+            check_buckets(bad)
+    with pytest.raises(ValueError, match="largest bucket"):
+        MPCConfig(omega=40, buckets=(16, 32))
+
+
+def test_padding_is_inert_across_buckets(scene):
+    """A decision at ω = 10 in bucket 16 equals the same decision in bucket 32 (same key): the particles, c, the
+    plan and its cost, with the shipped model."""
+    env, state, _, goal, planner = scene
+    dynamics, _, _ = load_dynamics("learned", DEFAULT_CKPT, env.config.scene.plate_half_width)
+    cfg = MPCConfig(omega=10, buckets=(16, 32), max_points=512, planner=planner)
+    key = jax.random.PRNGKey(3)
+    small = decide(state.obs, goal, key, None, dynamics, cfg, env.camera, 10, bucket=16)
+    large = decide(state.obs, goal, key, None, dynamics, cfg, env.camera, 10, bucket=32)
+    assert small[0].positions.shape == (16, 3) and large[0].positions.shape == (32, 3)
+    np.testing.assert_allclose(small[0].positions, large[0].positions[:16], atol=1e-6)
+    assert not np.any(large[0].mask[16:]) and int(np.sum(small[0].mask)) == 10
+    np.testing.assert_allclose(float(small[1]), float(large[1]), rtol=1e-5)
+    np.testing.assert_allclose(small[2].best, large[2].best, atol=1e-4)
+    np.testing.assert_allclose(float(small[2].best_cost), float(large[2].best_cost), rtol=1e-4)
+    assert float(small[2].best_cost) < float(small[2].history[0])  # the plan moved (it is not a no-op comparison)
+
+
+def test_common_random_numbers_across_omega(scene):
+    """One key gives the same starting pushes at every ω (drawn through the perception cloud); another key differs."""
+    env, state, _, goal, planner = scene
+    cfg = MPCConfig(omega=10, buckets=(16, 32), max_points=512, planner=planner)
+    dyn = sweep_dynamics(env.config.scene.plate_half_width)
+
+    def start(omega, key):  # zero Adam steps: the actions are the starting pushes
+        return np.asarray(decide(state.obs, goal, key, None, dyn, cfg, env.camera, omega, steps=0)[2].actions)
+
+    key = jax.random.PRNGKey(7)
+    np.testing.assert_array_equal(start(4, key), start(12, key))
+    np.testing.assert_array_equal(start(4, key), start(30, key))
+    assert not np.allclose(start(4, key), start(4, jax.random.PRNGKey(8)))
+
+
+def test_timing_table_formula_refine_and_round_trip(tmp_path):
+    table = TimingTable("cpu: test", 50, 1, fixed_s={16: 0.02, 100: 0.05}, step_s={16: 0.001, 100: 0.004})
+    assert table.steps(16, 0.5, 1000) == math.floor((0.5 - 0.02) / 0.001) == 480
+    assert table.steps(100, 0.5, 1000) == math.floor((0.5 - 0.05) / 0.004) == 112
+    assert table.steps(100, 0.5, 50) == 50 and table.steps(100, 0.01, 50) == 0
+    assert plan_steps(16, 200) == 200 and plan_steps(16, 200, 0.5, table) == 200 and plan_steps(100, 1000, 0.5,
+                                                                                                table) == 112
+    with pytest.raises(ValueError, match="needs a timing table"):
+        plan_steps(16, 200, 0.5)
+    with pytest.raises(ValueError, match="no bucket 32"):
+        table.steps(32, 0.5, 10)
+    table.refine(100, 10, 0.05 + 10 * 0.006)  # a decision slower than the table: step time moves halfway there
+    assert table.step_s[100] == pytest.approx(0.005) and table.refined == {100: 1}
+    path = str(tmp_path / "timing.json")
+    table.save(path)
+    loaded = TimingTable.load(path)
+    assert loaded.frozen and loaded.to_json() == table.to_json()
+    assert [loaded.steps(b, 0.3, 500) for b in (16, 100)] == [table.steps(b, 0.3, 500) for b in (16, 100)]
+    loaded.refine(100, 10, 1.0)  # frozen: reproduces the run's step counts, never refined
+    assert loaded.step_s[100] == table.step_s[100]
+    with open(tmp_path / "other.json", "w") as f:
+        json.dump({"samples": 3}, f)
+    with pytest.raises(ValueError, match="not a timing table"):
+        TimingTable.load(str(tmp_path / "other.json"))
+    with pytest.raises(ValueError, match="step_s > 0"):
+        TimingTable("x", 1, 1, fixed_s={16: 0.0}, step_s={16: float("nan")})
+
+
+def test_time_budgeted_decisions_return_within_budget_plus_one_step(scene):
+    """measure_timing on this CPU, then a budgeted episode: each decision runs the steps the table affords and
+    returns within the budget plus one Adam step (and a small allowance for the host's jitter)."""
+    env, state, mask, goal, _ = scene
+    planner = PlannerConfig(samples=6, steps=400, bound=env.action_bound, max_length=0.1)
+    dyn = sweep_dynamics(env.config.scene.plate_half_width)
+    cfg = MPCConfig(steps=3, omega=12, buckets=(16, 32), max_points=512, planner=planner)
+    table = measure_timing(state.obs, goal, dyn, cfg, env.camera)
+    assert set(table.step_s) == {16, 32} and all(s > 0 for s in table.step_s.values())
+    seconds = table.fixed_s[16] + 40 * table.step_s[16]  # a budget of about 40 steps: it binds below 400
+    cfg = MPCConfig(steps=3, omega=12, buckets=(16, 32), max_points=512, planner=planner, time_budget=seconds)
+    _, records, _ = run_episode(env, state, goal, mask, dyn, cfg, jax.random.PRNGKey(1), log=lambda s: None,
+                                timing=table)
+    for r in records:
+        assert r["bucket"] == 16 and 0 < r["plan_steps"] < 400
+        assert r["planning_s"] <= seconds + table.step_s[16] + 0.25 * seconds + 0.02, (r, seconds)
+    assert budget.BUCKETS[-1] == 100
