@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import functools
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING
 
 import cv2
@@ -28,7 +28,7 @@ from dynres_jax import budget
 from dynres_jax.dynamics import Dynamics, edge_table, resolution_code, rollout
 from dynres_jax.graph import sweep_rollout
 from dynres_jax.objective import SAMPLES_PER_PARTICLE, Goal, distribution_distance, inside_share, objective
-from dynres_jax.perception import point_cloud, sample_particles
+from dynres_jax.perception import describe_error, point_cloud, sample_particles
 from dynres_jax.planner import PlannerConfig, plan, sample_pushes
 
 if TYPE_CHECKING:  # annotations only: the planning half of this module needs no simulator (nor MuJoCo)
@@ -59,7 +59,12 @@ class MPCConfig:
             raise ValueError(f"time_budget must be a positive number of seconds or None, got {self.time_budget}")
 
     def plan_steps(self, bucket: int, table: budget.TimingTable | None = None) -> int:
-        """The Adam steps of a decision at ``bucket`` (``budget.plan_steps`` with this config's budget)."""
+        """The Adam steps of a decision at ``bucket`` (``budget.plan_steps`` with this config's budget). ValueError
+        when the table was measured for another planner batch (samples, horizon)."""
+        if self.time_budget is not None and table is not None and (table.samples, table.horizon) != (
+                self.planner.samples, self.planner.horizon):
+            raise ValueError(f"the timing table was measured for {table.samples} samples x horizon {table.horizon}, "
+                             f"the planner has {self.planner.samples} x {self.planner.horizon}: measure it again")
         return budget.plan_steps(bucket, self.planner.steps, self.time_budget, table)
 
 
@@ -168,9 +173,11 @@ def overlay(rgb: np.ndarray, goal_mask: np.ndarray, particles: np.ndarray | None
     return img
 
 
-def decide(obs, goal: Goal, key, init, dynamics, cfg: MPCConfig, camera, omega=None, *, bucket=None, steps=None):
+def decide(obs, goal: Goal, key, init, dynamics, cfg: MPCConfig, camera, omega=None, *, bucket=None, steps=None,
+           warm=True):
     """One MPC decision: particles from ``obs`` (h at ω in ``bucket`` slots), c of them, and the plan. Pure, so it
-    vmaps over episodes. omega: this step's ω (default cfg.omega; may be traced); bucket: static particle slots
+    vmaps over episodes. init [T, 4]: the warm start (the previous plan, shifted), used where ``warm`` (may be
+    traced), or None; omega: this step's ω (default cfg.omega; may be traced); bucket: static particle slots
     (default the smallest of cfg.buckets holding a concrete ω; with a traced ω, a bucket holding every ω);
     steps: Adam steps (may be traced; default cfg.planner.steps). The planner's starting pushes pass through random
     points of the perception cloud, not of the particles, so one key gives the same pushes at every ω (common random
@@ -184,9 +191,28 @@ def decide(obs, goal: Goal, key, init, dynamics, cfg: MPCConfig, camera, omega=N
     particles = sample_particles(obs, camera, omega, k_h, bucket, max_points=cfg.max_points)
     c_now = objective(particles.positions, particles.mask, goal, camera)
     initial = sample_pushes(k_plan, *point_cloud(obs, camera, max_points=cfg.max_points), cfg.planner)
-    init = initial[0] if init is None else init  # no warm start: sample 0 stands in for itself (one compiled plan)
+    init = initial[0] if init is None else jnp.where(warm, init, initial[0])  # no warm start: sample 0 stands in
     result = plan(dynamics(particles.radius), goal_cost(goal, camera, bucket), particles.positions, particles.mask,
                   k_plan, cfg.planner, init=init, steps=steps, initial=initial)
+    return particles, c_now, result
+
+
+@functools.partial(jax.jit, static_argnames=("dynamics", "cfg", "camera", "bucket"))
+def _decide_compiled(obs, goal, key, init, warm, omega, steps, *, dynamics, cfg, camera, bucket):
+    return decide(obs, goal, key, init, dynamics, cfg, camera, omega, bucket=bucket, steps=steps, warm=warm)
+
+
+def decide_compiled(obs, goal: Goal, key, init, warm, omega, steps, dynamics, cfg: MPCConfig, camera, bucket: int):
+    """``decide`` as one compiled function per bucket (and model, camera and planner): what the closed loop runs and
+    its timing table measures. init [T, 4] always (ignored unless warm); warm, omega and steps are traced. The
+    particles are checked: bad perception input raises a ValueError naming it (``perception.describe_error``)."""
+    key_cfg = replace(cfg, steps=1, omega=1, time_budget=None)  # fields a decision does not read: one compile
+    particles, c_now, result = _decide_compiled(obs, goal, key, jnp.asarray(init, jnp.float32), jnp.asarray(warm),
+                                                jnp.asarray(omega, jnp.int32), jnp.asarray(steps, jnp.int32),
+                                                dynamics=dynamics, cfg=key_cfg, camera=camera, bucket=bucket)
+    if int(particles.error):
+        raise ValueError("perception: " + describe_error(int(particles.error), omega, bucket,
+                                                         int(particles.n_points)))
     return particles, c_now, result
 
 
@@ -200,10 +226,12 @@ def measure_timing(obs, goal: Goal, dynamics, cfg: MPCConfig, camera, repeats: i
 
     points = int(np.sum(np.asarray(point_cloud(obs, camera, max_points=cfg.max_points)[1])))
 
+    init = jnp.zeros((cfg.planner.horizon, 4), jnp.float32)
+
     def run(bucket, steps):  # as ``run_episode`` decides: a folded key, the first push of the best sequence
         omega = min(bucket, points)  # a bucket's work does not depend on how many of its slots are valid
-        result = decide(obs, goal, jax.random.fold_in(key, 0), None, dynamics, cfg, camera, omega, bucket=bucket,
-                        steps=steps)[2]
+        result = decide_compiled(obs, goal, jax.random.fold_in(key, 0), init, True, omega, steps, dynamics, cfg,
+                                 camera, bucket)[2]
         return result.best[0]
 
     return budget.measure(run, cfg.buckets, samples=cfg.planner.samples, horizon=cfg.planner.horizon,
@@ -229,15 +257,16 @@ def run_episode(env: PileEnv, state: State, goal: Goal, goal_mask: np.ndarray, d
         rows = [f"bucket {b}: {1e3 * timing.fixed_s[b]:.1f} ms + {1e3 * timing.step_s[b]:.2f} ms/step"
                 for b in cfg.buckets]
         log(f"timing table ({timing.device}): " + ", ".join(rows))
-    records, frames, init = [], [], None
+    records, frames = [], []
+    init, warm = jnp.zeros((cfg.planner.horizon, 4), jnp.float32), False  # no warm start at the first step
     batch = lambda tree: jax.tree.map(lambda x: jnp.asarray(x)[None], tree)  # noqa: E731
     for t in range(cfg.steps):
         omega = cfg.omega if choose_omega is None else int(choose_omega(batch(state.obs), batch(goal))[0])
         bucket = budget.bucket_for(omega, cfg.buckets)
         steps = cfg.plan_steps(bucket, timing)
         t0 = time.perf_counter()
-        particles, c_now, result = decide(state.obs, goal, jax.random.fold_in(key, t), init, dynamics, cfg, camera,
-                                          omega, bucket=bucket, steps=steps)
+        particles, c_now, result = decide_compiled(state.obs, goal, jax.random.fold_in(key, t), init, warm, omega,
+                                                   steps, dynamics, cfg, camera, bucket)
         action = np.asarray(jax.block_until_ready(result.best[0]))
         planning = time.perf_counter() - t0
         if timing is not None:
@@ -245,7 +274,7 @@ def run_episode(env: PileEnv, state: State, goal: Goal, goal_mask: np.ndarray, d
         frames.append(overlay(np.asarray(state.obs.rgb), goal_mask, np.asarray(particles.positions)[
             np.asarray(particles.mask)], camera, label=f"step {t + 1}  ω = {omega}"))
         state = env.push(state, action)
-        init = _shift(result.best)
+        init, warm = _shift(result.best), True
         record = dict(step=t, omega=omega, bucket=bucket, plan_steps=steps, objective=float(c_now),
                       predicted_objective=float(result.best_cost),
                       distance=float(distribution_distance(state.obs, goal, camera)),

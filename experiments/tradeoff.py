@@ -35,6 +35,7 @@ from experiments.evaluate import wilson
 SURFACE_OMEGAS = (10, 25, 50, 75, 100)
 SURFACE_STEPS = (1, 5, 10, 20, 50, 100, 200)
 SURFACE_SCENES = ("spread pile, disc goal", "pile near a letter goal")
+LETTER_REACH = 0.03  # m: the near-letter scenes' pile and letter centres lie within this of the bin centre
 
 
 def compare(high: np.ndarray, low: np.ndarray) -> dict:
@@ -126,7 +127,7 @@ def _scenes(kind: int, args, pool):
         if kind == 0:
             masks.append(tasks.gather_goal(rng, pool.env)[0])
         else:  # the letter centred on the pile, so the pile is already near its goal
-            centre = np.clip(np.asarray(starts.pos[i, :, :2]).mean(0), -0.06, 0.06)
+            centre = np.clip(np.asarray(starts.pos[i, :, :2]).mean(0), -LETTER_REACH, LETTER_REACH)
             masks.append(tasks.redistribute_goal(rng, pool.env, "JTU"[i % 3], centre)[0])
     return starts, np.stack(masks)
 
@@ -173,6 +174,8 @@ def surface(args) -> dict:
     from dynres_jax.config import CameraConfig, PileConfig, PushConfig, SceneConfig, SimConfig
     from dynres_jax.data import save_npz
     from dynres_jax.mpc import MPCConfig, load_dynamics, measure_timing
+
+    near_centre_blob = PileConfig(layout="blob", centre_margin=SceneConfig.bin_half_width - LETTER_REACH)
     from dynres_jax.objective import make_goal
     from dynres_jax.planner import PlannerConfig
     from dynres_jax.sim.pool import WorldPool, process_pool
@@ -188,7 +191,7 @@ def surface(args) -> dict:
         for kind, scene_name in enumerate(SURFACE_SCENES):
             push = PushConfig(max_length=0.1, settle_time=0.04) if args.quick else PushConfig()
             sim = SimConfig(scene=SceneConfig(pieces=(args.pieces,)), push=push,
-                            pile=PileConfig(layout="spread" if kind == 0 else "blob"),
+                            pile=PileConfig(layout="spread") if kind == 0 else near_centre_blob,
                             camera=CameraConfig(width=64, height=64) if args.quick else CameraConfig())
             pool = WorldPool(sim, processes)
             planner = PlannerConfig(samples=args.samples, steps=max(steps), bound=pool.env.action_bound,

@@ -13,5 +13,5 @@ if [ "$PART" != surface ]; then
   python -m experiments.benchmark resolution --json "$OUT/resolution.json"
 fi
 if [ "$PART" != bench ]; then
-  python -m experiments.tradeoff --surface --scenes "$SCENES" --out "$OUT/surface"
+  python -m experiments.tradeoff --surface --scenes "$SCENES" --out "${SURFACE_DIR:-$OUT/surface}"
 fi

@@ -122,3 +122,17 @@ def test_time_budgeted_decisions_return_within_budget_plus_one_step(scene):
         assert r["bucket"] == 16 and 0 < r["plan_steps"] < 400
         assert r["planning_s"] <= seconds + table.step_s[16] + 0.25 * seconds + 0.02, (r, seconds)
     assert budget.BUCKETS[-1] == 100
+
+
+def test_a_table_of_another_batch_and_bad_perception_are_named(scene):
+    env, state, mask, goal, planner = scene
+    cfg = MPCConfig(steps=1, omega=12, buckets=(16, 32), planner=planner, time_budget=0.1)
+    other = TimingTable("x", planner.samples + 1, 1, fixed_s={16: 0.0, 32: 0.0}, step_s={16: 1e-3, 32: 1e-3})
+    with pytest.raises(ValueError, match="measured for 7 samples"):
+        cfg.plan_steps(16, other)
+    dyn = sweep_dynamics(env.config.scene.plate_half_width)
+    empty = state.obs._replace(depth=np.full_like(np.asarray(state.obs.depth), np.nan))
+    with pytest.raises(ValueError, match="NaN"):
+        run_episode(env, state._replace(obs=empty), goal, mask, dyn, MPCConfig(steps=1, omega=12, buckets=(16, 32),
+                                                                                planner=planner),
+                    jax.random.PRNGKey(0), log=lambda s: None)
