@@ -13,8 +13,9 @@ more Adam steps. Without it every decision runs ``--plan-steps``.
 paper's CNN-dynamics baseline: the same planner at ω = ``--cnn-omega`` (50) with the CNN checkpoint ``--cnn-ckpt``
 (``experiments.train_dynamics --model cnn``) as its model. Writes per method ``METHOD.json`` (final d
 and inside share per episode, means per step; resumable: finished methods are skipped), ``summary.json`` (means with
-95 % confidence intervals, success rates) and ``score.png`` (share of episodes with final d below τ, against τ) and
-``steps.png`` (mean d over the MPC steps).
+95 % confidence intervals, success rates, and every method paired with adaptive on the same episodes: the mean
+difference of final d with a paired-bootstrap 95 % interval and McNemar's test on success, ``dynres_jax.stats``),
+``score.png`` (share of episodes with final d below τ, against τ) and ``steps.png`` (mean d over the MPC steps).
 """
 
 from __future__ import annotations
@@ -33,6 +34,7 @@ from dynres_jax.config import CameraConfig, PileConfig, SceneConfig, SimConfig
 from dynres_jax.mpc import load_dynamics, run_episodes
 from dynres_jax.objective import make_goal
 from dynres_jax.sim.pool import WorldPool, process_pool
+from dynres_jax.stats import mcnemar, paired_bootstrap, wilson
 from experiments.label_resolution import add_planner_args, check_planner_args, planner_config, timing_table
 from experiments.task import DEFAULT_CKPT, DEFAULT_REGRESSOR
 
@@ -51,15 +53,10 @@ def episode_goals(task: str, episodes: int, seed: int, env) -> list[np.ndarray]:
     return goals
 
 
-def wilson(k: int, n: int) -> tuple[float, float]:
-    """95 % Wilson interval of a success rate k / n."""
-    z, p = 1.96, k / n
-    centre = (p + z * z / (2 * n)) / (1 + z * z / n)
-    half = z * np.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / (1 + z * z / n)
-    return float(centre - half), float(centre + half)
-
-
 def summarise(results: dict) -> dict:
+    """Per method: means with 95 % intervals and the success share. Beside them, ``paired``: each other method
+    against the reference (adaptive when evaluated, else the first method) on the same episodes: the mean of its
+    final d minus the reference's with a paired-bootstrap 95 % interval, and McNemar's test on success."""
     out = {}
     for method, r in results.items():
         d, inside = np.array(r["final_distance"]), np.array(r["final_inside"])
@@ -69,7 +66,16 @@ def summarise(results: dict) -> dict:
                            final_inside=float(inside.mean()), success_share=k / n, success_ci95=wilson(k, n),
                            mean_omega=float(np.mean(r["omega"])), broken=int(np.sum(r["broken"])),
                            dynamics=r.get("dynamics"))
-    return out
+    reference = "adaptive" if "adaptive" in results else next(iter(results))
+    ref = results[reference]
+    paired = {}
+    for method, r in results.items():
+        if method == reference or len(r["final_distance"]) < 2:
+            continue
+        paired[method] = dict(
+            delta_d=paired_bootstrap(r["final_distance"], ref["final_distance"]),
+            success=mcnemar(np.array(r["final_inside"]) >= SUCCESS, np.array(ref["final_inside"]) >= SUCCESS))
+    return dict(methods=out, reference=reference, paired=paired)
 
 
 def label(method: str, r: dict) -> str:
@@ -191,14 +197,19 @@ def main(argv=None):
             files.write_json(path, r)
             results[method] = r
     summary = dict(task=args.task, dynamics=main_model[2], device=jax.devices()[0].device_kind,
-                   time_budget=args.time_budget,
-                   steps=args.steps, methods=summarise(results))
+                   time_budget=args.time_budget, samples=args.samples, plan_steps=args.plan_steps,
+                   steps=args.steps, **summarise(results))
     files.write_json(os.path.join(args.out, "summary.json"), summary)
     plot(results, args.task, args.out)
     for method, s in summary["methods"].items():
         print(f"{method:>8}: final d {s['final_distance']:8.2f} ± {s['final_distance_ci95']:.2f}  inside "
               f"{s['final_inside']:.1%}  ≥{SUCCESS:.0%} inside in {s['success_share']:.0%} of episodes  "
               f"mean ω {s['mean_omega']:.1f}")
+    for method, p in summary["paired"].items():
+        lo, hi = p["delta_d"]["ci95"]
+        m = p["success"]
+        print(f"{method:>8} - {summary['reference']}: Δd {p['delta_d']['mean']:+.2f} [{lo:+.2f}, {hi:+.2f}]  "
+              f"successes only here {m['first_only']}, only there {m['second_only']} (McNemar p = {m['p']:.3f})")
     return summary
 
 

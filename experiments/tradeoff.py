@@ -30,7 +30,7 @@ import numpy as np
 
 from dynres_jax import files
 from dynres_jax.resolution import CANDIDATES
-from experiments.evaluate import wilson
+from dynres_jax.stats import wilson
 
 SURFACE_OMEGAS = (10, 25, 50, 75, 100)
 SURFACE_STEPS = (1, 5, 10, 20, 50, 100, 200)

@@ -80,6 +80,10 @@ def test_evaluation_fixed_and_adaptive(regressor, timing, tmp_path):
         assert np.array_equal(steps, np.vectorize(lambda w: AFFORDED[bucket_for(int(w))])(omega))
     assert np.all(np.array(runs["10"]["omega"]) == 10) and len(runs["10"]["final_distance"]) == 2
     assert np.all(np.array(runs["75"]["plan_steps"]) == 1)  # a fine ω affords fewer steps under the same budget
+    assert summary["reference"] == "adaptive" and set(summary["paired"]) == {"10", "75"}
+    delta = summary["paired"]["10"]["delta_d"]
+    assert delta["mean"] == pytest.approx(np.mean(np.array(runs["10"]["final_distance"])
+                                                  - np.array(runs["adaptive"]["final_distance"])))
     adaptive = runs["adaptive"]
     assert np.all((np.array(adaptive["omega"]) >= 2) & (np.array(adaptive["omega"]) <= 100))
     assert (tmp_path / "score.png").read_bytes()[:4] == b"\x89PNG"
