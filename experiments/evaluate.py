@@ -193,10 +193,12 @@ def main(argv=None):
                      mean_inside=[float(x["success"].mean()) for x in records],
                      omega=np.stack([x["omega"] for x in records]).tolist(), broken=records[-1]["broken"].tolist(),
                      plan_steps=np.stack([x["plan_steps"] for x in records]).tolist(),
-                     seconds=float(sum(x["seconds"] for x in records)), dynamics=name)
+                     seconds=float(sum(x["seconds"] for x in records)), dynamics=name,
+                     device=jax.devices()[0].device_kind)
             files.write_json(path, r)
             results[method] = r
-    summary = dict(task=args.task, dynamics=main_model[2], device=jax.devices()[0].device_kind,
+    devices = sorted({r.get("device", "unrecorded") for r in results.values()})  # where the methods ran
+    summary = dict(task=args.task, dynamics=main_model[2], device=", ".join(devices),
                    time_budget=args.time_budget, samples=args.samples, plan_steps=args.plan_steps,
                    steps=args.steps, **summarise(results))
     files.write_json(os.path.join(args.out, "summary.json"), summary)

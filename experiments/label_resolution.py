@@ -138,6 +138,7 @@ def label_shard(args, shard: int, dynamics, processes, timings: list) -> dict:
     if not timings:
         timings.append(timing_table(args, args.out, start.obs, goals, dynamics, cfg, camera))
     timing = timings[0]
+    plan_seed = args.seed + 1 if args.plan_seed is None else args.plan_seed
 
     def plan_at(obs, goal, key, omega, steps, bucket):
         return decide(obs, goal, key, None, dynamics, cfg, camera, omega, bucket=bucket, steps=steps)[2].best[0]
@@ -148,7 +149,7 @@ def label_shard(args, shard: int, dynamics, processes, timings: list) -> dict:
 
     def c_star(omega, i):
         """c*(ω) [B] of every scene, and the Adam steps [B] each plan ran (its bucket's, under the budget)."""
-        keys = jax.random.split(jax.random.fold_in(jax.random.PRNGKey(args.seed + 1), shard * 100 + i), b * r)
+        keys = jax.random.split(jax.random.fold_in(jax.random.PRNGKey(plan_seed), shard * 100 + i), b * r)
         buckets = [budget.bucket_for(int(w), cfg.buckets) for w in np.asarray(omega)]
         steps = np.array([cfg.plan_steps(bk, timing) for bk in buckets], np.int32)
         actions = plan_all(starts.obs, goals_r, keys, rep(omega), rep(jnp.asarray(steps)), max(buckets))
@@ -164,12 +165,12 @@ def label_shard(args, shard: int, dynamics, processes, timings: list) -> dict:
         if i < len(FIRST):
             w = jnp.full(b, FIRST[i], jnp.int32)
         else:
-            w = propose(omega, target, mask, jax.random.split(jax.random.PRNGKey(i), b))
+            w = propose(omega, target, mask, jax.random.split(jax.random.fold_in(jax.random.PRNGKey(plan_seed), i), b))
         c, plan_steps[:, i] = c_star(w, i)
         omega, mask = omega.at[:, i].set(w), mask.at[:, i].set(True)
         c_stars, target = c_stars.at[:, i].set(c), target.at[:, i].set(resolution.penalised(c, d0, w))
     label, mean = jax.jit(jax.vmap(resolution.best_omega))(omega, target, mask, jax.random.split(
-        jax.random.PRNGKey(shard), b))
+        jax.random.fold_in(jax.random.PRNGKey(plan_seed), 100_000 + shard), b))
     inputs = jax.vmap(lambda o, m: resolution.observation_input(o, m, camera))(start.obs, jnp.asarray(goal_masks))
     return dict(inputs=np.asarray(inputs), label=np.asarray(label), gp_mean=np.asarray(mean),
                 omega=np.asarray(omega), c_plus=np.asarray(target), c_star=np.asarray(c_stars), d0=np.asarray(d0),
@@ -191,7 +192,10 @@ def main(argv=None):
     parser.add_argument("--ckpt", default=DEFAULT_CKPT)
     parser.add_argument("--dynamics", default="auto", choices=["auto", "learned", "sweep"])
     parser.add_argument("--workers", type=int, default=None, help="C engine processes (default: every core)")
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--seed", type=int, default=0, help="the scenes (piles and goals)")
+    parser.add_argument("--plan-seed", type=int, default=None,
+                        help="the plans and the BO's random draws (default: --seed + 1); the same --seed with another "
+                             "--plan-seed labels the same scenes again independently (label reliability)")
     parser.add_argument("--part", default="0/1", help="I/K: label only shards I, I + K, ... so K machines share a "
                         "run over one folder (default 0/1: all)")
     parser.add_argument("--quick", action="store_true", help="tiny sizes for a CPU smoke run")

@@ -2,6 +2,7 @@
 
     python -m experiments.tradeoff --labels runs/labels --out runs/tradeoff
     python -m experiments.tradeoff --surface --out runs/surface [--scenes 128]
+    python -m experiments.tradeoff --reliability runs/labels_a runs/labels_b --out runs/reliability
 
 Fig. 4 (``--labels``, from experiments.label_resolution): c+(ω) for the same pile with a disc vs a letter goal, and
 for the same goal with a spread vs a gathered pile, and how often each claim holds.
@@ -14,6 +15,12 @@ device's timing table (seconds per decision at each bucket, one scene, the task 
 seconds. Writes ``surface.json`` (mean c* per scene kind, ω and N with 95 % intervals, the planner's own predicted c,
 d before the push, the timing table) and ``surface.png``; each scene kind's raw values are saved as it finishes
 (``surface_KIND.npz``) and a rerun skips finished kinds.
+
+Label reliability (``--reliability A B``): two label runs of the same scenes (``label_resolution`` with the same
+``--seed`` and another ``--plan-seed``), scene by scene: the rank (Spearman) and Pearson correlations of the two
+labels, their mean absolute difference, and what that bounds a regressor g to: its correlation with either run's
+labels is at most the square root of the Pearson test-retest correlation, and its mean absolute error at least half
+the runs' mean absolute difference (E|A - B| <= E|A - g| + E|g - B|, and A, B are exchangeable).
 
 Claims (paper Sec. V-B): the best ω is higher for a letter than for a disc on the same pile, and higher for a
 gathered pile (one blob) than for a spread one with the same goal. Reported: the share of pairs where the label is
@@ -52,6 +59,7 @@ def main(argv=None):
     parser.add_argument("--labels", help="label shards of experiments.label_resolution (Fig. 4)")
     parser.add_argument("--out", required=True)
     parser.add_argument("--surface", action="store_true", help="measure the anytime surface instead")
+    parser.add_argument("--reliability", nargs=2, metavar="LABELS", help="two label runs of the same scenes")
     parser.add_argument("--scenes", type=int, default=128, help="surface: scenes of each kind")
     parser.add_argument("--samples", type=int, default=50, help="surface: pushes optimised at once (M)")
     parser.add_argument("--pieces", type=int, default=100)
@@ -64,8 +72,10 @@ def main(argv=None):
         if args.scenes < 2 or args.samples < 1:
             parser.error("--scenes must be at least 2 and --samples at least 1")
         return surface(args)
+    if args.reliability:
+        return reliability(*args.reliability, args.out)
     if not args.labels:
-        parser.error("give --labels (Fig. 4) or --surface")
+        parser.error("give --labels (Fig. 4), --surface or --reliability")
     shards = {int(z["shard"]): dict(z) for z in map(np.load, sorted(glob.glob(os.path.join(args.labels,
                                                                                           "shard_*.npz"))))}
     if not shards:
@@ -110,6 +120,47 @@ def _plot(examples: dict, path: str) -> None:
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)
+
+
+def ranks(x) -> np.ndarray:
+    """Ranks of x [n] from 1, ties given their mean rank."""
+    x = np.asarray(x)
+    order = np.argsort(x, kind="stable")
+    r = np.empty(len(x))
+    r[order] = np.arange(1, len(x) + 1)
+    for value in np.unique(x):
+        tied = x == value
+        r[tied] = r[tied].mean()
+    return r
+
+
+def _labels_by_scene(folder: str) -> dict:
+    """{(shard, index): label} of a label run."""
+    out = {}
+    for path in sorted(glob.glob(os.path.join(folder, "shard_*.npz"))):
+        z = np.load(path)
+        out.update({(int(z["shard"]), i): int(v) for i, v in enumerate(z["label"])})
+    return out
+
+
+def reliability(first: str, second: str, out_dir: str) -> dict:
+    """Label reliability of two runs over the same scenes (module docstring) -> the summary written to
+    reliability.json."""
+    a, b = _labels_by_scene(first), _labels_by_scene(second)
+    scenes = sorted(set(a) & set(b))
+    if len(scenes) < 3:
+        raise ValueError(f"{first} and {second} share {len(scenes)} scenes; reliability needs at least 3")
+    x, y = np.array([a[s] for s in scenes], float), np.array([b[s] for s in scenes], float)
+    pearson = float(np.corrcoef(x, y)[0, 1])
+    result = dict(scenes=len(scenes), spearman=float(np.corrcoef(ranks(x), ranks(y))[0, 1]), pearson=pearson,
+                  mean_abs_difference=float(np.mean(np.abs(x - y))), equal=float(np.mean(x == y)),
+                  regressor_correlation_at_most=float(np.sqrt(max(pearson, 0.0))),
+                  regressor_mae_at_least=float(np.mean(np.abs(x - y)) / 2),
+                  label_mean=float(np.concatenate([x, y]).mean()))
+    os.makedirs(out_dir, exist_ok=True)
+    files.write_json(os.path.join(out_dir, "reliability.json"), result)
+    print(result)
+    return result
 
 
 def _scenes(kind: int, args, pool):

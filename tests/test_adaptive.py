@@ -108,3 +108,21 @@ def test_dihedral_augmentation_is_the_eight_symmetries_of_the_grid():
         expect = np.rot90(images[i], turns[i], axes=(0, 1))
         np.testing.assert_array_equal(out[i], expect[:, ::-1] if flip[i] else expect)
     assert len({o.tobytes() for o in out}) == 8
+
+
+def test_label_reliability_by_hand(tmp_path):
+    """Two label runs of the same scenes matched scene by scene; Spearman by hand on a case with ties."""
+    a, b = tmp_path / "a", tmp_path / "b"
+    for folder, labels in ((a, [[10, 20], [30, 30]]), (b, [[12, 25], [50, 20]])):
+        folder.mkdir()
+        for shard, label in enumerate(labels):
+            np.savez(folder / f"shard_{shard:05d}.npz", shard=np.int64(shard), label=np.array(label))
+    result = tradeoff.reliability(str(a), str(b), str(tmp_path / "out"))
+    # a = 10, 20, 30, 30 -> ranks 1, 2, 3.5, 3.5; b = 12, 25, 50, 20 -> ranks 1, 3, 4, 2
+    ra, rb = np.array([1, 2, 3.5, 3.5]), np.array([1, 3, 4, 2])
+    assert result["scenes"] == 4 and result["spearman"] == pytest.approx(np.corrcoef(ra, rb)[0, 1])
+    assert result["mean_abs_difference"] == pytest.approx((2 + 5 + 20 + 10) / 4)
+    assert result["regressor_mae_at_least"] == pytest.approx(37 / 8)
+    assert result["regressor_correlation_at_most"] == pytest.approx(np.sqrt(result["pearson"]))
+    with pytest.raises(ValueError, match="share 0 scenes"):
+        tradeoff.reliability(str(a), str(tmp_path / "out"), str(tmp_path / "out"))
