@@ -291,21 +291,32 @@ def run_episode(env: PileEnv, state: State, goal: Goal, goal_mask: np.ndarray, d
     return state, records, frames
 
 
+def _select(trees: list, pick) -> object:
+    """Per episode b, leaf [b] of trees[pick[b]]: trees K pytrees of arrays with a leading [B] axis, pick [B] ints."""
+    rows = jnp.arange(len(pick))
+    return jax.tree.map(lambda *x: jnp.stack([jnp.asarray(v) for v in x])[jnp.asarray(pick), rows], *trees)
+
+
 def run_episodes(env, states: State, goals: Goal, dynamics, cfg: MPCConfig, keys, choose_omega=None,
-                 log=print, timing: budget.TimingTable | None = None) -> tuple[State, list[dict]]:
+                 log=print, timing: budget.TimingTable | None = None, oracle: tuple[int, ...] | None = None
+                 ) -> tuple[State, list[dict]]:
     """Many episodes at once: states and goals batched on a leading axis [B], keys [B]. Each MPC step is one
     compiled call over all episodes (perception, planning, objective) and one batched push: ``env`` is a PileEnv
     with backend "mjx" (pushes vmapped on the device) or a ``WorldPool`` (pushes in C worker processes).
     choose_omega: optional ``(obs [B], goals [B]) -> ω [B]`` called every step (adaptive resolution); default
-    cfg.omega everywhere. Each episode's decision runs the Adam steps its own bucket affords (``cfg.plan_steps``,
-    with ``timing`` under a time budget: required then, as a batched run cannot time one decision); the call runs
-    at the largest bucket of the batch, which pads inertly. Returns the final states and one record per step whose
-    values are arrays [B] (ω, bucket, plan_steps, planning_s: the table's seconds for that decision, or NaN without
-    a budget; c, predicted c, d, inside share, broken) beside the batch's wall time ``seconds``."""
+    cfg.omega everywhere. oracle: candidate ω values instead: every step plans at each (same keys), pushes each on
+    a copy of the worlds and keeps, per episode, the one whose push left the lowest d (a greedy upper bound of any
+    chooser of ω). Each episode's decision runs the Adam steps its own bucket affords (``cfg.plan_steps``, with
+    ``timing`` under a time budget: required then, as a batched run cannot time one decision); the call runs at the
+    largest bucket of the batch, which pads inertly. Returns the final states and one record per step whose values
+    are arrays [B] (ω, bucket, plan_steps, planning_s: the table's seconds for that decision, or NaN without a
+    budget; c, predicted c, d, inside share, broken) beside the batch's wall time ``seconds``."""
     from dynres_jax.sim.pool import WorldPool
 
     if cfg.time_budget is not None and timing is None:
         raise ValueError("run_episodes under a time budget needs a timing table (mpc.measure_timing, --timing FILE)")
+    if oracle is not None and (choose_omega is not None or not oracle):
+        raise ValueError("oracle takes a non-empty tuple of candidate ω, and no choose_omega beside it")
     if isinstance(env, WorldPool):
         push = env.push
     elif env.backend == "mjx":
@@ -313,43 +324,54 @@ def run_episodes(env, states: State, goals: Goal, dynamics, cfg: MPCConfig, keys
     else:
         raise ValueError("run_episodes needs a PileEnv with backend='mjx' or a WorldPool; loop run_episode otherwise")
     camera = env.camera
-    n = env.scene.n_pieces
+    n, episodes = env.scene.n_pieces, len(keys)
 
-    def step(obs, goal, key, init, omega, steps, bucket):
-        return decide(obs, goal, key, init, dynamics, cfg, camera, omega, bucket=bucket, steps=steps)
+    def step(obs, goal, key, init, warm, omega, steps, bucket):
+        return decide(obs, goal, key, init, dynamics, cfg, camera, omega, bucket=bucket, steps=steps, warm=warm)
 
     def measure(obs, pos, goal):
         return distribution_distance(obs, goal, camera), inside_share(pos, jnp.ones(n, bool), goal, camera)
 
-    batched = jax.vmap(step, in_axes=(0, 0, 0, 0, 0, 0, None))
-    first = jax.jit(lambda o, g, k, w, s, bucket: jax.vmap(step, in_axes=(0, 0, 0, None, 0, 0, None))(
-        o, g, k, None, w, s, bucket), static_argnames="bucket")
-    later = jax.jit(batched, static_argnums=6)
+    decide_all = jax.jit(jax.vmap(step, in_axes=(0, 0, 0, 0, None, 0, 0, None)), static_argnums=7)
     measure = jax.jit(jax.vmap(measure))
-    records, init = [], None
+    records, warm = [], False
+    init = jnp.zeros((episodes, cfg.planner.horizon, 4), jnp.float32)  # no warm start at the first step
     for t in range(cfg.steps):
         t0 = time.perf_counter()
         step_keys = jax.vmap(jax.random.fold_in, in_axes=(0, None))(keys, t)
-        omega = (np.full(len(keys), cfg.omega, np.int32) if choose_omega is None
-                 else np.asarray(choose_omega(states.obs, goals), np.int32))
-        buckets = np.array([budget.bucket_for(int(w), cfg.buckets) for w in omega])
-        steps = np.array([cfg.plan_steps(int(b), timing) for b in buckets], np.int32)
-        bucket = int(buckets.max())
-        if init is None:
-            _, c_now, result = first(states.obs, goals, step_keys, jnp.asarray(omega), jnp.asarray(steps),
-                                     bucket=bucket)
+        if oracle is not None:
+            candidates = [np.full(episodes, w, np.int32) for w in oracle]
+        elif choose_omega is not None:
+            candidates = [np.asarray(choose_omega(states.obs, goals), np.int32)]
         else:
-            _, c_now, result = later(states.obs, goals, step_keys, init, jnp.asarray(omega), jnp.asarray(steps), bucket)
-        states = push(states, result.best[:, 0])
-        init = _shift(result.best)
-        distance, success = measure(states.obs, states.pos, goals)
-        planning = (np.array([timing.seconds(int(b), int(s)) for b, s in zip(buckets, steps, strict=True)])
-                    if timing is not None else np.full(len(keys), np.nan))
-        record = {k: np.asarray(v) for k, v in dict(
-            omega=omega, bucket=buckets, plan_steps=steps, planning_s=planning, objective=c_now,
-            predicted_objective=result.best_cost, distance=distance, success=success, broken=states.broken).items()}
+            candidates = [np.full(episodes, cfg.omega, np.int32)]
+        outcomes = []
+        for omega in candidates:
+            buckets = np.array([budget.bucket_for(int(w), cfg.buckets) for w in omega])
+            steps = np.array([cfg.plan_steps(int(b), timing) for b in buckets], np.int32)
+            particles, c_now, result = decide_all(states.obs, goals, step_keys, init, warm, jnp.asarray(omega),
+                                                  jnp.asarray(steps), int(buckets.max()))
+            bad = np.flatnonzero(np.asarray(particles.error))
+            if len(bad):
+                b = int(bad[0])
+                raise ValueError(f"perception failed in episodes {bad.tolist()} at step {t}: " + describe_error(
+                    int(particles.error[b]), int(omega[b]), int(buckets.max()), int(particles.n_points[b])))
+            after = push(states, result.best[:, 0])
+            distance, success = measure(after.obs, after.pos, goals)
+            outcomes.append(dict(omega=omega, bucket=buckets, plan_steps=steps, objective=c_now,
+                                 predicted_objective=result.best_cost, best=result.best, states=after,
+                                 distance=distance, success=success))
+        pick = np.argmin(np.stack([np.asarray(o["distance"]) for o in outcomes]), axis=0)  # [B]: the kept candidate
+        kept = _select(outcomes, pick)
+        states, init, warm = kept["states"], _shift(kept["best"]), True
+        planning = (np.array([timing.seconds(int(b), int(s)) for b, s in zip(kept["bucket"], kept["plan_steps"],
+                                                                             strict=True)])
+                    if timing is not None else np.full(episodes, np.nan))
+        record = {k: np.asarray(kept[k]) for k in ("omega", "bucket", "plan_steps", "objective", "predicted_objective",
+                                                   "distance", "success")}
+        record.update(planning_s=planning, broken=np.asarray(states.broken))
         records.append(dict(step=t, seconds=time.perf_counter() - t0, **record))
-        log(f"step {t + 1:2d}/{cfg.steps}  {len(keys)} episodes  mean ω={record['omega'].mean():5.1f}  mean Adam steps="
-            f"{record['plan_steps'].mean():5.1f}  mean d={record['distance'].mean():7.2f}  "
+        log(f"step {t + 1:2d}/{cfg.steps}  {episodes} episodes  mean ω={record['omega'].mean():5.1f}  mean Adam "
+            f"steps={record['plan_steps'].mean():5.1f}  mean d={record['distance'].mean():7.2f}  "
             f"mean inside={record['success'].mean():5.1%}  {records[-1]['seconds']:5.2f}s")
     return states, records

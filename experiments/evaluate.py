@@ -9,7 +9,10 @@ together: perception and planning vmapped on the JAX device, pushes in C worker 
 ``--time-budget S`` every method plans under the same budget of S seconds per decision, spent by one timing table
 (``timing.json``, measured once per resolution bucket on this device or given by ``--timing``): a coarse ω affords
 more Adam steps. Without it every decision runs ``--plan-steps``.
-"adaptive" picks ω at every step with the regressor g (``--regressor``); "cnn" (not in the default list) is the
+"adaptive" picks ω at every step with the regressor g (``--regressor``); "oracle" (an upper bound, not in the default
+list) plans at every ω of ORACLE_OMEGAS each step, pushes each on a copy of the worlds and keeps the one that left the
+lowest d (``mpc.run_episodes(oracle=...)``); the summary then says how much of the oracle's gain over the best fixed
+ω adaptive recovers (``oracle_gap``); "cnn" (not in the default list) is the
 paper's CNN-dynamics baseline: the same planner at ω = ``--cnn-omega`` (50) with the CNN checkpoint ``--cnn-ckpt``
 (``experiments.train_dynamics --model cnn``) as its model. Writes per method ``METHOD.json`` (final d
 and inside share per episode, means per step; resumable: finished methods are skipped), ``summary.json`` (means with
@@ -39,6 +42,7 @@ from experiments.label_resolution import add_planner_args, check_planner_args, p
 from experiments.task import DEFAULT_CKPT, DEFAULT_REGRESSOR
 
 SUCCESS = 0.9  # Gather succeeds when this share of the pieces is inside the goal
+ORACLE_OMEGAS = (10, 25, 50, 75, 100)  # method "oracle": the ω tried at every step
 DEFAULT_CNN_CKPT = os.path.join(os.path.dirname(DEFAULT_CKPT), "cnn_dynamics")
 
 
@@ -75,7 +79,16 @@ def summarise(results: dict) -> dict:
         paired[method] = dict(
             delta_d=paired_bootstrap(r["final_distance"], ref["final_distance"]),
             success=mcnemar(np.array(r["final_inside"]) >= SUCCESS, np.array(ref["final_inside"]) >= SUCCESS))
-    return dict(methods=out, reference=reference, paired=paired)
+    summary = dict(methods=out, reference=reference, paired=paired)
+    fixed = [m for m in results if m.isdigit()]
+    if fixed and "oracle" in results and "adaptive" in results:  # how much of the oracle's gain adaptive recovers
+        best = min(fixed, key=lambda m: out[m]["final_distance"])
+        gain = out[best]["final_distance"] - out["oracle"]["final_distance"]
+        summary["oracle_gap"] = dict(best_fixed=best, oracle_gain=gain,
+                                     adaptive_gain=out[best]["final_distance"] - out["adaptive"]["final_distance"],
+                                     recovered=((out[best]["final_distance"] - out["adaptive"]["final_distance"]) / gain
+                                                if gain > 0 else None))
+    return summary
 
 
 def label(method: str, r: dict) -> str:
@@ -135,7 +148,8 @@ def main(argv=None):
     parser.add_argument("--episodes", type=int, default=64)
     parser.add_argument("--steps", type=int, default=20, help="MPC steps per episode")
     parser.add_argument("--methods", nargs="+", default=["10", "25", "50", "75", "100", "adaptive"],
-                        help="fixed ω (integers), 'adaptive' (the regressor picks ω) and 'cnn' (the CNN-dynamics "
+                        help="fixed ω (integers), 'adaptive' (the regressor picks ω), 'oracle' (every step keeps the "
+                             "best of ω in ORACLE_OMEGAS by the simulated outcome) and 'cnn' (the CNN-dynamics "
                              "baseline at --cnn-omega)")
     add_planner_args(parser)
     parser.add_argument("--kind", default="coffee")
@@ -153,8 +167,8 @@ def main(argv=None):
     check_planner_args(parser, args)
     for m in args.methods:
         fixed = m.isdigit() and resolution.OMEGA_MIN <= int(m) <= resolution.OMEGA_MAX
-        if m not in ("adaptive", "cnn") and not fixed:
-            parser.error(f"--methods takes 'adaptive', 'cnn' or integers in [{resolution.OMEGA_MIN}, "
+        if m not in ("adaptive", "oracle", "cnn") and not fixed:
+            parser.error(f"--methods takes 'adaptive', 'oracle', 'cnn' or integers in [{resolution.OMEGA_MIN}, "
                          f"{resolution.OMEGA_MAX}], got {m!r}")
     if "cnn" in args.methods:
         check_cnn(parser, args)
@@ -178,16 +192,17 @@ def main(argv=None):
                     results[method] = json.load(f)
                 continue
             dynamics, _, name = cnn_model if method == "cnn" else main_model
-            omega = 50 if method == "adaptive" else args.cnn_omega if method == "cnn" else int(method)
+            omega = args.cnn_omega if method == "cnn" else int(method) if method.isdigit() else 50
             cfg = dataclasses.replace(planner_config(pool.env, args), steps=args.steps, omega=omega)
             chooser = resolution.load_chooser(args.regressor, pool.camera) if method == "adaptive" else None
+            oracle = ORACLE_OMEGAS if method == "oracle" else None
             print(f"{args.task}: method {method}, {args.episodes} episodes, dynamics {name}")
             starts = pool.reset(jax.vmap(lambda i: jax.random.fold_in(jax.random.PRNGKey(args.seed), i))(
                 jnp.arange(args.episodes)))
             if timing is None:  # one table for every method: measured with the main model on episode 0
                 timing = timing_table(args, args.out, starts.obs, goals, main_model[0], cfg, pool.camera)
             states, records = run_episodes(pool, starts, goals, dynamics, cfg, keys, choose_omega=chooser,
-                                           timing=timing)
+                                           timing=timing, oracle=oracle)
             r = dict(final_distance=records[-1]["distance"].tolist(), final_inside=records[-1]["success"].tolist(),
                      mean_distance=[float(x["distance"].mean()) for x in records],
                      mean_inside=[float(x["success"].mean()) for x in records],

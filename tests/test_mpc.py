@@ -105,6 +105,36 @@ def test_pool_episodes_with_per_episode_omega_and_budget_equal_one_at_a_time():
             np.testing.assert_allclose(records[t]["success"][b], one[t]["success"], atol=1e-6)
 
 
+def test_oracle_keeps_the_best_candidate_per_episode():
+    """oracle=(2, 6): each episode keeps the ω whose push left the lower d, and its record equals that of the run at
+    that fixed ω (same keys); an ω beyond the pile's points is named, not planned on empty particles."""
+    from dynres_jax.sim.pool import WorldPool
+
+    sim = SimConfig(scene=SceneConfig(pieces=(6,)), pile=PileConfig(layout="spread"),
+                    push=PushConfig(max_length=0.1, settle_time=0.04), camera=CameraConfig(width=48, height=48))
+    pool = WorldPool(sim)
+    masks = [disc_goal(pool.camera, np.array(c), 0.06) for c in ([0.0, 0.0], [0.05, -0.03], [-0.04, 0.04])]
+    goals = jax.tree.map(lambda *x: np.stack(x), *[make_goal(m, pool.camera, n_samples=32) for m in masks])
+    planner = PlannerConfig(samples=4, steps=3, bound=pool.env.action_bound, max_length=0.1)
+    keys = jax.random.split(jax.random.PRNGKey(2), 3)
+    starts = pool.reset(jax.random.split(jax.random.PRNGKey(3), 3))
+    runs = {}
+    for omega in (2, 6):
+        cfg = MPCConfig(steps=1, omega=omega, buckets=(2, 6), max_points=256, planner=planner)
+        runs[omega] = run_episodes(pool, starts, goals, sweep_dynamics(0.04), cfg, keys, log=lambda s: None)[1][0]
+    cfg = MPCConfig(steps=1, omega=2, buckets=(2, 6), max_points=256, planner=planner)
+    _, records = run_episodes(pool, starts, goals, sweep_dynamics(0.04), cfg, keys, log=lambda s: None, oracle=(2, 6))
+    best = np.where(runs[6]["distance"] < runs[2]["distance"], 6, 2)
+    assert records[0]["omega"].tolist() == best.tolist()
+    for b, w in enumerate(best):
+        np.testing.assert_allclose(records[0]["distance"][b], runs[w]["distance"][b], rtol=1e-6)
+    np.testing.assert_allclose(records[0]["distance"], np.minimum(runs[2]["distance"], runs[6]["distance"]), rtol=1e-6)
+    with pytest.raises(ValueError, match="perception failed in episodes"):
+        run_episodes(pool, starts, goals, sweep_dynamics(0.04), MPCConfig(steps=1, omega=5000, buckets=(5000,),
+                                                                          max_points=256, planner=planner),
+                     keys, log=lambda s: None)
+
+
 def test_time_budget_needs_a_table_for_batched_episodes():
     cfg = MPCConfig(steps=1, omega=5, buckets=(6,), time_budget=0.1)
     with pytest.raises(ValueError, match="timing table"):
