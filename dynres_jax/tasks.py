@@ -29,10 +29,21 @@ def gather_goal(rng: np.random.Generator, env: PileEnv) -> tuple[np.ndarray, dic
     return disc_goal(env.camera, centre, radius), dict(shape="disc", centre=centre.tolist(), radius=radius)
 
 
-def redistribute_goal(rng: np.random.Generator, env: PileEnv, letter: str, centre=None) -> tuple[np.ndarray, dict]:
-    """``letter`` centred near the bin centre (or on ``centre`` [2], m), scaled so its ink covers the target area:
-    (mask [H, W] bool, description)."""
-    target = _target_area(rng, env)
+def disc_and_letter(rng: np.random.Generator, env: PileEnv, letter: str) -> tuple[np.ndarray, np.ndarray, dict]:
+    """The paper's Fig. 4 goal pair: a disc and ``letter`` of the same centre (near the bin centre) and area (the
+    target area): (disc mask, letter mask [H, W] bool, description)."""
+    area = _target_area(rng, env)
+    centre = rng.uniform(-0.03, 0.03, size=2)
+    radius = float(np.sqrt(area / np.pi))
+    letter_mask, info = redistribute_goal(rng, env, letter, centre, area)
+    return disc_goal(env.camera, centre, radius), letter_mask, dict(info, radius=radius, area=area)
+
+
+def redistribute_goal(rng: np.random.Generator, env: PileEnv, letter: str, centre=None,
+                      area: float | None = None) -> tuple[np.ndarray, dict]:
+    """``letter`` centred near the bin centre (or on ``centre`` [2], m), scaled so its ink covers the target area (or
+    ``area``, m²): (mask [H, W] bool, description)."""
+    target = _target_area(rng, env) if area is None else float(area)
     centre = rng.uniform(-0.03, 0.03, size=2) if centre is None else np.asarray(centre, np.float64)
     pixel_area = (2 * env.config.camera.view_half_width / env.camera.width) ** 2
     height = 0.12

@@ -11,8 +11,10 @@ executed in the simulator, averaged over ``--repeats`` plans; d_0 is d before th
 of the GP posterior mean.
 
 Scenes come in shards of ``--batch`` scenes, all simulated, planned and optimised together (vmapped; pushes in C
-worker processes). Pairs for the paper's Fig. 4: in every shard, scenes 2j and 2j + 1 share the pile and differ in
-the goal (a disc vs a letter); shards 2s and 2s + 1 share their goals and differ in the pile (spread vs one blob).
+worker processes). Pairs for the paper's Fig. 4, as the paper poses them: in every shard, scenes 2j and 2j + 1 share
+the pile and differ in the goal (a disc and a letter of the same centre, near the bin centre, and the same area);
+shards 2s and 2s + 1 share their goals and differ in the pile (spread over the bin vs one blob near the bin centre,
+so near the goal).
 Each shard is written atomically (``shard_NNNNN.npz``) and a rerun skips finished shards.
 """
 
@@ -38,16 +40,20 @@ from dynres_jax.sim.pool import WorldPool, process_pool
 from experiments.task import DEFAULT_CKPT
 
 FIRST = (2, 25, 50, 75, 100)  # the reference's initial ω
-LAYOUTS = ("spread", "blob")
 LETTERS = "JTU"
 
 
+NEAR_GOAL = 0.03  # m: "near the goal" piles and every goal centre lie within this of the bin centre
+
+
 def scene_config(args, shard: int) -> SimConfig:
-    layout = LAYOUTS[shard % 2]
+    """Shard 2s: spread piles; shard 2s + 1: one blob near the bin centre, so near the (central) goals."""
+    pile = (PileConfig(layout="spread") if shard % 2 == 0 else
+            PileConfig(layout="blob", centre_margin=SceneConfig.bin_half_width - NEAR_GOAL))
     push = PushConfig(max_length=0.1, settle_time=0.04) if args.quick else PushConfig()
     camera = CameraConfig(width=64, height=64) if args.quick else CameraConfig()
-    return SimConfig(scene=SceneConfig(kinds=(args.kind,), pieces=(args.pieces,)), pile=PileConfig(layout=layout),
-                     push=push, camera=camera)
+    return SimConfig(scene=SceneConfig(kinds=(args.kind,), pieces=(args.pieces,)), pile=pile, push=push,
+                     camera=camera)
 
 
 def add_planner_args(parser) -> None:
@@ -107,17 +113,14 @@ def timing_table(args, out_dir: str, obs, goal, dynamics, cfg: MPCConfig, camera
 
 
 def shard_goals(args, shard: int, env) -> tuple[np.ndarray, np.ndarray]:
-    """Goal masks [B, H, W] and shapes [B] (0 disc, 1 letter) of a shard; shards 2s and 2s + 1 draw the same."""
-    masks, shapes = [], []
-    for j in range(args.batch):
+    """Goal masks [B, H, W] and shapes [B] (0 disc, 1 letter) of a shard: scenes 2j and 2j + 1 a disc and a letter of
+    the same centre (near the bin centre) and area (``tasks.disc_and_letter``); shards 2s and 2s + 1 draw the same."""
+    masks = []
+    for j in range(0, args.batch, 2):
         rng = np.random.default_rng((args.seed, shard // 2, j // 2))
-        if j % 2 == 0:
-            mask, _ = tasks.gather_goal(rng, env)
-        else:
-            mask, _ = tasks.redistribute_goal(rng, env, LETTERS[rng.integers(len(LETTERS))])
-        masks.append(mask)
-        shapes.append(j % 2)
-    return np.stack(masks), np.array(shapes)
+        disc, letter, _ = tasks.disc_and_letter(rng, env, LETTERS[rng.integers(len(LETTERS))])
+        masks += [disc, letter]
+    return np.stack(masks), np.arange(args.batch) % 2
 
 
 def label_shard(args, shard: int, dynamics, processes, timings: list) -> dict:

@@ -4,8 +4,9 @@
     python -m experiments.tradeoff --surface --out runs/surface [--scenes 128]
     python -m experiments.tradeoff --reliability runs/labels_a runs/labels_b --out runs/reliability
 
-Fig. 4 (``--labels``, from experiments.label_resolution): c+(ω) for the same pile with a disc vs a letter goal, and
-for the same goal with a spread vs a gathered pile, and how often each claim holds.
+Fig. 4 (``--labels``, from experiments.label_resolution): c+(ω) for the same pile with a disc vs a letter goal of the
+same centre and area, and for the same central disc goal with a spread pile vs a pile near it, and how often each
+claim holds.
 
 The anytime surface (``--surface``): c*, the distribution distance d after one push planned with N Adam steps at
 resolution ω and executed in the simulator, for every ω in SURFACE_OMEGAS and N in SURFACE_STEPS, on two kinds of
@@ -84,8 +85,8 @@ def main(argv=None):
     for s, z in shards.items():
         letter_vs_disc.append((z["label"][1::2], z["label"][0::2]))  # scenes 2j + 1 (letter) vs 2j (disc)
         examples.setdefault("goal", (z, 0, 1))
-        if s % 2 == 0 and s + 1 in shards:  # shard s spread, s + 1 one blob, same goals
-            blob_vs_spread.append((shards[s + 1]["label"], z["label"]))
+        if s % 2 == 0 and s + 1 in shards:  # shard s spread, s + 1 one blob near the goal, same goals: the discs
+            blob_vs_spread.append((shards[s + 1]["label"][0::2], z["label"][0::2]))
             examples.setdefault("pile", (z, shards[s + 1]))
     ld = [np.concatenate(x) for x in zip(*letter_vs_disc, strict=True)]
     result = dict(letter_vs_disc=compare(*ld))

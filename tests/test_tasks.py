@@ -30,3 +30,18 @@ def test_gather_disc_holds_the_pile(env, seed):
 def test_redistribute_letter_holds_the_pile(env, letter):
     mask, info = tasks.redistribute_goal(np.random.default_rng(0), env, letter)
     assert info["text"] == letter and tasks.FILL[0] * 0.85 < _fill(env, mask) < tasks.FILL[1] * 1.15
+
+
+@pytest.mark.parametrize("letter", ["T", "J", "U"])
+def test_disc_and_letter_share_centre_and_area(env, letter):
+    """Fig. 4's goal pair: the letter's ink bounding box is centred on the disc's centre and their areas agree."""
+    disc, text, info = tasks.disc_and_letter(np.random.default_rng(5), env, letter)
+    assert disc.sum() == pytest.approx(text.sum(), rel=0.1)
+    assert tasks.FILL[0] * 0.9 < _fill(env, disc) < tasks.FILL[1] * 1.1
+
+    def box_centre(mask):
+        rows, cols = np.nonzero(mask)
+        return np.array([(cols.min() + cols.max()) / 2, (rows.min() + rows.max()) / 2])
+
+    np.testing.assert_allclose(box_centre(disc), box_centre(text), atol=1.5)  # pixels
+    assert np.all(np.abs(info["centre"]) <= 0.03)
