@@ -88,13 +88,17 @@ def neg_log_marginal_likelihood(log_params, x, y, mask):
     return 0.5 * y @ alpha + jnp.sum(jnp.log(jnp.diag(chol))) + 0.5 * n * jnp.log(2 * jnp.pi)
 
 
-def fit_gp(omega, target, mask, key, starts: int = 8, steps: int = 150) -> GP:
+def fit_gp(omega, target, mask, key, starts: int = 8, steps: int = 150, noise_floor=0.0) -> GP:
     """Fit the GP to observations omega [K] (integers), target [K] (c+), mask [K]: Adam on the log
-    hyperparameters from ``starts`` random starts within LOG_BOUNDS (clipped to them), keeping the best."""
+    hyperparameters from ``starts`` random starts within LOG_BOUNDS (clipped to them), keeping the best.
+    noise_floor: the least noise variance, in target units² (the measured variance of an observation, e.g. of a mean
+    of repeated plans); the fitted noise never goes below it (nor below LOG_BOUNDS' floor, nor above its ceiling)."""
     x = scale_omega(omega)
     mask = jnp.asarray(mask, bool)
     y, mean, std = _normalise(jnp.asarray(target, jnp.float32), mask)
     lo, hi = jnp.asarray(LOG_BOUNDS[:, 0]), jnp.asarray(LOG_BOUNDS[:, 1])
+    floor = jnp.log(jnp.clip(jnp.asarray(noise_floor, jnp.float32) / jnp.square(std), 1e-30, 1.0))
+    lo = lo.at[2].set(jnp.minimum(jnp.maximum(lo[2], floor), hi[2]))
     init = lo + (hi - lo) * jax.random.uniform(key, (starts, 3))
     loss = lambda p: neg_log_marginal_likelihood(p, x, y, mask)  # noqa: E731
     opt = optax.adam(0.05)
@@ -135,10 +139,10 @@ def expected_improvement(mean, std, best, xi: float = 0.01):
 CANDIDATES = np.arange(OMEGA_MIN, OMEGA_MAX + 1)  # every integer ω (NumPy: no device work at import)
 
 
-def next_omega(omega, target, mask, key):
+def next_omega(omega, target, mask, key, noise_floor=0.0):
     """The next ω to try: the untried integer in [OMEGA_MIN, OMEGA_MAX] of largest Expected Improvement over the
-    best observed c+. Pure; vmap over scenes."""
-    gp = fit_gp(omega, target, mask, key)
+    best observed c+ (noise_floor: ``fit_gp``'s). Pure; vmap over scenes."""
+    gp = fit_gp(omega, target, mask, key, noise_floor=noise_floor)
     mean, std = posterior(gp, CANDIDATES)
     best = jnp.min(jnp.where(mask, target, jnp.inf))
     ei = expected_improvement(mean, std, best, xi=0.01 * gp.y_std)
@@ -147,9 +151,10 @@ def next_omega(omega, target, mask, key):
     return cands[jnp.argmax(jnp.where(tried, -jnp.inf, ei))]
 
 
-def best_omega(omega, target, mask, key):
-    """The BO label: (argmin over integer ω of the GP posterior mean, the mean curve [len(CANDIDATES)])."""
-    mean, _ = posterior(fit_gp(omega, target, mask, key), CANDIDATES)
+def best_omega(omega, target, mask, key, noise_floor=0.0):
+    """The BO label: (argmin over integer ω of the GP posterior mean, the mean curve [len(CANDIDATES)];
+    noise_floor: ``fit_gp``'s)."""
+    mean, _ = posterior(fit_gp(omega, target, mask, key, noise_floor=noise_floor), CANDIDATES)
     return jnp.asarray(CANDIDATES)[jnp.argmin(mean)], mean
 
 

@@ -8,7 +8,8 @@ For every scene (a settled pile and a goal), ``c+(ω) = c*(ω) + w_R · d_0 · �
 push planned at ω under the time budget (``--time-budget`` seconds per decision on this device, spent by a timing
 table measured once per resolution bucket and saved as ``timing.json``: a coarse ω affords more Adam steps) and
 executed in the simulator, averaged over ``--repeats`` plans; d_0 is d before the push. The label is the argmin
-of the GP posterior mean.
+of the GP posterior mean; the GP's noise is never below the measured variance of an evaluation (the repeats'
+variance over their count, averaged over the scene's evaluations so far; ``repeat_var`` in the shards).
 
 Scenes come in shards of ``--batch`` scenes, all simulated, planned and optimised together (vmapped; pushes in C
 worker processes). Pairs for the paper's Fig. 4, as the paper poses them: in every shard, scenes 2j and 2j + 1 share
@@ -151,33 +152,38 @@ def label_shard(args, shard: int, dynamics, processes, timings: list) -> dict:
     starts, goals_r = jax.tree.map(rep, start), jax.tree.map(rep, goals)
 
     def c_star(omega, i):
-        """c*(ω) [B] of every scene, and the Adam steps [B] each plan ran (its bucket's, under the budget)."""
+        """c*(ω) [B] of every scene (the mean of its repeats), the variance of that mean [B] (0 with one repeat) and
+        the Adam steps [B] each plan ran (its bucket's, under the budget)."""
         keys = jax.random.split(jax.random.fold_in(jax.random.PRNGKey(plan_seed), shard * 100 + i), b * r)
         buckets = [budget.bucket_for(int(w), cfg.buckets) for w in np.asarray(omega)]
         steps = np.array([cfg.plan_steps(bk, timing) for bk in buckets], np.int32)
         actions = plan_all(starts.obs, goals_r, keys, rep(omega), rep(jnp.asarray(steps)), max(buckets))
         after = pool.push(starts, actions)
-        return measure(after.obs, goals_r).reshape(b, r).mean(axis=1), steps
+        values = np.asarray(measure(after.obs, goals_r)).reshape(b, r)
+        spread = values.var(axis=1, ddof=1) / r if r > 1 else np.zeros(b)
+        return jnp.asarray(values.mean(axis=1)), spread, steps
 
     k = args.evals
     omega = jnp.zeros((b, k), jnp.int32)
     target, c_stars, plan_steps = jnp.zeros((b, k)), jnp.zeros((b, k)), np.zeros((b, k), np.int32)
+    repeat_var = np.zeros((b, k))  # the measured variance of each evaluation: the GP's noise floor is its mean
     mask = jnp.zeros((b, k), bool)
     propose = jax.jit(jax.vmap(resolution.next_omega))
     for i in range(k):
         if i < len(FIRST):
             w = jnp.full(b, FIRST[i], jnp.int32)
         else:
-            w = propose(omega, target, mask, jax.random.split(jax.random.fold_in(jax.random.PRNGKey(plan_seed), i), b))
-        c, plan_steps[:, i] = c_star(w, i)
+            w = propose(omega, target, mask, jax.random.split(jax.random.fold_in(jax.random.PRNGKey(plan_seed), i), b),
+                        jnp.asarray(repeat_var[:, :i].mean(axis=1)))
+        c, repeat_var[:, i], plan_steps[:, i] = c_star(w, i)
         omega, mask = omega.at[:, i].set(w), mask.at[:, i].set(True)
         c_stars, target = c_stars.at[:, i].set(c), target.at[:, i].set(resolution.penalised(c, d0, w))
     label, mean = jax.jit(jax.vmap(resolution.best_omega))(omega, target, mask, jax.random.split(
-        jax.random.fold_in(jax.random.PRNGKey(plan_seed), 100_000 + shard), b))
+        jax.random.fold_in(jax.random.PRNGKey(plan_seed), 100_000 + shard), b), jnp.asarray(repeat_var.mean(axis=1)))
     inputs = jax.vmap(lambda o, m: resolution.observation_input(o, m, camera))(start.obs, jnp.asarray(goal_masks))
     return dict(inputs=np.asarray(inputs), label=np.asarray(label), gp_mean=np.asarray(mean),
                 omega=np.asarray(omega), c_plus=np.asarray(target), c_star=np.asarray(c_stars), d0=np.asarray(d0),
-                plan_steps=plan_steps,
+                plan_steps=plan_steps, repeat_var=repeat_var,
                 goal_shape=shapes, layout=np.full(b, shard % 2), pile=np.arange(b) // 2, shard=np.int64(shard))
 
 

@@ -53,6 +53,7 @@ def test_labels_follow_the_bo_recipe_and_resume(labels):
         assert np.all(z["pile"] == [0, 0, 1, 1]) and np.all(z["goal_shape"] == [0, 1, 0, 1])
         expect = np.vectorize(lambda w: AFFORDED[bucket_for(int(w))])(z["omega"])
         assert np.array_equal(z["plan_steps"], expect)  # every ω planned with its bucket's share of the budget
+        assert z["repeat_var"].shape == z["omega"].shape and np.all(z["repeat_var"] == 0)  # one repeat: no spread
     assert TimingTable.load(os.path.join(out, "timing.json")).to_json() == TABLE.to_json()  # saved with the labels
     again = label_resolution.main(["--out", out, *QUICK])
     assert again["shards_written"] == 0 and again["scenes"] == 8

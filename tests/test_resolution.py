@@ -104,3 +104,20 @@ def test_regressor_range_and_choose_omega_batches():
     x = res.regressor_input(masks[1], masks[1])
     one = res.choose_omega(*nnx.split(model), x)
     assert int(one) == int(np.clip(np.round(float(model(x))), 2, 100))
+
+
+def test_gp_noise_never_below_the_measured_floor():
+    """With a noise floor (target units²) the fitted noise variance, back in target units, is at least the floor;
+    a floor of 0 fits as before; a floor beyond the target's variance is held at LOG_BOUNDS' ceiling."""
+    omega = jnp.array([2, 25, 50, 75, 100, 37, 60, 0])
+    target = jnp.sin(omega / 15.0) * 3.0 + 10.0
+    mask = jnp.arange(8) < 7
+    key = jax.random.PRNGKey(0)
+    plain = res.fit_gp(omega, target, mask, key)
+    np.testing.assert_array_equal(res.fit_gp(omega, target, mask, key, noise_floor=0.0).log_params, plain.log_params)
+    assert float(jnp.exp(plain.log_params[2]) * plain.y_std**2) < 0.5  # a smooth curve: little noise fitted
+    for floor in (0.5, 2.0):
+        gp = res.fit_gp(omega, target, mask, key, noise_floor=floor)
+        assert float(jnp.exp(gp.log_params[2]) * gp.y_std**2) >= floor * (1 - 1e-4)
+    huge = res.fit_gp(omega, target, mask, key, noise_floor=1e6)
+    np.testing.assert_allclose(float(huge.log_params[2]), res.LOG_BOUNDS[2, 1], rtol=1e-6)
