@@ -15,13 +15,15 @@ Scenes come in shards of ``--batch`` scenes, all simulated, planned and optimise
 worker processes). Pairs for the paper's Fig. 4, as the paper poses them: in every shard, scenes 2j and 2j + 1 share
 the pile and differ in the goal (a disc and a letter of the same centre, near the bin centre, and the same area);
 shards 2s and 2s + 1 share their goals and differ in the pile (spread over the bin vs one blob near the bin centre,
-so near the goal).
+so near the goal). With ``--mid-episode K`` each scene first runs K steps of the closed loop towards its goal, so the
+labels cover the states adaptive ω meets mid-episode (the pairs then no longer share their piles).
 Each shard is written atomically (``shard_NNNNN.npz``) and a rerun skips finished shards.
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import glob
 import os
 import time
@@ -34,13 +36,14 @@ from tqdm import tqdm
 from dynres_jax import budget, files, resolution, tasks
 from dynres_jax.config import CameraConfig, PileConfig, PushConfig, SceneConfig, SimConfig
 from dynres_jax.data import parse_part, save_npz, shard_path, shards_todo
-from dynres_jax.mpc import MPCConfig, decide, load_dynamics, measure_timing
+from dynres_jax.mpc import MPCConfig, decide, load_dynamics, measure_timing, run_episodes
 from dynres_jax.objective import distribution_distance, make_goal
 from dynres_jax.planner import PlannerConfig
 from dynres_jax.sim.pool import WorldPool, process_pool
 from experiments.task import DEFAULT_CKPT
 
 FIRST = (2, 25, 50, 75, 100)  # the reference's initial ω
+MID_EPISODE_OMEGA = 50  # the resolution of the closed loop that brings scenes mid-episode (--mid-episode)
 LETTERS = "JTU"
 
 
@@ -137,15 +140,19 @@ def label_shard(args, shard: int, dynamics, processes, timings: list) -> dict:
     goal_masks, shapes = shard_goals(args, shard, pool.env)
     goals = jax.tree.map(lambda *g: jnp.stack(g), *[make_goal(m, camera) for m in goal_masks])
     measure = jax.jit(jax.vmap(lambda obs, goal: distribution_distance(obs, goal, camera)))
-    d0 = measure(start.obs, goals)
-
     if not timings:
         timings.append(timing_table(args, args.out, start.obs, goals, dynamics, cfg, camera))
     timing = timings[0]
     plan_seed = args.seed + 1 if args.plan_seed is None else args.plan_seed
+    if args.mid_episode:  # the closed loop at ω = MID_EPISODE_OMEGA first: scenes as adaptive ω meets them
+        mid = dataclasses.replace(cfg, steps=args.mid_episode, omega=MID_EPISODE_OMEGA)
+        keys = jax.random.split(jax.random.fold_in(jax.random.PRNGKey(plan_seed), 200_000 + shard), b)
+        start, _ = run_episodes(pool, start, goals, dynamics, mid, keys, log=lambda s: None, timing=timing)
+    d0 = measure(start.obs, goals)
 
     def plan_at(obs, goal, key, omega, steps, bucket):
-        return decide(obs, goal, key, None, dynamics, cfg, camera, omega, bucket=bucket, steps=steps)[2].best[0]
+        particles, _, result = decide(obs, goal, key, None, dynamics, cfg, camera, omega, bucket=bucket, steps=steps)
+        return result.best[0], particles.error
 
     plan_all = jax.jit(jax.vmap(plan_at, in_axes=(0, 0, 0, 0, 0, None)), static_argnums=5)
     rep = lambda x: jnp.repeat(x, r, axis=0)  # noqa: E731  [B] -> [B * R], repeats of a scene adjacent
@@ -157,7 +164,11 @@ def label_shard(args, shard: int, dynamics, processes, timings: list) -> dict:
         keys = jax.random.split(jax.random.fold_in(jax.random.PRNGKey(plan_seed), shard * 100 + i), b * r)
         buckets = [budget.bucket_for(int(w), cfg.buckets) for w in np.asarray(omega)]
         steps = np.array([cfg.plan_steps(bk, timing) for bk in buckets], np.int32)
-        actions = plan_all(starts.obs, goals_r, keys, rep(omega), rep(jnp.asarray(steps)), max(buckets))
+        actions, error = plan_all(starts.obs, goals_r, keys, rep(omega), rep(jnp.asarray(steps)), max(buckets))
+        if np.any(np.asarray(error)):
+            bad = np.flatnonzero(np.asarray(error)) // r
+            raise ValueError(f"shard {shard}: perception failed for scenes {sorted(set(bad.tolist()))} at "
+                             f"ω = {np.asarray(omega)[bad].tolist()} (fewer foreground points than ω?)")
         after = pool.push(starts, actions)
         values = np.asarray(measure(after.obs, goals_r)).reshape(b, r)
         spread = values.var(axis=1, ddof=1) / r if r > 1 else np.zeros(b)
@@ -184,7 +195,8 @@ def label_shard(args, shard: int, dynamics, processes, timings: list) -> dict:
     return dict(inputs=np.asarray(inputs), label=np.asarray(label), gp_mean=np.asarray(mean),
                 omega=np.asarray(omega), c_plus=np.asarray(target), c_star=np.asarray(c_stars), d0=np.asarray(d0),
                 plan_steps=plan_steps, repeat_var=repeat_var,
-                goal_shape=shapes, layout=np.full(b, shard % 2), pile=np.arange(b) // 2, shard=np.int64(shard))
+                goal_shape=shapes, layout=np.full(b, shard % 2), pile=np.arange(b) // 2, shard=np.int64(shard),
+                mid_episode=np.int64(args.mid_episode))
 
 
 def main(argv=None):
@@ -205,6 +217,9 @@ def main(argv=None):
     parser.add_argument("--plan-seed", type=int, default=None,
                         help="the plans and the BO's random draws (default: --seed + 1); the same --seed with another "
                              "--plan-seed labels the same scenes again independently (label reliability)")
+    parser.add_argument("--mid-episode", type=int, default=0, metavar="K",
+                        help=f"label mid-episode states: each scene first runs K MPC steps towards its goal at "
+                             f"ω = {MID_EPISODE_OMEGA} under the same budget (default 0: fresh piles, Fig. 4's pairs)")
     parser.add_argument("--part", default="0/1", help="I/K: label only shards I, I + K, ... so K machines share a "
                         "run over one folder (default 0/1: all)")
     parser.add_argument("--quick", action="store_true", help="tiny sizes for a CPU smoke run")
@@ -214,11 +229,13 @@ def main(argv=None):
     except ValueError as e:
         parser.error(str(e))
     if args.quick:
-        args.scenes, args.batch, args.evals, args.repeats, args.pieces = 8, 4, 6, 1, 8
+        args.scenes, args.batch, args.evals, args.repeats, args.pieces = 8, 4, 6, 1, 60  # 60: points for ω = 100
         args.samples, args.plan_steps = 4, 4
     if args.batch % 2 or args.batch < 2:
         parser.error("--batch must be even (scenes come in pairs)")
     check_planner_args(parser, args)
+    if args.mid_episode < 0:
+        parser.error(f"--mid-episode must be >= 0, got {args.mid_episode}")
     if args.evals <= len(FIRST):
         parser.error(f"--evals must exceed the {len(FIRST)} initial evaluations")
     dynamics, n_max, name = load_dynamics(args.dynamics, args.ckpt, SceneConfig.plate_half_width)

@@ -59,6 +59,17 @@ def test_labels_follow_the_bo_recipe_and_resume(labels):
     assert again["shards_written"] == 0 and again["scenes"] == 8
 
 
+def test_mid_episode_labels_start_from_pushed_piles(labels, timing, tmp_path):
+    """--mid-episode 1: the same scenes, each first pushed once towards its goal by the closed loop, then labelled;
+    every pile has moved (d before the labelled push differs from the fresh scene's)."""
+    summary = label_resolution.main(["--out", str(tmp_path), *QUICK, *timing, "--mid-episode", "1"])
+    assert summary["scenes"] == 8
+    for shard in ("shard_00000.npz", "shard_00001.npz"):
+        fresh, mid = np.load(os.path.join(labels[0], shard)), np.load(tmp_path / shard)
+        assert int(mid["mid_episode"]) == 1 and int(fresh["mid_episode"]) == 0
+        assert np.all(np.abs(mid["d0"] - fresh["d0"]) > 1e-6)
+
+
 def test_regressor_checkpoint_and_metrics(regressor):
     out, metrics = regressor
     assert metrics["train"] + metrics["validation"] + metrics["held_out"] == 8 and np.isfinite(metrics["mae"])
