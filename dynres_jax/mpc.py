@@ -6,8 +6,8 @@ a plain count, or a time budget in seconds through a ``budget.TimingTable``), pl
 of the particles the dynamics model predicts (``planner.plan``), executes the first push of the best sequence in the
 simulator, and records: ω, the bucket, the Adam steps run, c of the particles before planning, the c the planner
 predicted, the distribution distance d and the share of pieces inside the goal after the push, and the planning
-time. The previous plan, shifted, warm-starts the
-next. Dynamics: a trained ``Dynamics`` model (``learned_dynamics``) or the sweep heuristic (``sweep_dynamics``).
+time. The previous plan, shifted, warm-starts the next. Dynamics: a trained ``Dynamics`` model (``learned_dynamics``)
+or the sweep heuristic (``sweep_dynamics``).
 """
 
 from __future__ import annotations
@@ -28,7 +28,7 @@ from dynres_jax import budget
 from dynres_jax.dynamics import Dynamics, edge_table, resolution_code, rollout
 from dynres_jax.graph import sweep_rollout
 from dynres_jax.objective import SAMPLES_PER_PARTICLE, Goal, distribution_distance, inside_share, objective
-from dynres_jax.perception import describe_error, point_cloud, sample_particles
+from dynres_jax.perception import check_particles, point_cloud, sample_particles
 from dynres_jax.planner import PlannerConfig, plan, sample_pushes
 
 if TYPE_CHECKING:  # annotations only: the planning half of this module needs no simulator (nor MuJoCo)
@@ -66,6 +66,11 @@ class MPCConfig:
             raise ValueError(f"the timing table was measured for {table.samples} samples x horizon {table.horizon}, "
                              f"the planner has {self.planner.samples} x {self.planner.horizon}: measure it again")
         return budget.plan_steps(bucket, self.planner.steps, self.time_budget, table)
+
+    def allot(self, omegas, table: budget.TimingTable | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Per decision of a batch at omegas [B]: its bucket [B] and the Adam steps [B] it runs (``plan_steps``)."""
+        buckets = np.array([budget.bucket_for(int(w), self.buckets) for w in np.asarray(omegas)])
+        return buckets, np.array([self.plan_steps(int(b), table) for b in buckets], np.int32)
 
 
 EDGE_DTYPES = ("float32", "bfloat16")  # ``learned_dynamics``'s choices for the GNN's per-edge network
@@ -205,14 +210,12 @@ def _decide_compiled(obs, goal, key, init, warm, omega, steps, *, dynamics, cfg,
 def decide_compiled(obs, goal: Goal, key, init, warm, omega, steps, dynamics, cfg: MPCConfig, camera, bucket: int):
     """``decide`` as one compiled function per bucket (and model, camera and planner): what the closed loop runs and
     its timing table measures. init [T, 4] always (ignored unless warm); warm, omega and steps are traced. The
-    particles are checked: bad perception input raises a ValueError naming it (``perception.describe_error``)."""
+    particles are checked: bad perception input raises a ValueError naming it (``perception.check_particles``)."""
     key_cfg = replace(cfg, steps=1, omega=1, time_budget=None)  # fields a decision does not read: one compile
     particles, c_now, result = _decide_compiled(obs, goal, key, jnp.asarray(init, jnp.float32), jnp.asarray(warm),
                                                 jnp.asarray(omega, jnp.int32), jnp.asarray(steps, jnp.int32),
                                                 dynamics=dynamics, cfg=key_cfg, camera=camera, bucket=bucket)
-    if int(particles.error):
-        raise ValueError("perception: " + describe_error(int(particles.error), omega, bucket,
-                                                         int(particles.n_points)))
+    check_particles(particles, omega, bucket, "perception")
     return particles, c_now, result
 
 
@@ -347,15 +350,10 @@ def run_episodes(env, states: State, goals: Goal, dynamics, cfg: MPCConfig, keys
             candidates = [np.full(episodes, cfg.omega, np.int32)]
         outcomes = []
         for omega in candidates:
-            buckets = np.array([budget.bucket_for(int(w), cfg.buckets) for w in omega])
-            steps = np.array([cfg.plan_steps(int(b), timing) for b in buckets], np.int32)
+            buckets, steps = cfg.allot(omega, timing)
             particles, c_now, result = decide_all(states.obs, goals, step_keys, init, warm, jnp.asarray(omega),
                                                   jnp.asarray(steps), int(buckets.max()))
-            bad = np.flatnonzero(np.asarray(particles.error))
-            if len(bad):
-                b = int(bad[0])
-                raise ValueError(f"perception failed in episodes {bad.tolist()} at step {t}: " + describe_error(
-                    int(particles.error[b]), int(omega[b]), int(buckets.max()), int(particles.n_points[b])))
+            check_particles(particles, omega, int(buckets.max()), f"step {t}: perception failed in episodes")
             after = push(states, result.best[:, 0])
             distance, success = measure(after.obs, after.pos, goals)
             outcomes.append(dict(omega=omega, bucket=buckets, plan_steps=steps, objective=c_now,

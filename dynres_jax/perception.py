@@ -172,6 +172,19 @@ def describe_error(error: int, omega=None, n_max=None, n_points=None) -> str:
     return "; ".join(problems)
 
 
+def check_particles(particles: Particles, omega, n_max, what: str) -> None:
+    """Raise a ValueError naming the problem when any of concrete ``particles`` (one set, or a batch [B]: then the
+    failing indices are named too) has error bits. omega: the ω asked for (an int, or [B]); n_max: the slots."""
+    error = np.asarray(particles.error)
+    if not error.any():
+        return
+    bad = np.flatnonzero(error)
+    first = int(bad[0]) if error.ndim else ()
+    where = f"{what} {bad.tolist()}: " if error.ndim else f"{what}: "
+    raise ValueError(where + describe_error(int(error[first]), int(np.asarray(omega)[first]), n_max,
+                                            int(np.asarray(particles.n_points)[first])))
+
+
 def sample_particles(observation: Observation, camera: Camera, omega, key, n_max: int, *,
                      max_points: int | None = None, r_center=None, margin: float = FOREGROUND_MARGIN,
                      workspace: float = WORKSPACE_HALF_WIDTH, kind=None, colour=None,
@@ -194,6 +207,6 @@ def sample_particles(observation: Observation, camera: Camera, omega, key, n_max
     foreground_kw = dict(margin=margin, workspace=workspace, kind=kind, colour=colour, colour_tol=colour_tol)
     out = _sample_particles(observation, camera, omega, key, int(n_max), max_points and int(max_points), r_center,
                             foreground_kw)
-    if not isinstance(out.error, jax.core.Tracer) and int(out.error):
-        raise ValueError("sample_particles: " + describe_error(int(out.error), omega, n_max, int(out.n_points)))
+    if not isinstance(out.error, jax.core.Tracer):
+        check_particles(out, omega, n_max, "sample_particles")
     return out

@@ -264,7 +264,7 @@ def plan(dynamics_fn, cost_fn, positions, mask, key, config: PlannerConfig = Pla
     if steps is None:
         steps = config.steps
     concrete = not isinstance(steps, jax.core.Tracer)
-    if concrete and not 0 <= int(np.max(steps)) <= config.steps:
+    if concrete and not 0 <= int(np.min(steps)) <= int(np.max(steps)) <= config.steps:
         raise ValueError(f"steps={steps} must lie in [0, PlannerConfig.steps={config.steps}]")
     if init is not None:
         init = jnp.asarray(init, jnp.float32)

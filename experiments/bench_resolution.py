@@ -65,16 +65,16 @@ def run(quick: bool, batch: str | None = None) -> dict:
     dynamics = dynamics(PARTICLE_RADIUS)
     config = PlannerConfig(samples=samples, resamples=resamples, steps=sizes["steps"])
     t0 = time.perf_counter()
+    def ms_at(omega, slots):  # ms per step of ω valid particles in ``slots`` slots
+        positions = _piles(slots, resamples, seed=omega)
+        mask = np.broadcast_to(np.arange(slots) < omega, (resamples, slots))
+        return _ms_per_step(dynamics, goal_cost(goal, camera, slots), positions, mask, config, sizes["steps"],
+                            sizes["repeats"])
+
     ms, padded = {}, {}
     for omega in OMEGAS:
-        for slots, out in ((bucket_for(omega), ms), (100, padded)):
-            if slots == 100 and omega in ms and bucket_for(omega) == 100:
-                out[omega] = ms[omega]  # ω's own bucket is 100: the same plan
-                continue
-            positions = _piles(slots, resamples, seed=omega)
-            mask = np.broadcast_to(np.arange(slots) < omega, (resamples, slots))
-            out[omega] = _ms_per_step(dynamics, goal_cost(goal, camera, slots), positions, mask, config,
-                                      sizes["steps"], sizes["repeats"])
+        ms[omega] = ms_at(omega, bucket_for(omega))
+        padded[omega] = ms[omega] if bucket_for(omega) == 100 else ms_at(omega, 100)  # bucket 100: the same plan
         print(f"  ω = {omega:3d}: {ms[omega]:8.3f} ms/step in bucket {bucket_for(omega):3d}, "
               f"{padded[omega]:8.3f} padded to 100", flush=True)
     result = dict(device=f"{device.platform}: {device.device_kind}", jax_version=jax.__version__, quick=quick,

@@ -38,9 +38,10 @@ from dynres_jax.config import CameraConfig, PileConfig, PushConfig, SceneConfig,
 from dynres_jax.data import parse_part, save_npz, shard_path, shards_todo
 from dynres_jax.mpc import MPCConfig, decide, load_dynamics, measure_timing, run_episodes
 from dynres_jax.objective import distribution_distance, make_goal
+from dynres_jax.perception import check_particles
 from dynres_jax.planner import PlannerConfig
 from dynres_jax.sim.pool import WorldPool, process_pool
-from experiments.task import DEFAULT_CKPT
+from experiments.task import DEFAULT_CKPT, add_budget_args, load_timing
 
 FIRST = (2, 25, 50, 75, 100)  # the reference's initial ω
 MID_EPISODE_OMEGA = 50  # the resolution of the closed loop that brings scenes mid-episode (--mid-episode)
@@ -62,12 +63,7 @@ def scene_config(args, shard: int) -> SimConfig:
 
 def add_planner_args(parser) -> None:
     """The planner flags shared with ``experiments.evaluate``."""
-    parser.add_argument("--time-budget", type=float, default=None, metavar="S",
-                        help="seconds per decision on this device: each decision runs the Adam steps that fit, at "
-                             "most --plan-steps (default: none, --plan-steps every decision)")
-    parser.add_argument("--timing", default=None, metavar="FILE",
-                        help="a timing table (timing.json of an earlier run) to spend the time budget by, so the "
-                             "run's step counts are reproduced on any machine (default: measured here)")
+    add_budget_args(parser)
     parser.add_argument("--samples", type=int, default=20, help="action sequences per plan (paper M = 20)")
     parser.add_argument("--plan-steps", type=int, default=100, help="Adam steps per plan (the most, under a budget)")
     parser.add_argument("--horizon", type=int, default=1, help="pushes per planned sequence (paper T = 1)")
@@ -75,15 +71,7 @@ def add_planner_args(parser) -> None:
 
 def check_planner_args(parser, args) -> None:
     """parser.error naming a bad planner flag, before any work."""
-    if args.time_budget is not None and not args.time_budget > 0:
-        parser.error(f"--time-budget must be a positive number of seconds, got {args.time_budget}")
-    if args.timing is not None:
-        if args.time_budget is None:
-            parser.error("--timing needs --time-budget (the table spends a time budget)")
-        try:
-            budget.TimingTable.load(args.timing)
-        except (OSError, ValueError, TypeError) as e:
-            parser.error(f"--timing {args.timing}: {e}")
+    load_timing(parser, args)
     if args.plan_steps < 1 or args.samples < 1:
         parser.error("--plan-steps and --samples must be positive")
 
@@ -152,7 +140,7 @@ def label_shard(args, shard: int, dynamics, processes, timings: list) -> dict:
 
     def plan_at(obs, goal, key, omega, steps, bucket):
         particles, _, result = decide(obs, goal, key, None, dynamics, cfg, camera, omega, bucket=bucket, steps=steps)
-        return result.best[0], particles.error
+        return result.best[0], particles
 
     plan_all = jax.jit(jax.vmap(plan_at, in_axes=(0, 0, 0, 0, 0, None)), static_argnums=5)
     rep = lambda x: jnp.repeat(x, r, axis=0)  # noqa: E731  [B] -> [B * R], repeats of a scene adjacent
@@ -162,13 +150,11 @@ def label_shard(args, shard: int, dynamics, processes, timings: list) -> dict:
         """c*(ω) [B] of every scene (the mean of its repeats), the variance of that mean [B] (0 with one repeat) and
         the Adam steps [B] each plan ran (its bucket's, under the budget)."""
         keys = jax.random.split(jax.random.fold_in(jax.random.PRNGKey(plan_seed), shard * 100 + i), b * r)
-        buckets = [budget.bucket_for(int(w), cfg.buckets) for w in np.asarray(omega)]
-        steps = np.array([cfg.plan_steps(bk, timing) for bk in buckets], np.int32)
-        actions, error = plan_all(starts.obs, goals_r, keys, rep(omega), rep(jnp.asarray(steps)), max(buckets))
-        if np.any(np.asarray(error)):
-            bad = np.flatnonzero(np.asarray(error)) // r
-            raise ValueError(f"shard {shard}: perception failed for scenes {sorted(set(bad.tolist()))} at "
-                             f"ω = {np.asarray(omega)[bad].tolist()} (fewer foreground points than ω?)")
+        buckets, steps = cfg.allot(omega, timing)
+        bucket = int(buckets.max())
+        actions, particles = plan_all(starts.obs, goals_r, keys, rep(omega), rep(jnp.asarray(steps)), bucket)
+        check_particles(particles, rep(omega), bucket, f"shard {shard}: perception failed in plans (scene x "
+                        f"{r} repeats)")
         after = pool.push(starts, actions)
         values = np.asarray(measure(after.obs, goals_r)).reshape(b, r)
         spread = values.var(axis=1, ddof=1) / r if r > 1 else np.zeros(b)

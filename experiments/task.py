@@ -55,18 +55,38 @@ def add_loop_args(parser: argparse.ArgumentParser, task: str) -> None:
     parser.add_argument("--samples", type=int, default=50, help="action sequences optimised at once (M)")
     parser.add_argument("--plan-steps", type=int, default=100,
                         help="Adam steps per plan (N; the most a plan may run under --time-budget)")
-    parser.add_argument("--time-budget", type=float, default=None, metavar="S",
-                        help="seconds per decision on this device: each decision runs the Adam steps that fit, from a "
-                             "timing table measured once per resolution bucket and refined as the episode runs; the "
-                             "table is saved as timing.json (default: none, --plan-steps every decision)")
-    parser.add_argument("--timing", default=None, metavar="FILE",
-                        help="spend the time budget by this saved timing table, unrefined, to reproduce a run's step "
-                             "counts on another machine")
+    add_budget_args(parser)
     parser.add_argument("--ckpt", default=None, help=f"dynamics checkpoint (default {DEFAULT_CKPT} if present)")
     parser.add_argument("--dynamics", default="auto", choices=["auto", "learned", "sweep"],
                         help="auto: the checkpoint when there is one, else the sweep heuristic")
     add_edge_dtype_arg(parser)
     parser.add_argument("--out", default=f"out/{task}")
+
+
+def add_budget_args(parser: argparse.ArgumentParser) -> None:
+    """--time-budget and --timing: every closed-loop command's, labelling's and evaluation's."""
+    parser.add_argument("--time-budget", type=float, default=None, metavar="S",
+                        help="seconds per decision on this device: each decision runs the Adam steps that fit, at most "
+                             "--plan-steps, from a timing table measured once per resolution bucket (refined from the "
+                             "decisions a single episode makes) and saved as timing.json (default: none, --plan-steps "
+                             "every decision)")
+    parser.add_argument("--timing", default=None, metavar="FILE",
+                        help="spend the time budget by this saved timing table (timing.json of an earlier run), "
+                             "unrefined, so a run's step counts are reproduced on any machine (default: measured here)")
+
+
+def load_timing(parser: argparse.ArgumentParser, args) -> budget.TimingTable | None:
+    """The --timing table (frozen), or None; parser.error naming a bad --time-budget or --timing, before any work."""
+    if args.time_budget is not None and not args.time_budget > 0:
+        parser.error(f"--time-budget must be a positive number of seconds, got {args.time_budget}")
+    if args.timing is None:
+        return None
+    if args.time_budget is None:
+        parser.error("--timing needs --time-budget (the table spends a time budget)")
+    try:
+        return budget.TimingTable.load(args.timing)
+    except (OSError, ValueError, TypeError) as e:
+        parser.error(f"--timing {args.timing}: {e}")
 
 
 def add_edge_dtype_arg(parser: argparse.ArgumentParser) -> None:
@@ -91,16 +111,7 @@ def build_loop(args, sim: SimConfig, parser: argparse.ArgumentParser):
     if not omega.isdigit() or not 1 <= int(omega) <= largest:
         parser.error(f"--resolution must be 'adaptive' or an integer in [1, {largest}] (the model's n_max and the "
                      "largest resolution bucket)")
-    if args.time_budget is not None and not args.time_budget > 0:
-        parser.error(f"--time-budget must be a positive number of seconds, got {args.time_budget}")
-    if args.timing is not None and args.time_budget is None:
-        parser.error("--timing needs --time-budget (the table spends a time budget)")
-    timing = None
-    if args.timing is not None:
-        try:
-            timing = budget.TimingTable.load(args.timing)
-        except (OSError, ValueError, TypeError) as e:
-            parser.error(f"--timing {args.timing}: {e}")
+    timing = load_timing(parser, args)
     planner = PlannerConfig(samples=args.samples, steps=args.plan_steps, bound=env.action_bound,
                             max_length=sim.push.max_length, min_length=sim.push.min_length, seed=args.seed)
     cfg = MPCConfig(steps=args.steps, omega=int(omega), planner=planner, time_budget=args.time_budget)

@@ -193,6 +193,7 @@ def _surface_scenes(pool, starts, goals, keys, dynamics, cfg, omegas, steps, sce
     from dynres_jax.budget import bucket_for
     from dynres_jax.mpc import decide
     from dynres_jax.objective import distribution_distance
+    from dynres_jax.perception import check_particles
 
     camera = pool.camera
     measure = jax.jit(jax.vmap(lambda obs, goal: distribution_distance(obs, goal, camera)))
@@ -202,15 +203,14 @@ def _surface_scenes(pool, starts, goals, keys, dynamics, cfg, omegas, steps, sce
     def plan_at(obs, goal, key, n, omega):
         particles, _, result = decide(obs, goal, key, None, dynamics, cfg, camera, omega, bucket=bucket_for(omega),
                                       steps=n)
-        return result, particles.error
+        return result, particles
 
     plan_all = jax.jit(jax.vmap(plan_at, in_axes=(0, 0, 0, None, None)), static_argnums=4)
     for i, omega in enumerate(omegas):
         for j, n in enumerate(steps):
-            result, error = plan_all(starts.obs, goals, keys, jnp.int32(n), omega)
-            if np.any(np.asarray(error)):
-                raise ValueError(f"{scene_name}, ω = {omega}: perception failed on scenes "
-                                 f"{np.flatnonzero(np.asarray(error)).tolist()} (too few foreground points?)")
+            result, particles = plan_all(starts.obs, goals, keys, jnp.int32(n), omega)
+            check_particles(particles, np.full(len(keys), omega), bucket_for(omega),
+                            f"{scene_name}: perception failed on scenes")
             after = pool.push(starts, result.best[:, 0])
             c_star[i, j], predicted[i, j] = measure(after.obs, goals), result.best_cost
         print(f"  {scene_name}: ω = {omega:3d}: mean c* over N = {steps}: "
