@@ -1,6 +1,6 @@
 """Train the resolution regressor g(y_0, y_g) -> ω on Bayesian-optimisation labels (experiments.label_resolution).
 
-    python -m experiments.train_regressor --labels runs/labels --out runs/regressor
+    python -m experiments.train_regressor --labels runs/labels [more label folders] --out runs/regressor
 
 Held out: every tenth pile (both of its goals), so no held-out pile was seen in training. Of the rest, every tenth pile
 (at least one) is a validation set: every ``--val-every`` steps the model is scored on it and the best is kept (early
@@ -28,13 +28,18 @@ from dynres_jax import ckpt, files
 from dynres_jax.resolution import OMEGA_MAX, OMEGA_MIN, Regressor
 
 
-def load_labels(folder: str) -> dict:
-    paths = sorted(glob.glob(os.path.join(folder, "shard_*.npz")))
-    if not paths:
-        raise ValueError(f"no label shards (shard_*.npz) in {folder}; run experiments.label_resolution first")
+def load_labels(folders: list[str]) -> dict:
+    """The label shards of every folder, in order; "shard" numbers them 0, 1, ... across the folders, so a pile is
+    named by (shard, pile) even where two folders both have a shard 0."""
+    paths = []
+    for folder in folders:
+        found = sorted(glob.glob(os.path.join(folder, "shard_*.npz")))
+        if not found:
+            raise ValueError(f"no label shards (shard_*.npz) in {folder}; run experiments.label_resolution first")
+        paths += found
     shards = [dict(np.load(p)) for p in paths]
     out = {k: np.concatenate([s[k] for s in shards]) for k in ("inputs", "label", "pile")}
-    out["shard"] = np.concatenate([np.full(len(s["label"]), s["shard"]) for s in shards])
+    out["shard"] = np.concatenate([np.full(len(s["label"]), i) for i, s in enumerate(shards)])
     return out
 
 
@@ -51,7 +56,7 @@ def dihedral(images, turns, flip):
 def main(argv=None):
     parser = argparse.ArgumentParser(prog="python -m experiments.train_regressor", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--labels", required=True)
+    parser.add_argument("--labels", nargs="+", required=True, help="label folders, pooled")
     parser.add_argument("--out", required=True)
     parser.add_argument("--steps", type=int, default=3000)
     parser.add_argument("--batch", type=int, default=64)
