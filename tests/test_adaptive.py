@@ -139,3 +139,14 @@ def test_label_reliability_by_hand(tmp_path):
     assert result["regressor_correlation_at_most"] == pytest.approx(np.sqrt(result["pearson"]))
     with pytest.raises(ValueError, match="share 0 scenes"):
         tradeoff.reliability(str(a), str(tmp_path / "out"), str(tmp_path / "out"))
+
+
+def test_label_folders_pool_with_distinct_shard_numbers(labels):
+    """Two folders that both hold shard 0 and 1: pooled, their piles keep distinct names (shard, pile)."""
+    one = train_regressor.load_labels([labels[0]])
+    both = train_regressor.load_labels([labels[0], labels[0]])
+    n = len(one["label"])
+    assert len(both["label"]) == 2 * n and np.array_equal(both["label"][n:], one["label"])
+    assert np.array_equal(both["shard"], np.concatenate([one["shard"], one["shard"] + 2]))
+    with pytest.raises(ValueError, match="no label shards"):
+        train_regressor.load_labels([labels[0], os.path.dirname(labels[0])])
