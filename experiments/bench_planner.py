@@ -30,7 +30,7 @@ with respect to its push, and the pushes take one Adam step and are clamped to t
   reported as is; compile time (first call minus the median) separately for both step counts.
 
 Both sides use float32 with each library's default matmul precision. JAX is timed a second time with the model's
-per-edge network in bfloat16 (``mpc.learned_dynamics(model, "bfloat16")``, the ``dynamics`` module's "Mixed
+per-edge network in bfloat16 (``registry.learned_dynamics(model, "bfloat16")``, the ``dynamics`` module's "Mixed
 precision"), the ``jax_bf16`` section; it also says how far that is from float32 on the same inputs: predicted
 positions (mm) and the best cost of a full plan (pixels), measured on the shipped checkpoint when there is one (a
 trained model's numbers; the timed random weights blow a pile metres apart). Speed-up = torch ms per step / JAX ms
@@ -92,10 +92,10 @@ def _torch_reference(positions: np.ndarray, samples: int, repeats: int) -> dict:
     from torch import nn
 
     from dynres_jax.config import SceneConfig
-    from dynres_jax.dynamics import LENGTH_SCALE, R_REF
-    from dynres_jax.graph import K_NEIGHBOURS, R_EDGE, SWEEP_END_OFFSET, SWEEP_FALLOFF
-    from dynres_jax.objective import SAMPLES_PER_PARTICLE
-    from dynres_jax.planner import PlannerConfig
+    from dynres_jax.control.objective import SAMPLES_PER_PARTICLE
+    from dynres_jax.control.planner import PlannerConfig
+    from dynres_jax.models.dynamics import LENGTH_SCALE, R_REF
+    from dynres_jax.models.graph import K_NEIGHBOURS, R_EDGE, SWEEP_END_OFFSET, SWEEP_FALLOFF
 
     device = torch.device("cuda" if torch.cuda.is_available() else "cpu")
     planner = PlannerConfig()
@@ -253,8 +253,8 @@ def _torch_reference(positions: np.ndarray, samples: int, repeats: int) -> dict:
 def _quality_model(timed_model):
     """(model, its name) that the bfloat16 agreement is measured on: the shipped checkpoint when there is one (the
     random weights of the timed model blow a pile metres apart, so their errors say little), else the timed model."""
-    from dynres_jax import ckpt
-    from dynres_jax.train import build_model
+    from dynres_jax.io import ckpt
+    from dynres_jax.models.registry import build_model
     from experiments.task import DEFAULT_CKPT
 
     if ckpt.latest_step(DEFAULT_CKPT) is None:
@@ -267,7 +267,7 @@ def _quality_model(timed_model):
 def _camera_and_goal():
     """(camera, Goal): the default top-down camera and the disc goal both sides score against (built once: the goal's
     FPS samples are computed on the host)."""
-    from dynres_jax.objective import disc_goal, make_goal
+    from dynres_jax.control.objective import disc_goal, make_goal
     from dynres_jax.sim.camera import Camera, CameraConfig
 
     camera = Camera.top_down(CameraConfig())
@@ -279,8 +279,8 @@ def _timed_model_and_cost():
     task cost c on the disc goal."""
     from flax import nnx
 
-    from dynres_jax.dynamics import Dynamics, DynamicsConfig
-    from dynres_jax.mpc import goal_cost
+    from dynres_jax.control.mpc import goal_cost
+    from dynres_jax.models.dynamics import Dynamics, DynamicsConfig
 
     camera, goal = _camera_and_goal()
     return Dynamics(DynamicsConfig(), rngs=nnx.Rngs(0)), goal_cost(goal, camera)
@@ -296,9 +296,9 @@ def _stage_times(positions: np.ndarray, samples: int, repeats: int) -> dict:
     import jax
     import jax.numpy as jnp
 
-    from dynres_jax.graph import build_edges, sweep_displacement
-    from dynres_jax.mpc import learned_dynamics
-    from dynres_jax.planner import _prepared, sample_actions
+    from dynres_jax.control.planner import _prepared, sample_actions
+    from dynres_jax.models.graph import build_edges, sweep_displacement
+    from dynres_jax.models.registry import learned_dynamics
 
     model, cost = _timed_model_and_cost()
     dynamics = learned_dynamics(model)(PARTICLE_RADIUS)
@@ -333,7 +333,7 @@ def _plan_inputs(positions: np.ndarray, samples: int):
     (all particles valid), on the device, PRNG key 0."""
     import jax
 
-    from dynres_jax.planner import PlannerConfig
+    from dynres_jax.control.planner import PlannerConfig
 
     config = PlannerConfig(samples=samples, resamples=positions.shape[0])
     return (config, jax.device_put(positions), jax.device_put(np.ones(positions.shape[:2], bool)),
@@ -347,9 +347,9 @@ def _plan_section(model, cost, edge_dtype, positions: np.ndarray, samples: int, 
     is traced, so the plan compiles at its first call, the short one: compile_s is the larger of the two)."""
     import jax
 
-    from dynres_jax.dynamics import count_params
-    from dynres_jax.mpc import learned_dynamics
-    from dynres_jax.planner import plan
+    from dynres_jax.control.planner import plan
+    from dynres_jax.models.dynamics import count_params
+    from dynres_jax.models.registry import learned_dynamics
 
     config, pile, mask, key = _plan_inputs(positions, samples)
     device, short = jax.devices()[0], max(1, steps // 10)
@@ -387,7 +387,7 @@ def plan_step(quick: bool, shipped: bool = False) -> dict:
 
 def _jax_planner(positions: np.ndarray, samples: int, steps: int, repeats: int) -> tuple[dict, dict, dict | None]:
     """Time ``planner.plan`` at ``steps`` and at a tenth of it, ms per step from the difference, with the model's
-    per-edge network in float32 and in bfloat16 (``mpc.learned_dynamics``'s edge_dtype) -> (float32 section,
+    per-edge network in float32 and in bfloat16 (``registry.learned_dynamics``'s edge_dtype) -> (float32 section,
     bfloat16 section, the shipped checkpoint's float32 section or None when no checkpoint is shipped). The bfloat16
     section also holds its agreement with float32 on the same piles, goal, key and steps (on ``_quality_model``):
     prediction_mean_mm and prediction_max_mm, |bfloat16 - float32| of the predicted positions at the float32 plan's
@@ -398,8 +398,8 @@ def _jax_planner(positions: np.ndarray, samples: int, steps: int, repeats: int) 
     import jax
     import jax.numpy as jnp
 
-    from dynres_jax.mpc import EDGE_DTYPES, learned_dynamics
-    from dynres_jax.planner import plan
+    from dynres_jax.control.planner import plan
+    from dynres_jax.models.registry import EDGE_DTYPES, learned_dynamics
 
     model, cost = _timed_model_and_cost()
     config, pile, mask, key = _plan_inputs(positions, samples)
@@ -437,7 +437,7 @@ def _objective_disagreement(positions: np.ndarray, torch_objective_px) -> float:
     import jax
     import jax.numpy as jnp
 
-    from dynres_jax.objective import objective
+    from dynres_jax.control.objective import objective
 
     camera, goal = _camera_and_goal()
     ours = jax.vmap(lambda p: objective(p, jnp.ones(p.shape[0], bool), goal, camera))(jnp.asarray(positions))

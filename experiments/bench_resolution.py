@@ -30,7 +30,7 @@ def _ms_per_step(dynamics, cost, positions, mask, config, steps: int, repeats: i
     steps // 10) / the step difference; the compiling call is not timed (the step count is traced: one compile)."""
     import jax
 
-    from dynres_jax.planner import plan
+    from dynres_jax.control.planner import plan
     from experiments.bench_planner import _median_s
 
     key = jax.random.PRNGKey(0)
@@ -48,9 +48,10 @@ def run(quick: bool, batch: str | None = None) -> dict:
     """The benchmark on the device JAX sees -> a JSON-ready dict (module docstring)."""
     import jax
 
-    from dynres_jax.budget import bucket_for
-    from dynres_jax.mpc import goal_cost, load_dynamics
-    from dynres_jax.planner import PlannerConfig
+    from dynres_jax.control.budget import bucket_for
+    from dynres_jax.control.mpc import goal_cost
+    from dynres_jax.control.planner import PlannerConfig
+    from dynres_jax.models.registry import load_dynamics
     from experiments.bench_planner import PARTICLE_RADIUS, _camera_and_goal, _piles
     from experiments.task import DEFAULT_CKPT
 

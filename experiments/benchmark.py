@@ -10,7 +10,7 @@ from __future__ import annotations
 import argparse
 import json
 
-from dynres_jax.files import write_json, write_text
+from dynres_jax.io.files import write_json, write_text
 
 
 def sim_table(result: dict) -> str:

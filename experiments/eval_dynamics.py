@@ -16,10 +16,11 @@ import jax.numpy as jnp
 import numpy as np
 from flax import nnx
 
-from dynres_jax import ckpt, data, files, train
-from dynres_jax.dynamics import resolution_code, rollout
-from dynres_jax.graph import SWEEP_REGIONS, sweep_region, sweep_rollout
-from dynres_jax.train import build_model
+from dynres_jax.io import ckpt, files
+from dynres_jax.learn import data, train
+from dynres_jax.models.dynamics import resolution_code, rollout
+from dynres_jax.models.graph import SWEEP_REGIONS, sweep_region, sweep_rollout
+from dynres_jax.models.registry import build_model
 
 METHODS = ("model", "nothing moves", "sweep heuristic")
 

@@ -32,10 +32,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from dynres_jax import ckpt, files, resolution, tasks
 from dynres_jax.config import CameraConfig, PileConfig, SceneConfig, SimConfig
-from dynres_jax.mpc import load_dynamics, run_episodes
-from dynres_jax.objective import make_goal
+from dynres_jax.control import resolution, tasks
+from dynres_jax.control.mpc import run_episodes
+from dynres_jax.control.objective import make_goal
+from dynres_jax.io import ckpt, files
+from dynres_jax.models.registry import load_dynamics
 from dynres_jax.sim.pool import WorldPool, process_pool
 from dynres_jax.stats import mcnemar, paired_bootstrap, wilson
 from experiments.label_resolution import add_planner_args, check_planner_args, planner_config, timing_table

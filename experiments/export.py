@@ -12,11 +12,11 @@ camera and checkpoint step). On the robot (needs jax, jaxlib no older than the e
     push = out["best"][0]   # (x_start, y_start, x_end, y_end), metres
 
 The particles (positions, mask, radius) come from perception (dynres_jax.perception.sample_particles), the goal
-arrays from dynres_jax.objective.make_goal (computed once per goal, on any machine), key is
+arrays from dynres_jax.control.objective.make_goal (computed once per goal, on any machine), key is
 jax.random.PRNGKey(seed). --platforms: default this machine's backend; --platforms cuda for a GPU robot works on any
 machine. On the CPU a one-platform file plans bit for bit what the live planner plans; --platforms cpu cuda gives one
 file for both, whose plans differ from the live ones by float rounding, amplified by the optimisation (on a GPU
-neither the live planner nor the file repeats bit for bit from run to run; dynres_jax/export.py).
+neither the live planner nor the file repeats bit for bit from run to run; dynres_jax/io/export.py).
 """
 
 from __future__ import annotations
@@ -27,10 +27,10 @@ import os
 
 import jax
 
-from dynres_jax import export
-from dynres_jax.ckpt import CheckpointError
 from dynres_jax.config import CameraConfig, PushConfig
-from dynres_jax.planner import PlannerConfig
+from dynres_jax.control.planner import PlannerConfig
+from dynres_jax.io import export
+from dynres_jax.io.ckpt import CheckpointError
 from dynres_jax.sim.camera import Camera
 from experiments.task import DEFAULT_CKPT
 

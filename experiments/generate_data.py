@@ -15,7 +15,7 @@ import argparse
 import dataclasses
 import json
 
-from dynres_jax import data
+from dynres_jax.learn import data
 
 
 def _add_field_flags(parser: argparse.ArgumentParser) -> list[str]:

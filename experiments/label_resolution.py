@@ -33,13 +33,15 @@ import jax.numpy as jnp
 import numpy as np
 from tqdm import tqdm
 
-from dynres_jax import budget, files, resolution, tasks
 from dynres_jax.config import CameraConfig, PileConfig, PushConfig, SceneConfig, SimConfig
-from dynres_jax.data import parse_part, save_npz, shard_path, shards_todo
-from dynres_jax.mpc import MPCConfig, decide, load_dynamics, measure_timing, run_episodes
-from dynres_jax.objective import distribution_distance, make_goal
+from dynres_jax.control import budget, resolution, tasks
+from dynres_jax.control.mpc import MPCConfig, decide, measure_timing, run_episodes
+from dynres_jax.control.objective import distribution_distance, make_goal
+from dynres_jax.control.planner import PlannerConfig
+from dynres_jax.io import files
+from dynres_jax.learn.data import parse_part, save_npz, shard_path, shards_todo
+from dynres_jax.models.registry import load_dynamics
 from dynres_jax.perception import check_particles
-from dynres_jax.planner import PlannerConfig
 from dynres_jax.sim.pool import WorldPool, process_pool
 from experiments.task import DEFAULT_CKPT, add_budget_args, load_timing
 

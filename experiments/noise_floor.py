@@ -36,13 +36,14 @@ import numpy as np
 from flax import nnx
 from tqdm import tqdm
 
-from dynres_jax import ckpt, data, files
-from dynres_jax.dynamics import predict, resolution_code
-from dynres_jax.graph import sweep_rollout
+from dynres_jax.io import ckpt, files
+from dynres_jax.learn import data
+from dynres_jax.models.dynamics import predict, resolution_code
+from dynres_jax.models.graph import sweep_rollout
+from dynres_jax.models.registry import build_model
 from dynres_jax.perception import sample_particles
 from dynres_jax.sim.env import State
 from dynres_jax.sim.pool import WorldPool, process_pool
-from dynres_jax.train import build_model
 from experiments.task import DEFAULT_CKPT
 
 

@@ -16,12 +16,13 @@ import cv2
 import jax
 import numpy as np
 
-from dynres_jax import frames
-from dynres_jax.budget import BUCKETS, bucket_for
-from dynres_jax.mpc import goal_cost, load_dynamics, overlay
-from dynres_jax.objective import make_goal
+from dynres_jax.control.budget import BUCKETS, bucket_for
+from dynres_jax.control.mpc import goal_cost, overlay
+from dynres_jax.control.objective import make_goal
+from dynres_jax.control.planner import PlannerConfig, plan
+from dynres_jax.io import frames
+from dynres_jax.models.registry import load_dynamics
 from dynres_jax.perception import WORKSPACE_HALF_WIDTH, sample_particles
-from dynres_jax.planner import PlannerConfig, plan
 from experiments.task import DEFAULT_CKPT, add_edge_dtype_arg
 
 

@@ -1,5 +1,5 @@
 """Sort (paper Sec. V): two piles of different kinds, each pushed into its own disc without mixing, an A* planner
-over blob centres choosing which pile moves where (``dynres_jax.sort``):
+over blob centres choosing which pile moves where (``dynres_jax.control.sort``):
 
     python -m experiments.sort --out out/sort
     python -m experiments.sort --kinds coffee candy --pieces 40 20 --steps 30
@@ -22,11 +22,11 @@ import imageio.v3 as iio
 import jax
 import numpy as np
 
-from dynres_jax import files
 from dynres_jax.config import KINDS, CameraConfig, PileConfig, SceneConfig, SimConfig
-from dynres_jax.mpc import measure_timing
-from dynres_jax.objective import make_goal
-from dynres_jax.sort import sort_episode, sort_goal, sort_scores
+from dynres_jax.control.mpc import measure_timing
+from dynres_jax.control.objective import make_goal
+from dynres_jax.control.sort import sort_episode, sort_goal, sort_scores
+from dynres_jax.io import files
 from experiments.task import add_loop_args, build_loop
 
 

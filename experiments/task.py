@@ -1,5 +1,5 @@
-"""One closed-loop episode of a task (``dynres_jax.tasks``) at a fixed or adaptive resolution ω; the body of the task
-commands:
+"""One closed-loop episode of a task (``dynres_jax.control.tasks``) at a fixed or adaptive resolution ω; the body of
+the task commands:
 
     python -m experiments.gather --out out/gather
     python -m experiments.redistribute --letter T --out out/redistribute
@@ -21,12 +21,14 @@ import imageio.v3 as iio
 import jax
 import numpy as np
 
-from dynres_jax import budget, files, tasks
 from dynres_jax.config import KINDS, CameraConfig, PileConfig, SceneConfig, SimConfig
-from dynres_jax.mpc import EDGE_DTYPES, MPCConfig, load_dynamics, measure_timing, run_episode
-from dynres_jax.objective import inside_share, make_goal
-from dynres_jax.planner import PlannerConfig
-from dynres_jax.resolution import load_chooser
+from dynres_jax.control import budget, tasks
+from dynres_jax.control.mpc import MPCConfig, measure_timing, run_episode
+from dynres_jax.control.objective import inside_share, make_goal
+from dynres_jax.control.planner import PlannerConfig
+from dynres_jax.control.resolution import load_chooser
+from dynres_jax.io import files
+from dynres_jax.models.registry import EDGE_DTYPES, load_dynamics
 from dynres_jax.sim.env import PileEnv
 
 DEFAULT_CKPT = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "checkpoints", "dynamics")
@@ -90,7 +92,7 @@ def load_timing(parser: argparse.ArgumentParser, args) -> budget.TimingTable | N
 
 
 def add_edge_dtype_arg(parser: argparse.ArgumentParser) -> None:
-    """--edge-dtype, ``mpc.load_dynamics``'s edge_dtype: the task commands' and ``experiments.plan``'s."""
+    """--edge-dtype, ``registry.load_dynamics``'s edge_dtype: the task commands' and ``experiments.plan``'s."""
     parser.add_argument("--edge-dtype", default="float32", choices=EDGE_DTYPES,
                         help="the learned model's per-edge network: bfloat16 moves predictions by up to about half a "
                              "millimetre, and plans no faster than float32 on the GPUs measured")

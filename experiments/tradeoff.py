@@ -36,8 +36,8 @@ import os
 
 import numpy as np
 
-from dynres_jax import files
-from dynres_jax.resolution import CANDIDATES
+from dynres_jax.control.resolution import CANDIDATES
+from dynres_jax.io import files
 from dynres_jax.stats import wilson
 
 SURFACE_OMEGAS = (10, 25, 50, 75, 100)
@@ -169,7 +169,7 @@ def _scenes(kind: int, args, pool):
     import jax
     import jax.numpy as jnp
 
-    from dynres_jax import tasks
+    from dynres_jax.control import tasks
 
     keys = jax.vmap(lambda i: jax.random.fold_in(jax.random.PRNGKey(args.seed + kind), i))(jnp.arange(args.scenes))
     starts = pool.reset(keys)
@@ -190,9 +190,9 @@ def _surface_scenes(pool, starts, goals, keys, dynamics, cfg, omegas, steps, sce
     import jax
     import jax.numpy as jnp
 
-    from dynres_jax.budget import bucket_for
-    from dynres_jax.mpc import decide
-    from dynres_jax.objective import distribution_distance
+    from dynres_jax.control.budget import bucket_for
+    from dynres_jax.control.mpc import decide
+    from dynres_jax.control.objective import distribution_distance
     from dynres_jax.perception import check_particles
 
     camera = pool.camera
@@ -224,12 +224,13 @@ def surface(args) -> dict:
     import jax.numpy as jnp
 
     from dynres_jax.config import CameraConfig, PileConfig, PushConfig, SceneConfig, SimConfig
-    from dynres_jax.data import save_npz
-    from dynres_jax.mpc import MPCConfig, load_dynamics, measure_timing
+    from dynres_jax.control.mpc import MPCConfig, measure_timing
+    from dynres_jax.learn.data import save_npz
+    from dynres_jax.models.registry import load_dynamics
 
     near_centre_blob = PileConfig(layout="blob", centre_margin=SceneConfig.bin_half_width - LETTER_REACH)
-    from dynres_jax.objective import make_goal
-    from dynres_jax.planner import PlannerConfig
+    from dynres_jax.control.objective import make_goal
+    from dynres_jax.control.planner import PlannerConfig
     from dynres_jax.sim.pool import WorldPool, process_pool
     from experiments.task import DEFAULT_CKPT
 
@@ -284,7 +285,7 @@ def _plot_surface(summary: dict, path: str) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from dynres_jax.budget import TimingTable, bucket_for
+    from dynres_jax.control.budget import TimingTable, bucket_for
 
     kinds = summary["kinds"]
     fig, axes = plt.subplots(2, len(kinds), figsize=(5 * len(kinds), 7), squeeze=False)

@@ -4,9 +4,9 @@
     python -m experiments.train_dynamics --data data/piles --out runs/dynamics --residual --push-frame
     python -m experiments.train_dynamics --data data/piles --out runs/cnn_dynamics --model cnn   # the CNN baseline
 
---model gnn (default): the PropNet GNN (``dynres_jax.dynamics``; --hidden, --propagation-steps, --push-frame,
+--model gnn (default): the PropNet GNN (``dynres_jax.models.dynamics``; --hidden, --propagation-steps, --push-frame,
 --world-edges, --bin-position, --height, --global-context, --radius-scale, --substeps, --residual). --model cnn: the
-CNN baseline (``dynres_jax.cnn_dynamics``; --grid, --channels, and --no-residual to predict whole displacements
+CNN baseline (``dynres_jax.models.cnn_dynamics``; --grid, --channels, and --no-residual to predict whole displacements
 instead of correcting the sweep heuristic). --loss mse (default) or distance: the training loss
 (``TrainConfig.loss``). --state pieces trains on the full state instead of particles (``TrainConfig.state``).
 --substeps S --sub-targets trains each of the S passes on its own sub-push, from data generated with --substeps S
@@ -19,9 +19,10 @@ import argparse
 import dataclasses
 import json
 
-from dynres_jax.cnn_dynamics import CNNDynamicsConfig
-from dynres_jax.dynamics import DynamicsConfig
-from dynres_jax.train import MODEL_CLASSES, TrainConfig, train
+from dynres_jax.learn.train import TrainConfig, train
+from dynres_jax.models.cnn_dynamics import CNNDynamicsConfig
+from dynres_jax.models.dynamics import DynamicsConfig
+from dynres_jax.models.registry import MODEL_CLASSES
 
 GNN_ONLY = ("hidden", "propagation_steps", "push_frame", "world_edges", "bin_position", "height", "global_context",
             "radius_scale", "substeps")

@@ -7,7 +7,7 @@ Held out: every tenth pile (both of its goals), so no held-out pile was seen in 
 stopping; the held-out piles are never used to choose). Loss: squared error of ω scaled to [0, 1]. Augmentation: every
 training sample goes through one of the 8 rotations and reflections of the square grid, which leave the label
 unchanged (all six channels are images of a square bin seen from above). Reports the held-out mean absolute error in
-ω against predicting the training labels' mean, and writes an orbax checkpoint (``dynres_jax.ckpt``) with a card,
+ω against predicting the training labels' mean, and writes an orbax checkpoint (``dynres_jax.io.ckpt``) with a card,
 ``metrics.json`` and a scatter plot.
 """
 
@@ -24,8 +24,8 @@ import optax
 from flax import nnx
 from tqdm import tqdm
 
-from dynres_jax import ckpt, files
-from dynres_jax.resolution import OMEGA_MAX, OMEGA_MIN, Regressor
+from dynres_jax.control.resolution import OMEGA_MAX, OMEGA_MIN, Regressor
+from dynres_jax.io import ckpt, files
 
 
 def load_labels(folders: list[str]) -> dict:

@@ -24,7 +24,7 @@ import numpy as np
 from tqdm import tqdm
 
 from dynres_jax.config import KINDS, SceneConfig, SimConfig, replace
-from dynres_jax.files import write_json
+from dynres_jax.io.files import write_json
 from dynres_jax.sim.env import PileEnv
 
 

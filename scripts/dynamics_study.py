@@ -14,7 +14,7 @@ import json
 import os
 import sys
 
-from dynres_jax import files
+from dynres_jax.io import files
 
 SHIPPED = "--residual --push-frame --world-edges --loss distance --bin-position"  # checkpoints/dynamics/CARD.md
 

@@ -35,7 +35,7 @@ variant() {  # NAME FLAGS: probe the speed, train to the time box, evaluate, pac
     --eval-every "$PROBE" --quiet
   steps=${STEPS:-$(python - "$run" "$TRAIN_MINUTES" "$PROBE" <<'PY'
 import json, sys
-from dynres_jax import ckpt
+from dynres_jax.io import ckpt
 rate = json.loads(open(sys.argv[1] + "/metrics.jsonl").readlines()[-1])["samples_per_s"]
 batch = ckpt.load_meta(sys.argv[1] + "/ckpt")["train"]["batch"]  # the variant's own --batch, if it has one
 print(int(0.95 * rate * max(60 * float(sys.argv[2]) - 25, 0) / batch) // 100 * 100 + int(sys.argv[3]))

@@ -6,8 +6,8 @@ import os
 import numpy as np
 import pytest
 
-from dynres_jax import resolution
-from dynres_jax.budget import TimingTable, bucket_for
+from dynres_jax.control import resolution
+from dynres_jax.control.budget import TimingTable, bucket_for
 from experiments import evaluate, label_resolution, tradeoff, train_regressor
 
 QUICK = ["--quick", "--dynamics", "sweep", "--workers", "2"]

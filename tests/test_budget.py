@@ -9,12 +9,13 @@ import jax
 import numpy as np
 import pytest
 
-from dynres_jax import budget
-from dynres_jax.budget import TimingTable, bucket_for, check_buckets, plan_steps
 from dynres_jax.config import CameraConfig, PileConfig, PushConfig, SceneConfig, SimConfig
-from dynres_jax.mpc import MPCConfig, decide, load_dynamics, measure_timing, run_episode, sweep_dynamics
-from dynres_jax.objective import disc_goal, make_goal
-from dynres_jax.planner import PlannerConfig
+from dynres_jax.control import budget
+from dynres_jax.control.budget import TimingTable, bucket_for, check_buckets, plan_steps
+from dynres_jax.control.mpc import MPCConfig, decide, measure_timing, run_episode
+from dynres_jax.control.objective import disc_goal, make_goal
+from dynres_jax.control.planner import PlannerConfig
+from dynres_jax.models.registry import load_dynamics, sweep_dynamics
 from dynres_jax.sim.env import PileEnv
 from experiments.task import DEFAULT_CKPT
 

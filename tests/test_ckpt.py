@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 from flax import nnx
 
-from dynres_jax import ckpt
-from dynres_jax.dynamics import Dynamics, DynamicsConfig
+from dynres_jax.io import ckpt
+from dynres_jax.models.dynamics import Dynamics, DynamicsConfig
 
 CFG = DynamicsConfig(hidden=16)
 

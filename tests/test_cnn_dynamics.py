@@ -16,12 +16,13 @@ from flax import nnx
 from test_dynamics import N_VALID, N
 from test_train import CFG, shards  # noqa: F401  (shards: the module-scoped tiny data set)
 
-from dynres_jax import ckpt, data
-from dynres_jax.cnn_dynamics import PILE_SHARE, CNNDynamics, CNNDynamicsConfig, sample, splat, tent_weights
-from dynres_jax.dynamics import Dynamics, count_params, predict, resolution_code
-from dynres_jax.graph import sweep_rollout
-from dynres_jax.mpc import load_dynamics
-from dynres_jax.train import TrainConfig, _batch, build_model, card, make_model, make_step, train
+from dynres_jax.io import ckpt
+from dynres_jax.learn import data
+from dynres_jax.learn.train import TrainConfig, _batch, card, make_step, train
+from dynres_jax.models.cnn_dynamics import PILE_SHARE, CNNDynamics, CNNDynamicsConfig, sample, splat, tent_weights
+from dynres_jax.models.dynamics import Dynamics, count_params, predict, resolution_code
+from dynres_jax.models.graph import sweep_rollout
+from dynres_jax.models.registry import build_model, load_dynamics, make_model
 from experiments import eval_dynamics, evaluate, train_dynamics
 from experiments.task import DEFAULT_CKPT
 

@@ -17,8 +17,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from dynres_jax import data, files
 from dynres_jax.config import CameraConfig, SceneConfig, SimConfig
+from dynres_jax.io import files
+from dynres_jax.learn import data
 from dynres_jax.perception import sample_particles
 from dynres_jax.sim.camera import Observation
 from dynres_jax.sim.env import PileEnv
@@ -31,7 +32,7 @@ REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 MULTI_DEVICE_SCRIPT = textwrap.dedent("""
     import sys
     import jax
-    from dynres_jax import data
+    from dynres_jax.learn import data
     from experiments.generate_data import main
     assert len(jax.devices()) == 4, jax.devices()
     try:

@@ -12,7 +12,7 @@ import optax
 import pytest
 from flax import nnx
 
-from dynres_jax.dynamics import (
+from dynres_jax.models.dynamics import (
     POOL_AREA,
     R_REF,
     Dynamics,
@@ -24,7 +24,7 @@ from dynres_jax.dynamics import (
     rollout,
     split_push,
 )
-from dynres_jax.graph import build_edges, sweep_displacement
+from dynres_jax.models.graph import build_edges, sweep_displacement
 
 N, N_VALID, H = 24, 18, 16
 PUSH = np.array([-0.06, 0.0, 0.02, 0.01], np.float32)
@@ -180,7 +180,7 @@ def test_incoming_gradient_equals_autodiff_of_the_formula(pair, k):
     Σ_j edge_mask_ij ReLU(c_ij + r_i + s_nij) in every input (r and s side by side), with repeated and masked
     neighbours, on the per-edge constants and on the pair table; with k = 200 most edges are active, so counts pass
     int8's 127."""
-    from dynres_jax.dynamics import _incoming
+    from dynres_jax.models.dynamics import _incoming
 
     rng = np.random.default_rng(1)
     n, h = 12, 8
@@ -373,7 +373,7 @@ def test_training_reduces_loss():
 def test_residual_model_starts_as_the_sweep_heuristic_and_push_frame_is_rotation_invariant():
     """residual: an untrained model predicts exactly the sweep heuristic (padding untouched); push_frame: rotating
     the scene and the push together about the origin rotates the prediction (the model sees only the push frame)."""
-    from dynres_jax.graph import sweep_displacement
+    from dynres_jax.models.graph import sweep_displacement
 
     p = jax.random.uniform(jax.random.PRNGKey(0), (20, 3), minval=-0.05, maxval=0.05).at[:, 2].set(0.005)
     mask = jnp.ones(20, bool).at[-3:].set(False)

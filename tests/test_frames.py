@@ -7,9 +7,9 @@ import jax
 import numpy as np
 import pytest
 
-from dynres_jax import frames
 from dynres_jax.config import CameraConfig, SceneConfig, SimConfig
-from dynres_jax.objective import disc_goal
+from dynres_jax.control.objective import disc_goal
+from dynres_jax.io import frames
 from dynres_jax.sim.env import PileEnv
 from experiments import plan
 

@@ -5,7 +5,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from dynres_jax.graph import (
+from dynres_jax.models.graph import (
     SWEEP_END_OFFSET,
     SWEEP_FALLOFF,
     SWEEP_REGIONS,

@@ -5,9 +5,10 @@ import numpy as np
 import pytest
 
 from dynres_jax.config import CameraConfig, PileConfig, PushConfig, SceneConfig, SimConfig
-from dynres_jax.mpc import MPCConfig, goal_cost, run_episode, run_episodes, sweep_dynamics
-from dynres_jax.objective import disc_goal, distribution_distance, make_goal
-from dynres_jax.planner import PlannerConfig, _plan_jit, plan
+from dynres_jax.control.mpc import MPCConfig, goal_cost, run_episode, run_episodes
+from dynres_jax.control.objective import disc_goal, distribution_distance, make_goal
+from dynres_jax.control.planner import PlannerConfig, _plan_jit, plan
+from dynres_jax.models.registry import sweep_dynamics
 from dynres_jax.sim.env import PileEnv
 
 
@@ -73,7 +74,7 @@ def test_pool_episodes_with_per_episode_omega_and_budget_equal_one_at_a_time():
     """run_episodes on a WorldPool with ω chosen per episode (adaptive) in different buckets and a time budget makes
     the same decisions as run_episode at each episode's ω in its own bucket: every episode runs the Adam steps its
     bucket affords (from the same frozen timing table), and the batch's larger bucket pads inertly."""
-    from dynres_jax.budget import TimingTable
+    from dynres_jax.control.budget import TimingTable
     from dynres_jax.sim.pool import WorldPool
 
     sim = SimConfig(scene=SceneConfig(pieces=(6,)), pile=PileConfig(layout="spread"),

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 from flax import nnx
 
-from dynres_jax import data
-from dynres_jax.dynamics import Dynamics, DynamicsConfig
+from dynres_jax.learn import data
+from dynres_jax.models.dynamics import Dynamics, DynamicsConfig
 from dynres_jax.sim.env import State
 from experiments import noise_floor
 

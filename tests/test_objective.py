@@ -7,9 +7,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from dynres_jax import objective as obj
 from dynres_jax.config import CameraConfig, SceneConfig, SimConfig
-from dynres_jax.objective import (
+from dynres_jax.control import objective as obj
+from dynres_jax.control.objective import (
     bilinear,
     disc_goal,
     distribution_distance,

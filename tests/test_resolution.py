@@ -7,7 +7,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import nnx
 
-from dynres_jax import resolution as res
+from dynres_jax.control import resolution as res
 
 
 def matern_np(a, b, ls, var):

@@ -7,11 +7,12 @@ import numpy as np
 import pytest
 
 from dynres_jax.config import CameraConfig, PileConfig, PushConfig, SceneConfig, SimConfig
-from dynres_jax.mpc import MPCConfig, sweep_dynamics
-from dynres_jax.objective import BIN_HALF_WIDTH
-from dynres_jax.planner import PlannerConfig
+from dynres_jax.control.mpc import MPCConfig
+from dynres_jax.control.objective import BIN_HALF_WIDTH
+from dynres_jax.control.planner import PlannerConfig
+from dynres_jax.control.sort import astar_blobs, sort_episode, sort_goal
+from dynres_jax.models.registry import sweep_dynamics
 from dynres_jax.sim.env import PileEnv
-from dynres_jax.sort import astar_blobs, sort_episode, sort_goal
 
 STEP = 0.025  # m, the tests' grid
 

@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-from dynres_jax import tasks
 from dynres_jax.config import SceneConfig, SimConfig
+from dynres_jax.control import tasks
 from dynres_jax.sim.env import PileEnv
 
 

@@ -9,10 +9,20 @@ import numpy as np
 import pytest
 from flax import nnx
 
-from dynres_jax import ckpt, data
-from dynres_jax.dynamics import Dynamics, DynamicsConfig, resolution_code
-from dynres_jax.graph import SWEEP_REGIONS
-from dynres_jax.train import DISTANCE_EPS, TrainConfig, _batch, _Speed, build_model, make_step, rollout_errors, train
+from dynres_jax.io import ckpt
+from dynres_jax.learn import data
+from dynres_jax.learn.train import (
+    DISTANCE_EPS,
+    TrainConfig,
+    _batch,
+    _Speed,
+    make_step,
+    rollout_errors,
+    train,
+)
+from dynres_jax.models.dynamics import Dynamics, DynamicsConfig, resolution_code
+from dynres_jax.models.graph import SWEEP_REGIONS
+from dynres_jax.models.registry import build_model
 from experiments import eval_dynamics
 
 CFG = TrainConfig(steps=4, batch=4, horizon=2, n_max=8, max_points=256, eval_every=2, ckpt_every=2, val_batches=1,

@@ -234,7 +234,7 @@ def build_regressor(meta: dict) -> Regressor:
 def load_chooser(regressor_dir: str, camera):
     """Adaptive ω from a trained regressor checkpoint: a jitted ``(obs [B], goals [B]) -> ω [B]`` (Observation and
     Goal batched), the ``choose_omega`` of ``mpc.run_episodes``."""
-    from dynres_jax import ckpt
+    from dynres_jax.io import ckpt
 
     graphdef, state = nnx.split(ckpt.load_module(regressor_dir, build_regressor)[0])
 

@@ -31,13 +31,13 @@ import time
 import jax
 import numpy as np
 
-from dynres_jax.budget import TimingTable, bucket_for
-from dynres_jax.mpc import MPCConfig, goal_cost, overlay
-from dynres_jax.objective import disc_goal, inside_share, make_goal, objective, sort_goals
+from dynres_jax.control.budget import TimingTable, bucket_for
+from dynres_jax.control.mpc import MPCConfig, goal_cost, overlay
+from dynres_jax.control.objective import disc_goal, inside_share, make_goal, objective, sort_goals
+from dynres_jax.control.planner import plan
+from dynres_jax.control.tasks import FILL
 from dynres_jax.perception import point_cloud, sample_particles
-from dynres_jax.planner import plan
 from dynres_jax.sim.env import PileEnv, State
-from dynres_jax.tasks import FILL
 
 GOAL_GAP = 0.04  # m: sort goals' rims at least this far apart (room for A*'s snapping of both centres to the grid)
 GOAL_EDGE = 0.01  # m: sort goals' rims at least this far from the bin wall
@@ -173,7 +173,7 @@ def sort_episode(env: PileEnv, state: State, dynamics, cfg: MPCConfig, key, goal
                  *, blob_radius: float | None = None, grid_step: float = 0.02, lookahead: int = 3,
                  timing: TimingTable | None = None) -> tuple[State, list[dict], list[np.ndarray]]:
     """One Sort episode from ``state``: kind k to the disc of ``goal_radius`` (m) at goals_xy[k] (m).
-    dynamics: ``mpc.learned_dynamics(model)`` or ``mpc.sweep_dynamics(hw)``; blob_radius: A*'s blob circle (m,
+    dynamics: ``registry.learned_dynamics(model)`` or ``registry.sweep_dynamics(hw)``; blob_radius: A*'s blob circle (m,
     default goal_radius); grid_step: A*'s grid (m); lookahead: grid steps a waypoint may lie ahead (>= 1);
     timing: the table a time budget (cfg.time_budget) is spent by.
     Returns the final state, one record per step and GIF frames. A record: step, phase ("path": following A*,

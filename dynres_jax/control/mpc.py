@@ -21,15 +21,12 @@ import cv2
 import jax
 import jax.numpy as jnp
 import numpy as np
-from flax import nnx
 from jax.tree_util import Partial
 
-from dynres_jax import budget
-from dynres_jax.dynamics import Dynamics, edge_table, resolution_code, rollout
-from dynres_jax.graph import sweep_rollout
-from dynres_jax.objective import SAMPLES_PER_PARTICLE, Goal, distribution_distance, inside_share, objective
+from dynres_jax.control import budget
+from dynres_jax.control.objective import SAMPLES_PER_PARTICLE, Goal, distribution_distance, inside_share, objective
+from dynres_jax.control.planner import PlannerConfig, plan, sample_pushes
 from dynres_jax.perception import check_particles, point_cloud, sample_particles
-from dynres_jax.planner import PlannerConfig, plan, sample_pushes
 
 if TYPE_CHECKING:  # annotations only: the planning half of this module needs no simulator (nor MuJoCo)
     from dynres_jax.sim.env import PileEnv, State
@@ -71,74 +68,6 @@ class MPCConfig:
         """Per decision of a batch at omegas [B]: its bucket [B] and the Adam steps [B] it runs (``plan_steps``)."""
         buckets = np.array([budget.bucket_for(int(w), self.buckets) for w in np.asarray(omegas)])
         return buckets, np.array([self.plan_steps(int(b), table) for b in buckets], np.int32)
-
-
-EDGE_DTYPES = ("float32", "bfloat16")  # ``learned_dynamics``'s choices for the GNN's per-edge network
-
-
-@dataclass(frozen=True)
-class _Learned:
-    """A trained model's rollout as a planner dynamics, called with ``(graphdef, state, code)`` bound by
-    ``learned_dynamics``' Partial. With ``pair_table`` it offers the planner's per-plan hook ``prepare``: the pair
-    table of each re-sampling, built once per plan instead of once per Adam step (XLA does not hoist it out of the
-    step loop itself: the table is larger than its inputs). Instances compare by value, so equal options share one
-    compiled plan."""
-
-    edge_dtype: str
-    pair_table: bool
-
-    def __call__(self, graphdef, state, code, positions, mask, actions, context=None):
-        return rollout(graphdef, state, positions, mask, actions, code, edge_dtype=self.edge_dtype,
-                       pair_table=self.pair_table, table=context)
-
-    def prepare(self, graphdef, state, code, positions, mask):
-        """positions [N, 3], mask [N] -> the context of ``__call__``: the pair table [N, N, H], or None."""
-        if not self.pair_table:
-            return None
-        return edge_table(graphdef, state, positions, mask, code, edge_dtype=self.edge_dtype)
-
-
-def _sweep(plate_half_width, positions, mask, actions):
-    return sweep_rollout(positions, mask, actions, plate_half_width)
-
-
-def learned_dynamics(model: Dynamics, edge_dtype: str = "float32"):
-    """radius (m) -> planner dynamics ``(positions, mask, actions [T, 4]) -> [T, N, 3]`` of a trained model.
-    edge_dtype: "float32", or "bfloat16" for a GNN's per-edge network (predictions within about half a
-    millimetre, ``dynamics`` module docstring, "Mixed precision"; no faster on the H100 and H200: README, "Planner
-    speed"). A GNN whose edges are not in the push frame takes the first push's edge codes from a pair table
-    (``dynamics`` module docstring, "Pair table"): the planner's pushes all start from the same particles, so the
-    table is built once per plan, not per push and Adam step."""
-    edge_dtype = jnp.dtype(edge_dtype).name
-    if edge_dtype not in EDGE_DTYPES:
-        raise ValueError(f"edge_dtype must be one of {EDGE_DTYPES}, got {edge_dtype!r}")
-    if edge_dtype != "float32" and not isinstance(model, Dynamics):
-        raise ValueError(f"edge_dtype={edge_dtype!r} needs the graph network (Dynamics), got {type(model).__name__}")
-    pair_table = isinstance(model, Dynamics) and not model.config.edges_in_push_frame
-    graphdef, state = nnx.split(model)
-    return lambda radius: Partial(_Learned(edge_dtype, pair_table), graphdef, state, resolution_code(radius))
-
-
-def sweep_dynamics(plate_half_width: float):
-    """radius -> planner dynamics of the sweep heuristic alone (the resolution is irrelevant to it)."""
-    return lambda radius: Partial(_sweep, jnp.float32(plate_half_width))
-
-
-def load_dynamics(choice: str, ckpt_dir: str, plate_half_width: float, edge_dtype: str = "float32"):
-    """The planner's model. choice: "learned" (the checkpoint in ``ckpt_dir``), "sweep" (the heuristic), or "auto"
-    (the checkpoint when there is one); edge_dtype: a learned model's (``learned_dynamics``; the sweep has no
-    network). Returns (radius -> dynamics, n_max the model was trained for, a name)."""
-    from dynres_jax import ckpt
-    from dynres_jax.train import build_model
-
-    if choice not in ("auto", "learned", "sweep"):
-        raise ValueError(f"dynamics must be 'auto', 'learned' or 'sweep', got {choice!r}")
-    if choice == "learned" or (choice == "auto" and ckpt.latest_step(ckpt_dir) is not None):
-        model, meta, _ = ckpt.load_module(ckpt_dir, build_model)
-        dynamics = learned_dynamics(model, edge_dtype)
-        edges = "" if jnp.dtype(edge_dtype) == jnp.float32 else f", {jnp.dtype(edge_dtype).name} edges"
-        return dynamics, meta["train"]["n_max"], f"learned ({ckpt_dir}, step {meta.get('step')}{edges})"
-    return sweep_dynamics(plate_half_width), 100, "sweep heuristic"
 
 
 def _cost(camera, goal, positions, mask):

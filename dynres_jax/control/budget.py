@@ -24,7 +24,7 @@ from dataclasses import asdict, dataclass, field
 
 import jax
 
-from dynres_jax import files
+from dynres_jax.io import files
 
 BUCKETS = (16, 32, 64, 100)  # particle capacities; 100 = resolution.OMEGA_MAX, so ω = 100 pads nothing
 REFINE_WEIGHT = 0.5  # weight of a decision's own step time when a table is refined from it

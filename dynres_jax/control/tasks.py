@@ -3,14 +3,14 @@
 Gather: push the pile into a disc of random centre and radius. Redistribute: push it into a letter (the paper's J,
 T, U, or any character OpenCV draws). Both goals cover 1.3-1.8 times the area of the pieces' footprints, so the
 pile fills them loosely, and stay inside the bin. Sort (two kinds to their own regions, with the paper's A* blob
-planner) is in ``dynres_jax.sort``.
+planner) is in ``dynres_jax.control.sort``.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from dynres_jax.objective import disc_goal, text_goal
+from dynres_jax.control.objective import disc_goal, text_goal
 from dynres_jax.sim.env import PileEnv
 
 TASKS = ("gather", "redistribute")

@@ -90,7 +90,7 @@ import jax.numpy as jnp
 from flax import nnx
 
 from dynres_jax.config import SceneConfig
-from dynres_jax.graph import K_NEIGHBOURS, R_EDGE, build_edges, sweep_displacement
+from dynres_jax.models.graph import K_NEIGHBOURS, R_EDGE, build_edges, sweep_displacement
 
 LENGTH_SCALE = 0.05  # m: displacements and relative positions are divided by this inside the model
 R_REF = 0.02  # m: covering radius whose resolution code is 0

@@ -54,12 +54,12 @@ import jax.numpy as jnp
 import numpy as np
 from jax import export as jax_export
 
-from dynres_jax import files
 from dynres_jax.config import CameraConfig, SceneConfig
-from dynres_jax.graph import no_gpu_kernels
-from dynres_jax.mpc import goal_cost
-from dynres_jax.objective import Goal
-from dynres_jax.planner import PlannerConfig, plan
+from dynres_jax.control.mpc import goal_cost
+from dynres_jax.control.objective import Goal
+from dynres_jax.control.planner import PlannerConfig, plan
+from dynres_jax.io import files
+from dynres_jax.models.graph import no_gpu_kernels
 from dynres_jax.sim.camera import Camera
 
 FORMAT = "dynres_jax planner, jax.export serialized Exported (StableHLO)"
@@ -73,8 +73,8 @@ def planner_step(dynamics: Callable, camera: Camera, config: PlannerConfig) -> C
     """The pure function that is exported: ``(positions, mask, radius, goal_mask, goal_distance, goal_samples,
     goal_sample_mask, key, init, warm) -> {"best", "best_cost", "history"}`` (module docstring for shapes and units).
 
-    dynamics: radius (m) -> planner dynamics (the first value of ``mpc.load_dynamics``, or
-    ``mpc.learned_dynamics(model)``); its arrays are closed over, so they become constants of the export.
+    dynamics: radius (m) -> planner dynamics (the first value of ``registry.load_dynamics``, or
+    ``registry.learned_dynamics(model)``); its arrays are closed over, so they become constants of the export.
     camera: the camera the goal's pixels belong to (static). config: the planner's settings (static; one particle
     set, so resamples must be 1; the step count is ``config.steps``).
     """
@@ -146,12 +146,12 @@ def export_planner(dynamics: Callable, n_max: int, camera: Camera, config: Plann
 def export_checkpoint(ckpt_dir: str, config: PlannerConfig | None = None, camera: Camera | None = None, *,
                       goal_samples: int = DEFAULT_GOAL_SAMPLES, platforms: Sequence[str] | None = None,
                       plate_half_width: float = SceneConfig.plate_half_width) -> tuple[jax_export.Exported, dict]:
-    """Export the planner of the learned model in ``ckpt_dir`` (``mpc.load_dynamics("learned", ...)``) -> (Exported,
-    its description for the sidecar: ``describe``). config: default ``PlannerConfig()``; camera: default the
+    """Export the planner of the learned model in ``ckpt_dir`` (``registry.load_dynamics("learned", ...)``) ->
+    (Exported, its description for the sidecar: ``describe``). config: default ``PlannerConfig()``; camera: default the
     simulator's (``CameraConfig()``).
     Raises FileNotFoundError (no checkpoint there) or ``ckpt.CheckpointError`` (unreadable)."""
-    from dynres_jax import ckpt
-    from dynres_jax.mpc import load_dynamics
+    from dynres_jax.io import ckpt
+    from dynres_jax.models.registry import load_dynamics
 
     config = PlannerConfig() if config is None else config
     camera = Camera.top_down(CameraConfig()) if camera is None else camera

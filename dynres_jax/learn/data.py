@@ -68,9 +68,9 @@ from dynres_jax.config import (
     SimConfig,
     replace,
 )
-from dynres_jax.dynamics import split_push
-from dynres_jax.files import TMP_PREFIX, atomic_write, write_json, write_text
-from dynres_jax.graph import nearest_by_matrix
+from dynres_jax.io.files import TMP_PREFIX, atomic_write, write_json, write_text
+from dynres_jax.models.dynamics import split_push
+from dynres_jax.models.graph import nearest_by_matrix
 from dynres_jax.perception import sample_particles
 from dynres_jax.sim.camera import Camera, Observation
 from dynres_jax.sim.env import PileEnv

@@ -32,16 +32,17 @@ import optax
 from flax import nnx
 from tqdm import tqdm
 
-from dynres_jax import ckpt, data, files
-from dynres_jax.cnn_dynamics import CNNDynamics, CNNDynamicsConfig
-from dynres_jax.dynamics import Dynamics, DynamicsConfig, resolution_code, rollout
+from dynres_jax.io import ckpt, files
+from dynres_jax.learn import data
+from dynres_jax.models.cnn_dynamics import CNNDynamicsConfig
+from dynres_jax.models.dynamics import DynamicsConfig, resolution_code, rollout
+from dynres_jax.models.registry import make_model, model_class
 
 SCHEDULE = ("steps", "eval_every", "ckpt_every", "val_batches")  # may change when a run resumes; nothing else may
 VAL_STREAM = 2**30  # seeds of validation batches: (seed, VAL_STREAM, b), apart from training steps' (seed, step)
 LOSSES = ("mse", "distance")  # TrainConfig.loss: see rollout_errors
 STATES = ("particles", "pieces")  # TrainConfig.state: what the model sees and predicts
 DISTANCE_EPS = 1e-4  # m: smoothing of the "distance" loss at zero error
-MODEL_CLASSES = {"gnn": (DynamicsConfig, Dynamics), "cnn": (CNNDynamicsConfig, CNNDynamics)}  # card name -> classes
 
 
 @dataclass(frozen=True)
@@ -100,32 +101,10 @@ class TrainConfig:
             raise ValueError("steps, batch and horizon must be positive")
 
 
-def model_class(config) -> str:
-    """The card's name ("gnn" or "cnn") of a model config; a ValueError for anything else."""
-    for name, (config_type, _) in MODEL_CLASSES.items():
-        if isinstance(config, config_type):
-            return name
-    raise ValueError(f"TrainConfig.model must be a DynamicsConfig or a CNNDynamicsConfig, got {type(config).__name__}")
-
-
-def make_model(config: DynamicsConfig | CNNDynamicsConfig, seed: int = 0) -> Dynamics | CNNDynamics:
-    """A fresh model of the class its config names, parameters drawn from ``seed``."""
-    return MODEL_CLASSES[model_class(config)][1](config, rngs=nnx.Rngs(seed))
-
-
 def card(cfg: TrainConfig, **extra) -> dict:
     """The JSON card saved with every checkpoint: enough to rebuild the model and know how it was trained."""
     return {"model_class": model_class(cfg.model), "dynamics": dataclasses.asdict(cfg.model),
             "train": dataclasses.asdict(cfg), **extra}
-
-
-def build_model(meta: dict) -> Dynamics | CNNDynamics:
-    """A fresh model from a checkpoint card (``ckpt.load_module``'s ``build``): ``meta["model_class"]`` ("gnn", the
-    default for cards written before the CNN existed, or "cnn") and its config ``meta["dynamics"]``."""
-    name = meta.get("model_class", "gnn")
-    if name not in MODEL_CLASSES:
-        raise ValueError(f"checkpoint card names model_class {name!r}; known: {', '.join(MODEL_CLASSES)}")
-    return make_model(MODEL_CLASSES[name][0](**meta["dynamics"]))
 
 
 def rollout_errors(graphdef, state, samples: data.Sample) -> dict:

@@ -194,7 +194,7 @@ def sample_pushes(key, points, valid, config: PlannerConfig):
 def _prepared(dynamics_fn, positions, mask):
     """The per-plan hook: (dynamics taking a context, contexts [R, ...]) for positions [R, N, 3] and mask [R, N]. A
     dynamics ``Partial(fn, *args)`` whose fn has a ``prepare(*args, positions [N, 3], mask [N])`` method gets its
-    context (work that depends on the particles only, such as ``mpc.learned_dynamics``' pair table) computed here,
+    context (work that depends on the particles only, such as ``registry.learned_dynamics``' pair table) computed here,
     once per plan, and is called as ``fn(*args, positions, mask, actions, context)``; any other dynamics ignores the
     context (None)."""
     prepare = getattr(dynamics_fn.func, "prepare", None)

@@ -42,8 +42,8 @@ from flax import nnx
 from jax.lax import Precision
 
 from dynres_jax.config import SceneConfig
-from dynres_jax.dynamics import LENGTH_SCALE, rollout
-from dynres_jax.graph import sweep_displacement
+from dynres_jax.models.dynamics import LENGTH_SCALE, rollout
+from dynres_jax.models.graph import sweep_displacement
 
 PILE_SHARE = 0.125  # share of the bin a typical pile covers: a uniform pile of that size reads about 1 per cell
 IN_CHANNELS = 4  # occupancy, sweep displacement x and y, resolution code
