@@ -1,11 +1,6 @@
-"""Gather: ``python -m experiments.gather --help``; the work is in ``experiments.task``."""
+"""``python -m experiments.gather``, the command ``dynres_jax.commands.gather``."""
 
-from experiments.task import main as run_task
-
-
-def main(argv=None):
-    return run_task("gather", argv)
-
+from dynres_jax.commands.gather import main
 
 if __name__ == "__main__":
     main()

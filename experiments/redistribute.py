@@ -1,11 +1,6 @@
-"""Redistribute: ``python -m experiments.redistribute --help``; the work is in ``experiments.task``."""
+"""``python -m experiments.redistribute``, the command ``dynres_jax.commands.redistribute``."""
 
-from experiments.task import main as run_task
-
-
-def main(argv=None):
-    return run_task("redistribute", argv)
-
+from dynres_jax.commands.redistribute import main
 
 if __name__ == "__main__":
     main()

@@ -19,9 +19,9 @@ os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")  # torch and JAX
 import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 
+from benchmarks.bench_planner import FULL, PARTICLE_RADIUS, _piles, _timed_model_and_cost  # noqa: E402
 from dynres_jax.control.planner import PlannerConfig, _as_pytree_fn, _plan_jit, _traced, plan  # noqa: E402
 from dynres_jax.models.registry import EDGE_DTYPES, learned_dynamics  # noqa: E402
-from experiments.bench_planner import FULL, PARTICLE_RADIUS, _piles, _timed_model_and_cost  # noqa: E402
 
 
 def main():

@@ -1,5 +1,5 @@
 """Kernel profile of MJX pushes: GPU time per simulator step of every kernel XLA launches for a scene variant of
-``experiments.bench_sim`` (CUPTI trace through ``torch.profiler``), with the optimised HLO that names each fusion and
+``benchmarks.bench_sim`` (CUPTI trace through ``torch.profiler``), with the optimised HLO that names each fusion and
 the MJX function each fusion comes from. README, "Speed".
 
     python scripts/profile_sim.py OUT_DIR --variants fast [--worlds 4096] [--steps 50]
@@ -18,8 +18,8 @@ os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")  # torch and JAX
 
 import jax  # noqa: E402
 
+from benchmarks.bench_sim import _batch, variant  # noqa: E402
 from dynres_jax.sim.env import PileEnv  # noqa: E402
-from experiments.bench_sim import _batch, variant  # noqa: E402
 
 
 def _sources(hlo: str) -> dict[str, str]:

@@ -6,9 +6,9 @@ import os
 import numpy as np
 import pytest
 
+from dynres_jax.commands import evaluate, label_resolution, tradeoff, train_regressor
 from dynres_jax.control import resolution
 from dynres_jax.control.budget import TimingTable, bucket_for
-from experiments import evaluate, label_resolution, tradeoff, train_regressor
 
 QUICK = ["--quick", "--dynamics", "sweep", "--workers", "2"]
 # A hand-made timing table: under a 20 ms budget, buckets 16, 32, 64, 100 afford 10, 5, 2 and 1 Adam steps

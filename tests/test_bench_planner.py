@@ -3,7 +3,7 @@ bfloat16 edges, and how close the bfloat16 plan is to the float32 one; the shipp
 
 import pytest
 
-from experiments import bench_planner
+from benchmarks import bench_planner
 
 
 @pytest.fixture(scope="module")

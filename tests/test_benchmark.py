@@ -5,7 +5,7 @@ import re
 
 import pytest
 
-from experiments import bench_perception, bench_planner, bench_sim, benchmark
+from benchmarks import bench_perception, bench_planner, bench_sim, benchmark
 
 
 def _results():

@@ -15,9 +15,8 @@ from dynres_jax.control.budget import TimingTable, bucket_for, check_buckets, pl
 from dynres_jax.control.mpc import MPCConfig, decide, measure_timing, run_episode
 from dynres_jax.control.objective import disc_goal, make_goal
 from dynres_jax.control.planner import PlannerConfig
-from dynres_jax.models.registry import load_dynamics, sweep_dynamics
+from dynres_jax.models.registry import SHIPPED_DYNAMICS, load_dynamics, sweep_dynamics
 from dynres_jax.sim.env import PileEnv
-from experiments.task import DEFAULT_CKPT
 
 
 @pytest.fixture(scope="module")
@@ -49,7 +48,7 @@ def test_padding_is_inert_across_buckets(scene):
     """A decision at ω = 10 in bucket 16 equals the same decision in bucket 32 (same key): the particles, c, the
     plan and its cost, with the shipped model."""
     env, state, _, goal, planner = scene
-    dynamics, _, _ = load_dynamics("learned", DEFAULT_CKPT, env.config.scene.plate_half_width)
+    dynamics, _, _ = load_dynamics("learned", SHIPPED_DYNAMICS, env.config.scene.plate_half_width)
     cfg = MPCConfig(omega=10, buckets=(16, 32), max_points=512, planner=planner)
     key = jax.random.PRNGKey(3)
     small = decide(state.obs, goal, key, None, dynamics, cfg, env.camera, 10, bucket=16)

@@ -16,15 +16,14 @@ from flax import nnx
 from test_dynamics import N_VALID, N
 from test_train import CFG, shards  # noqa: F401  (shards: the module-scoped tiny data set)
 
+from dynres_jax.commands import eval_dynamics, evaluate, train_dynamics
 from dynres_jax.io import ckpt
 from dynres_jax.learn import data
 from dynres_jax.learn.train import TrainConfig, _batch, card, make_step, train
 from dynres_jax.models.cnn_dynamics import PILE_SHARE, CNNDynamics, CNNDynamicsConfig, sample, splat, tent_weights
 from dynres_jax.models.dynamics import Dynamics, count_params, predict, resolution_code
 from dynres_jax.models.graph import sweep_rollout
-from dynres_jax.models.registry import build_model, load_dynamics, make_model
-from experiments import eval_dynamics, evaluate, train_dynamics
-from experiments.task import DEFAULT_CKPT
+from dynres_jax.models.registry import SHIPPED_DYNAMICS, build_model, load_dynamics, make_model
 
 SMALL = CNNDynamicsConfig(grid=16, channels=8)
 HW = SMALL.bin_half_width
@@ -196,10 +195,10 @@ def test_checkpoint_round_trip_is_bit_identical(tmp_path):
 
 
 def test_shipped_gnn_card_still_builds_a_dynamics():
-    meta = ckpt.load_meta(DEFAULT_CKPT)
+    meta = ckpt.load_meta(SHIPPED_DYNAMICS)
     legacy = {k: v for k, v in meta.items() if k != "model_class"}  # cards written before the CNN existed: gnn
     assert meta["model_class"] == "gnn" and type(build_model(legacy)) is Dynamics
-    model, _, _ = ckpt.load_module(DEFAULT_CKPT, build_model)
+    model, _, _ = ckpt.load_module(SHIPPED_DYNAMICS, build_model)
     assert type(model) is Dynamics and model.config.residual and model.config.push_frame
     with pytest.raises(ValueError, match="model_class"):
         build_model({**meta, "model_class": "transformer"})
@@ -221,7 +220,7 @@ def test_command_lines_name_the_problem(tmp_path, capsys):
         evaluate.main(["--methods", "50", "cnn", "--cnn-ckpt", missing, "--out", str(tmp_path / "eval")])
     assert missing in capsys.readouterr().err
     with pytest.raises(SystemExit):  # a GNN checkpoint is not a CNN one
-        evaluate.main(["--methods", "cnn", "--cnn-ckpt", DEFAULT_CKPT, "--out", str(tmp_path / "eval")])
+        evaluate.main(["--methods", "cnn", "--cnn-ckpt", SHIPPED_DYNAMICS, "--out", str(tmp_path / "eval")])
     assert "not a cnn" in capsys.readouterr().err
     assert not os.path.exists(tmp_path / "eval")
     for argv in (["--model", "cnn", "--hidden", "8"], ["--model", "gnn", "--grid", "16"], ["--model", "cnn",

@@ -33,7 +33,7 @@ MULTI_DEVICE_SCRIPT = textwrap.dedent("""
     import sys
     import jax
     from dynres_jax.learn import data
-    from experiments.generate_data import main
+    from dynres_jax.commands.generate_data import main
     assert len(jax.devices()) == 4, jax.devices()
     try:
         data.generate(data.quick_config(worlds=6), sys.argv[1] + "/bad", progress=False)
@@ -389,7 +389,7 @@ def test_bad_windows_and_split(generated):
 
 
 def test_cli_rejects_bad_flags(capsys):
-    from experiments.generate_data import main
+    from dynres_jax.commands.generate_data import main
 
     with pytest.raises(SystemExit):
         main(["--out", "/nonexistent/x", "--quick", "--episodes", "0"])

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from experiments import simulate
+from dynres_jax.commands import simulate
 
 ROOT = Path(__file__).resolve().parents[1]
 COMMANDS = sorted(p.stem for p in (ROOT / "experiments").glob("*.py") if '"__main__"' in p.read_text())
@@ -86,3 +86,18 @@ def test_dynamics_study_collects_ratios_in_omega_order(tmp_path):
     assert list(rows[0]["ratio"].items()) == [("10", 0.5), ("100", 0.625)] and rows[1]["ratio"] == {"pieces": 0.375}
     assert "| first | 7 | 10: 0.50, 100: 0.62 | `F --height` |" in (tmp_path / "out" / "study.md").read_text()
     assert (tmp_path / "out" / "study.png").read_bytes()[:4] == b"\x89PNG"
+
+
+def test_the_dynres_command_runs_every_command(capsys):
+    """``dynres NAME`` reaches the same parser as ``python -m experiments.NAME``; every shim is a dynres command; an
+    unknown name is refused with the list."""
+    from dynres_jax.commands import COMMANDS as DYNRES
+    from dynres_jax.commands import main
+
+    assert sorted(DYNRES) == [c for c in COMMANDS if c != "benchmark"]
+    for name in ("gather", "train-regressor"):
+        with pytest.raises(SystemExit) as exit_:
+            main([name, "--help"])
+        assert exit_.value.code == 0 and "usage" in capsys.readouterr().out
+    with pytest.raises(SystemExit, match="unknown command 'gahter'.*gather"):
+        main(["gahter"])

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 from flax import nnx
 
+from dynres_jax.commands import export as export_cli
 from dynres_jax.config import CameraConfig
 from dynres_jax.control.mpc import goal_cost
 from dynres_jax.control.objective import disc_goal, make_goal
@@ -18,7 +19,6 @@ from dynres_jax.io import export as ex
 from dynres_jax.models.dynamics import Dynamics, DynamicsConfig
 from dynres_jax.models.registry import load_dynamics
 from dynres_jax.sim.camera import Camera
-from experiments import export as export_cli
 
 N_MAX, STEP, Q = 12, 7, 16
 CAMERA = Camera.top_down(CameraConfig(width=32, height=32))

@@ -7,11 +7,11 @@ import jax
 import numpy as np
 import pytest
 
+from dynres_jax.commands import plan
 from dynres_jax.config import CameraConfig, SceneConfig, SimConfig
 from dynres_jax.control.objective import disc_goal
 from dynres_jax.io import frames
 from dynres_jax.sim.env import PileEnv
-from experiments import plan
 
 
 @pytest.fixture(scope="module")

@@ -11,7 +11,7 @@ from flax import nnx
 from dynres_jax.learn import data
 from dynres_jax.models.dynamics import Dynamics, DynamicsConfig
 from dynres_jax.sim.env import State
-from experiments import noise_floor
+from studies import noise_floor
 
 CONFIG = data.quick_config(backend="mujoco")
 

@@ -1,7 +1,8 @@
 """The notebooks run top to bottom on a CPU in quick mode (DYNRES_QUICK=1), are stored without outputs, and draw.
 
-Each notebook runs in a fresh Jupyter kernel with the repository root as its working directory (so relative paths
-such as ``checkpoints/dynamics`` resolve); the kernel inherits this process's environment, quick mode included.
+Each notebook runs in a fresh Jupyter kernel in its own folder, as Jupyter runs it (the shipped checkpoints are package
+data, so no path depends on the working directory); the kernel inherits this process's environment, quick mode
+included.
 """
 
 import glob
@@ -37,7 +38,7 @@ def test_notebook_is_stored_without_outputs(name):
 def test_notebook_runs_in_quick_mode(name, monkeypatch):
     monkeypatch.setenv("DYNRES_QUICK", "1")
     nb = nbformat.read(os.path.join(NOTEBOOK_DIR, name), as_version=4)
-    NotebookClient(nb, timeout=600, kernel_name="python3", resources={"metadata": {"path": REPO_ROOT}}).execute()
+    NotebookClient(nb, timeout=600, kernel_name="python3", resources={"metadata": {"path": NOTEBOOK_DIR}}).execute()
 
     cells = code_cells(nb)
     outputs = [out for cell in cells for out in cell.outputs]

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 from flax import nnx
 
+from dynres_jax.commands import eval_dynamics
 from dynres_jax.io import ckpt
 from dynres_jax.learn import data
 from dynres_jax.learn.train import (
@@ -23,7 +24,6 @@ from dynres_jax.learn.train import (
 from dynres_jax.models.dynamics import Dynamics, DynamicsConfig, resolution_code
 from dynres_jax.models.graph import SWEEP_REGIONS
 from dynres_jax.models.registry import build_model
-from experiments import eval_dynamics
 
 CFG = TrainConfig(steps=4, batch=4, horizon=2, n_max=8, max_points=256, eval_every=2, ckpt_every=2, val_batches=1,
                   model=DynamicsConfig(hidden=16))

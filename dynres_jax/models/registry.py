@@ -4,6 +4,7 @@ The one place where ω becomes what a model is conditioned on (``resolution_code
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass
 
 import jax.numpy as jnp
@@ -15,6 +16,10 @@ from dynres_jax.models.cnn_dynamics import CNNDynamics, CNNDynamicsConfig
 from dynres_jax.models.dynamics import Dynamics, DynamicsConfig, edge_table, resolution_code, rollout
 from dynres_jax.models.graph import sweep_rollout
 
+SHIPPED = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "checkpoints")  # package data
+SHIPPED_DYNAMICS = os.path.join(SHIPPED, "dynamics")  # the graph network f every command plans with by default
+SHIPPED_CNN_DYNAMICS = os.path.join(SHIPPED, "cnn_dynamics")  # the paper's CNN-dynamics baseline
+SHIPPED_REGRESSOR = os.path.join(SHIPPED, "regressor")  # the resolution regressor g of adaptive ω
 MODEL_CLASSES = {"gnn": (DynamicsConfig, Dynamics), "cnn": (CNNDynamicsConfig, CNNDynamics)}  # card name -> classes
 
 

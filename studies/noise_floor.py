@@ -20,7 +20,7 @@ particles, in mm:
 Each scene's sums are written atomically to ``OUT/scenes/``; a killed run resumes where it stopped. At the end:
 ``OUT/floor.json``, ``floor.md`` (the table) and ``floor.png`` (the floor against σ, as a share of the heuristic).
 
-    python -m experiments.noise_floor --out runs/noise_floor --scenes 48 --worlds 8
+    python -m studies.noise_floor --out runs/noise_floor --scenes 48 --worlds 8
 """
 
 from __future__ import annotations
@@ -40,11 +40,10 @@ from dynres_jax.io import ckpt, files
 from dynres_jax.learn import data
 from dynres_jax.models.dynamics import predict, resolution_code
 from dynres_jax.models.graph import sweep_rollout
-from dynres_jax.models.registry import build_model
+from dynres_jax.models.registry import SHIPPED_DYNAMICS, build_model
 from dynres_jax.perception import sample_particles
 from dynres_jax.sim.env import State
 from dynres_jax.sim.pool import WorldPool, process_pool
-from experiments.task import DEFAULT_CKPT
 
 
 def perturb(states: State, qpos_adr, sigma: float, key) -> State:
@@ -176,10 +175,10 @@ def plot(summary: dict, sigmas, path: str) -> None:
 
 
 def main(argv=None) -> dict:
-    parser = argparse.ArgumentParser(prog="python -m experiments.noise_floor", description=__doc__,
+    parser = argparse.ArgumentParser(prog="python -m studies.noise_floor", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--out", required=True)
-    parser.add_argument("--ckpt", default=DEFAULT_CKPT, help="dynamics checkpoint (default: the shipped one)")
+    parser.add_argument("--ckpt", default=SHIPPED_DYNAMICS, help="dynamics checkpoint (default: the shipped one)")
     parser.add_argument("--scenes", type=int, default=48, help="scenes, drawn as the training data's shards")
     parser.add_argument("--worlds", type=int, default=8, help="worlds per scene")
     parser.add_argument("--pushes", type=int, default=2, help="pushes per world")

@@ -254,12 +254,11 @@ def _quality_model(timed_model):
     """(model, its name) that the bfloat16 agreement is measured on: the shipped checkpoint when there is one (the
     random weights of the timed model blow a pile metres apart, so their errors say little), else the timed model."""
     from dynres_jax.io import ckpt
-    from dynres_jax.models.registry import build_model
-    from experiments.task import DEFAULT_CKPT
+    from dynres_jax.models.registry import SHIPPED_DYNAMICS, build_model
 
-    if ckpt.latest_step(DEFAULT_CKPT) is None:
+    if ckpt.latest_step(SHIPPED_DYNAMICS) is None:
         return timed_model, "random weights (the timed model)"
-    model, meta, _ = ckpt.load_module(DEFAULT_CKPT, build_model)
+    model, meta, _ = ckpt.load_module(SHIPPED_DYNAMICS, build_model)
     return model, f"shipped checkpoint (step {meta.get('step')})"
 
 
@@ -371,18 +370,6 @@ def _plan_section(model, cost, edge_dtype, positions: np.ndarray, samples: int, 
                 short_steps=short, short_plan_s=wall_short, steps=steps, plan_s=wall_full,
                 plan_ms_per_step=1e3 * wall_full / steps, compile_s=max(compile_full, compile_short),
                 compile_short_s=compile_short)
-
-
-def plan_step(quick: bool, shipped: bool = False) -> dict:
-    """The benchmark's float32 planner timing alone (its ``jax`` section; with shipped=True the ``jax_shipped`` one,
-    or the reference architecture when no checkpoint is shipped): what ``scripts/ab_planner.py`` times in each code
-    version."""
-    sizes = QUICK if quick else FULL
-    model, cost = _timed_model_and_cost()
-    if shipped:
-        model, _ = _quality_model(model)
-    return _plan_section(model, cost, "float32", _piles(sizes["particles"], sizes["resamples"]), sizes["samples"],
-                         sizes["steps"], sizes["repeats"])
 
 
 def _jax_planner(positions: np.ndarray, samples: int, steps: int, repeats: int) -> tuple[dict, dict, dict | None]:

@@ -1,4 +1,4 @@
-"""Physics checks at scale: ``python -m experiments.validate_physics --pushes 1000 --json FILE``.
+"""Physics checks at scale: ``python -m studies.validate_physics --pushes 1000 --json FILE``.
 
 For every piece kind, random pushes through random piles (MJX, worlds batched), measuring the issue's physics lines:
 - no NaN and no broken world (a piece through the table or out of the bin);
@@ -101,7 +101,7 @@ def validate_kind(kind: str, pieces: int, worlds: int, rounds: int, scene_overri
 
 
 def main(argv=None):
-    parser = argparse.ArgumentParser(prog="python -m experiments.validate_physics", description=__doc__,
+    parser = argparse.ArgumentParser(prog="python -m studies.validate_physics", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--pushes", type=int, default=1000, help="pushes per kind")
     parser.add_argument("--worlds", type=int, default=250, help="worlds simulated at once")

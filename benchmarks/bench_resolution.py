@@ -30,8 +30,8 @@ def _ms_per_step(dynamics, cost, positions, mask, config, steps: int, repeats: i
     steps // 10) / the step difference; the compiling call is not timed (the step count is traced: one compile)."""
     import jax
 
+    from benchmarks.bench_planner import _median_s
     from dynres_jax.control.planner import plan
-    from experiments.bench_planner import _median_s
 
     key = jax.random.PRNGKey(0)
 
@@ -48,12 +48,11 @@ def run(quick: bool, batch: str | None = None) -> dict:
     """The benchmark on the device JAX sees -> a JSON-ready dict (module docstring)."""
     import jax
 
+    from benchmarks.bench_planner import PARTICLE_RADIUS, _camera_and_goal, _piles
     from dynres_jax.control.budget import bucket_for
     from dynres_jax.control.mpc import goal_cost
     from dynres_jax.control.planner import PlannerConfig
-    from dynres_jax.models.registry import load_dynamics
-    from experiments.bench_planner import PARTICLE_RADIUS, _camera_and_goal, _piles
-    from experiments.task import DEFAULT_CKPT
+    from dynres_jax.models.registry import SHIPPED_DYNAMICS, load_dynamics
 
     device = jax.devices()[0]
     batch = batch or ("task" if device.platform == "cpu" else "benchmark")
@@ -62,7 +61,7 @@ def run(quick: bool, batch: str | None = None) -> dict:
     if quick:
         samples, resamples = 4, min(resamples, 2)
     camera, goal = _camera_and_goal()
-    dynamics, _, name = load_dynamics("auto", DEFAULT_CKPT, 0.04)
+    dynamics, _, name = load_dynamics("auto", SHIPPED_DYNAMICS, 0.04)
     dynamics = dynamics(PARTICLE_RADIUS)
     config = PlannerConfig(samples=samples, resamples=resamples, steps=sizes["steps"])
     t0 = time.perf_counter()

@@ -28,12 +28,8 @@ from dynres_jax.control.objective import inside_share, make_goal
 from dynres_jax.control.planner import PlannerConfig
 from dynres_jax.control.resolution import load_chooser
 from dynres_jax.io import files
-from dynres_jax.models.registry import EDGE_DTYPES, load_dynamics
+from dynres_jax.models.registry import EDGE_DTYPES, SHIPPED_DYNAMICS, SHIPPED_REGRESSOR, load_dynamics
 from dynres_jax.sim.env import PileEnv
-
-DEFAULT_CKPT = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "checkpoints", "dynamics")
-DEFAULT_REGRESSOR = os.path.join(os.path.dirname(DEFAULT_CKPT), "regressor")
-
 
 DESCRIPTIONS = {
     "gather": "Gather (paper Sec. V): push a spread-out pile into a disc of random centre and radius.",
@@ -52,13 +48,13 @@ def add_loop_args(parser: argparse.ArgumentParser, task: str) -> None:
                             help="ω, the particles the planner reasons with: an integer, or 'adaptive' (the regressor "
                                  "g picks ω every step; not the default: the shipped regressor does not yet beat "
                                  "predicting its labels' mean, checkpoints/regressor/CARD.md)")
-        parser.add_argument("--regressor", default=DEFAULT_REGRESSOR, help="regressor checkpoint for adaptive ω")
+        parser.add_argument("--regressor", default=SHIPPED_REGRESSOR, help="regressor checkpoint for adaptive ω")
     parser.add_argument("--backend", default="mujoco", choices=["mujoco", "mjx"])
     parser.add_argument("--samples", type=int, default=50, help="action sequences optimised at once (M)")
     parser.add_argument("--plan-steps", type=int, default=100,
                         help="Adam steps per plan (N; the most a plan may run under --time-budget)")
     add_budget_args(parser)
-    parser.add_argument("--ckpt", default=None, help=f"dynamics checkpoint (default {DEFAULT_CKPT} if present)")
+    parser.add_argument("--ckpt", default=None, help=f"dynamics checkpoint (default {SHIPPED_DYNAMICS} if present)")
     parser.add_argument("--dynamics", default="auto", choices=["auto", "learned", "sweep"],
                         help="auto: the checkpoint when there is one, else the sweep heuristic")
     add_edge_dtype_arg(parser)
@@ -102,7 +98,7 @@ def build_loop(args, sim: SimConfig, parser: argparse.ArgumentParser):
     """The simulator, the planner's model, the MPC settings the loop flags ask for and the adaptive-ω chooser (None
     at a fixed ω): (env, dynamics, name, cfg, chooser)."""
     env = PileEnv(sim, backend=args.backend)
-    dynamics, n_max, name = load_dynamics(args.dynamics, args.ckpt or DEFAULT_CKPT, sim.scene.plate_half_width,
+    dynamics, n_max, name = load_dynamics(args.dynamics, args.ckpt or SHIPPED_DYNAMICS, sim.scene.plate_half_width,
                                           args.edge_dtype)
     chooser, omega = None, str(args.resolution)
     if omega == "adaptive":

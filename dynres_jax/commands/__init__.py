@@ -1,0 +1,27 @@
+"""The command line: ``dynres COMMAND [options]`` (or ``python -m experiments.COMMAND`` from a checkout).
+
+Task commands: gather, redistribute, sort, plan. Evaluation: evaluate, eval_dynamics, tradeoff. Learning:
+generate_data, train_dynamics, label_resolution, train_regressor. Other: simulate, export. ``dynres COMMAND --help``
+for each; ``-`` and ``_`` are the same in a command's name.
+"""
+
+from __future__ import annotations
+
+import importlib
+import sys
+
+COMMANDS = ("gather", "redistribute", "sort", "plan", "evaluate", "eval_dynamics", "tradeoff", "generate_data",
+            "train_dynamics", "label_resolution", "train_regressor", "simulate", "export")
+
+
+def main(argv=None) -> None:
+    """``dynres COMMAND ...``: run ``dynres_jax.commands.COMMAND.main`` on the rest of the arguments (its result, a
+    summary the command has printed, is not returned: a console script's return value is its exit status)."""
+    argv = sys.argv[1:] if argv is None else list(argv)
+    if not argv or argv[0] in ("-h", "--help"):
+        print(__doc__.strip())
+        return
+    name = argv[0].replace("-", "_")
+    if name not in COMMANDS:
+        sys.exit(f"dynres: unknown command {argv[0]!r}; the commands: {', '.join(COMMANDS)}")
+    importlib.import_module(f"dynres_jax.commands.{name}").main(argv[1:])

@@ -1,0 +1,234 @@
+"""The paper's evaluation (Fig. 5): task score against threshold for adaptive ω and every fixed ω, on Gather and
+Redistribute, many episodes at once.
+
+    python -m experiments.evaluate --task gather --episodes 64 --out runs/eval
+    python -m experiments.evaluate --task gather --methods 50 --plan-steps 100 --out runs/gather50
+
+Episode i of a task has the same pile and goal for every method (seeded by i). Each method runs all episodes
+together: perception and planning vmapped on the JAX device, pushes in C worker processes (``WorldPool``). With
+``--time-budget S`` every method plans under the same budget of S seconds per decision, spent by one timing table
+(``timing.json``, measured once per resolution bucket on this device or given by ``--timing``): a coarse ω affords
+more Adam steps. Without it every decision runs ``--plan-steps``.
+"adaptive" picks ω at every step with the regressor g (``--regressor``); "oracle" (an upper bound, not in the default
+list) plans at every ω of ORACLE_OMEGAS each step, pushes each on a copy of the worlds and keeps the one that left the
+lowest d (``mpc.run_episodes(oracle=...)``); the summary then says how much of the oracle's gain over the best fixed
+ω adaptive recovers (``oracle_gap``); "cnn" (not in the default list) is the
+paper's CNN-dynamics baseline: the same planner at ω = ``--cnn-omega`` (50) with the CNN checkpoint ``--cnn-ckpt``
+(``experiments.train_dynamics --model cnn``) as its model. Writes per method ``METHOD.json`` (final d
+and inside share per episode, means per step; resumable: finished methods are skipped), ``summary.json`` (means with
+95 % confidence intervals, success rates, and every method paired with adaptive on the same episodes: the mean
+difference of final d with a paired-bootstrap 95 % interval and McNemar's test on success, ``dynres_jax.stats``),
+``score.png`` (share of episodes with final d below τ, against τ) and ``steps.png`` (mean d over the MPC steps).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import os
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from dynres_jax.commands.label_resolution import add_planner_args, check_planner_args, planner_config, timing_table
+from dynres_jax.config import CameraConfig, PileConfig, SceneConfig, SimConfig
+from dynres_jax.control import resolution, tasks
+from dynres_jax.control.mpc import run_episodes
+from dynres_jax.control.objective import make_goal
+from dynres_jax.io import ckpt, files
+from dynres_jax.models.registry import SHIPPED_CNN_DYNAMICS, SHIPPED_DYNAMICS, SHIPPED_REGRESSOR, load_dynamics
+from dynres_jax.sim.pool import WorldPool, process_pool
+from dynres_jax.stats import mcnemar, paired_bootstrap, wilson
+
+SUCCESS = 0.9  # Gather succeeds when this share of the pieces is inside the goal
+ORACLE_OMEGAS = (10, 25, 50, 75, 100)  # method "oracle": the ω tried at every step
+
+
+def episode_goals(task: str, episodes: int, seed: int, env) -> list[np.ndarray]:
+    goals = []
+    for i in range(episodes):
+        rng = np.random.default_rng((seed, i))
+        if task == "gather":
+            goals.append(tasks.gather_goal(rng, env)[0])
+        else:
+            goals.append(tasks.redistribute_goal(rng, env, "JTU"[i % 3])[0])
+    return goals
+
+
+def summarise(results: dict) -> dict:
+    """Per method: means with 95 % intervals and the success share. Beside them, ``paired``: each other method
+    against the reference (adaptive when evaluated, else the first method) on the same episodes: the mean of its
+    final d minus the reference's with a paired-bootstrap 95 % interval, and McNemar's test on success."""
+    out = {}
+    for method, r in results.items():
+        d, inside = np.array(r["final_distance"]), np.array(r["final_inside"])
+        n, k = len(d), int(np.sum(inside >= SUCCESS))
+        out[method] = dict(episodes=n, final_distance=float(d.mean()),
+                           final_distance_ci95=float(1.96 * d.std(ddof=1) / np.sqrt(n)) if n > 1 else 0.0,
+                           final_inside=float(inside.mean()), success_share=k / n, success_ci95=wilson(k, n),
+                           mean_omega=float(np.mean(r["omega"])), broken=int(np.sum(r["broken"])),
+                           dynamics=r.get("dynamics"))
+    reference = "adaptive" if "adaptive" in results else next(iter(results))
+    ref = results[reference]
+    paired = {}
+    for method, r in results.items():
+        if method == reference or len(r["final_distance"]) < 2:
+            continue
+        paired[method] = dict(
+            delta_d=paired_bootstrap(r["final_distance"], ref["final_distance"]),
+            success=mcnemar(np.array(r["final_inside"]) >= SUCCESS, np.array(ref["final_inside"]) >= SUCCESS))
+    summary = dict(methods=out, reference=reference, paired=paired)
+    fixed = [m for m in results if m.isdigit()]
+    if fixed and "oracle" in results and "adaptive" in results:  # how much of the oracle's gain adaptive recovers
+        best = min(fixed, key=lambda m: out[m]["final_distance"])
+        gain = out[best]["final_distance"] - out["oracle"]["final_distance"]
+        summary["oracle_gap"] = dict(best_fixed=best, oracle_gain=gain,
+                                     adaptive_gain=out[best]["final_distance"] - out["adaptive"]["final_distance"],
+                                     recovered=((out[best]["final_distance"] - out["adaptive"]["final_distance"]) / gain
+                                                if gain > 0 else None))
+    return summary
+
+
+def label(method: str, r: dict) -> str:
+    """A method's name in the plots: "ω = 50", "adaptive", "CNN, ω = 50"."""
+    if method.isdigit():
+        return f"ω = {method}"
+    return f"CNN, ω = {round(float(np.mean(r['omega'])))}" if method == "cnn" else method
+
+
+def plot(results: dict, task: str, out_dir: str) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    finals = np.concatenate([r["final_distance"] for r in results.values()])  # d >= 0
+    taus = np.linspace(0.0, 1.02 * finals.max(), 200)
+    fig, ax = plt.subplots(figsize=(5, 3.5))
+    for method, r in results.items():
+        d = np.array(r["final_distance"])
+        ax.plot(taus, [(d < t).mean() for t in taus], label=label(method, r), lw=2.5 if method == "adaptive" else 1.2,
+                ls="--" if method == "cnn" else "-")
+    ax.set(xlabel="threshold τ on final d (pixels)", ylabel="task score (share of episodes with d < τ)",
+           title=f"{task}, {len(d)} episodes")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(os.path.join(out_dir, "score.png"), dpi=120)
+    plt.close(fig)
+    fig, ax = plt.subplots(figsize=(5, 3.5))
+    for method, r in results.items():
+        ax.plot(np.arange(1, len(r["mean_distance"]) + 1), r["mean_distance"], label=label(method, r))
+    ax.set(xlabel="MPC step", ylabel="mean d", title=task)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(os.path.join(out_dir, "steps.png"), dpi=120)
+    plt.close(fig)
+
+
+def check_cnn(parser, args) -> None:
+    """Method "cnn" needs a CNN checkpoint at --cnn-ckpt and a valid --cnn-omega; parser.error naming what is wrong."""
+    if not resolution.OMEGA_MIN <= args.cnn_omega <= resolution.OMEGA_MAX:
+        parser.error(f"--cnn-omega must lie in [{resolution.OMEGA_MIN}, {resolution.OMEGA_MAX}], got {args.cnn_omega}")
+    if ckpt.latest_step(args.cnn_ckpt) is None:
+        parser.error(f"method 'cnn' needs a CNN dynamics checkpoint; there is none in {args.cnn_ckpt!r} (train one "
+                     "with python -m experiments.train_dynamics --model cnn, or give --cnn-ckpt)")
+    meta = ckpt.load_meta(args.cnn_ckpt)
+    if meta.get("model_class", "gnn") != "cnn":
+        parser.error(f"--cnn-ckpt {args.cnn_ckpt!r} holds a {meta.get('model_class', 'gnn')} model, not a cnn one")
+    if args.cnn_omega > meta["train"]["n_max"]:
+        parser.error(f"--cnn-omega {args.cnn_omega} exceeds the CNN model's n_max = {meta['train']['n_max']}")
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(prog="python -m experiments.evaluate", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--task", default="gather", choices=tasks.TASKS)
+    parser.add_argument("--episodes", type=int, default=64)
+    parser.add_argument("--steps", type=int, default=20, help="MPC steps per episode")
+    parser.add_argument("--methods", nargs="+", default=["10", "25", "50", "75", "100", "adaptive"],
+                        help="fixed ω (integers), 'adaptive' (the regressor picks ω), 'oracle' (every step keeps the "
+                             "best of ω in ORACLE_OMEGAS by the simulated outcome) and 'cnn' (the CNN-dynamics "
+                             "baseline at --cnn-omega)")
+    add_planner_args(parser)
+    parser.add_argument("--kind", default="coffee")
+    parser.add_argument("--pieces", type=int, default=100)
+    parser.add_argument("--ckpt", default=SHIPPED_DYNAMICS)
+    parser.add_argument("--dynamics", default="auto", choices=["auto", "learned", "sweep"])
+    parser.add_argument("--regressor", default=SHIPPED_REGRESSOR)
+    parser.add_argument("--cnn-ckpt", default=SHIPPED_CNN_DYNAMICS, help="the CNN-dynamics checkpoint of method 'cnn'")
+    parser.add_argument("--cnn-omega", type=int, default=50, help="ω of method 'cnn'")
+    parser.add_argument("--workers", type=int, default=None)
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--out", required=True)
+    parser.add_argument("--quick", action="store_true", help="tiny sizes for a CPU smoke run")
+    args = parser.parse_args(argv)
+    check_planner_args(parser, args)
+    for m in args.methods:
+        fixed = m.isdigit() and resolution.OMEGA_MIN <= int(m) <= resolution.OMEGA_MAX
+        if m not in ("adaptive", "oracle", "cnn") and not fixed:
+            parser.error(f"--methods takes 'adaptive', 'oracle', 'cnn' or integers in [{resolution.OMEGA_MIN}, "
+                         f"{resolution.OMEGA_MAX}], got {m!r}")
+    if "cnn" in args.methods:
+        check_cnn(parser, args)
+    camera = CameraConfig(width=64, height=64) if args.quick else CameraConfig()
+    sim = SimConfig(scene=SceneConfig(kinds=(args.kind,), pieces=(args.pieces,)), camera=camera,
+                    pile=PileConfig(layout="spread" if args.task == "gather" else "blob"))
+    main_model = load_dynamics(args.dynamics, args.ckpt, sim.scene.plate_half_width)  # (dynamics, n_max, name)
+    cnn_model = load_dynamics("learned", args.cnn_ckpt, sim.scene.plate_half_width) if "cnn" in args.methods else None
+    os.makedirs(args.out, exist_ok=True)
+    results = {}
+    with process_pool(args.workers) as processes:
+        pool = WorldPool(sim, processes)
+        masks = episode_goals(args.task, args.episodes, args.seed, pool.env)
+        goals = jax.tree.map(lambda *g: jnp.stack(g), *[make_goal(m, pool.camera) for m in masks])
+        keys = jax.random.split(jax.random.PRNGKey(args.seed), args.episodes)
+        timing = None
+        for method in args.methods:
+            path = os.path.join(args.out, f"{method}.json")
+            if os.path.exists(path):
+                with open(path) as f:
+                    results[method] = json.load(f)
+                continue
+            dynamics, _, name = cnn_model if method == "cnn" else main_model
+            omega = args.cnn_omega if method == "cnn" else int(method) if method.isdigit() else 50
+            cfg = dataclasses.replace(planner_config(pool.env, args), steps=args.steps, omega=omega)
+            chooser = resolution.load_chooser(args.regressor, pool.camera) if method == "adaptive" else None
+            oracle = ORACLE_OMEGAS if method == "oracle" else None
+            print(f"{args.task}: method {method}, {args.episodes} episodes, dynamics {name}")
+            starts = pool.reset(jax.vmap(lambda i: jax.random.fold_in(jax.random.PRNGKey(args.seed), i))(
+                jnp.arange(args.episodes)))
+            if timing is None:  # one table for every method: measured with the main model on episode 0
+                timing = timing_table(args, args.out, starts.obs, goals, main_model[0], cfg, pool.camera)
+            states, records = run_episodes(pool, starts, goals, dynamics, cfg, keys, choose_omega=chooser,
+                                           timing=timing, oracle=oracle)
+            r = dict(final_distance=records[-1]["distance"].tolist(), final_inside=records[-1]["success"].tolist(),
+                     mean_distance=[float(x["distance"].mean()) for x in records],
+                     mean_inside=[float(x["success"].mean()) for x in records],
+                     omega=np.stack([x["omega"] for x in records]).tolist(), broken=records[-1]["broken"].tolist(),
+                     plan_steps=np.stack([x["plan_steps"] for x in records]).tolist(),
+                     seconds=float(sum(x["seconds"] for x in records)), dynamics=name,
+                     device=jax.devices()[0].device_kind)
+            files.write_json(path, r)
+            results[method] = r
+    devices = sorted({r.get("device", "unrecorded") for r in results.values()})  # where the methods ran
+    summary = dict(task=args.task, dynamics=main_model[2], device=", ".join(devices),
+                   time_budget=args.time_budget, samples=args.samples, plan_steps=args.plan_steps,
+                   steps=args.steps, **summarise(results))
+    files.write_json(os.path.join(args.out, "summary.json"), summary)
+    plot(results, args.task, args.out)
+    for method, s in summary["methods"].items():
+        print(f"{method:>8}: final d {s['final_distance']:8.2f} ± {s['final_distance_ci95']:.2f}  inside "
+              f"{s['final_inside']:.1%}  ≥{SUCCESS:.0%} inside in {s['success_share']:.0%} of episodes  "
+              f"mean ω {s['mean_omega']:.1f}")
+    for method, p in summary["paired"].items():
+        lo, hi = p["delta_d"]["ci95"]
+        m = p["success"]
+        print(f"{method:>8} - {summary['reference']}: Δd {p['delta_d']['mean']:+.2f} [{lo:+.2f}, {hi:+.2f}]  "
+              f"successes only here {m['first_only']}, only there {m['second_only']} (McNemar p = {m['p']:.3f})")
+    return summary
+
+
+if __name__ == "__main__":
+    main()

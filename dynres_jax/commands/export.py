@@ -1,0 +1,93 @@
+"""Export the MPC planner of a trained dynamics model as one file, for a robot computer that has JAX but not this code:
+
+    python -m experiments.export --ckpt checkpoints/dynamics --out planner.jaxexport
+
+writes FILE (a ``jax.export`` serialised StableHLO program: one planning call, the model weights, the camera and the
+planner settings inside) and FILE.json (its inputs and outputs with shapes, dtypes and units, the planner settings,
+camera and checkpoint step). On the robot (needs jax, jaxlib no older than the exporting ones, and flatbuffers):
+
+    exported = jax.export.deserialize(open("planner.jaxexport", "rb").read())
+    out = exported.call(positions, mask, radius, goal_mask, goal_distance, goal_samples, goal_sample_mask, key,
+                        init, warm)
+    push = out["best"][0]   # (x_start, y_start, x_end, y_end), metres
+
+The particles (positions, mask, radius) come from perception (dynres_jax.perception.sample_particles), the goal
+arrays from dynres_jax.control.objective.make_goal (computed once per goal, on any machine), key is
+jax.random.PRNGKey(seed). --platforms: default this machine's backend; --platforms cuda for a GPU robot works on any
+machine. On the CPU a one-platform file plans bit for bit what the live planner plans; --platforms cpu cuda gives one
+file for both, whose plans differ from the live ones by float rounding, amplified by the optimisation (on a GPU
+neither the live planner nor the file repeats bit for bit from run to run; dynres_jax/io/export.py).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+
+import jax
+
+from dynres_jax.config import CameraConfig, PushConfig
+from dynres_jax.control.planner import PlannerConfig
+from dynres_jax.io import export
+from dynres_jax.io.ckpt import CheckpointError
+from dynres_jax.models.registry import SHIPPED_DYNAMICS
+from dynres_jax.sim.camera import Camera
+
+PLATFORMS = ("cpu", "cuda", "rocm", "tpu")
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(prog="python -m experiments.export", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    defaults = PlannerConfig()
+    parser.add_argument("--ckpt", default=SHIPPED_DYNAMICS, help="dynamics checkpoint (default: the shipped one)")
+    parser.add_argument("--out", required=True, help="the file to write; its description goes to OUT.json")
+    parser.add_argument("--samples", type=int, default=50, help="action sequences optimised at once (M)")
+    parser.add_argument("--steps", type=int, default=100, help="Adam steps per plan (N)")
+    parser.add_argument("--horizon", type=int, default=defaults.horizon, help="pushes per sequence (T)")
+    parser.add_argument("--bound", type=float, default=defaults.bound,
+                        help="pushes stay within ±bound m (default: the coffee bin's PileEnv.action_bound)")
+    parser.add_argument("--min-length", type=float, default=PushConfig.min_length, help="shortest push, m")
+    parser.add_argument("--max-length", type=float, default=PushConfig.max_length, help="longest push, m")
+    parser.add_argument("--lr", type=float, default=defaults.lr, help="Adam learning rate, m")
+    parser.add_argument("--camera", default=None,
+                        help="camera JSON (Camera.to_json: K, rotation, centre, width, height) the goals' pixels "
+                             "belong to (default: the simulator's top-down 128 x 128 camera)")
+    parser.add_argument("--goal-samples", type=int, default=export.DEFAULT_GOAL_SAMPLES,
+                        help="Q, the goal's FPS samples (objective.make_goal's n_samples)")
+    parser.add_argument("--platforms", nargs="+", choices=PLATFORMS, default=None,
+                        help=f"platforms to lower for (default: this machine's, now "
+                             f"{jax.export.default_export_platform()}); several give one file for all")
+    args = parser.parse_args(argv)
+
+    try:
+        config = PlannerConfig(samples=args.samples, steps=args.steps, horizon=args.horizon, bound=args.bound,
+                               min_length=args.min_length, max_length=args.max_length, lr=args.lr)
+    except ValueError as e:
+        parser.error(str(e))
+    if args.goal_samples < 1:
+        parser.error("--goal-samples must be >= 1")
+    if args.camera is None:
+        camera = Camera.top_down(CameraConfig())
+    else:
+        with open(args.camera) as f:
+            camera = Camera.from_json(f.read())
+    try:
+        exported, info = export.export_checkpoint(args.ckpt, config, camera, goal_samples=args.goal_samples,
+                                                  platforms=args.platforms)
+    except (FileNotFoundError, CheckpointError) as e:
+        parser.error(f"--ckpt: {e}")
+    size = export.save(exported, args.out, info)
+    summary = dict(out=os.path.abspath(args.out), sidecar=os.path.abspath(args.out) + ".json", bytes=size,
+                   platforms=list(exported.platforms), checkpoint_step=info["checkpoint"]["step"],
+                   signature=export.signature(exported))
+    print(f"wrote {args.out} ({size / 1e6:.2f} MB, {', '.join(exported.platforms)}; checkpoint step "
+          f"{summary['checkpoint_step']}) and {args.out}.json")
+    print(f"signature: {summary['signature']}")
+    print(json.dumps(dict(planner=info["planner"], n_max=info["n_max"])))
+    return summary
+
+
+if __name__ == "__main__":
+    main()

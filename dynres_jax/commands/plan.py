@@ -1,0 +1,78 @@
+"""Plan one push for a recorded RGBD frame (a real camera's, or one the simulator saved with ``frames.save_frame``):
+
+    python -m experiments.plan --depth D.png --rgb C.png --camera cam.json --goal G.png --out push.png
+
+Depth is a 16-bit PNG in millimetres (as depth cameras save it), the camera a JSON file (``Camera.to_json``: K,
+rotation camera-to-world, centre, width, height; world frame z up, table at z = 0), the goal a black-and-white PNG
+of the camera's size. Prints the push (x_start, y_start, x_end, y_end) in metres and draws it over the frame.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+import cv2
+import jax
+import numpy as np
+
+from dynres_jax.commands.task import add_edge_dtype_arg
+from dynres_jax.control.budget import BUCKETS, bucket_for
+from dynres_jax.control.mpc import goal_cost, overlay
+from dynres_jax.control.objective import make_goal
+from dynres_jax.control.planner import PlannerConfig, plan
+from dynres_jax.io import frames
+from dynres_jax.models.registry import SHIPPED_DYNAMICS, load_dynamics
+from dynres_jax.perception import WORKSPACE_HALF_WIDTH, sample_particles
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(prog="python -m experiments.plan", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--depth", required=True)
+    parser.add_argument("--rgb", required=True)
+    parser.add_argument("--camera", required=True)
+    parser.add_argument("--goal", required=True)
+    parser.add_argument("--resolution", type=int, default=50, help="ω")
+    parser.add_argument("--workspace", type=float, default=WORKSPACE_HALF_WIDTH,
+                        help="half-width (m) of the square where pieces can be; outside it nothing is foreground")
+    parser.add_argument("--bound", type=float, default=0.18, help="pushes stay within ±bound m")
+    parser.add_argument("--plate-half-width", type=float, default=0.04)
+    parser.add_argument("--samples", type=int, default=50)
+    parser.add_argument("--plan-steps", type=int, default=100)
+    parser.add_argument("--dynamics", default="auto", choices=["auto", "learned", "sweep"])
+    parser.add_argument("--ckpt", default=SHIPPED_DYNAMICS)
+    add_edge_dtype_arg(parser)
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--out", default="push.png", help="the frame with the goal, particles and push drawn")
+    args = parser.parse_args(argv)
+
+    obs, camera = frames.load_frame(args.depth, args.rgb, args.camera)
+    goal_mask = frames.load_goal(args.goal, camera)
+    goal = make_goal(goal_mask, camera)
+    dynamics, n_max, name = load_dynamics(args.dynamics, args.ckpt, args.plate_half_width, args.edge_dtype)
+    largest = min(n_max, BUCKETS[-1])
+    if not 1 <= args.resolution <= largest:
+        parser.error(f"--resolution must lie in [1, {largest}] (the model's n_max and the largest resolution bucket)")
+    key_h, key_plan = jax.random.split(jax.random.PRNGKey(args.seed))
+    bucket = bucket_for(args.resolution)
+    particles = sample_particles(obs, camera, args.resolution, key_h, bucket, workspace=args.workspace)
+    config = PlannerConfig(samples=args.samples, steps=args.plan_steps, bound=args.bound, seed=args.seed)
+    result = plan(dynamics(particles.radius), goal_cost(goal, camera, bucket), particles.positions, particles.mask,
+                  key_plan, config)
+    action = np.asarray(result.best[0], np.float64)
+    image = overlay(np.asarray(obs.rgb), goal_mask, np.asarray(particles.positions)[np.asarray(particles.mask)],
+                    camera)
+    scale = image.shape[0] / camera.height
+    ends = np.array([[*action[:2], 0.0], [*action[2:], 0.0]])
+    (u0, v0), (u1, v1) = np.asarray(camera.world_to_pixel(ends)[0]) * scale
+    cv2.arrowedLine(image, (int(u0), int(v0)), (int(u1), int(v1)), (30, 30, 220), max(2, int(scale)), tipLength=0.15)
+    cv2.imwrite(args.out, cv2.cvtColor(image, cv2.COLOR_RGB2BGR))
+    out = dict(push=action.tolist(), predicted_objective=float(result.best_cost), dynamics=name,
+               omega=args.resolution, image=args.out)
+    print(json.dumps(out))
+    return out
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,19 @@
+#!/usr/bin/env bash
+# The wheel as a user installs it (CI runs this): build it, install it in a fresh virtual environment, run a one-step
+# Gather from a folder outside the checkout and check that it planned with the shipped learned model (package data),
+# not the sweep heuristic.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+work=$(mktemp -d)
+python3 -m pip wheel -q --no-deps . -w "$work/dist"
+python3 -m venv "$work/venv"
+"$work/venv/bin/python" -m pip install -q "$work"/dist/*.whl
+cd "$work"
+"$work/venv/bin/dynres" gather --steps 1 --samples 4 --plan-steps 2 --out "$work/out"
+"$work/venv/bin/python" - "$work/out/metrics.json" <<'PY'
+import json, sys
+dynamics = json.load(open(sys.argv[1]))["dynamics"]
+assert dynamics.startswith("learned (") and "site-packages" in dynamics, f"the wheel did not plan with its model: {dynamics}"
+print(f"wheel test passed: {dynamics}")
+PY
+rm -rf "$work"
