@@ -136,7 +136,7 @@ def test_oracle_keeps_the_best_candidate_per_episode():
                      keys, log=lambda s: None)
 
 
-def test_time_budget_needs_a_table_for_batched_episodes():
+def test_time_budget_needs_a_table():
     cfg = MPCConfig(steps=1, omega=5, buckets=(6,), time_budget=0.1)
     with pytest.raises(ValueError, match="timing table"):
         run_episodes(None, None, None, None, cfg, None)

@@ -132,19 +132,24 @@ def decide(obs, goal: Goal, key, init, dynamics, cfg: MPCConfig, camera, omega=N
 
 
 @functools.partial(jax.jit, static_argnames=("dynamics", "cfg", "camera", "bucket"))
-def _decide_compiled(obs, goal, key, init, warm, omega, steps, *, dynamics, cfg, camera, bucket):
-    return decide(obs, goal, key, init, dynamics, cfg, camera, omega, bucket=bucket, steps=steps, warm=warm)
+def _decide_batch(obs, goal, key, init, warm, omega, steps, *, dynamics, cfg, camera, bucket):
+    def one(obs, goal, key, init, omega, steps):
+        return decide(obs, goal, key, init, dynamics, cfg, camera, omega, bucket=bucket, steps=steps, warm=warm)
+
+    return per_episode(one)(obs, goal, key, init, omega, steps)
 
 
-def decide_compiled(obs, goal: Goal, key, init, warm, omega, steps, dynamics, cfg: MPCConfig, camera, bucket: int):
-    """``decide`` as one compiled function per bucket (and model, camera and planner): what the closed loop runs and
-    its timing table measures. init [T, 4] always (ignored unless warm); warm, omega and steps are traced. The
-    particles are checked: bad perception input raises a ValueError naming it (``perception.check_particles``)."""
+def decide_batch(obs, goal: Goal, key, init, warm, omega, steps, dynamics, cfg: MPCConfig, camera, bucket: int):
+    """``decide`` over a batch of episodes (every argument but warm with a leading axis [B]) as one compiled function
+    per bucket (and model, camera and planner): what the closed loop runs and its timing table measures. init
+    [B, T, 4] (ignored unless warm); warm, omega [B] and steps [B] are traced. The particles are checked: bad
+    perception input raises a ValueError naming it (``perception.check_particles``)."""
     key_cfg = replace(cfg, steps=1, omega=1, time_budget=None)  # fields a decision does not read: one compile
-    particles, c_now, result = _decide_compiled(obs, goal, key, jnp.asarray(init, jnp.float32), jnp.asarray(warm),
-                                                jnp.asarray(omega, jnp.int32), jnp.asarray(steps, jnp.int32),
-                                                dynamics=dynamics, cfg=key_cfg, camera=camera, bucket=bucket)
-    check_particles(particles, omega, bucket, "perception")
+    omega = np.asarray(omega, np.int32)
+    particles, c_now, result = _decide_batch(obs, goal, key, jnp.asarray(init, jnp.float32), jnp.asarray(warm),
+                                             jnp.asarray(omega), jnp.asarray(steps, jnp.int32),
+                                             dynamics=dynamics, cfg=key_cfg, camera=camera, bucket=bucket)
+    check_particles(particles, omega, bucket, "perception failed in episodes")
     return particles, c_now, result
 
 
@@ -160,14 +165,30 @@ def measure_timing(obs, goal: Goal, dynamics, cfg: MPCConfig, camera, repeats: i
 
     init = jnp.zeros((cfg.planner.horizon, 4), jnp.float32)
 
-    def run(bucket, steps):  # as ``run_episode`` decides: a folded key, the first push of the best sequence
+    def run(bucket, steps):  # as ``run_episodes`` decides one episode: the first push of the best sequence
         omega = min(bucket, points)  # a bucket's work does not depend on how many of its slots are valid
-        result = decide_compiled(obs, goal, jax.random.fold_in(key, 0), init, True, omega, steps, dynamics, cfg,
-                                 camera, bucket)[2]
-        return result.best[0]
+        result = decide_batch(batch(obs), batch(goal), batch(jax.random.fold_in(key, 0)), batch(init), True,
+                              [omega], [steps], dynamics, cfg, camera, bucket)[2]
+        return result.best[0, 0]
 
     return budget.measure(run, cfg.buckets, samples=cfg.planner.samples, horizon=cfg.planner.horizon,
                           max_steps=cfg.planner.steps, repeats=repeats)
+
+
+def per_episode(fn):
+    """``jax.vmap(fn)``, except that a batch of one calls fn on its one episode: XLA may round a vmapped reduction
+    differently, and a batch of one should decide bit for bit as the episode alone."""
+    def batched(*args):
+        if len(jax.tree.leaves(args)[0]) == 1:
+            return batch(fn(*jax.tree.map(lambda x: x[0], args)))
+        return jax.vmap(fn)(*args)
+
+    return batched
+
+
+def batch(tree):
+    """A pytree of one episode as a batch of one: a leading axis [1] on every leaf."""
+    return jax.tree.map(lambda x: jnp.asarray(x)[None], tree)
 
 
 def _shift(best):
@@ -178,49 +199,16 @@ def _shift(best):
 def run_episode(env: PileEnv, state: State, goal: Goal, goal_mask: np.ndarray, dynamics, cfg: MPCConfig, key,
                 log=print, choose_omega=None, timing: budget.TimingTable | None = None
                 ) -> tuple[State, list[dict], list[np.ndarray]]:
-    """One episode from ``state`` towards ``goal``. dynamics: ``learned_dynamics(model)`` or ``sweep_dynamics(hw)``.
-    choose_omega: optional batched ``(obs [B], goals [B]) -> ω [B]`` (``resolution.load_chooser``) picking ω every
-    step; default cfg.omega. timing: the table a time budget (cfg.time_budget) is spent by; measured here on the
-    first observation when None; refined from every decision unless frozen. Returns the final state, one record per
-    step (ω, bucket, plan_steps, planning_s: the decision's wall time, perception included) and GIF frames."""
-    camera = env.camera
-    if cfg.time_budget is not None and timing is None:
-        timing = measure_timing(state.obs, goal, dynamics, cfg, camera)
-        rows = [f"bucket {b}: {1e3 * timing.fixed_s[b]:.1f} ms + {1e3 * timing.step_s[b]:.2f} ms/step"
-                for b in cfg.buckets]
-        log(f"timing table ({timing.device}): " + ", ".join(rows))
-    records, frames = [], []
-    init, warm = jnp.zeros((cfg.planner.horizon, 4), jnp.float32), False  # no warm start at the first step
-    batch = lambda tree: jax.tree.map(lambda x: jnp.asarray(x)[None], tree)  # noqa: E731
-    for t in range(cfg.steps):
-        omega = cfg.omega if choose_omega is None else int(choose_omega(batch(state.obs), batch(goal))[0])
-        bucket = budget.bucket_for(omega, cfg.buckets)
-        steps = cfg.plan_steps(bucket, timing)
-        t0 = time.perf_counter()
-        particles, c_now, result = decide_compiled(state.obs, goal, jax.random.fold_in(key, t), init, warm, omega,
-                                                   steps, dynamics, cfg, camera, bucket)
-        action = np.asarray(jax.block_until_ready(result.best[0]))
-        planning = time.perf_counter() - t0
-        if timing is not None:
-            timing.refine(bucket, steps, planning)
-        frames.append(overlay(np.asarray(state.obs.rgb), goal_mask, np.asarray(particles.positions)[
-            np.asarray(particles.mask)], camera, label=f"step {t + 1}  ω = {omega}"))
-        state = env.push(state, action)
-        init, warm = _shift(result.best), True
-        record = dict(step=t, omega=omega, bucket=bucket, plan_steps=steps, objective=float(c_now),
-                      predicted_objective=float(result.best_cost),
-                      distance=float(distribution_distance(state.obs, goal, camera)),
-                      success=float(inside_share(state.pos, jnp.ones(env.scene.n_pieces, bool), goal, camera)),
-                      planning_s=planning, action=action.tolist(), broken=bool(state.broken))
-        records.append(record)
-        log(f"step {t + 1:2d}/{cfg.steps}  ω={omega:3d} (bucket {bucket:3d}, {steps:3d} Adam steps)  "
-            f"c={record['objective']:7.2f} -> predicted {record['predicted_objective']:7.2f}  "
-            f"d={record['distance']:7.2f}  inside={record['success']:5.1%}  plan {planning:5.2f}s")
-        if record["broken"]:
-            log("the simulated world broke (NaN or a piece out of the bin); stopping the episode")
-            break
-    frames.append(overlay(np.asarray(state.obs.rgb), goal_mask, None, camera))
-    return state, records, frames
+    """One episode: ``run_episodes`` on a batch of one, its records unbatched to Python numbers and GIF frames drawn
+    with ``goal_mask`` [H, W]. Returns the final state, one record per step and the frames."""
+    final, records, frames = run_episodes(env, batch(state), batch(goal), dynamics, cfg, batch(key), log=log,
+                                          choose_omega=choose_omega, timing=timing, goal_masks=goal_mask[None])
+    return jax.tree.map(lambda x: x[0], final), [episode_record(r, 0) for r in records], frames
+
+
+def episode_record(record: dict, b: int) -> dict:
+    """Episode b's share of a ``run_episodes`` record, as Python numbers (JSON-ready)."""
+    return {k: (v if k in ("step", "seconds") else np.asarray(v)[b].tolist()) for k, v in record.items()}
 
 
 def _select(trees: list, pick) -> object:
@@ -230,43 +218,45 @@ def _select(trees: list, pick) -> object:
 
 
 def run_episodes(env, states: State, goals: Goal, dynamics, cfg: MPCConfig, keys, choose_omega=None,
-                 log=print, timing: budget.TimingTable | None = None, oracle: tuple[int, ...] | None = None
-                 ) -> tuple[State, list[dict]]:
-    """Many episodes at once: states and goals batched on a leading axis [B], keys [B]. Each MPC step is one
-    compiled call over all episodes (perception, planning, objective) and one batched push: ``env`` is a PileEnv
-    with backend "mjx" (pushes vmapped on the device) or a ``WorldPool`` (pushes in C worker processes).
-    choose_omega: optional ``(obs [B], goals [B]) -> ω [B]`` called every step (adaptive resolution); default
-    cfg.omega everywhere. oracle: candidate ω values instead: every step plans at each (same keys), pushes each on
-    a copy of the worlds and keeps, per episode, the one whose push left the lowest d (a greedy upper bound of any
-    chooser of ω). Each episode's decision runs the Adam steps its own bucket affords (``cfg.plan_steps``, with
-    ``timing`` under a time budget: required then, as a batched run cannot time one decision); the call runs at the
-    largest bucket of the batch, which pads inertly. Returns the final states and one record per step whose values
-    are arrays [B] (ω, bucket, plan_steps, planning_s: the table's seconds for that decision, or NaN without a
-    budget; c, predicted c, d, inside share, broken) beside the batch's wall time ``seconds``."""
+                 log=print, timing: budget.TimingTable | None = None, oracle: tuple[int, ...] | None = None,
+                 goal_masks: np.ndarray | None = None) -> tuple[State, list[dict]] | tuple[State, list[dict], list]:
+    """The closed loop, for one episode or many at once: states and goals batched on a leading axis [B], keys [B].
+    Each MPC step is one compiled decision over all episodes (perception, planning, objective: ``decide_batch``) and
+    one batched push: ``env`` is a PileEnv (backend "mjx": pushes vmapped on the device; "mujoco": one world after
+    another) or a ``WorldPool`` (pushes in C worker processes). dynamics: ``registry.learned_dynamics(model)`` or
+    ``registry.sweep_dynamics(hw)``. choose_omega: optional ``(obs [B], goals [B]) -> ω [B]`` called every step
+    (adaptive resolution, ``resolution.load_chooser``); default cfg.omega everywhere. oracle: candidate ω values
+    instead: every step plans at each (same keys), pushes each on a copy of the worlds and keeps, per episode, the
+    one whose push left the lowest d (a greedy upper bound of any chooser of ω).
+
+    Each episode's decision runs the Adam steps its own bucket affords (``cfg.plan_steps``); the call runs at the
+    largest bucket of the batch, which pads inertly. Under a time budget the steps come from ``timing``
+    (``measure_timing``), which one episode (B = 1) refines from every decision's wall time unless it is frozen (one
+    decision of a larger batch cannot be timed alone). A record per step holds arrays [B]:
+    ω, bucket, plan_steps, planning_s (B = 1: the decision's wall time, perception included; else the table's price
+    of it, NaN without a budget), c before, predicted c, d and inside share after the push, the push, broken; and
+    the step's wall time ``seconds``. The loop stops early when every world broke. goal_masks [B, H, W]: also
+    return GIF frames of episode 0 (goal, particles). Returns the final states and the records (and the frames)."""
     from dynres_jax.sim.pool import WorldPool
 
-    if cfg.time_budget is not None and timing is None:
-        raise ValueError("run_episodes under a time budget needs a timing table (mpc.measure_timing, --timing FILE)")
     if oracle is not None and (choose_omega is not None or not oracle):
         raise ValueError("oracle takes a non-empty tuple of candidate ω, and no choose_omega beside it")
+    if cfg.time_budget is not None and timing is None:
+        raise ValueError("run_episodes under a time budget needs a timing table (mpc.measure_timing, --timing FILE)")
+    episodes, camera = len(keys), env.camera
     if isinstance(env, WorldPool):
         push = env.push
     elif env.backend == "mjx":
         push = jax.jit(jax.vmap(env.push))
     else:
-        raise ValueError("run_episodes needs a PileEnv with backend='mjx' or a WorldPool; loop run_episode otherwise")
-    camera = env.camera
-    n, episodes = env.scene.n_pieces, len(keys)
-
-    def step(obs, goal, key, init, warm, omega, steps, bucket):
-        return decide(obs, goal, key, init, dynamics, cfg, camera, omega, bucket=bucket, steps=steps, warm=warm)
-
-    def measure(obs, pos, goal):
-        return distribution_distance(obs, goal, camera), inside_share(pos, jnp.ones(n, bool), goal, camera)
-
-    decide_all = jax.jit(jax.vmap(step, in_axes=(0, 0, 0, 0, None, 0, 0, None)), static_argnums=7)
-    measure = jax.jit(jax.vmap(measure))
-    records, warm = [], False
+        def push(states, actions):  # C MuJoCo: one world after another
+            worlds = [env.push(jax.tree.map(lambda x, b=b: x[b], states), np.asarray(actions[b]))
+                      for b in range(episodes)]
+            return jax.tree.map(lambda *x: jnp.stack([jnp.asarray(v) for v in x]), *worlds)
+    n = env.scene.n_pieces
+    measure = jax.jit(per_episode(lambda obs, pos, goal: (distribution_distance(obs, goal, camera),
+                                                        inside_share(pos, jnp.ones(n, bool), goal, camera))))
+    records, frames, warm = [], [], False
     init = jnp.zeros((episodes, cfg.planner.horizon, 4), jnp.float32)  # no warm start at the first step
     for t in range(cfg.steps):
         t0 = time.perf_counter()
@@ -277,28 +267,58 @@ def run_episodes(env, states: State, goals: Goal, dynamics, cfg: MPCConfig, keys
             candidates = [np.asarray(choose_omega(states.obs, goals), np.int32)]
         else:
             candidates = [np.full(episodes, cfg.omega, np.int32)]
-        outcomes = []
+        outcomes, drawn = [], []  # drawn: episode 0's particles of each candidate, for its frame
         for omega in candidates:
             buckets, steps = cfg.allot(omega, timing)
-            particles, c_now, result = decide_all(states.obs, goals, step_keys, init, warm, jnp.asarray(omega),
-                                                  jnp.asarray(steps), int(buckets.max()))
-            check_particles(particles, omega, int(buckets.max()), f"step {t}: perception failed in episodes")
-            after = push(states, result.best[:, 0])
+            bucket = int(buckets.max())
+            t_plan = time.perf_counter()
+            particles, c_now, result = decide_batch(states.obs, goals, step_keys, init, warm, omega, steps,
+                                                    dynamics, cfg, camera, bucket)
+            action = np.asarray(jax.block_until_ready(result.best[:, 0]))
+            wall = time.perf_counter() - t_plan
+            after = push(states, action)
             distance, success = measure(after.obs, after.pos, goals)
             outcomes.append(dict(omega=omega, bucket=buckets, plan_steps=steps, objective=c_now,
                                  predicted_objective=result.best_cost, best=result.best, states=after,
-                                 distance=distance, success=success))
+                                 distance=distance, success=success, action=action, wall=np.full(episodes, wall)))
+            drawn.append(np.asarray(particles.positions[0])[np.asarray(particles.mask[0])])
         pick = np.argmin(np.stack([np.asarray(o["distance"]) for o in outcomes]), axis=0)  # [B]: the kept candidate
         kept = _select(outcomes, pick)
+        if episodes == 1:
+            planning = np.asarray(kept["wall"])
+            if timing is not None:
+                timing.refine(int(kept["bucket"][0]), int(kept["plan_steps"][0]), float(planning[0]))
+        elif timing is not None:
+            planning = np.array([timing.seconds(int(b), int(s)) for b, s in zip(kept["bucket"], kept["plan_steps"],
+                                                                                strict=True)])
+        else:
+            planning = np.full(episodes, np.nan)
+        if goal_masks is not None:
+            frames.append(overlay(np.asarray(states.obs.rgb[0]), goal_masks[0], drawn[pick[0]], camera,
+                                  label=f"step {t + 1}  ω = {int(kept['omega'][0])}"))
         states, init, warm = kept["states"], _shift(kept["best"]), True
-        planning = (np.array([timing.seconds(int(b), int(s)) for b, s in zip(kept["bucket"], kept["plan_steps"],
-                                                                             strict=True)])
-                    if timing is not None else np.full(episodes, np.nan))
         record = {k: np.asarray(kept[k]) for k in ("omega", "bucket", "plan_steps", "objective", "predicted_objective",
-                                                   "distance", "success")}
+                                                   "distance", "success", "action")}
         record.update(planning_s=planning, broken=np.asarray(states.broken))
         records.append(dict(step=t, seconds=time.perf_counter() - t0, **record))
-        log(f"step {t + 1:2d}/{cfg.steps}  {episodes} episodes  mean ω={record['omega'].mean():5.1f}  mean Adam "
-            f"steps={record['plan_steps'].mean():5.1f}  mean d={record['distance'].mean():7.2f}  "
-            f"mean inside={record['success'].mean():5.1%}  {records[-1]['seconds']:5.2f}s")
-    return states, records
+        _log_step(log, records[-1], cfg.steps)
+        if record["broken"].all():
+            log("every simulated world broke (NaN or a piece out of the bin); stopping")
+            break
+    if goal_masks is None:
+        return states, records
+    frames.append(overlay(np.asarray(states.obs.rgb[0]), goal_masks[0], None, camera))
+    return states, records, frames
+
+
+def _log_step(log, r: dict, steps: int) -> None:
+    """One line per MPC step: the episode's values, or the means of a batch."""
+    if len(r["omega"]) == 1:
+        log(f"step {r['step'] + 1:2d}/{steps}  ω={int(r['omega'][0]):3d} (bucket {int(r['bucket'][0]):3d}, "
+            f"{int(r['plan_steps'][0]):3d} Adam steps)  c={float(r['objective'][0]):7.2f} -> predicted "
+            f"{float(r['predicted_objective'][0]):7.2f}  d={float(r['distance'][0]):7.2f}  "
+            f"inside={float(r['success'][0]):5.1%}  plan {float(r['planning_s'][0]):5.2f}s")
+    else:
+        log(f"step {r['step'] + 1:2d}/{steps}  {len(r['omega'])} episodes  mean ω={r['omega'].mean():5.1f}  mean "
+            f"Adam steps={r['plan_steps'].mean():5.1f}  mean d={r['distance'].mean():7.2f}  "
+            f"mean inside={r['success'].mean():5.1%}  {r['seconds']:5.2f}s")
