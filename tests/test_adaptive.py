@@ -9,6 +9,8 @@ import pytest
 from dynres_jax.commands import evaluate, label_resolution, tradeoff, train_regressor
 from dynres_jax.control import resolution
 from dynres_jax.control.budget import TimingTable, bucket_for
+from dynres_jax.learn import labels as labels_lib
+from dynres_jax.learn import regressor as g_training
 
 QUICK = ["--quick", "--dynamics", "sweep", "--workers", "2"]
 # A hand-made timing table: under a 20 ms budget, buckets 16, 32, 64, 100 afford 10, 5, 2 and 1 Adam steps
@@ -42,8 +44,8 @@ def test_labels_follow_the_bo_recipe_and_resume(labels):
     assert summary["scenes"] == 8 and summary["shards_written"] == 2
     for shard in ("shard_00000.npz", "shard_00001.npz"):
         z = np.load(os.path.join(out, shard))
-        first = len(label_resolution.FIRST)
-        assert np.all(z["omega"][:, :first] == np.array(label_resolution.FIRST))
+        first = len(labels_lib.FIRST)
+        assert np.all(z["omega"][:, :first] == np.array(labels_lib.FIRST))
         for row in z["omega"]:
             assert len(set(row.tolist())) == len(row)  # EI never repeats an ω
         np.testing.assert_allclose(z["c_plus"], z["c_star"] + resolution.W_R * z["d0"][:, None] * z["omega"],
@@ -116,7 +118,7 @@ def test_dihedral_augmentation_is_the_eight_symmetries_of_the_grid():
     images = np.random.default_rng(0).normal(size=(8, 5, 5, 2)).astype(np.float32)
     images[:] = images[0]
     turns, flip = np.arange(8) % 4, np.arange(8) // 4
-    out = np.asarray(train_regressor.dihedral(images, turns, flip))
+    out = np.asarray(g_training.dihedral(images, turns, flip))
     for i in range(8):
         expect = np.rot90(images[i], turns[i], axes=(0, 1))
         np.testing.assert_array_equal(out[i], expect[:, ::-1] if flip[i] else expect)
@@ -143,10 +145,10 @@ def test_label_reliability_by_hand(tmp_path):
 
 def test_label_folders_pool_with_distinct_shard_numbers(labels):
     """Two folders that both hold shard 0 and 1: pooled, their piles keep distinct names (shard, pile)."""
-    one = train_regressor.load_labels([labels[0]])
-    both = train_regressor.load_labels([labels[0], labels[0]])
+    one = g_training.load_labels([labels[0]])
+    both = g_training.load_labels([labels[0], labels[0]])
     n = len(one["label"])
     assert len(both["label"]) == 2 * n and np.array_equal(both["label"][n:], one["label"])
     assert np.array_equal(both["shard"], np.concatenate([one["shard"], one["shard"] + 2]))
     with pytest.raises(ValueError, match="no label shards"):
-        train_regressor.load_labels([labels[0], os.path.dirname(labels[0])])
+        g_training.load_labels([labels[0], os.path.dirname(labels[0])])

@@ -32,7 +32,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from dynres_jax.commands.label_resolution import add_planner_args, check_planner_args, planner_config, timing_table
+from dynres_jax.commands.task import add_planner_args, check_planner_args, planner_config, timing_table
 from dynres_jax.config import CameraConfig, PileConfig, SceneConfig, SimConfig
 from dynres_jax.control import resolution, tasks
 from dynres_jax.control.mpc import run_episodes

@@ -22,7 +22,7 @@ import jax
 import numpy as np
 
 from dynres_jax.config import KINDS, CameraConfig, PileConfig, SceneConfig, SimConfig
-from dynres_jax.control import budget, tasks
+from dynres_jax.control import budget, resolution, tasks
 from dynres_jax.control.mpc import MPCConfig, measure_timing, run_episode
 from dynres_jax.control.objective import inside_share, make_goal
 from dynres_jax.control.planner import PlannerConfig
@@ -164,3 +164,45 @@ def main(task: str, argv=None):
           f"wrote {args.out}/episode.gif, final.png, metrics.json")
     return summary
 
+
+def add_planner_args(parser) -> None:
+    """The planner flags of ``experiments.evaluate`` and ``experiments.label_resolution``."""
+    add_budget_args(parser)
+    parser.add_argument("--samples", type=int, default=20, help="action sequences per plan (paper M = 20)")
+    parser.add_argument("--plan-steps", type=int, default=100, help="Adam steps per plan (the most, under a budget)")
+    parser.add_argument("--horizon", type=int, default=1, help="pushes per planned sequence (paper T = 1)")
+
+
+def check_planner_args(parser, args) -> None:
+    """parser.error naming a bad planner flag, before any work."""
+    load_timing(parser, args)
+    if args.plan_steps < 1 or args.samples < 1:
+        parser.error("--plan-steps and --samples must be positive")
+
+
+def planner_config(env, args) -> MPCConfig:
+    """The MPC settings of one decision as the planner flags ask (evaluate and label_resolution)."""
+    planner = PlannerConfig(samples=args.samples, steps=args.plan_steps, horizon=args.horizon,
+                            bound=env.action_bound, max_length=env.config.push.max_length,
+                            min_length=env.config.push.min_length)
+    return MPCConfig(steps=1, omega=resolution.OMEGA_MAX, planner=planner, max_points=1024 if args.quick else 4096,
+                     time_budget=args.time_budget)
+
+
+def timing_table(args, out_dir: str, obs, goal, dynamics, cfg: MPCConfig, camera) -> budget.TimingTable | None:
+    """The run's timing table: ``--timing``'s, else the one an earlier run in ``out_dir`` saved (so a resumed run
+    spends the budget as it began), else measured here on one observation and goal (unbatched) and saved there as
+    ``timing.json``. None without a time budget."""
+    if cfg.time_budget is None:
+        return None
+    saved = os.path.join(out_dir, "timing.json")
+    path = args.timing or (saved if os.path.exists(saved) else None)
+    if path is not None:
+        table = budget.TimingTable.load(path)
+    else:
+        table = measure_timing(jax.tree.map(lambda x: x[0], obs), jax.tree.map(lambda x: x[0], goal), dynamics, cfg,
+                               camera)
+    table.save(saved)
+    print(f"timing table ({table.device}, {'from ' + path if path else 'measured'}): Adam steps in "
+          f"{cfg.time_budget} s: " + ", ".join(f"bucket {b}: {cfg.plan_steps(b, table)}" for b in cfg.buckets))
+    return table
