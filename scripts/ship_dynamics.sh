@@ -5,7 +5,7 @@
 # evaluation. Each variant's run folder is packed as $OUT/NAME.tar.gz (its log too).
 #   OUT=runs/ship bash scripts/ship_dynamics.sh                 # one variant, "dynamics", with MODEL_FLAGS
 #   OUT=runs/ship VARIANTS="gnn:--residual --push-frame;cnn:--model cnn" bash scripts/ship_dynamics.sh
-# Env: EPISODES (2000), DATA_FLAGS (more generate_data flags, e.g. "--substeps 4"), TRAIN_MINUTES (4), STEPS (every
+# Env: EPISODES (2000), DATA_FLAGS (more generate_data flags), TRAIN_MINUTES (4), STEPS (every
 # variant trains exactly this many steps, the box only a safety stop; default: as many as fill the box at the probed
 # speed), BATCH (64), PROBE_STEPS (300), DATA (/tmp/piles), VARIANTS ("NAME:flags;NAME:flags", default
 # "dynamics:$MODEL_FLAGS"), RUNS (run folders, default $OUT):

@@ -343,17 +343,6 @@ def test_load_pads_shards_with_fewer_pieces(generated, tmp_path):
     with pytest.raises(ValueError, match="unknown piece kind"):
         data.without_kinds(d, ("pebble",))
 
-    # Thinning keeps the episodes whose id e has e mod period < share * period (a loop as the reference).
-    for share, period in ((0.5, 4), (1.0, 20), (0.3, 10)):
-        rest = data.thinned(d, share, period)
-        want = [e for e in range(len(d)) if d.episode[e] % period < share * period]
-        np.testing.assert_array_equal(rest.episode, d.episode[want])
-        np.testing.assert_array_equal(rest.depth, d.depth[want])
-    with pytest.raises(ValueError, match="share must lie in"):
-        data.thinned(d, 0.0)
-    with pytest.raises(ValueError, match="keeps none"):  # the almond episodes' ids are 100 and up
-        data.thinned(data.without_kinds(d, ("coffee",)), 0.01, period=1000)
-
 
 # ----------------------------------------------------------------------------------------------------------------
 # Bad input
@@ -409,28 +398,3 @@ def test_c_backend_in_worker_processes_equals_in_process():
     assert np.abs(here["pos"][..., :2]).max() < cfg.sim.scene.bin_half_width
     with pytest.raises(ValueError, match="backend"):
         data.DataConfig(backend="flex")
-
-
-def test_sub_push_data_and_windows_by_loops(tmp_path):
-    """DataConfig.substeps: shards hold the poses inside each push; a window of sub-pushes interleaves them with the
-    frames (checked by a loop) and cuts each push into ``dynamics.split_push``'s sub-pushes; bad uses are named."""
-    cfg = data.quick_config(backend="mujoco", worlds=2, episodes=2, substeps=3)
-    data.generate(cfg, str(tmp_path / "sub"), progress=False, workers=1)
-    ds = data.load_shards(str(tmp_path / "sub"))
-    assert ds.substeps == 3 and ds.sub_pos.shape == (2, cfg.pushes, 2) + ds.pos.shape[2:]
-    assert '"substeps": 3' in cfg.to_json() and "substeps" not in data.quick_config().to_json()
-    rows, t = np.array([1, 0]), np.array([1, 0])
-    w = data.windows(ds, rows, t, horizon=1, sub_pushes=True)
-    for b in range(2):
-        expect = [ds.pos[rows[b], t[b]], *ds.sub_pos[rows[b], t[b]], ds.pos[rows[b], t[b] + 1]]
-        np.testing.assert_array_equal(w.pos[b], np.stack(expect))
-        a = ds.action[rows[b], t[b]]
-        np.testing.assert_allclose(w.action[b, 0, :2], a[:2])
-        np.testing.assert_allclose(w.action[b, -1, 2:], a[2:])
-        np.testing.assert_allclose(w.action[b, 1, :2], a[:2] + (a[2:] - a[:2]) / 3, atol=1e-7)
-    whole = data.windows(ds, rows, t, horizon=1)
-    np.testing.assert_array_equal(w.depth, whole.depth)
-    with pytest.raises(ValueError, match="substeps > 1"):
-        data.windows(dataclasses.replace(ds, sub_pos=None, sub_mat=None), rows, t, horizon=1, sub_pushes=True)
-    with pytest.raises(ValueError, match="backend 'mujoco'"):
-        data.DataConfig(substeps=2, backend="mjx")

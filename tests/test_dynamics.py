@@ -2,7 +2,6 @@
 split/merge API, gradients through edges, bfloat16 edges against float32 and a tiny training run. Small sizes
 (N = 24, H = 16) keep it fast on CPU."""
 
-import dataclasses
 import functools
 
 import jax
@@ -13,7 +12,6 @@ import pytest
 from flax import nnx
 
 from dynres_jax.models.dynamics import (
-    POOL_AREA,
     R_REF,
     Dynamics,
     DynamicsConfig,
@@ -22,7 +20,6 @@ from dynres_jax.models.dynamics import (
     predict,
     resolution_code,
     rollout,
-    split_push,
 )
 from dynres_jax.models.graph import build_edges, sweep_displacement
 
@@ -132,8 +129,7 @@ def test_bfloat16_edges_agree_with_float32(config):
 
 
 WORLD_EDGES = DynamicsConfig(hidden=H, push_frame=True, world_edges=True, residual=True)
-CONTEXT = DynamicsConfig(hidden=H, push_frame=True, world_edges=True, residual=True, bin_position=True, height=True,
-                         global_context=True, radius_scale=2.5, substeps=2)  # every option on
+CONTEXT = DynamicsConfig(hidden=H, push_frame=True, world_edges=True, residual=True, bin_position=True)  # all on
 
 
 @pytest.mark.parametrize("config,edge_dtype", [(DynamicsConfig(hidden=H), "float32"), (WORLD_EDGES, "float32"),
@@ -416,9 +412,8 @@ def context_split():
 
 
 def test_context_options_keep_padding_inert_equivariance_and_vmap(context_split):
-    """With height, global context and scaled edge radii: garbage (even NaN) in padded rows changes nothing, the
-    output is permutation equivariant (the pooled context is a symmetric function) and vmap over scenes of different
-    resolutions equals one call each."""
+    """With every option on (the shipped model's): garbage (even NaN) in padded rows changes nothing, the output is
+    permutation equivariant and vmap over scenes of different resolutions equals one call each."""
     f = jax.jit(functools.partial(predict, *context_split))
     positions, mask = scene(4)
     reference = np.asarray(f(positions, mask, PUSH, 0.4))
@@ -430,98 +425,3 @@ def test_context_options_keep_padding_inert_equivariance_and_vmap(context_split)
     perm = np.random.default_rng(5).permutation(N)
     np.testing.assert_allclose(np.asarray(f(positions[perm], mask[perm], PUSH, 0.4)), reference[perm], atol=1e-6)
     check_vmap_over_scenes(context_split, f, scene, PUSH, 10)
-
-
-def pooled_reference(model, effect, mask, code):
-    """The global context's term written out by loops: [mean of valid rows, Σ valid rows · r² / POOL_AREA] @ W."""
-    valid = [np.asarray(effect[i], np.float64) for i in range(len(mask)) if mask[i]]
-    r = R_REF * np.exp(-code)
-    pooled = np.concatenate([sum(valid) / len(valid), sum(valid) * r**2 / POOL_AREA])
-    return pooled @ np.asarray(model.global_propagator.kernel[...], np.float64)
-
-
-def test_global_context_term_matches_loops_and_reaches_past_the_graph(context_split):
-    """The pooled term equals a loop over valid rows; and through it a particle's prediction depends on a far
-    particle it shares no path of edges with, which a model without the context ignores."""
-    model = nnx.merge(*context_split)
-    effect = jax.random.normal(jax.random.PRNGKey(0), (N, H))
-    _, mask = scene()
-    np.testing.assert_allclose(model._pooled(effect, jnp.asarray(mask), 0.3),
-                               pooled_reference(model, effect, mask, 0.3), rtol=1e-4, atol=1e-5)
-    positions = np.zeros((4, 3), np.float32)
-    positions[:, :2] = [[-0.15, -0.15], [-0.14, -0.15], [0.15, 0.15], [0.14, 0.15]]  # two pairs 42 cm apart
-    far = positions.copy()
-    far[3, :2] = [0.15, 0.14]
-    mask = np.ones(4, bool)
-    push = np.array([-0.17, -0.15, -0.10, -0.15], np.float32)
-    for config in (CONTEXT, dataclasses.replace(CONTEXT, global_context=False)):
-        graphdef, state = perturbed(config)
-        near = [np.asarray(predict(graphdef, state, p, mask, push, 0.3))[:2] for p in (positions, far)]
-        gap = np.abs(near[0] - near[1]).max()
-        assert (gap > 1e-6) if config.global_context else (gap == 0), (config.global_context, gap)
-
-
-def test_radius_scale_links_sparse_particles_and_height_is_an_input():
-    """radius_scale: particles 6 cm apart (past the 3.2 cm edge radius) influence each other when the covering radius
-    r = 3 cm makes the reach 2.5 r; without it, or with a small r, they do not. height: lifting the whole scene
-    changes the prediction only when the model is told the height. A negative radius_scale is refused."""
-    positions = np.array([[0.0, 0.0, 0.005], [0.06, 0.0, 0.005], [0.0, 0.06, 0.005]], np.float32)
-    moved = positions.copy()
-    moved[1, 1] = 0.005
-    mask = np.ones(3, bool)
-    push = np.array([-0.05, 0.0, 0.0, 0.0], np.float32)
-    base = dataclasses.replace(CONTEXT, global_context=False, height=False)
-    for scale, radius, linked in ((2.5, 0.03, True), (2.5, 0.005, False), (0.0, 0.03, False)):
-        graphdef, state = perturbed(dataclasses.replace(base, radius_scale=scale))
-        code = resolution_code(radius)
-        first = [np.asarray(predict(graphdef, state, p, mask, push, code))[0] for p in (positions, moved)]
-        assert (np.abs(first[0] - first[1]).max() > 1e-6) == linked, (scale, radius)
-    lifted = positions + np.array([0, 0, 0.01], np.float32)
-    for height in (False, True):
-        graphdef, state = perturbed(dataclasses.replace(base, height=height))
-        a, b = (np.asarray(predict(graphdef, state, p, mask, push, 0.0)) for p in (positions, lifted))
-        gap = np.abs((b - lifted) - (a - positions)).max()
-        assert (gap > 1e-6) if height else (gap < 1e-6), (height, gap)
-    with pytest.raises(ValueError, match="radius_scale must be >= 0"):
-        DynamicsConfig(radius_scale=-1.0)
-
-
-def test_substeps_chain_passes_over_the_sub_pushes(context_split):
-    """A model of S sub-steps equals the one-pass model with the same parameters applied to the push's S equal
-    pieces in turn (S = 2 and 3), garbage padding included."""
-    graphdef, state = context_split
-    positions, mask = scene(7)
-    positions[~mask] = 1e3
-
-    def with_substeps(substeps):  # the same parameters, another sub-step count (the config is static)
-        model = nnx.merge(graphdef, state)
-        model.config = dataclasses.replace(CONTEXT, substeps=substeps)
-        return nnx.split(model)
-
-    single = with_substeps(1)
-    for substeps in (2, 3):
-        got = np.asarray(predict(*with_substeps(substeps), positions, mask, PUSH, 0.4))
-        current = positions
-        for i in range(substeps):
-            sub = np.concatenate([PUSH[:2] + (PUSH[2:] - PUSH[:2]) * i / substeps,
-                                  PUSH[:2] + (PUSH[2:] - PUSH[:2]) * (i + 1) / substeps])
-            current = predict(*single, current, mask, sub, 0.4)
-        np.testing.assert_allclose(got, np.asarray(current), atol=2e-6)
-        np.testing.assert_array_equal(got[~mask], positions[~mask])
-    with pytest.raises(ValueError, match="substeps must be >= 1"):
-        DynamicsConfig(substeps=0)
-
-
-def test_split_push_cuts_a_push_into_equal_chained_pieces():
-    """split_push: S = 1 is the action itself; for S = 3 every sub-push runs from i / S to (i + 1) / S of the way
-    (by a loop), each starting where the last ended, over a batch of actions."""
-    np.testing.assert_array_equal(np.asarray(split_push(PUSH, 1)), np.float32(PUSH)[None])
-    batch = np.stack([PUSH, PUSH[[2, 3, 0, 1]]]).astype(np.float32)
-    subs = np.asarray(split_push(batch, 3))
-    assert subs.shape == (2, 3, 4)
-    for b, a in enumerate(batch):
-        for i in range(3):
-            np.testing.assert_allclose(subs[b, i], np.concatenate([a[:2] + (a[2:] - a[:2]) * i / 3,
-                                                                   a[:2] + (a[2:] - a[:2]) * (i + 1) / 3]), atol=1e-7)
-        np.testing.assert_array_equal(subs[b, 1:, :2], subs[b, :-1, 2:])
-        np.testing.assert_array_equal(subs[b, -1, 2:], a[2:])

@@ -69,25 +69,6 @@ def test_simulate_demo_writes_its_files(tmp_path):
     assert len(record["actions"]) == 1 and record["broken"] is False
 
 
-def test_dynamics_study_collects_ratios_in_omega_order(tmp_path):
-    """scripts/dynamics_study.py: each run's one-step model / heuristic ratio per ω, ω in numeric order, the shipped
-    flags written F, and a picture."""
-    for name, omegas in (("a", {"100": 5.0, "10": 4.0}), ("b", {"pieces": 3.0})):
-        (tmp_path / name / "eval").mkdir(parents=True)
-        result = {"step": 7, "omegas": {o: {"model": [m, 9.0], "sweep heuristic": [8.0, 20.0]} for o, m in
-                                        omegas.items()}}
-        (tmp_path / name / "eval" / "eval.json").write_text(json.dumps(result))
-    (tmp_path / "a" / "timing.json").write_text(json.dumps(
-        {"flags": "--residual --push-frame --world-edges --loss distance --bin-position --height"}))
-    study = runpy.run_path("scripts/dynamics_study.py")
-    study["main"]([str(tmp_path / "out"), f"first={tmp_path / 'a'}", str(tmp_path / "b")])
-    rows = json.loads((tmp_path / "out" / "study.json").read_text())
-    assert [r["name"] for r in rows] == ["first", "b"]
-    assert list(rows[0]["ratio"].items()) == [("10", 0.5), ("100", 0.625)] and rows[1]["ratio"] == {"pieces": 0.375}
-    assert "| first | 7 | 10: 0.50, 100: 0.62 | `F --height` |" in (tmp_path / "out" / "study.md").read_text()
-    assert (tmp_path / "out" / "study.png").read_bytes()[:4] == b"\x89PNG"
-
-
 def test_the_dynres_command_runs_every_command(capsys):
     """``dynres NAME`` reaches the same parser as ``python -m experiments.NAME``; every shim is a dynres command; an
     unknown name is refused with the list."""

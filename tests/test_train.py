@@ -129,37 +129,8 @@ def test_bad_config_names_the_problem():
         TrainConfig(loss="huber")
     with pytest.raises(ValueError, match="held_out_kinds: unknown piece kind"):
         TrainConfig(held_out_kinds=("pebble",))
-    with pytest.raises(ValueError, match="state must be one of"):
-        TrainConfig(state="depth")
-
-
-def test_piece_sample_is_the_full_state_by_loops(shards):
-    """The full-state sample: every real piece's centre in its slot at every frame, padding zero and masked, and the
-    radius the mean nearest-neighbour distance computed by loops; more piece slots than n_max is refused."""
-    train_set = data.load_shards(shards, "train")
-    window = jax.tree.map(lambda x: x[0], data.windows(train_set, [1], [0], horizon=2))
-    n = window.pos.shape[1]
-    s = data.piece_sample(window, n + 3)
-    real = np.flatnonzero(window.piece_mask)
-    assert np.array_equal(np.flatnonzero(s.mask), real) and int(s.error) == 0
-    np.testing.assert_array_equal(np.asarray(s.positions)[:, real], window.pos[:, real])
-    assert not np.asarray(s.positions)[:, ~np.asarray(s.mask)].any()
-    assert np.array_equal(np.asarray(s.kind)[real], window.kind[real]) and np.all(np.asarray(s.kind)[n:] == -1)
-    centres = window.pos[0].astype(np.float64)
-    nearest = [min(np.linalg.norm(centres[i] - centres[j]) for j in real if j != i) for i in real]
-    np.testing.assert_allclose(float(s.radius), np.mean(nearest), rtol=1e-5)
-    with pytest.raises(ValueError, match="more than n_max"):
-        data.piece_sample(window, n - 1)
-
-
-def test_full_state_model_trains_and_evaluates_on_pieces(shards, tmp_path):
-    """state="pieces": training runs on the full state and the evaluation reports one row, "pieces"."""
-    cfg = dataclasses.replace(CFG, steps=2, n_max=data.load_shards(shards, "val").pos.shape[2], state="pieces")
-    train(cfg, shards, str(tmp_path / "run"), progress=False)
-    result = eval_dynamics.main(["--ckpt", str(tmp_path / "run/ckpt"), "--data", shards, "--out",
-                                 str(tmp_path / "eval"), "--windows", "4"])
-    assert list(result["omegas"]) == ["pieces"]
-    assert all(np.isfinite(result["omegas"]["pieces"][m]).all() for m in eval_dynamics.METHODS)
+    with pytest.raises(ValueError, match="steps, batch and horizon must be positive"):
+        TrainConfig(batch=0)
 
 
 def test_rollout_errors_equal_a_loop_over_samples_and_particles(shards):
@@ -188,22 +159,23 @@ def test_rollout_errors_equal_a_loop_over_samples_and_particles(shards):
     np.testing.assert_allclose(float(evaluate(params, windows, omegas, keys)["distance"]), np.mean(dist), rtol=1e-4)
 
 
-def test_sub_targets_train_each_pass_on_its_sub_push(tmp_path):
-    """sub_targets: batches are windows of sub-pushes (horizon x S actions, the poses inside each push as targets);
-    the run saves the S-pass model, which eval_dynamics scores on whole pushes; mismatched data are named."""
-    shards = str(tmp_path / "sub")
-    data.generate(data.quick_config(backend="mujoco", episodes=10, worlds=5, pushes=2, substeps=2), shards,
-                  progress=False, workers=1)
-    cfg = dataclasses.replace(CFG, steps=2, sub_targets=True, model=DynamicsConfig(hidden=16, substeps=2))
-    windows, _, _ = _batch(data.load_shards(shards, "train"), np.random.default_rng(0), cfg, jax.random.PRNGKey(0))
-    assert windows.action.shape == (cfg.batch, cfg.horizon * 2, 4) and windows.pos.shape[1] == cfg.horizon * 2 + 1
-    train(cfg, shards, str(tmp_path / "run"), progress=False)
-    assert ckpt.load_meta(str(tmp_path / "run/ckpt"))["dynamics"]["substeps"] == 2
-    result = eval_dynamics.main(["--ckpt", str(tmp_path / "run/ckpt"), "--data", shards, "--out",
-                                 str(tmp_path / "eval"), "--windows", "4", "--omegas", "4"])
-    assert np.isfinite(result["omegas"]["4"]["model"]).all()
-    three = dataclasses.replace(cfg, model=DynamicsConfig(hidden=16, substeps=3))
-    with pytest.raises(ValueError, match="holds poses for 2"):
-        train(three, shards, str(tmp_path / "three"), progress=False)
-    with pytest.raises(ValueError, match="sub_targets needs a GNN"):
-        dataclasses.replace(CFG, sub_targets=True)
+@pytest.mark.parametrize("recipe, shipped", [("shipped", "SHIPPED_DYNAMICS"), ("cnn", "SHIPPED_CNN_DYNAMICS")])
+def test_a_recipe_is_its_shipped_checkpoints_config(recipe, shipped, monkeypatch):
+    """``train_dynamics --recipe NAME`` trains the config the shipped checkpoint's card records (model and every
+    training field the card has), and a flag beside the recipe overrides it."""
+    import dataclasses
+
+    from dynres_jax.commands import train_dynamics
+    from dynres_jax.learn.train import RECIPES
+    from dynres_jax.models import registry
+
+    meta = ckpt.load_module(getattr(registry, shipped), build_model)[1]
+    cfg = RECIPES[recipe]
+    assert dataclasses.asdict(cfg.model) == meta["dynamics"]
+    recorded = {k: v for k, v in meta["train"].items() if k != "model"}
+    assert {k: list(v) if isinstance(v, tuple) else v for k, v in dataclasses.asdict(cfg).items()
+            if k in recorded} == recorded
+    seen = []
+    monkeypatch.setattr(train_dynamics, "train", lambda c, *a, **k: seen.append(c) or {})
+    train_dynamics.main(["--data", "d", "--out", "o", "--recipe", recipe, "--steps", "7"])
+    assert seen[0] == dataclasses.replace(cfg, steps=7)

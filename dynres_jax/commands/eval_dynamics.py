@@ -1,6 +1,5 @@
 """Evaluate a dynamics checkpoint on held-out episodes: one-step and multi-step particle position error (mm) at
 several resolutions ω, against two baselines measured the same way: "nothing moves" and the sweep heuristic alone.
-A model trained on the full state (``--state pieces``) is measured on every piece's centre instead, one row "pieces".
 
     python -m experiments.eval_dynamics --ckpt runs/dynamics/ckpt --data data/piles --out runs/dynamics/eval
 """
@@ -128,21 +127,20 @@ def main(argv=None):
     args = parser.parse_args(argv)
     model, meta, _ = ckpt.load_module(args.ckpt, build_model)
     tcfg = meta["train"]
-    if tcfg.get("state", "particles") == "particles" and max(args.omegas) > tcfg["n_max"]:
+    if max(args.omegas) > tcfg["n_max"]:
         parser.error(f"--omegas must be at most the model's n_max = {tcfg['n_max']}")
     val = data.load_shards(args.data, "val")
     graphdef, state = nnx.split(model)
     rng = np.random.default_rng(args.seed)
     windows = data.random_windows(val, rng, args.windows, tcfg["horizon"])
-    cfg = train.TrainConfig(**{k: v for k, v in tcfg.items() if k in ("n_max", "max_points", "state")})
+    cfg = train.TrainConfig(**{k: v for k, v in tcfg.items() if k in ("n_max", "max_points")})
     make = jax.jit(jax.vmap(functools.partial(train.make_sample, camera=val.camera, cfg=cfg), in_axes=(0, None, 0)))
     keys = jax.random.split(jax.random.PRNGKey(args.seed), args.windows)
     hw = meta["dynamics"]["plate_half_width"]
     result = {"horizon": tcfg["horizon"], "windows": args.windows, "step": meta.get("step"),
               "held_out_kinds": list(tcfg.get("held_out_kinds", ())), "omegas": {}}
-    for omega in args.omegas if cfg.state == "particles" else ["pieces"]:  # the full state has no ω
-        result["omegas"][str(omega)] = errors(graphdef, state, make(windows, 0 if omega == "pieces" else omega, keys),
-                                              hw)
+    for omega in args.omegas:
+        result["omegas"][str(omega)] = errors(graphdef, state, make(windows, omega, keys), hw)
     os.makedirs(args.out, exist_ok=True)
     files.write_json(os.path.join(args.out, "eval.json"), result)
     plot(result, os.path.join(args.out, "eval.png"))

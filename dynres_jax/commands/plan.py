@@ -16,7 +16,6 @@ import cv2
 import jax
 import numpy as np
 
-from dynres_jax.commands.task import add_edge_dtype_arg
 from dynres_jax.control.budget import BUCKETS, bucket_for
 from dynres_jax.control.mpc import goal_cost, overlay
 from dynres_jax.control.objective import make_goal
@@ -42,7 +41,6 @@ def main(argv=None):
     parser.add_argument("--plan-steps", type=int, default=100)
     parser.add_argument("--dynamics", default="auto", choices=["auto", "learned", "sweep"])
     parser.add_argument("--ckpt", default=SHIPPED_DYNAMICS)
-    add_edge_dtype_arg(parser)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", default="push.png", help="the frame with the goal, particles and push drawn")
     args = parser.parse_args(argv)
@@ -50,7 +48,7 @@ def main(argv=None):
     obs, camera = frames.load_frame(args.depth, args.rgb, args.camera)
     goal_mask = frames.load_goal(args.goal, camera)
     goal = make_goal(goal_mask, camera)
-    dynamics, n_max, name = load_dynamics(args.dynamics, args.ckpt, args.plate_half_width, args.edge_dtype)
+    dynamics, n_max, name = load_dynamics(args.dynamics, args.ckpt, args.plate_half_width)
     largest = min(n_max, BUCKETS[-1])
     if not 1 <= args.resolution <= largest:
         parser.error(f"--resolution must lie in [1, {largest}] (the model's n_max and the largest resolution bucket)")

@@ -28,7 +28,7 @@ from dynres_jax.control.objective import inside_share, make_goal
 from dynres_jax.control.planner import PlannerConfig
 from dynres_jax.control.resolution import load_chooser
 from dynres_jax.io import files
-from dynres_jax.models.registry import EDGE_DTYPES, SHIPPED_DYNAMICS, SHIPPED_REGRESSOR, load_dynamics
+from dynres_jax.models.registry import SHIPPED_DYNAMICS, SHIPPED_REGRESSOR, load_dynamics
 from dynres_jax.sim.env import PileEnv
 
 DESCRIPTIONS = {
@@ -57,7 +57,6 @@ def add_loop_args(parser: argparse.ArgumentParser, task: str) -> None:
     parser.add_argument("--ckpt", default=None, help=f"dynamics checkpoint (default {SHIPPED_DYNAMICS} if present)")
     parser.add_argument("--dynamics", default="auto", choices=["auto", "learned", "sweep"],
                         help="auto: the checkpoint when there is one, else the sweep heuristic")
-    add_edge_dtype_arg(parser)
     parser.add_argument("--out", default=f"out/{task}")
 
 
@@ -87,19 +86,11 @@ def load_timing(parser: argparse.ArgumentParser, args) -> budget.TimingTable | N
         parser.error(f"--timing {args.timing}: {e}")
 
 
-def add_edge_dtype_arg(parser: argparse.ArgumentParser) -> None:
-    """--edge-dtype, ``registry.load_dynamics``'s edge_dtype: the task commands' and ``experiments.plan``'s."""
-    parser.add_argument("--edge-dtype", default="float32", choices=EDGE_DTYPES,
-                        help="the learned model's per-edge network: bfloat16 moves predictions by up to about half a "
-                             "millimetre, and plans no faster than float32 on the GPUs measured")
-
-
 def build_loop(args, sim: SimConfig, parser: argparse.ArgumentParser):
     """The simulator, the planner's model, the MPC settings the loop flags ask for and the adaptive-ω chooser (None
     at a fixed ω): (env, dynamics, name, cfg, chooser)."""
     env = PileEnv(sim, backend=args.backend)
-    dynamics, n_max, name = load_dynamics(args.dynamics, args.ckpt or SHIPPED_DYNAMICS, sim.scene.plate_half_width,
-                                          args.edge_dtype)
+    dynamics, n_max, name = load_dynamics(args.dynamics, args.ckpt or SHIPPED_DYNAMICS, sim.scene.plate_half_width)
     chooser, omega = None, str(args.resolution)
     if omega == "adaptive":
         if not os.path.isdir(args.regressor):

@@ -1,16 +1,18 @@
 """Train the dynamics model f(z, u, ω) on generated data; resumes from the newest checkpoint in --out.
 
     python -m experiments.generate_data --out data/piles
-    python -m experiments.train_dynamics --data data/piles --out runs/dynamics --residual --push-frame
-    python -m experiments.train_dynamics --data data/piles --out runs/cnn_dynamics --model cnn   # the CNN baseline
+    python -m experiments.train_dynamics --data data/piles --out runs/dynamics --recipe shipped
+    python -m experiments.train_dynamics --data data/piles --out runs/cnn_dynamics --recipe cnn   # the CNN baseline
+    python -m experiments.train_dynamics --data data/piles --out runs/mine --residual --push-frame --steps 5000
+
+--recipe NAME starts from a named config (``train.RECIPES``: "shipped", the shipped model's; "cnn", the CNN
+baseline's); flags given beside it override its values.
 
 --model gnn (default): the PropNet GNN (``dynres_jax.models.dynamics``; --hidden, --propagation-steps, --push-frame,
---world-edges, --bin-position, --height, --global-context, --radius-scale, --substeps, --residual). --model cnn: the
+--world-edges, --bin-position, --residual). --model cnn: the
 CNN baseline (``dynres_jax.models.cnn_dynamics``; --grid, --channels, and --no-residual to predict whole displacements
 instead of correcting the sweep heuristic). --loss mse (default) or distance: the training loss
-(``TrainConfig.loss``). --state pieces trains on the full state instead of particles (``TrainConfig.state``).
---substeps S --sub-targets trains each of the S passes on its own sub-push, from data generated with --substeps S
-(``TrainConfig.sub_targets``).
+(``TrainConfig.loss``).
 """
 
 from __future__ import annotations
@@ -19,22 +21,28 @@ import argparse
 import dataclasses
 import json
 
-from dynres_jax.learn.train import TrainConfig, train
+from dynres_jax.learn.train import RECIPES, TrainConfig, train
 from dynres_jax.models.cnn_dynamics import CNNDynamicsConfig
 from dynres_jax.models.dynamics import DynamicsConfig
-from dynres_jax.models.registry import MODEL_CLASSES
+from dynres_jax.models.registry import MODEL_CLASSES, model_class
 
-GNN_ONLY = ("hidden", "propagation_steps", "push_frame", "world_edges", "bin_position", "height", "global_context",
-            "radius_scale", "substeps")
+GNN_ONLY = ("hidden", "propagation_steps", "push_frame", "world_edges", "bin_position")
 CNN_ONLY = ("grid", "channels")
 
 
 def main(argv=None):
     parser = argparse.ArgumentParser(prog="python -m experiments.train_dynamics", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
+    recipe = argparse.ArgumentParser(add_help=False)
+    recipe.add_argument("--recipe", choices=sorted(RECIPES), default=None,
+                        help="start from a named config (train.RECIPES); other flags override it")
+    start = recipe.parse_known_args(argv)[0].recipe
+    base = RECIPES[start] if start else TrainConfig()
+    parser.add_argument("--recipe", choices=sorted(RECIPES), default=None,
+                        help="start from a named config (train.RECIPES); other flags override it")
     parser.add_argument("--data", required=True, help="folder of shards from experiments.generate_data")
     parser.add_argument("--out", required=True, help="run folder: ckpt/, metrics.jsonl, curves.png")
-    defaults = TrainConfig()
+    defaults = base
     for f in dataclasses.fields(TrainConfig):
         if f.name not in ("model", "held_out_kinds"):
             value = getattr(defaults, f.name)
@@ -44,9 +52,10 @@ def main(argv=None):
             else:
                 parser.add_argument(flag, type=int if f.name == "max_points" else type(value), default=value,
                                     help=help_)
-    parser.add_argument("--held-out-kinds", nargs="+", default=(), metavar="KIND",
+    parser.add_argument("--held-out-kinds", nargs="+", default=base.held_out_kinds, metavar="KIND",
                         help="TrainConfig.held_out_kinds: piece kinds never trained on (eval_dynamics reports them)")
-    parser.add_argument("--model", default="gnn", choices=list(MODEL_CLASSES), help="gnn (PropNet) or cnn (baseline)")
+    parser.add_argument("--model", default=model_class(base.model), choices=list(MODEL_CLASSES),
+                        help="gnn (PropNet) or cnn (baseline)")
     parser.add_argument("--hidden", type=int, default=None, help=f"gnn: width (default {DynamicsConfig.hidden})")
     parser.add_argument("--propagation-steps", type=int, default=None,
                         help=f"gnn: message-passing steps (DynamicsConfig.steps, default {DynamicsConfig.steps})")
@@ -57,14 +66,6 @@ def main(argv=None):
                              "the planner builds their codes once per plan)")
     parser.add_argument("--bin-position", action="store_true", default=None,
                         help="gnn: DynamicsConfig.bin_position (node inputs say where in the bin a particle is)")
-    parser.add_argument("--height", action="store_true", default=None,
-                        help="gnn: DynamicsConfig.height (node inputs say how high above the table a particle is)")
-    parser.add_argument("--global-context", action="store_true", default=None,
-                        help="gnn: DynamicsConfig.global_context (every node update sees the pile's pooled state)")
-    parser.add_argument("--radius-scale", type=float, default=None,
-                        help="gnn: DynamicsConfig.radius_scale (edges reach max(edge radius, this x FPS radius))")
-    parser.add_argument("--substeps", type=int, default=None,
-                        help="gnn: DynamicsConfig.substeps (a push predicted as this many sub-pushes)")
     parser.add_argument("--residual", action=argparse.BooleanOptionalAction, default=None,
                         help="correct the sweep heuristic (default: off for gnn, on for cnn)")
     parser.add_argument("--grid", type=int, default=None,
@@ -84,6 +85,8 @@ def main(argv=None):
                if getattr(args, name) is not None}
     if "propagation_steps" in options:
         options["steps"] = options.pop("propagation_steps")
+    if model_class(base.model) == args.model:  # the recipe's model, with the flags given beside it
+        options = {**dataclasses.asdict(base.model), **options}
     try:
         cfg = TrainConfig(**fields, model=MODEL_CLASSES[args.model][0](**options))
     except ValueError as e:

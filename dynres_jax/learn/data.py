@@ -24,11 +24,6 @@ members, with E kept episodes, F = pushes + 1 frames, N pieces, H x W pixels:
     kind    [N] int16              each piece's kind, an index into kind_names
     kind_names [K] str; sim_config [] str (the shard's SimConfig as JSON); shard, simulated, dropped [] int64
 
-With ``DataConfig.substeps`` S > 1 (backend "mujoco") a shard also holds the poses inside each push, when the plate
-has covered i / S of its way (i = 1 .. S - 1; ``PileEnv.push_poses``), the targets of a model stepped in sub-pushes:
-
-    sub_pos [E, F - 1, S - 1, N, 3] float32;  sub_mat [E, F - 1, S - 1, N, 3, 3] float32
-
 Colour images are not stored: ``Renderer`` redraws them from the poses. Broken episodes are dropped by default
 (``DataConfig.drop_broken``): ``dropped`` counts them per shard and the summary in total.
 
@@ -69,8 +64,6 @@ from dynres_jax.config import (
     replace,
 )
 from dynres_jax.io.files import TMP_PREFIX, atomic_write, write_json, write_text
-from dynres_jax.models.dynamics import split_push
-from dynres_jax.models.graph import nearest_by_matrix
 from dynres_jax.perception import sample_particles
 from dynres_jax.sim.camera import Camera, Observation
 from dynres_jax.sim.env import PileEnv
@@ -81,7 +74,6 @@ LAYOUTS = ("blob", "two_blobs", "spread")
 SHARD_GLOB = "shard_*.npz"
 ZIP_DATE = (1980, 1, 1, 0, 0, 0)
 PER_EPISODE = ("depth", "piece", "pos", "mat", "action", "broken", "episode")  # shard members with an episode axis
-SUB_PUSH = ("sub_pos", "sub_mat")  # the same, present in shards of DataConfig.substeps > 1 only
 
 
 def check_kind_names(kinds, field: str) -> None:
@@ -110,8 +102,6 @@ class DataConfig:
       With the default Newton solver C MuJoCo on 16 cores outruns MJX on one H100 about 7x (README, Speed).
     sim: the rest of the simulator (physics, push, camera distance); kinds, pieces, layout and image size above
       override its fields per shard.
-    substeps: S > 1 also stores the poses inside each push, at i / S of the plate's way (module docstring; backend
-      "mujoco" only), to train a model stepped in S sub-pushes on its intermediate targets.
     """
 
     episodes: int = 2000
@@ -127,7 +117,6 @@ class DataConfig:
     drop_broken: bool = True
     backend: str = "mjx"
     sim: SimConfig = field(default_factory=SimConfig)
-    substeps: int = 1
 
     def __post_init__(self):
         for name in ("episodes", "pushes", "worlds", "pieces_step"):
@@ -146,11 +135,6 @@ class DataConfig:
                              f"got {self.two_kinds} with kinds {self.kinds}")
         if self.backend not in ("mjx", "mujoco"):
             raise ValueError(f"DataConfig.backend must be 'mjx' or 'mujoco', got {self.backend!r}")
-        if not isinstance(self.substeps, int | np.integer) or self.substeps < 1:
-            raise ValueError(f"DataConfig.substeps must be a positive int, got {self.substeps!r}")
-        if self.substeps > 1 and self.backend != "mujoco":
-            raise ValueError("DataConfig.substeps > 1 needs backend 'mujoco' (poses inside a push come from the C "
-                             "engine)")
         if self.image_size < 8:
             raise ValueError(f"DataConfig.image_size must be at least 8 pixels, got {self.image_size}")
 
@@ -159,11 +143,7 @@ class DataConfig:
         return math.ceil(self.episodes / self.worlds)
 
     def to_json(self) -> str:
-        """The config as JSON; substeps only when > 1, so folders written before it existed still resume."""
-        d = dataclasses.asdict(self)
-        if d["substeps"] == 1:
-            del d["substeps"]
-        return json.dumps(d, indent=1, sort_keys=True)
+        return json.dumps(dataclasses.asdict(self), indent=1, sort_keys=True)
 
 
 def quick_config(**overrides) -> DataConfig:
@@ -259,7 +239,7 @@ def simulate_shard(config: DataConfig, shard: int, devices=None, pool=None) -> d
     keys = jax.random.split(jax.random.fold_in(jax.random.PRNGKey(config.seed), shard), config.worlds)
     if config.backend == "mujoco":
         worlds = WorldPool(sim, pool)
-        env, out = worlds.env, worlds.random_episodes(keys, config.pushes, config.substeps)
+        env, out = worlds.env, worlds.random_episodes(keys, config.pushes)
     else:
         env, fn, sharding = _episode_fn(sim, config.pushes, tuple(devices))
         out = jax.device_get(fn(jax.device_put(keys, sharding)))
@@ -278,7 +258,7 @@ def finish_shard(arrays: dict, n_keep: int, drop_broken: bool) -> dict:
     broken = keep & arrays["broken"][:, -1]
     if drop_broken:
         keep &= ~broken
-    out = {k: (v[keep] if k in PER_EPISODE + SUB_PUSH else v) for k, v in arrays.items()}
+    out = {k: (v[keep] if k in PER_EPISODE else v) for k, v in arrays.items()}
     out["simulated"] = np.int64(n_keep)
     out["dropped"] = np.int64(broken.sum() if drop_broken else 0)
     return out
@@ -384,9 +364,7 @@ class Dataset:
     """Episodes of all loaded shards, pieces padded to the largest count Nmax (E episodes, F frames):
     depth [E, F, H, W] float16 (m), piece [E, F, H, W] int16, pos [E, F, Nmax, 3], mat [E, F, Nmax, 3, 3] (padding:
     0 and identity), piece_mask [E, Nmax] bool, kind [E, Nmax] int16 index into KIND_NAMES (-1 padding), action
-    [E, F - 1, 4], broken [E, F], episode [E] global ids; camera: the shards' common camera; sub_pos
-    [E, F - 1, S - 1, Nmax, 3] and sub_mat [..., 3, 3]: the poses inside each push of shards written with
-    ``DataConfig.substeps`` S > 1 (None otherwise)."""
+    [E, F - 1, 4], broken [E, F], episode [E] global ids; camera: the shards' common camera."""
 
     depth: np.ndarray
     piece: np.ndarray
@@ -398,17 +376,10 @@ class Dataset:
     broken: np.ndarray
     episode: np.ndarray
     camera: Camera
-    sub_pos: np.ndarray | None = None
-    sub_mat: np.ndarray | None = None
 
     @property
     def pushes(self) -> int:
         return self.action.shape[1]
-
-    @property
-    def substeps(self) -> int:
-        """S: the sub-pushes each push's stored poses cut it into (1: only whole pushes)."""
-        return 1 if self.sub_pos is None else self.sub_pos.shape[2] + 1
 
     def __len__(self) -> int:
         return len(self.episode)
@@ -423,18 +394,17 @@ def load_shards(data_dir: str, split: str = "all", val_every: int = 10) -> Datas
     """Read every shard of ``data_dir`` into a Dataset. split: "all", "train" or "val" (``is_validation``)."""
     if split not in ("all", "train", "val"):
         raise ValueError(f"split must be 'all', 'train' or 'val', got {split!r}")
-    parts, camera, pushes, substeps = [], None, None, None
+    parts, camera, pushes = [], None, None
     for path, s in iter_shards(data_dir):
         sim = SimConfig.from_json(str(s["sim_config"]))
         cam = Camera.top_down(sim.camera)
-        shape = (s["action"].shape[1], s["sub_pos"].shape[2] + 1 if "sub_pos" in s else 1)
-        if camera is not None and (cam != camera or shape != (pushes, substeps)):
-            raise ValueError(f"{path}: its camera, pushes per episode or substeps differ from the earlier shards'")
-        camera, (pushes, substeps) = cam, shape
+        if camera is not None and (cam != camera or s["action"].shape[1] != pushes):
+            raise ValueError(f"{path}: its camera or pushes per episode differ from the earlier shards'")
+        camera, pushes = cam, s["action"].shape[1]
         val = is_validation(s["episode"], val_every)
         keep = np.ones_like(val) if split == "all" else (val if split == "val" else ~val)
         kind = np.array([KIND_NAMES.index(str(name)) for name in s["kind_names"]], np.int16)[s["kind"]]
-        parts.append({**{k: s[k][keep] for k in PER_EPISODE + SUB_PUSH if k in s}, "kind": kind})
+        parts.append({**{k: s[k][keep] for k in PER_EPISODE}, "kind": kind})
     if not parts:
         raise ValueError(f"no shards ({SHARD_GLOB}) in {data_dir}")
     n_max = max(p["pos"].shape[2] for p in parts)
@@ -450,8 +420,6 @@ def load_shards(data_dir: str, split: str = "all", val_every: int = 10) -> Datas
         p = dict(p, piece_mask=np.broadcast_to(np.arange(n_max) < n, (e, n_max)),
                  kind=np.broadcast_to(np.pad(p["kind"], (0, n_max - n), constant_values=-1), (e, n_max)))
         p["pos"], p["mat"] = pad_poses(p["pos"], p["mat"])
-        if "sub_pos" in p:
-            p["sub_pos"], p["sub_mat"] = pad_poses(p["sub_pos"], p["sub_mat"])
         return p
 
     parts = [pad(p) for p in parts]
@@ -475,22 +443,10 @@ def without_kinds(dataset: Dataset, kinds) -> Dataset:
     return _episodes(dataset, ~drop)
 
 
-def thinned(dataset: Dataset, share: float, period: int = 20) -> Dataset:
-    """The episodes whose global id e has e mod period < share * period: about ``share`` of them, thinned alike in
-    every shard (so every scene kind keeps its share), to measure how the model scales with data. share in (0, 1]."""
-    if not 0 < share <= 1:
-        raise ValueError(f"share must lie in (0, 1], got {share}")
-    keep = np.asarray(dataset.episode) % period < share * period
-    if not keep.any():
-        raise ValueError(f"share {share} keeps none of the {len(dataset)} episodes")
-    return _episodes(dataset, keep)
-
-
 def _episodes(dataset: Dataset, keep) -> Dataset:
     """The episodes where keep [E] bool is True."""
     per_episode = [f.name for f in dataclasses.fields(Dataset) if f.name != "camera"]
-    return Dataset(**{name: None if (a := getattr(dataset, name)) is None else a[keep] for name in per_episode},
-                   camera=dataset.camera)
+    return Dataset(**{name: getattr(dataset, name)[keep] for name in per_episode}, camera=dataset.camera)
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -532,9 +488,7 @@ def particle_trajectory(piece_index, local, pos_seq, mat_seq):
 class Window(NamedTuple):
     """One training window of ``horizon`` pushes from frame t (NumPy or JAX; batch axes in front): depth [H, W] f32
     (m) and piece [H, W] int32 at frame t; pos [horizon + 1, N, 3], mat [horizon + 1, N, 3, 3] at frames t..t+horizon;
-    piece_mask [N] bool; kind [N] int32 (KIND_NAMES index, -1 padding); action [horizon, 4] (m). A window of
-    sub-pushes (``windows(..., sub_pushes=True)``) has horizon x S steps instead: the poses inside each push between
-    its frames, and each push cut into its S sub-pushes (``dynamics.split_push``)."""
+    piece_mask [N] bool; kind [N] int32 (KIND_NAMES index, -1 padding); action [horizon, 4] (m)."""
 
     depth: np.ndarray
     piece: np.ndarray
@@ -545,9 +499,8 @@ class Window(NamedTuple):
     action: np.ndarray
 
 
-def windows(data: Dataset, rows, t, horizon: int = 5, sub_pushes: bool = False) -> Window:
-    """Batched windows: rows [B] (Dataset rows, not episode ids), t [B] start frames, 0 <= t <= pushes - horizon.
-    sub_pushes: a window of the horizon x S sub-pushes (``Window``), from data written with substeps S > 1."""
+def windows(data: Dataset, rows, t, horizon: int = 5) -> Window:
+    """Batched windows: rows [B] (Dataset rows, not episode ids), t [B] start frames, 0 <= t <= pushes - horizon."""
     rows, t = np.asarray(rows), np.asarray(t)
     if horizon < 1 or horizon > data.pushes:
         raise ValueError(f"horizon={horizon} must be in [1, pushes per episode = {data.pushes}]")
@@ -556,29 +509,14 @@ def windows(data: Dataset, rows, t, horizon: int = 5, sub_pushes: bool = False) 
     span = t[:, None] + np.arange(horizon + 1)
     r = rows[:, None]
     pos, mat, action = data.pos[r, span], data.mat[r, span], data.action[r, span[:, :-1]]
-    if sub_pushes:
-        if data.sub_pos is None:
-            raise ValueError("sub_pushes needs data generated with DataConfig.substeps > 1 (poses inside pushes)")
-        pos, mat = (_interleave(whole, data_sub[r, span[:, :-1]])
-                    for whole, data_sub in ((pos, data.sub_pos), (mat, data.sub_mat)))
-        action = np.asarray(split_push(action, data.substeps)).reshape(len(rows), -1, 4)
     return Window(data.depth[rows, t].astype(np.float32), data.piece[rows, t].astype(np.int32), pos, mat,
                   data.piece_mask[rows], data.kind[rows].astype(np.int32), action)
 
 
-def _interleave(whole, inside):
-    """whole [B, h + 1, ...] poses at push frames, inside [B, h, S - 1, ...] poses inside each push -> [B, h S + 1,
-    ...]: each frame followed by the poses inside the push from it."""
-    b, h = inside.shape[:2]
-    steps = np.concatenate([whole[:, :-1, None], inside], axis=2).reshape((b, -1) + whole.shape[2:])
-    return np.concatenate([steps, whole[:, -1:]], axis=1)
-
-
-def random_windows(data: Dataset, rng: np.random.Generator, batch: int, horizon: int = 5,
-                   sub_pushes: bool = False) -> Window:
-    """``batch`` windows, rows and start frames uniform (``windows`` for sub_pushes)."""
+def random_windows(data: Dataset, rng: np.random.Generator, batch: int, horizon: int = 5) -> Window:
+    """``batch`` windows, rows and start frames uniform."""
     return windows(data, rng.integers(0, len(data), batch), rng.integers(0, data.pushes - horizon + 1, batch),
-                   horizon, sub_pushes)
+                   horizon)
 
 
 class Sample(NamedTuple):
@@ -610,21 +548,3 @@ def make_sample(window: Window, omega, key, camera: Camera, n_max: int, **percep
     positions = particle_trajectory(index, local, jnp.asarray(window.pos), jnp.asarray(window.mat))
     return Sample(positions, p.mask, jnp.where(index >= 0, kind[jnp.maximum(index, 0)], -1),
                   jnp.asarray(window.action), p.radius, p.error)
-
-
-def piece_sample(window: Window, n_max: int) -> Sample:
-    """The full state as a Sample, a diagnostic of what f learns from perfect knowledge (``TrainConfig.state``
-    "pieces"): every piece's centre, buried ones included, at frames t..t+horizon in the first of ``n_max`` slots;
-    radius: the mean distance from a piece to its nearest neighbour, the density of such a sample. Pure JAX."""
-    pos = jnp.asarray(window.pos, jnp.float32)
-    n = pos.shape[-2]
-    if n > n_max:
-        raise ValueError(f"the data hold {n} piece slots, more than n_max={n_max}")
-    mask = jnp.asarray(window.piece_mask, bool)
-    d2, _ = nearest_by_matrix(pos[0], mask, 1)  # inf for padding and a lone piece
-    nearest = jnp.where(mask & (jnp.sum(mask) > 1), jnp.sqrt(d2[:, 0]), 0.0)
-    radius = jnp.sum(nearest) / jnp.maximum(jnp.sum(mask), 1)
-    kind = jnp.where(mask, jnp.asarray(window.kind, jnp.int32), -1)
-    return Sample(jnp.pad(jnp.where(mask[:, None], pos, 0.0), ((0, 0), (0, n_max - n), (0, 0))),
-                  jnp.pad(mask, (0, n_max - n)), jnp.pad(kind, (0, n_max - n), constant_values=-1),
-                  jnp.asarray(window.action), radius, jnp.int32(0))

@@ -41,7 +41,6 @@ from dynres_jax.models.registry import make_model, model_class
 SCHEDULE = ("steps", "eval_every", "ckpt_every", "val_batches")  # may change when a run resumes; nothing else may
 VAL_STREAM = 2**30  # seeds of validation batches: (seed, VAL_STREAM, b), apart from training steps' (seed, step)
 LOSSES = ("mse", "distance")  # TrainConfig.loss: see rollout_errors
-STATES = ("particles", "pieces")  # TrainConfig.state: what the model sees and predicts
 DISTANCE_EPS = 1e-4  # m: smoothing of the "distance" loss at zero error
 
 
@@ -55,14 +54,6 @@ class TrainConfig:
     and validation (episodes with any piece of them are dropped), so ``eval_dynamics`` can report the model on kinds
     it never saw; loss: "mse" (the reference's mean squared error) or "distance" (the mean
     Euclidean error that ``eval_dynamics`` reports; less pulled by the few pieces that end far from any guess);
-    state: "particles" (perception h at ω, what the paper's f sees) or "pieces" (every piece's centre, buried ones
-    too, known exactly: ``data.piece_sample``, a diagnostic of how far the model gets with perfect knowledge);
-    train_share: the share of training episodes used (``data.thinned``; validation is unchanged), to measure how the
-    model scales with data;
-    sub_targets: for a GNN stepped in S sub-pushes (``DynamicsConfig.substeps``), the rollout and its loss go sub-push
-    by sub-push, scored also on the poses inside each push (data of ``DataConfig.substeps`` S): every pass of the
-    network learns its own sub-push instead of only the chain learning the whole push (metrics.jsonl's validation
-    errors are then per sub-push; ``eval_dynamics`` scores whole pushes);
     model: the GNN's ``DynamicsConfig`` or the CNN's ``CNNDynamicsConfig``."""
 
     steps: int = 20_000
@@ -78,9 +69,6 @@ class TrainConfig:
     val_batches: int = 4
     seed: int = 0
     loss: str = "mse"
-    state: str = "particles"
-    train_share: float = 1.0
-    sub_targets: bool = False
     held_out_kinds: tuple[str, ...] = ()
     model: DynamicsConfig | CNNDynamicsConfig = field(default_factory=DynamicsConfig)
 
@@ -88,17 +76,18 @@ class TrainConfig:
         model_class(self.model)  # a ValueError for anything but a model config
         if self.loss not in LOSSES:
             raise ValueError(f"loss must be one of {', '.join(LOSSES)}, got {self.loss!r}")
-        if not 0 < self.train_share <= 1:
-            raise ValueError(f"train_share must lie in (0, 1], got {self.train_share}")
-        if self.state not in STATES:
-            raise ValueError(f"state must be one of {', '.join(STATES)}, got {self.state!r}")
         if not 1 <= self.omega_min <= self.n_max:
             raise ValueError(f"omega_min={self.omega_min} must lie in [1, n_max={self.n_max}]")
         data.check_kind_names(self.held_out_kinds, "held_out_kinds")
-        if self.sub_targets and (model_class(self.model) != "gnn" or self.model.substeps < 2):
-            raise ValueError("sub_targets needs a GNN stepped in sub-pushes (DynamicsConfig.substeps >= 2)")
         if self.steps < 1 or self.batch < 1 or self.horizon < 1:
             raise ValueError("steps, batch and horizon must be positive")
+
+
+RECIPES = {  # named training configs; the checkpoints' cards name theirs (``experiments.train_dynamics --recipe``)
+    "shipped": TrainConfig(steps=17_600, batch=64, loss="distance", model=DynamicsConfig(
+        push_frame=True, world_edges=True, residual=True, bin_position=True)),  # checkpoints/dynamics
+    "cnn": TrainConfig(steps=2_800, batch=64, loss="distance", model=CNNDynamicsConfig()),  # checkpoints/cnn_dynamics
+}
 
 
 def card(cfg: TrainConfig, **extra) -> dict:
@@ -125,10 +114,8 @@ def rollout_errors(graphdef, state, samples: data.Sample) -> dict:
 
 
 def make_sample(window: data.Window, omega, key, camera, cfg: TrainConfig) -> data.Sample:
-    """One window's training sample as ``cfg.state`` says: perception h at ω (``data.make_sample``) or the full
-    state (``data.piece_sample``; ω and the key unused)."""
-    if cfg.state == "pieces":
-        return data.piece_sample(window, cfg.n_max)
+    """One window's training sample: perception h at ω (``data.make_sample``) with cfg's particle slots and point
+    cap."""
     return data.make_sample(window, omega, key, camera, cfg.n_max, max_points=cfg.max_points)
 
 
@@ -158,7 +145,7 @@ def make_step(graphdef, optimizer: optax.GradientTransformation, camera, cfg: Tr
 
 
 def _batch(dataset: data.Dataset, rng: np.random.Generator, cfg: TrainConfig, key):
-    windows = data.random_windows(dataset, rng, cfg.batch, cfg.horizon, cfg.sub_targets)
+    windows = data.random_windows(dataset, rng, cfg.batch, cfg.horizon)
     omegas = rng.integers(cfg.omega_min, cfg.n_max + 1, cfg.batch)
     return windows, jnp.asarray(omegas, jnp.int32), jax.random.split(key, cfg.batch)
 
@@ -226,18 +213,11 @@ def train(cfg: TrainConfig, data_dir: str, out_dir: str, progress: bool = True,
     again to go on)."""
     train_set, val_set = (data.without_kinds(data.load_shards(data_dir, split), cfg.held_out_kinds)
                           for split in ("train", "val"))
-    if cfg.train_share < 1:
-        train_set = data.thinned(train_set, cfg.train_share)
     if cfg.horizon > train_set.pushes:
         raise ValueError(f"horizon {cfg.horizon} exceeds the data's {train_set.pushes} pushes per episode")
-    if cfg.sub_targets and train_set.substeps != cfg.model.substeps:
-        raise ValueError(f"sub_targets: the model steps in {cfg.model.substeps} sub-pushes but {data_dir} holds poses "
-                         f"for {train_set.substeps} (generate it with --substeps {cfg.model.substeps})")
     os.makedirs(out_dir, exist_ok=True)
     ckpt_dir, metrics_path = os.path.join(out_dir, "ckpt"), os.path.join(out_dir, "metrics.jsonl")
     graphdef, params = nnx.split(make_model(cfg.model, cfg.seed))
-    if cfg.sub_targets:  # the same parameters, one pass a sub-push: the windows hold the sub-pushes
-        graphdef = nnx.split(make_model(dataclasses.replace(cfg.model, substeps=1)))[0]
     optimizer = optax.adam(optax.cosine_decay_schedule(cfg.lr, cfg.steps, alpha=cfg.lr_final))
     opt_state = optimizer.init(params)
     start = 0

@@ -24,18 +24,10 @@ once per plan, "Pair table" below). ``residual``: the network predicts a correct
 predictor's last layer starts at zero, so an untrained model is exactly the sweep heuristic. ``bin_position``: the
 node input also holds where the particle is in the bin, before and after the sweep's guess (x, y of each over
 ``bin_half_width``: 4 more inputs), so the model can learn where the walls stop a pile; the push frame alone does not
-say where the walls are. ``height``: the node input also holds the particle's height above the table (z over
-``length_scale``; 1 more input): particles lie on the pile's top surface, so this is the pile's thickness there, which
-edges (relative positions only) cannot tell. ``global_context``: every propagation step also feeds each node the
-pile's pooled state, [masked mean of the node effects, their sum weighted by the area a particle stands for,
-r² / POOL_AREA] -> a linear layer 2H -> H added inside the node propagator's ReLU, so a particle knows how much material
-the push gathers, not only what its 3-hop neighbourhood holds. The layer starts at zero (so training starts from the
-model without it: with a random start, training diverged). ``radius_scale``: edges reach
-max(``edge_radius``, radius_scale · r), r the FPS covering radius, instead of ``edge_radius`` alone, so sparse
-samples (r of several cm at small ω, against the 3.2 cm radius) still have neighbours. ``substeps`` = S: a push is
-predicted as S sub-pushes, each 1/S of the plate's way, by S passes of the same network (each with its own sweep
-guess, edges and push frame), so contacts propagate through the pile as the plate advances rather than in one jump;
-it costs S times one pass.
+say where the walls are. Options studied and
+dropped (the particle's height, a pooled global context, edges reaching with the FPS radius, a push stepped in
+sub-pushes: none moved the error by more than a few per cent, ``docs/results.md``) are in the history before
+2026-11-24.
 
 Defaults (H = 64, 3 steps) give 38,403 parameters, the reference's "about 38k".
 
@@ -94,7 +86,6 @@ from dynres_jax.models.graph import K_NEIGHBOURS, R_EDGE, build_edges, sweep_dis
 
 LENGTH_SCALE = 0.05  # m: displacements and relative positions are divided by this inside the model
 R_REF = 0.02  # m: covering radius whose resolution code is 0
-POOL_AREA = 0.01  # m²: about a pile's area, the unit of the global context's area-weighted sum
 R_MIN = 1e-3  # m: radii below this (including the 0 of bad perception input) are clipped in ``resolution_code``
 NODE_IN = 5  # guessed displacement (3), attribute (1), resolution code (1)
 NODE_IN_PUSH_FRAME = 7  # push_frame: guess along the push, s, t, s - L, L (1 each), attribute (1), code (1)
@@ -118,22 +109,11 @@ class DynamicsConfig:
     world_edges: bool = False
     bin_position: bool = False
     bin_half_width: float = SceneConfig.bin_half_width
-    height: bool = False
-    global_context: bool = False
-    radius_scale: float = 0.0
-    substeps: int = 1
-
-    def __post_init__(self):
-        if self.radius_scale < 0:
-            raise ValueError(f"radius_scale must be >= 0, got {self.radius_scale}")
-        if self.substeps < 1:
-            raise ValueError(f"substeps must be >= 1, got {self.substeps}")
 
     @property
     def node_inputs(self) -> int:
         """Width of the node encoder's input."""
-        return ((NODE_IN_PUSH_FRAME if self.push_frame else NODE_IN) + (4 if self.bin_position else 0)
-                + (1 if self.height else 0))
+        return (NODE_IN_PUSH_FRAME if self.push_frame else NODE_IN) + (4 if self.bin_position else 0)
 
     @property
     def edges_in_push_frame(self) -> bool:
@@ -149,11 +129,6 @@ def resolution_code(radius):
     return jnp.log(R_REF / jnp.maximum(radius, R_MIN))
 
 
-def code_radius(code):
-    """The covering radius (m) a resolution code stands for: the inverse of ``resolution_code`` above R_MIN."""
-    return R_REF * jnp.exp(-jnp.asarray(code, jnp.float32))
-
-
 def _push_frame(action):
     """action [4] -> (frame [3, 3] whose rows are the unit push direction, its left normal and +z; start [2];
     length []). The rows are orthonormal, so ``v @ frame.T`` maps world vectors to the push frame and ``w @ frame``
@@ -164,17 +139,6 @@ def _push_frame(action):
     along = delta / length
     frame = jnp.array([[along[0], along[1], 0.0], [-along[1], along[0], 0.0], [0.0, 0.0, 1.0]])
     return frame, start, length
-
-
-def split_push(action, substeps: int):
-    """action [..., 4] -> its ``substeps`` sub-pushes [..., S, 4] (float32): sub-push i takes the plate from i / S
-    to (i + 1) / S of its way, starting where the last ended; the last ends at the push's end exactly, so S = 1 gives
-    the action itself."""
-    action = jnp.asarray(action, jnp.float32)
-    start, end = action[..., None, :2], action[..., None, 2:]
-    way = jnp.arange(1, substeps, dtype=jnp.float32)[:, None] / substeps  # [S - 1, 1]
-    ends = jnp.concatenate([start + (end - start) * way, end], axis=-2)
-    return jnp.concatenate([jnp.concatenate([start, ends[..., :-1, :]], axis=-2), ends], axis=-1)
 
 
 def _cast(module: nnx.Module, dtype) -> nnx.Module:
@@ -259,9 +223,6 @@ class Dynamics(nnx.Module):
         self.edge_encoder = _mlp((EDGE_IN, h, h, h), rngs, final_relu=True)
         self.edge_propagator = nnx.Linear(3 * h + 1, h, rngs=rngs)  # [edge code, receiver, sender, code]
         self.node_propagator = nnx.Linear(2 * h + 1, h, rngs=rngs)  # [node code, summed edge effects, code]
-        if config.global_context:  # [mean, area-weighted sum] of the node effects -> the node update, from zero
-            self.global_propagator = nnx.Linear(2 * h, h, use_bias=False, kernel_init=nnx.initializers.zeros,
-                                                rngs=rngs)
         self.predictor = _mlp((h, h, 3), rngs, final_relu=False)
         if config.residual:  # the correction starts at zero: an untrained model is the sweep heuristic
             last = self.predictor.layers[-1]
@@ -281,20 +242,10 @@ class Dynamics(nnx.Module):
         code = jnp.asarray(code, jnp.float32)
         action = jnp.asarray(action, jnp.float32)
         dt = jnp.dtype(edge_dtype)
-        for i, sub in enumerate(split_push(action, self.config.substeps)):
-            first = i == 0  # only the first sub-push starts from the positions a table was built on
-            positions = self._push(positions, mask, sub, code, dt, pair_table and first, table if first else None)
-        return positions
-
-    def _push(self, positions, mask, action, code, dt, pair_table, table):
-        """One network pass: ``__call__``'s arguments (arrays, dt the edge dtype) for one (sub-)push."""
         cfg, h, n = self.config, self.config.hidden, positions.shape[0]
         clean = jnp.where(mask[:, None], positions, 0.0)
         guess = sweep_displacement(clean, mask, action, cfg.plate_half_width)
-        radius = cfg.edge_radius
-        if cfg.radius_scale:
-            radius = jnp.maximum(radius, cfg.radius_scale * code_radius(code))
-        neighbours, edge_mask = build_edges(clean + guess, mask, radius, cfg.k)
+        neighbours, edge_mask = build_edges(clean + guess, mask, cfg.edge_radius, cfg.k)
 
         attr = mask.astype(jnp.float32)[:, None]  # [N, 1]: 1 for a particle
         if cfg.push_frame:
@@ -308,8 +259,6 @@ class Dynamics(nnx.Module):
             node_in = [guess / cfg.length_scale]
         if cfg.bin_position:
             node_in += [xy[:, :2] / cfg.bin_half_width for xy in (clean, clean + guess)]  # 0 where masked, as both are
-        if cfg.height:
-            node_in.append(clean[:, 2:] / cfg.length_scale)
         node_code = self.node_encoder(jnp.concatenate(node_in + [attr, jnp.broadcast_to(code, (n, 1))], axis=-1))
 
         w_e = self.edge_propagator.kernel[...]
@@ -329,10 +278,7 @@ class Dynamics(nnx.Module):
         for _ in range(cfg.steps):
             node_terms = effect @ w_terms  # [N, 2H]: receiver and sender terms
             incoming = _incoming(table is not None, edge_const, neighbours, edge_mask, node_terms)  # [N, H]
-            update = node_const + incoming @ w_n[h:2 * h] + effect
-            if cfg.global_context:
-                update = update + self._pooled(effect, mask, code)
-            effect = nnx.relu(update)
+            effect = nnx.relu(node_const + incoming @ w_n[h:2 * h] + effect)
 
         displacement = self.predictor(effect) * cfg.length_scale
         if cfg.push_frame:
@@ -340,14 +286,6 @@ class Dynamics(nnx.Module):
         if cfg.residual:
             displacement = displacement + guess  # the network predicts the correction to the sweep heuristic
         return jnp.where(mask[:, None], positions + displacement, positions)
-
-    def _pooled(self, effect, mask, code):
-        """The global context's term of the node update (module docstring, "Options"): effect [N, H], mask [N],
-        code [] -> [H], the same for every node; masked rows take no part."""
-        w = mask.astype(jnp.float32)[:, None]
-        total = jnp.sum(effect * w, axis=0)
-        area = jnp.square(code_radius(code)) / POOL_AREA  # the area a particle stands for, in units of a pile's
-        return self.global_propagator(jnp.concatenate([total / jnp.maximum(jnp.sum(w), 1.0), area * total]))
 
     def _check_pair_table(self):
         if self.config.edges_in_push_frame:

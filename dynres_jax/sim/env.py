@@ -352,28 +352,6 @@ class PileEnv:
         arrays, _ = self._run_c(state.qpos, state.qvel, plate_pos, plate_quat)
         return self._finish_jit(*arrays, state.broken)
 
-    def sub_push_steps(self, action, substeps: int) -> np.ndarray:
-        """The simulator steps (indices into ``plate_trajectory``'s rows) after which the plate has covered i /
-        substeps of the push's way, i = 1 .. substeps - 1: [substeps - 1] int."""
-        length = float(np.hypot(*(np.asarray(action[2:], np.float64) - np.asarray(action[:2], np.float64))))
-        per_step = self.config.push.speed * self.config.scene.timestep
-        way = np.arange(1, substeps) / substeps * length
-        return self.n_lower + np.clip(np.ceil(way / per_step - 1e-9).astype(int) - 1, 0, self.n_move - 1)
-
-    def push_poses(self, state: State, action, substeps: int) -> tuple[State, np.ndarray, np.ndarray]:
-        """``simulate`` along the push's plate trajectory (backend "mujoco" only; the action as ``sample_push``
-        gives it, unchecked) that also returns the pieces' poses inside the push, when the plate has covered
-        i / substeps of its way (``sub_push_steps``): (state after the push, pos [substeps - 1, N, 3], mat
-        [substeps - 1, N, 3, 3]), the training targets of a model stepped in sub-pushes."""
-        if self.backend != "mujoco":
-            raise ValueError("push_poses needs backend='mujoco' (MJX pushes run as one compiled scan)")
-        action = jnp.asarray(action, jnp.float32)
-        arrays, frames = self._run_c(state.qpos, state.qvel, *self.plate_trajectory(action),
-                                     frames_at=self.sub_push_steps(action, substeps))
-        pos = np.array([f[0] for f in frames], np.float32).reshape(substeps - 1, -1, 3)
-        mat = np.array([f[1] for f in frames], np.float32).reshape(substeps - 1, -1, 3, 3)
-        return self._finish_jit(*arrays, state.broken), pos, mat
-
     def push_frames(self, state: State, action, n_frames: int = 12) -> tuple[State, list[Observation]]:
         """Like ``push`` (backend "mujoco" only) but also renders ``n_frames`` frames with the plate drawn."""
         if self.backend != "mujoco":

@@ -70,34 +70,22 @@ def _push(job) -> tuple:
 
 def _random_episode(job) -> dict:
     """A reset and ``pushes`` random pushes through the pile (``PileEnv.sample_push``), as data generation's MJX
-    path does; a world that broke stays as it was. With ``substeps`` > 1 also the poses inside each push
-    (``PileEnv.push_poses``): sub_pos [pushes, substeps - 1, N, 3], sub_mat [..., 3, 3]."""
-    sim_json, key, pushes, substeps = job
+    path does; a world that broke stays as it was."""
+    sim_json, key, pushes = job
     env = _env(sim_json)
     k_reset, k_push = jax.random.split(jnp.asarray(key, jnp.uint32))
     s = env.reset(k_reset)
-    frames, actions, inside = [s], [], []
+    frames, actions = [s], []
     for k in jax.random.split(k_push, pushes):
         action = env.sample_push(k, s.pos) if not s.broken else jnp.array([0.0, 0, env.config.push.min_length, 0])
         # As MJX's traced push: sampled pushes are in bounds, too-short ones are no-ops; a broken world stays put.
-        if s.broken:
-            poses = (np.broadcast_to(s.pos, (substeps - 1,) + s.pos.shape),
-                     np.broadcast_to(s.mat, (substeps - 1,) + s.mat.shape))
-        elif substeps > 1:
-            s, *poses = env.push_poses(s, action, substeps)
-        else:
+        if not s.broken:
             s = env.simulate(s, *env.plate_trajectory(action))
-        if substeps > 1:
-            inside.append(poses)
         frames.append(s)
         actions.append(action)
     get = lambda name: np.stack([np.asarray(getattr(f, name)) for f in frames])  # noqa: E731
-    out = dict(pos=get("pos"), mat=get("mat"), broken=np.maximum.accumulate(get("broken")),
-               action=np.stack([np.asarray(a, np.float32) for a in actions]))
-    if substeps > 1:
-        out.update(sub_pos=np.stack([p for p, _ in inside]).astype(np.float32),
-                   sub_mat=np.stack([m for _, m in inside]).astype(np.float32))
-    return out
+    return dict(pos=get("pos"), mat=get("mat"), broken=np.maximum.accumulate(get("broken")),
+                action=np.stack([np.asarray(a, np.float32) for a in actions]))
 
 
 @functools.lru_cache(maxsize=16)
@@ -141,12 +129,11 @@ class WorldPool:
         jobs = [(self._json, w, a) for w, a in zip(worlds, actions, strict=True)]
         return self._states(self._map(_push, jobs))
 
-    def random_episodes(self, keys, pushes: int, substeps: int = 1) -> dict:
+    def random_episodes(self, keys, pushes: int) -> dict:
         """Data generation: per key a reset and ``pushes`` random pushes. Returns arrays with a leading world axis:
         pos [B, F, N, 3], mat [B, F, N, 3, 3], broken [B, F], action [B, F - 1, 4], depth (float16) and piece
-        (int16) [B, F, H, W] (F = pushes + 1); with ``substeps`` > 1 also the poses inside each push, sub_pos
-        [B, F - 1, substeps - 1, N, 3] and sub_mat [B, F - 1, substeps - 1, N, 3, 3] (``PileEnv.push_poses``)."""
-        episodes = self._map(_random_episode, [(self._json, np.asarray(k), pushes, substeps) for k in keys])
+        (int16) [B, F, H, W] (F = pushes + 1)."""
+        episodes = self._map(_random_episode, [(self._json, np.asarray(k), pushes) for k in keys])
         out = {name: np.stack([e[name] for e in episodes]) for name in episodes[0]}
         flat = lambda x: jnp.asarray(x.reshape((-1,) + x.shape[2:]))  # noqa: E731
         obs = self._render(flat(out["pos"]), flat(out["mat"]))
