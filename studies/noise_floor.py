@@ -37,7 +37,7 @@ from flax import nnx
 from tqdm import tqdm
 
 from dynres_jax.io import ckpt, files
-from dynres_jax.learn import data
+from dynres_jax.learn import data, targets
 from dynres_jax.models.dynamics import predict, resolution_code
 from dynres_jax.models.graph import sweep_rollout
 from dynres_jax.models.registry import SHIPPED_DYNAMICS, build_model
@@ -68,7 +68,7 @@ def _tracks(worlds: WorldPool, n_max: int, max_points):
 
     def one(obs, pos, mat, omega, key):
         p = sample_particles(obs, worlds.camera, omega, key, n_max, max_points=max_points)
-        index, local = data.attach_particles(p.positions, p.mask, pos, mat, obs.piece, worlds.camera, piece_mask)
+        index, local = targets.attach_particles(p.positions, p.mask, pos, mat, obs.piece, worlds.camera, piece_mask)
         return p.positions, p.mask & (p.error == 0), index, local, p.radius
 
     return jax.jit(jax.vmap(one, in_axes=(0, 0, 0, None, 0)))
@@ -78,8 +78,8 @@ def _tracks(worlds: WorldPool, n_max: int, max_points):
 @jax.vmap
 def trajectories(index, local, pos, mat):
     """Particles carried with their pieces to one new pose: index [B, n], local [B, n, 3], pos [B, N, 3], mat [B, N, 3,
-    3] -> [B, n, 3] (``data.particle_trajectory`` per world)."""
-    return data.particle_trajectory(index, local, pos[None], mat[None])[0]
+    3] -> [B, n, 3] (``targets.particle_trajectory`` per world)."""
+    return targets.particle_trajectory(index, local, pos[None], mat[None])[0]
 
 
 def measure_scene(config: data.DataConfig, scene: int, args, model, pool) -> dict:

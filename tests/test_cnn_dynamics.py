@@ -18,7 +18,7 @@ from test_train import CFG, shards  # noqa: F401  (shards: the module-scoped tin
 
 from dynres_jax.commands import eval_dynamics, evaluate, train_dynamics
 from dynres_jax.io import ckpt
-from dynres_jax.learn import data
+from dynres_jax.learn import targets
 from dynres_jax.learn.train import TrainConfig, _batch, card, make_step, train
 from dynres_jax.models.cnn_dynamics import PILE_SHARE, CNNDynamics, CNNDynamicsConfig, sample, splat, tent_weights
 from dynres_jax.models.dynamics import Dynamics, count_params, predict, resolution_code
@@ -169,7 +169,7 @@ def test_training_reduces_the_loss_and_the_checkpoint_restores(cnn_run, shards):
     model, meta, _ = ckpt.load_module(f"{out}/ckpt", build_model)
     assert isinstance(model, CNNDynamics) and meta["model_class"] == "cnn" and meta["step"] == CNN_CFG.steps
     assert model.config == SMALL
-    train_set = data.load_shards(shards, "train")
+    train_set = targets.load_shards(shards, "train")
     graphdef, initial = nnx.split(make_model(SMALL, CNN_CFG.seed))
     _, loss = make_step(graphdef, optax.adam(0.0), train_set.camera, CNN_CFG)
     key = jax.random.PRNGKey(CNN_CFG.seed)

@@ -19,7 +19,7 @@ import pytest
 
 from dynres_jax.config import CameraConfig, SceneConfig, SimConfig
 from dynres_jax.io import files
-from dynres_jax.learn import data
+from dynres_jax.learn import data, targets
 from dynres_jax.perception import sample_particles
 from dynres_jax.sim.camera import Observation
 from dynres_jax.sim.env import PileEnv
@@ -221,7 +221,7 @@ def test_attach_and_trajectory_match_numpy_rigid_motion(placed):
     mask[20] = True
     u, v = np.floor(np.asarray(env.camera.world_to_pixel(particles[20])[0])).astype(int)
     assert state.obs.piece[v, u] == -1
-    index, local = data.attach_particles(particles, mask, pos0, mat0, state.obs.piece, env.camera)
+    index, local = targets.attach_particles(particles, mask, pos0, mat0, state.obs.piece, env.camera)
     index, local = np.asarray(index), np.asarray(local)
 
     # independent: pieces are 10 cm apart, so a particle's piece is the one with the nearest centre
@@ -239,7 +239,7 @@ def test_attach_and_trajectory_match_numpy_rigid_motion(placed):
     T = np.concatenate([np.zeros((1, 6, 3)), rng.uniform(-0.05, 0.05, (k_steps - 1, 6, 3))])
     pos_seq = pos0[None] + T
     mat_seq = np.einsum("kiab,ibc->kiac", Q, mat0)
-    traj = np.asarray(data.particle_trajectory(index, local, pos_seq.astype(np.float32), mat_seq.astype(np.float32)))
+    traj = np.asarray(targets.particle_trajectory(index, local, pos_seq.astype(np.float32), mat_seq.astype(np.float32)))
     m = mask
     expect = np.einsum("knab,nb->kna", Q[:, nearest[m]], particles[m] - pos0[nearest[m]]) + pos_seq[:, nearest[m]]
     np.testing.assert_allclose(traj[:, m], expect, atol=1e-5)
@@ -249,7 +249,7 @@ def test_attach_and_trajectory_match_numpy_rigid_motion(placed):
     # padding pieces are never chosen, even where one sits right under a background particle
     pad_pos = np.concatenate([pos0, particles[20:21]])
     pad_mat = np.concatenate([mat0, np.eye(3)[None]])
-    index_pad, _ = data.attach_particles(particles, mask, pad_pos, pad_mat, state.obs.piece, env.camera,
+    index_pad, _ = targets.attach_particles(particles, mask, pad_pos, pad_mat, state.obs.piece, env.camera,
                                          piece_mask=np.arange(7) < 6)
     np.testing.assert_array_equal(np.asarray(index_pad), index)
 
@@ -258,7 +258,7 @@ def test_attach_is_vmappable_and_masked_entries_are_inert(placed):
     env, state = placed
     p = sample_particles(state.obs, env.camera, 10, jax.random.PRNGKey(1), N_MAX)
     junk = p.positions.at[10:].set(jax.random.uniform(jax.random.PRNGKey(2), (N_MAX - 10, 3)))
-    attach = lambda x: data.attach_particles(x, p.mask, state.pos, state.mat, state.obs.piece, env.camera)
+    attach = lambda x: targets.attach_particles(x, p.mask, state.pos, state.mat, state.obs.piece, env.camera)
     index, local = jax.vmap(attach)(jnp.stack([p.positions, junk]))
     np.testing.assert_array_equal(index[0], index[1])
     np.testing.assert_array_equal(local[0], local[1])
@@ -267,8 +267,8 @@ def test_attach_is_vmappable_and_masked_entries_are_inert(placed):
 
 def test_load_split_and_samples(generated):
     out, _ = generated
-    everything = data.load_shards(out)
-    train, val = data.load_shards(out, "train", val_every=3), data.load_shards(out, "val", val_every=3)
+    everything = targets.load_shards(out)
+    train, val = targets.load_shards(out, "train", val_every=3), targets.load_shards(out, "val", val_every=3)
     assert len(everything) == 7 and everything.pushes == 2 and everything.camera.width == 48
     np.testing.assert_array_equal(val.episode, [2, 5])
     np.testing.assert_array_equal(np.sort(np.concatenate([train.episode, val.episode])), np.arange(7))
@@ -276,11 +276,11 @@ def test_load_split_and_samples(generated):
     assert everything.piece_mask.all()
 
     horizon, rows, t = 2, np.array([0, 3, 4, 6]), np.zeros(4, int)
-    win = data.windows(everything, rows, t, horizon)
+    win = targets.windows(everything, rows, t, horizon)
     assert win.pos.shape == (4, 3, 6, 3) and win.action.shape == (4, 2, 4) and win.depth.dtype == np.float32
     # 6 beans at 48 x 48 pixels make 7 to 13 foreground points, so ω stays at most 6
     omegas, keys = jnp.array([2, 3, 5, 6]), jax.random.split(jax.random.PRNGKey(0), 4)
-    make = jax.jit(jax.vmap(lambda w, o, k: data.make_sample(w, o, k, everything.camera, N_MAX)))
+    make = jax.jit(jax.vmap(lambda w, o, k: targets.make_sample(w, o, k, everything.camera, N_MAX)))
     sample = jax.tree.map(np.asarray, make(win, omegas, keys))
     assert sample.positions.shape == (4, 3, N_MAX, 3) and np.all(sample.error == 0)
     np.testing.assert_array_equal(sample.mask.sum(1), omegas)
@@ -305,7 +305,7 @@ def test_load_split_and_samples(generated):
 
 def test_an_empty_split_is_named(generated):
     with pytest.raises(ValueError, match="'val' split .* is empty"):
-        data.load_shards(generated[0], "val", val_every=100)
+        targets.load_shards(generated[0], "val", val_every=100)
 
 
 def test_load_pads_shards_with_fewer_pieces(generated, tmp_path):
@@ -319,19 +319,19 @@ def test_load_pads_shards_with_fewer_pieces(generated, tmp_path):
              piece=np.where(s["piece"] < 4, s["piece"], -1).astype(np.int16), episode=s["episode"] + 100,
              sim_config=np.array(json.dumps(dataclasses.asdict(sim))))
     data.save_npz(os.path.join(out, "shard_00002.npz"), s)
-    d = data.load_shards(out)
+    d = targets.load_shards(out)
     assert len(d) == 10 and d.pos.shape[2] == 6
     assert d.piece_mask[:7].all() and np.all(d.piece_mask[7:] == (np.arange(6) < 4))
     assert np.all(d.kind[7:, :4] == data.KIND_NAMES.index("almond")) and np.all(d.kind[7:, 4:] == -1)
     assert np.all(d.pos[7:, :, 4:] == 0) and np.all(d.mat[7:, :, 4:] == np.eye(3))
     np.testing.assert_array_equal(d.pos[7:, :, :4], s["pos"])
-    win = data.windows(d, [8], [0], horizon=2)
-    sample = data.make_sample(jax.tree.map(lambda x: x[0], win), 3, jax.random.PRNGKey(0), d.camera, N_MAX)
+    win = targets.windows(d, [8], [0], horizon=2)
+    sample = targets.make_sample(jax.tree.map(lambda x: x[0], win), 3, jax.random.PRNGKey(0), d.camera, N_MAX)
     assert int(sample.error) == 0 and np.all(np.asarray(sample.kind)[:3] == data.KIND_NAMES.index("almond"))
 
     # Holding a kind out keeps exactly the episodes with no piece of it (an episode loop as the reference).
     for held, kept in ((("almond",), "coffee"), (("coffee",), "almond"), ((), None)):
-        rest = data.without_kinds(d, held)
+        rest = targets.without_kinds(d, held)
         want = [e for e in range(len(d)) if not any(data.KIND_NAMES[k] in held for k in d.kind[e] if k >= 0)]
         np.testing.assert_array_equal(rest.episode, d.episode[want])
         np.testing.assert_array_equal(rest.pos, d.pos[want])
@@ -339,9 +339,9 @@ def test_load_pads_shards_with_fewer_pieces(generated, tmp_path):
         if kept:
             assert {data.KIND_NAMES[k] for k in np.unique(rest.kind[rest.piece_mask])} == {kept}
     with pytest.raises(ValueError, match="nothing is left"):
-        data.without_kinds(d, ("coffee", "almond"))
+        targets.without_kinds(d, ("coffee", "almond"))
     with pytest.raises(ValueError, match="unknown piece kind"):
-        data.without_kinds(d, ("pebble",))
+        targets.without_kinds(d, ("pebble",))
 
 
 # ----------------------------------------------------------------------------------------------------------------
@@ -366,15 +366,15 @@ def test_worlds_must_divide_by_devices(tmp_path):
 
 
 def test_bad_windows_and_split(generated):
-    d = data.load_shards(generated[0])
+    d = targets.load_shards(generated[0])
     with pytest.raises(ValueError, match="horizon"):
-        data.windows(d, [0], [0], horizon=3)
+        targets.windows(d, [0], [0], horizon=3)
     with pytest.raises(ValueError, match=r"\[0, 1\]"):
-        data.windows(d, [0], [2], horizon=1)
+        targets.windows(d, [0], [2], horizon=1)
     with pytest.raises(ValueError, match="split"):
-        data.load_shards(generated[0], "test")
+        targets.load_shards(generated[0], "test")
     with pytest.raises(ValueError, match="no shards"):
-        data.load_shards(os.path.dirname(generated[0]) + "/nothing")
+        targets.load_shards(os.path.dirname(generated[0]) + "/nothing")
 
 
 def test_cli_rejects_bad_flags(capsys):

@@ -11,7 +11,7 @@ from flax import nnx
 
 from dynres_jax.commands import eval_dynamics
 from dynres_jax.io import ckpt
-from dynres_jax.learn import data
+from dynres_jax.learn import data, targets
 from dynres_jax.learn.train import (
     DISTANCE_EPS,
     TrainConfig,
@@ -136,11 +136,11 @@ def test_bad_config_names_the_problem():
 def test_rollout_errors_equal_a_loop_over_samples_and_particles(shards):
     """Both losses against a NumPy loop over the model's own rollouts: valid particles of samples whose perception
     worked, every step."""
-    train_set = data.load_shards(shards, "train")
+    train_set = targets.load_shards(shards, "train")
     cfg = dataclasses.replace(CFG, batch=3)
     graphdef, params = nnx.split(Dynamics(cfg.model, rngs=nnx.Rngs(3)))
     windows, omegas, keys = _batch(train_set, np.random.default_rng(5), cfg, jax.random.PRNGKey(5))
-    samples = jax.vmap(lambda w, o, k: data.make_sample(w, o, k, train_set.camera, cfg.n_max,
+    samples = jax.vmap(lambda w, o, k: targets.make_sample(w, o, k, train_set.camera, cfg.n_max,
                                                         max_points=cfg.max_points))(windows, omegas, keys)
     got = rollout_errors(graphdef, params, samples)
     model, sq, dist = nnx.merge(graphdef, params), [], []

@@ -16,7 +16,7 @@ import numpy as np
 from flax import nnx
 
 from dynres_jax.io import ckpt, files
-from dynres_jax.learn import data, train
+from dynres_jax.learn import data, targets, train
 from dynres_jax.models.dynamics import resolution_code, rollout
 from dynres_jax.models.graph import SWEEP_REGIONS, sweep_region, sweep_rollout
 from dynres_jax.models.registry import build_model
@@ -24,7 +24,7 @@ from dynres_jax.models.registry import build_model
 METHODS = ("model", "nothing moves", "sweep heuristic")
 
 
-def errors(graphdef, state, samples: data.Sample, plate_half_width) -> dict:
+def errors(graphdef, state, samples: targets.Sample, plate_half_width) -> dict:
     """Mean particle position error (mm) after each push, per method: {method: [horizon]}; and one-step errors over
     subsets of the particles, {name: {method: mm, "particles": how many particle-windows it averages}}: "per_kind"
     by piece kind, "per_region" by where the particle lies relative to the first push (``graph.sweep_region``)."""
@@ -129,10 +129,10 @@ def main(argv=None):
     tcfg = meta["train"]
     if max(args.omegas) > tcfg["n_max"]:
         parser.error(f"--omegas must be at most the model's n_max = {tcfg['n_max']}")
-    val = data.load_shards(args.data, "val")
+    val = targets.load_shards(args.data, "val")
     graphdef, state = nnx.split(model)
     rng = np.random.default_rng(args.seed)
-    windows = data.random_windows(val, rng, args.windows, tcfg["horizon"])
+    windows = targets.random_windows(val, rng, args.windows, tcfg["horizon"])
     cfg = train.TrainConfig(**{k: v for k, v in tcfg.items() if k in ("n_max", "max_points")})
     make = jax.jit(jax.vmap(functools.partial(train.make_sample, camera=val.camera, cfg=cfg), in_axes=(0, None, 0)))
     keys = jax.random.split(jax.random.PRNGKey(args.seed), args.windows)

@@ -1,4 +1,4 @@
-"""Training data for the dynamics model f: batched MJX episodes of random pushes, on-disk shards, loaders, targets.
+"""Training data for the dynamics model f: batched MJX episodes of random pushes, written as resumable shards.
 
 Generation (``generate``). The run is cut into shards; shard ``i`` holds ``DataConfig.worlds`` episodes simulated
 as one batch of worlds, on one ``SimConfig`` drawn for that shard (piece kind(s), piece count, pile layout) from the
@@ -27,12 +27,7 @@ members, with E kept episodes, F = pushes + 1 frames, N pieces, H x W pixels:
 Colour images are not stored: ``Renderer`` redraws them from the poses. Broken episodes are dropped by default
 (``DataConfig.drop_broken``): ``dropped`` counts them per shard and the summary in total.
 
-Training samples. ``load_shards`` reads shards into one ``Dataset`` (pieces padded to the largest count, with a
-mask); the held-out split is by episode: global id ``% val_every == val_every - 1`` is validation, so it never
-depends on shard layout or resuming. ``windows`` cuts (episode, t) windows of ``horizon + 1`` frames; ``make_sample``
-(pure JAX, vmap it) samples particles at frame t with perception h at resolution ω, attaches each particle to the
-piece it lies on (``attach_particles``) and moves it with that piece (``particle_trajectory``): the targets are
-rigid-body tracks, never re-matched by nearest neighbours.
+Loading the shards and the training targets: ``dynres_jax.learn.targets``.
 """
 
 from __future__ import annotations
@@ -49,7 +44,6 @@ import zipfile
 from collections.abc import Iterator
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
-from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -64,8 +58,6 @@ from dynres_jax.config import (
     replace,
 )
 from dynres_jax.io.files import TMP_PREFIX, atomic_write, write_json, write_text
-from dynres_jax.perception import sample_particles
-from dynres_jax.sim.camera import Camera, Observation
 from dynres_jax.sim.env import PileEnv
 from dynres_jax.sim.pool import WorldPool, process_pool
 
@@ -347,9 +339,6 @@ def generate(config: DataConfig, out_dir: str, devices=None, progress: bool = Tr
     return summary
 
 
-# ---------------------------------------------------------------------------------------------------------------
-# Loading
-# ---------------------------------------------------------------------------------------------------------------
 def iter_shards(data_dir: str, members=None) -> Iterator[tuple[str, dict]]:
     """(path, {name: array}) for every shard in ``data_dir`` in shard order, reading only ``members`` (default
     all): an npz member is read when asked for, so counting episodes never reads images."""
@@ -357,194 +346,3 @@ def iter_shards(data_dir: str, members=None) -> Iterator[tuple[str, dict]]:
     for path in paths:
         with np.load(path, allow_pickle=False) as z:
             yield path, {k: z[k] for k in (members or z.files)}
-
-
-@dataclass(frozen=True, eq=False)
-class Dataset:
-    """Episodes of all loaded shards, pieces padded to the largest count Nmax (E episodes, F frames):
-    depth [E, F, H, W] float16 (m), piece [E, F, H, W] int16, pos [E, F, Nmax, 3], mat [E, F, Nmax, 3, 3] (padding:
-    0 and identity), piece_mask [E, Nmax] bool, kind [E, Nmax] int16 index into KIND_NAMES (-1 padding), action
-    [E, F - 1, 4], broken [E, F], episode [E] global ids; camera: the shards' common camera."""
-
-    depth: np.ndarray
-    piece: np.ndarray
-    pos: np.ndarray
-    mat: np.ndarray
-    piece_mask: np.ndarray
-    kind: np.ndarray
-    action: np.ndarray
-    broken: np.ndarray
-    episode: np.ndarray
-    camera: Camera
-
-    @property
-    def pushes(self) -> int:
-        return self.action.shape[1]
-
-    def __len__(self) -> int:
-        return len(self.episode)
-
-
-def is_validation(episode, val_every: int = 10):
-    """The held-out split by global episode id: every ``val_every``-th episode -> bool (same shape)."""
-    return np.asarray(episode) % val_every == val_every - 1
-
-
-def load_shards(data_dir: str, split: str = "all", val_every: int = 10) -> Dataset:
-    """Read every shard of ``data_dir`` into a Dataset. split: "all", "train" or "val" (``is_validation``)."""
-    if split not in ("all", "train", "val"):
-        raise ValueError(f"split must be 'all', 'train' or 'val', got {split!r}")
-    parts, camera, pushes = [], None, None
-    for path, s in iter_shards(data_dir):
-        sim = SimConfig.from_json(str(s["sim_config"]))
-        cam = Camera.top_down(sim.camera)
-        if camera is not None and (cam != camera or s["action"].shape[1] != pushes):
-            raise ValueError(f"{path}: its camera or pushes per episode differ from the earlier shards'")
-        camera, pushes = cam, s["action"].shape[1]
-        val = is_validation(s["episode"], val_every)
-        keep = np.ones_like(val) if split == "all" else (val if split == "val" else ~val)
-        kind = np.array([KIND_NAMES.index(str(name)) for name in s["kind_names"]], np.int16)[s["kind"]]
-        parts.append({**{k: s[k][keep] for k in PER_EPISODE}, "kind": kind})
-    if not parts:
-        raise ValueError(f"no shards ({SHARD_GLOB}) in {data_dir}")
-    n_max = max(p["pos"].shape[2] for p in parts)
-
-    def pad_poses(pos, mat):  # pieces axis -2 of pos padded to n_max with 0, of mat with the identity
-        n, lead = pos.shape[-2], pos.shape[:-2]
-        full = np.broadcast_to(np.eye(3, dtype=np.float32), lead + (n_max, 3, 3)).copy()
-        full[..., :n, :, :] = mat
-        return np.pad(pos, [(0, 0)] * len(lead) + [(0, n_max - n), (0, 0)]), full
-
-    def pad(p):
-        e, n = len(p["episode"]), p["pos"].shape[2]
-        p = dict(p, piece_mask=np.broadcast_to(np.arange(n_max) < n, (e, n_max)),
-                 kind=np.broadcast_to(np.pad(p["kind"], (0, n_max - n), constant_values=-1), (e, n_max)))
-        p["pos"], p["mat"] = pad_poses(p["pos"], p["mat"])
-        return p
-
-    parts = [pad(p) for p in parts]
-    cat = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
-    if not len(cat["episode"]):
-        raise ValueError(f"the {split!r} split of {data_dir} is empty: validation takes every {val_every}th episode "
-                         f"(is_validation), so it needs at least {val_every} episodes")
-    return Dataset(**cat, camera=camera)
-
-
-def without_kinds(dataset: Dataset, kinds) -> Dataset:
-    """The episodes of ``dataset`` with no piece of any of ``kinds`` (names from KIND_NAMES): a data set on which a
-    model never sees those kinds, to measure how it does on them. ValueError for an unknown name or when nothing is
-    left."""
-    check_kind_names(kinds, "kinds")
-    if not kinds:
-        return dataset
-    drop = np.isin(dataset.kind, [KIND_NAMES.index(k) for k in kinds]).any(axis=1)
-    if drop.all():
-        raise ValueError(f"every episode has a piece of {', '.join(kinds)}: nothing is left to train on")
-    return _episodes(dataset, ~drop)
-
-
-def _episodes(dataset: Dataset, keep) -> Dataset:
-    """The episodes where keep [E] bool is True."""
-    per_episode = [f.name for f in dataclasses.fields(Dataset) if f.name != "camera"]
-    return Dataset(**{name: getattr(dataset, name)[keep] for name in per_episode}, camera=dataset.camera)
-
-
-# ---------------------------------------------------------------------------------------------------------------
-# Training targets
-# ---------------------------------------------------------------------------------------------------------------
-def attach_particles(particles, mask, piece_pos, piece_mat, piece_id_image, camera: Camera, piece_mask=None):
-    """Attach each particle to the piece it lies on. particles [n, 3] world (m), mask [n] bool, piece_pos [N, 3],
-    piece_mat [N, 3, 3] (columns: piece axes), piece_id_image [H, W] (piece index, negative for background),
-    piece_mask [N] bool (padding pieces False; default all real) -> (piece_index [n] int32, -1 where masked;
-    local [n, 3] piece-frame offsets R^T (p - c), 0 where masked).
-
-    The piece is the one in the segmentation pixel the particle projects to; where that pixel is background (or
-    outside the image) the piece with the nearest centre. Pure JAX."""
-    particles = jnp.asarray(particles, jnp.float32)
-    ids = jnp.asarray(piece_id_image).astype(jnp.int32)
-    n_pieces = piece_pos.shape[0]
-    piece_mask = jnp.ones(n_pieces, bool) if piece_mask is None else jnp.asarray(piece_mask, bool)
-    uv, _ = camera.world_to_pixel(particles)
-    u, v = jnp.floor(uv[:, 0]).astype(jnp.int32), jnp.floor(uv[:, 1]).astype(jnp.int32)
-    inside = (u >= 0) & (u < ids.shape[1]) & (v >= 0) & (v < ids.shape[0])
-    seen = jnp.where(inside, ids[jnp.clip(v, 0, ids.shape[0] - 1), jnp.clip(u, 0, ids.shape[1] - 1)], -1)
-    seen_ok = (seen >= 0) & (seen < n_pieces) & piece_mask[jnp.clip(seen, 0, n_pieces - 1)]
-    d2 = jnp.sum(jnp.square(particles[:, None] - piece_pos[None]), -1)
-    nearest = jnp.argmin(jnp.where(piece_mask[None], d2, jnp.inf), axis=1).astype(jnp.int32)
-    index = jnp.where(mask, jnp.where(seen_ok, seen, nearest), -1)
-    safe = jnp.maximum(index, 0)
-    local = jnp.einsum("nji,nj->ni", piece_mat[safe], particles - piece_pos[safe])
-    return index, jnp.where(mask[:, None], local, 0.0)
-
-
-def particle_trajectory(piece_index, local, pos_seq, mat_seq):
-    """Particles moved rigidly with their pieces: piece_index [n] (-1: none), local [n, 3], pos_seq [K, N, 3],
-    mat_seq [K, N, 3, 3] -> positions [K, n, 3] = R_k local + c_k (0 where piece_index is -1). Pure JAX."""
-    safe = jnp.maximum(piece_index, 0)
-    traj = pos_seq[:, safe] + jnp.einsum("knij,nj->kni", mat_seq[:, safe], local)
-    return jnp.where((piece_index >= 0)[None, :, None], traj, 0.0)
-
-
-class Window(NamedTuple):
-    """One training window of ``horizon`` pushes from frame t (NumPy or JAX; batch axes in front): depth [H, W] f32
-    (m) and piece [H, W] int32 at frame t; pos [horizon + 1, N, 3], mat [horizon + 1, N, 3, 3] at frames t..t+horizon;
-    piece_mask [N] bool; kind [N] int32 (KIND_NAMES index, -1 padding); action [horizon, 4] (m)."""
-
-    depth: np.ndarray
-    piece: np.ndarray
-    pos: np.ndarray
-    mat: np.ndarray
-    piece_mask: np.ndarray
-    kind: np.ndarray
-    action: np.ndarray
-
-
-def windows(data: Dataset, rows, t, horizon: int = 5) -> Window:
-    """Batched windows: rows [B] (Dataset rows, not episode ids), t [B] start frames, 0 <= t <= pushes - horizon."""
-    rows, t = np.asarray(rows), np.asarray(t)
-    if horizon < 1 or horizon > data.pushes:
-        raise ValueError(f"horizon={horizon} must be in [1, pushes per episode = {data.pushes}]")
-    if rows.shape != t.shape or np.any(t < 0) or np.any(t > data.pushes - horizon):
-        raise ValueError(f"t must match rows in shape and lie in [0, {data.pushes - horizon}] (pushes - horizon)")
-    span = t[:, None] + np.arange(horizon + 1)
-    r = rows[:, None]
-    pos, mat, action = data.pos[r, span], data.mat[r, span], data.action[r, span[:, :-1]]
-    return Window(data.depth[rows, t].astype(np.float32), data.piece[rows, t].astype(np.int32), pos, mat,
-                  data.piece_mask[rows], data.kind[rows].astype(np.int32), action)
-
-
-def random_windows(data: Dataset, rng: np.random.Generator, batch: int, horizon: int = 5) -> Window:
-    """``batch`` windows, rows and start frames uniform."""
-    return windows(data, rng.integers(0, len(data), batch), rng.integers(0, data.pushes - horizon + 1, batch),
-                   horizon)
-
-
-class Sample(NamedTuple):
-    """A training sample: positions [horizon + 1, n_max, 3] of the particles at frames t..t+horizon (m, 0 where
-    masked); mask [n_max] (the first ω); kind [n_max] int32 (KIND_NAMES index of each particle's piece, -1 masked);
-    action [horizon, 4]; radius [] the FPS covering radius (m); error [] perception error flags (0 = ok; else the
-    mask is all False)."""
-
-    positions: jax.Array
-    mask: jax.Array
-    kind: jax.Array
-    action: jax.Array
-    radius: jax.Array
-    error: jax.Array
-
-
-def make_sample(window: Window, omega, key, camera: Camera, n_max: int, **perception_kw) -> Sample:
-    """One Window + resolution ω + key -> Sample: h(y_t, ω) with ``n_max`` slots, each particle attached to its
-    piece at frame t and carried rigidly to t + horizon. Pure JAX; ``jax.vmap`` over (window, omega, key).
-    perception_kw: keyword arguments of ``sample_particles`` (max_points, r_center, kind with a KIND_NAMES index)."""
-    piece = jnp.asarray(window.piece, jnp.int32)
-    kind = jnp.asarray(window.kind, jnp.int32)
-    kind_image = jnp.where(piece >= 0, kind[jnp.maximum(piece, 0)], -1)
-    obs = Observation(jnp.asarray(window.depth, jnp.float32), piece, kind_image,
-                      jnp.zeros(piece.shape + (3,), jnp.uint8))
-    p = sample_particles(obs, camera, omega, key, n_max, **perception_kw)
-    index, local = attach_particles(p.positions, p.mask, window.pos[0], window.mat[0], piece, camera,
-                                    window.piece_mask)
-    positions = particle_trajectory(index, local, jnp.asarray(window.pos), jnp.asarray(window.mat))
-    return Sample(positions, p.mask, jnp.where(index >= 0, kind[jnp.maximum(index, 0)], -1),
-                  jnp.asarray(window.action), p.radius, p.error)

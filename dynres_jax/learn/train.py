@@ -1,8 +1,8 @@
 """Training the dynamics f(z, u, ω): multi-step rollout loss on valid particles, every sample with its own ω.
 
-One step: ``batch`` random windows of ``horizon`` pushes (``data.random_windows``); each gets its own ω uniform in
+One step: ``batch`` random windows of ``horizon`` pushes (``targets.random_windows``); each gets its own ω uniform in
 ``[omega_min, n_max]`` and a key; perception h turns frame t into ω particles, attached to their pieces, whose
-positions over the next ``horizon`` frames are the targets (``data.make_sample``, inside the jitted step); the model
+positions over the next ``horizon`` frames are the targets (``targets.make_sample``, inside the jitted step); the model
 rolls out ``horizon`` pushes from the particles at frame t, and the loss (``TrainConfig.loss``) is the mean squared
 error, or the mean Euclidean error, over valid particles and steps (samples whose perception failed weigh 0). Adam on
 the model's parameters.
@@ -33,7 +33,7 @@ from flax import nnx
 from tqdm import tqdm
 
 from dynres_jax.io import ckpt, files
-from dynres_jax.learn import data
+from dynres_jax.learn import data, targets
 from dynres_jax.models.cnn_dynamics import CNNDynamicsConfig
 from dynres_jax.models.dynamics import DynamicsConfig, resolution_code, rollout
 from dynres_jax.models.registry import make_model, model_class
@@ -96,7 +96,7 @@ def card(cfg: TrainConfig, **extra) -> dict:
             "train": dataclasses.asdict(cfg), **extra}
 
 
-def rollout_errors(graphdef, state, samples: data.Sample) -> dict:
+def rollout_errors(graphdef, state, samples: targets.Sample) -> dict:
     """Errors of the model's rollouts over the valid particles and steps of a batch of samples: ``"mse"``, the mean
     squared position error (m²), and ``"distance"``, the mean Euclidean position error (m; each distance smoothed as
     sqrt(e² + DISTANCE_EPS²) so its gradient is finite at zero)."""
@@ -113,10 +113,10 @@ def rollout_errors(graphdef, state, samples: data.Sample) -> dict:
     return {"mse": jnp.sum(sq) / count, "distance": jnp.sum(dist) / count}
 
 
-def make_sample(window: data.Window, omega, key, camera, cfg: TrainConfig) -> data.Sample:
-    """One window's training sample: perception h at ω (``data.make_sample``) with cfg's particle slots and point
+def make_sample(window: targets.Window, omega, key, camera, cfg: TrainConfig) -> targets.Sample:
+    """One window's training sample: perception h at ω (``targets.make_sample``) with cfg's particle slots and point
     cap."""
-    return data.make_sample(window, omega, key, camera, cfg.n_max, max_points=cfg.max_points)
+    return targets.make_sample(window, omega, key, camera, cfg.n_max, max_points=cfg.max_points)
 
 
 def make_step(graphdef, optimizer: optax.GradientTransformation, camera, cfg: TrainConfig):
@@ -144,8 +144,8 @@ def make_step(graphdef, optimizer: optax.GradientTransformation, camera, cfg: Tr
     return step, evaluate
 
 
-def _batch(dataset: data.Dataset, rng: np.random.Generator, cfg: TrainConfig, key):
-    windows = data.random_windows(dataset, rng, cfg.batch, cfg.horizon)
+def _batch(dataset: targets.Dataset, rng: np.random.Generator, cfg: TrainConfig, key):
+    windows = targets.random_windows(dataset, rng, cfg.batch, cfg.horizon)
     omegas = rng.integers(cfg.omega_min, cfg.n_max + 1, cfg.batch)
     return windows, jnp.asarray(omegas, jnp.int32), jax.random.split(key, cfg.batch)
 
@@ -211,7 +211,7 @@ def train(cfg: TrainConfig, data_dir: str, out_dir: str, progress: bool = True,
     """Train (or resume) into ``out_dir``; returns the final metrics. Checkpoints in ``out_dir/ckpt``.
     ``max_minutes``: stop early once this much wall time has passed, after a validation and a checkpoint (run
     again to go on)."""
-    train_set, val_set = (data.without_kinds(data.load_shards(data_dir, split), cfg.held_out_kinds)
+    train_set, val_set = (targets.without_kinds(targets.load_shards(data_dir, split), cfg.held_out_kinds)
                           for split in ("train", "val"))
     if cfg.horizon > train_set.pushes:
         raise ValueError(f"horizon {cfg.horizon} exceeds the data's {train_set.pushes} pushes per episode")
