@@ -1,5 +1,7 @@
 """sim.mjx_step: the step with sparse contact Jacobians equals mujoco.mjx.step; dof chains; what it refuses."""
 
+import functools
+
 import jax
 import jax.numpy as jnp
 import mujoco
@@ -83,7 +85,7 @@ def test_unsupported_model_is_named():
 
 
 def test_bad_contact_jacobian_names_the_choices():
-    with pytest.raises(ValueError, match="contact_jacobian must be 'sparse' or 'dense'"):
+    with pytest.raises(ValueError, match="contact_jacobian must be 'auto', 'sparse' or 'dense'"):
         PileEnv(SimConfig(scene=SceneConfig(pieces=(2,))), backend="mjx", render=False, contact_jacobian="fast")
 
 
@@ -94,3 +96,20 @@ def test_fast_scene_takes_newton_for_boxes_and_keeps_overrides():
     assert SceneConfig.fast(solver="Newton", contact_cap=3.0).contact_cap == 3.0
     with pytest.raises(ValueError, match="condim must be 1 or 3"):
         SceneConfig(condim=4)
+
+
+def test_the_sparse_step_runs_only_on_the_tested_mujoco_and_auto_picks_it_for_frictionless_contacts():
+    """The sparse step reaches into MJX's internals: another MuJoCo version is refused with the tested one named.
+    "auto" steps the fast (frictionless) scene with it and the default scene with the public mujoco.mjx.step."""
+    import mujoco
+
+    from dynres_jax.sim import mjx_step
+
+    mjx_step.check_version(mjx_step.TESTED_MUJOCO)
+    with pytest.raises(RuntimeError, match=f"written against MuJoCo MJX {mjx_step.TESTED_MUJOCO}.*3.99.0 is installed"):
+        mjx_step.check_version("3.99.0")
+    assert mujoco.__version__ == mjx_step.TESTED_MUJOCO  # the pinned pair (pyproject.toml)
+    fast = PileEnv(SimConfig(scene=SceneConfig.fast(pieces=(2,))), backend="mjx", render=False)
+    default = PileEnv(SimConfig(scene=SceneConfig(pieces=(2,))), backend="mjx", render=False)
+    assert isinstance(fast._step, functools.partial) and fast._step.func is mjx_step.step
+    assert default._step is mujoco.mjx.step

@@ -70,15 +70,20 @@ class PileEnv:
     """Object piles pushed by a flat plate. ``PileEnv(SimConfig(), backend="mjx" | "mujoco", render=True)``.
 
     contact_jacobian (MJX only): "sparse" steps with ``sim.mjx_step.step`` (contact Jacobians built on the few dofs
-    a contact can move; same results as MJX, faster), "dense" with ``mujoco.mjx.step``.
+    a contact can move; MJX's results to float rounding; it reaches into MJX's internals, so it runs only on the
+    tested MuJoCo version), "dense" with the public ``mujoco.mjx.step``; "auto" (default): sparse for frictionless
+    contacts (``SceneConfig.fast``, where it makes a step about a third faster), dense otherwise (the default scene,
+    where it bought 6 %: docs/performance.md).
     """
 
     def __init__(self, config: SimConfig | None = None, backend: str = "mjx", render: bool = True,
-                 contact_jacobian: str = "sparse"):
+                 contact_jacobian: str = "auto"):
         if backend not in ("mjx", "mujoco"):
             raise ValueError(f"backend must be 'mjx' or 'mujoco', got {backend!r}")
-        if contact_jacobian not in ("sparse", "dense"):
-            raise ValueError(f"contact_jacobian must be 'sparse' or 'dense', got {contact_jacobian!r}")
+        if contact_jacobian not in ("auto", "sparse", "dense"):
+            raise ValueError(f"contact_jacobian must be 'auto', 'sparse' or 'dense', got {contact_jacobian!r}")
+        if contact_jacobian == "auto":
+            contact_jacobian = "sparse" if (config or SimConfig()).scene.condim == 1 else "dense"
         self.config = config = config or SimConfig()
         self.backend = backend
         self.scene = build_scene(config.scene)
@@ -102,6 +107,7 @@ class PileEnv:
             self.mx = mjx.put_model(model, impl="jax")
             self._data0 = mjx.make_data(self.mx, impl="jax")
             if contact_jacobian == "sparse":
+                mjx_step.check_version()
                 mjx_step.check_supported(model)
                 self._step = functools.partial(mjx_step.step, dofs=mjx_step.chain_dofs(model))
             else:

@@ -24,6 +24,17 @@ from mujoco.mjx._src import constraint as mjx_constraint
 from mujoco.mjx._src import forward as mjx_forward
 from mujoco.mjx._src.types import ConeType
 
+TESTED_MUJOCO = "3.17.0"  # the MuJoCo (and MuJoCo MJX) release whose internals ``step`` is written against
+
+
+def check_version(installed: str = mujoco.__version__) -> None:
+    """Raise RuntimeError unless the installed MuJoCo is the one ``step`` was tested on: it calls MJX's private
+    modules (``mujoco.mjx._src``), which change between releases without notice."""
+    if installed != TESTED_MUJOCO:
+        raise RuntimeError(f"mjx_step.step is written against MuJoCo MJX {TESTED_MUJOCO}'s internals, but MuJoCo "
+                           f"{installed} is installed: install mujoco=={TESTED_MUJOCO} mujoco-mjx=={TESTED_MUJOCO}, "
+                           "or step with the public mujoco.mjx.step (PileEnv(..., contact_jacobian='dense'))")
+
 
 def check_supported(model: mujoco.MjModel) -> None:
     """Raise ValueError naming every feature of ``model`` that ``step`` does not handle."""
