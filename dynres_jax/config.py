@@ -129,9 +129,9 @@ class SceneConfig:
     @classmethod
     def fast(cls, kinds: tuple[str, ...] = ("coffee",), pieces: tuple[int, ...] = (100,), **overrides) -> SceneConfig:
         """The fast scene for batched MJX: frictionless contacts (condim 1), caps 2N, CG with at most 8 iterations
-        of 3 line-search steps; Newton for scenes with boxes (CG let candy piles diverge). README, "Speed": over 2x
-        C MuJoCo on all 16 cores of an H200 host at 100 coffee beans (the default scene: 0.2x), and its physics
-        checks."""
+        of 3 line-search steps; Newton for scenes with boxes (CG let candy piles diverge). docs/performance.md,
+        "Speed": over 2x C MuJoCo on all 16 cores of an H200 host at 100 coffee beans (the default scene: 0.2x), and
+        its physics checks."""
         boxes = any(KINDS[k].geom == "box" for k in kinds if k in KINDS)
         solver = dict(solver="Newton") if boxes else dict(solver="CG", solver_iterations=8)
         fast = dict(condim=1, contact_cap=2.0, ls_iterations=3, **solver)

@@ -91,7 +91,8 @@ class DataConfig:
     drop_broken: drop episodes whose world broke (else keep them with their ``broken`` flags).
     backend: "mjx" simulates a shard's worlds as one batch sharded over the JAX devices; "mujoco" runs them in the
       C engine, one world per host process (``generate``'s ``workers``), and renders the frames on the JAX device.
-      With the default Newton solver C MuJoCo on 16 cores outruns MJX on one H100 about 7x (README, Speed).
+      With the default Newton solver C MuJoCo on 16 cores outruns MJX on one H100 about 7x (docs/performance.md,
+      "Speed").
     sim: the rest of the simulator (physics, push, camera distance); kinds, pieces, layout and image size above
       override its fields per shard.
     """

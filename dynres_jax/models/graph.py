@@ -101,7 +101,7 @@ def k_smallest(d2, k: int):
 KNN_KERNEL_MAX_PARTICLES = 128  # the kNN kernel holds a tile of a scene's [P, P] squared distances in registers
 # Rows of the distance matrix per kernel program, and its warps: on an H100 at the planner's batch (1,500 scenes of
 # 100 particles, k = 10) 8 rows on one warp take 0.26 ms, 16 rows on two 0.50, a whole scene on 8 warps 0.97, and
-# k_smallest on the distance matrix 0.58 (scratch A/B of one session, README "Planner speed").
+# k_smallest on the distance matrix 0.58 (scratch A/B of one session, docs/performance.md, "Planner speed").
 KNN_ROWS, KNN_WARPS = 8, 1
 
 

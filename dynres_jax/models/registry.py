@@ -75,12 +75,12 @@ def _sweep(plate_half_width, positions, mask, actions):
 
 
 def learned_dynamics(model: Dynamics, edge_dtype: str = "float32"):
-    """radius (m) -> planner dynamics ``(positions, mask, actions [T, 4]) -> [T, N, 3]`` of a trained model.
-    edge_dtype: "float32", or "bfloat16" for a GNN's per-edge network (predictions within about half a
-    millimetre, ``dynamics`` module docstring, "Mixed precision"; no faster on the H100 and H200: README, "Planner
-    speed"). A GNN whose edges are not in the push frame takes the first push's edge codes from a pair table
-    (``dynamics`` module docstring, "Pair table"): the planner's pushes all start from the same particles, so the
-    table is built once per plan, not per push and Adam step."""
+    """radius (m) -> planner dynamics ``(positions, mask, actions [T, 4]) -> [T, N, 3]`` of a trained model. edge_dtype:
+    "float32", or "bfloat16" for a GNN's per-edge network (predictions within about half a millimetre, ``dynamics``
+    module docstring, "Mixed precision"; no faster on the H100 and H200: docs/performance.md, "Planner speed"). A GNN
+    whose edges are not in the push frame takes the first push's edge codes from a pair table (``dynamics`` module
+    docstring, "Pair table"): the planner's pushes all start from the same particles, so the table is built once per
+    plan, not per push and Adam step."""
     edge_dtype = jnp.dtype(edge_dtype).name
     if edge_dtype not in EDGE_DTYPES:
         raise ValueError(f"edge_dtype must be one of {EDGE_DTYPES}, got {edge_dtype!r}")
