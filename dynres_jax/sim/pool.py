@@ -4,7 +4,8 @@ renders their observations on the JAX device, with ``PileEnv``'s batched State.
 Why: with the default Newton solver, C MuJoCo on every host core outruns MJX on one GPU several times over
 (docs/performance.md, "Speed"), so data generation and evaluation at scale push through this pool while perception and
 planning stay batched on the accelerator. A worker is a spawned process whose JAX runs on the host (pile layouts and
-push sampling are small JAX functions); it builds each scene once, from the SimConfig's JSON. """
+push sampling are small JAX functions); it builds each scene once, from the SimConfig's JSON.
+"""
 
 from __future__ import annotations
 
