@@ -32,13 +32,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from dynres_jax.commands.task import add_planner_args, check_planner_args, planner_config, timing_table
-from dynres_jax.config import CameraConfig, PileConfig, SceneConfig, SimConfig
+from dynres_jax.commands.task import add_planner_args, check_planner_args, load_model, planner_config, timing_table
+from dynres_jax.config import DEFAULT_PIECES, KINDS, CameraConfig, PileConfig, SceneConfig, SimConfig
 from dynres_jax.control import resolution, tasks
 from dynres_jax.control.mpc import run_episodes
 from dynres_jax.control.objective import make_goal
 from dynres_jax.io import ckpt, files
-from dynres_jax.models.registry import SHIPPED_CNN_DYNAMICS, SHIPPED_DYNAMICS, SHIPPED_REGRESSOR, load_dynamics
+from dynres_jax.models.registry import SHIPPED_CNN_DYNAMICS, SHIPPED_DYNAMICS, SHIPPED_REGRESSOR
 from dynres_jax.sim.pool import WorldPool, process_pool
 from dynres_jax.stats import mcnemar, paired_bootstrap, wilson
 
@@ -152,8 +152,9 @@ def main(argv=None):
                              "best of ω in ORACLE_OMEGAS by the simulated outcome) and 'cnn' (the CNN-dynamics "
                              "baseline at --cnn-omega)")
     add_planner_args(parser)
-    parser.add_argument("--kind", default="coffee")
-    parser.add_argument("--pieces", type=int, default=100)
+    parser.add_argument("--kind", default="coffee", choices=sorted(KINDS))
+    parser.add_argument("--pieces", type=int, default=None,
+                        help="pieces in the pile (default: the kind's count for a pile of 100 coffee beans' area)")
     parser.add_argument("--ckpt", default=SHIPPED_DYNAMICS)
     parser.add_argument("--dynamics", default="auto", choices=["auto", "learned", "sweep"])
     parser.add_argument("--regressor", default=SHIPPED_REGRESSOR)
@@ -172,15 +173,27 @@ def main(argv=None):
                          f"{resolution.OMEGA_MAX}], got {m!r}")
     if "cnn" in args.methods:
         check_cnn(parser, args)
+    args.pieces = DEFAULT_PIECES[args.kind] if args.pieces is None else args.pieces
+    if args.pieces < 1:
+        parser.error(f"--pieces must be at least 1, got {args.pieces}")
+    try:
+        files.check_writable(args.out)
+    except OSError as e:
+        parser.error(f"--out: {e}")
     camera = CameraConfig(width=64, height=64) if args.quick else CameraConfig()
     sim = SimConfig(scene=SceneConfig(kinds=(args.kind,), pieces=(args.pieces,)), camera=camera,
                     pile=PileConfig(layout="spread" if args.task == "gather" else "blob"))
-    main_model = load_dynamics(args.dynamics, args.ckpt, sim.scene.plate_half_width)  # (dynamics, n_max, name)
-    cnn_model = load_dynamics("learned", args.cnn_ckpt, sim.scene.plate_half_width) if "cnn" in args.methods else None
+    main_model = load_model(parser, args.dynamics, args.ckpt, sim.scene.plate_half_width)  # (dynamics, n_max, name)
+    cnn_model = load_model(parser, "learned", args.cnn_ckpt, sim.scene.plate_half_width) if "cnn" in args.methods \
+        else None
     os.makedirs(args.out, exist_ok=True)
     results = {}
     with process_pool(args.workers) as processes:
         pool = WorldPool(sim, processes)
+        try:
+            tasks.check_pile_fits(pool.env)
+        except ValueError as e:
+            parser.error(str(e))
         masks = episode_goals(args.task, args.episodes, args.seed, pool.env)
         goals = jax.tree.map(lambda *g: jnp.stack(g), *[make_goal(m, pool.camera) for m in masks])
         keys = jax.random.split(jax.random.PRNGKey(args.seed), args.episodes)

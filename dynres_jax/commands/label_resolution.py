@@ -32,13 +32,13 @@ import jax
 import numpy as np
 from tqdm import tqdm
 
-from dynres_jax.commands.task import add_planner_args, check_planner_args, planner_config, timing_table
-from dynres_jax.config import SceneConfig
+from dynres_jax.commands.task import add_planner_args, check_planner_args, load_model, planner_config, timing_table
+from dynres_jax.config import KINDS, SceneConfig
 from dynres_jax.control import resolution
 from dynres_jax.io import files
 from dynres_jax.learn.data import parse_part, save_npz, shard_path, shards_todo
 from dynres_jax.learn.labels import MID_EPISODE_OMEGA, LabelConfig, label_shard, scene_config, shard_scenes
-from dynres_jax.models.registry import SHIPPED_DYNAMICS, load_dynamics
+from dynres_jax.models.registry import SHIPPED_DYNAMICS
 from dynres_jax.sim.pool import WorldPool, process_pool
 
 
@@ -51,7 +51,7 @@ def main(argv=None):
     parser.add_argument("--evals", type=int, default=10, help="c+ evaluations per scene (reference 10)")
     parser.add_argument("--repeats", type=int, default=2, help="plans averaged per evaluation (reference 5)")
     add_planner_args(parser)
-    parser.add_argument("--kind", default="coffee")
+    parser.add_argument("--kind", default="coffee", choices=sorted(KINDS))
     parser.add_argument("--pieces", type=int, default=100)
     parser.add_argument("--ckpt", default=SHIPPED_DYNAMICS)
     parser.add_argument("--dynamics", default="auto", choices=["auto", "learned", "sweep"])
@@ -80,7 +80,7 @@ def main(argv=None):
                           seed=args.seed, plan_seed=args.plan_seed, mid_episode=args.mid_episode, quick=args.quick)
     except ValueError as e:
         parser.error(str(e))
-    dynamics, n_max, name = load_dynamics(args.dynamics, args.ckpt, SceneConfig.plate_half_width)
+    dynamics, n_max, name = load_model(parser, args.dynamics, args.ckpt, SceneConfig.plate_half_width)
     if n_max < resolution.OMEGA_MAX:
         parser.error(f"the dynamics checkpoint holds {n_max} particles; labels need {resolution.OMEGA_MAX}")
     os.makedirs(args.out, exist_ok=True)

@@ -16,12 +16,13 @@ import cv2
 import jax
 import numpy as np
 
+from dynres_jax.commands.task import load_model
 from dynres_jax.control.budget import BUCKETS, bucket_for
 from dynres_jax.control.mpc import goal_cost, overlay
 from dynres_jax.control.objective import make_goal
 from dynres_jax.control.planner import PlannerConfig, plan
 from dynres_jax.io import frames
-from dynres_jax.models.registry import SHIPPED_DYNAMICS, load_dynamics
+from dynres_jax.models.registry import SHIPPED_DYNAMICS
 from dynres_jax.perception import WORKSPACE_HALF_WIDTH, sample_particles
 
 
@@ -48,7 +49,7 @@ def main(argv=None):
     obs, camera = frames.load_frame(args.depth, args.rgb, args.camera)
     goal_mask = frames.load_goal(args.goal, camera)
     goal = make_goal(goal_mask, camera)
-    dynamics, n_max, name = load_dynamics(args.dynamics, args.ckpt, args.plate_half_width)
+    dynamics, n_max, name = load_model(parser, args.dynamics, args.ckpt, args.plate_half_width)
     largest = min(n_max, BUCKETS[-1])
     if not 1 <= args.resolution <= largest:
         parser.error(f"--resolution must lie in [1, {largest}] (the model's n_max and the largest resolution bucket)")

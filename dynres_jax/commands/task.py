@@ -21,13 +21,14 @@ import imageio.v3 as iio
 import jax
 import numpy as np
 
-from dynres_jax.config import KINDS, CameraConfig, PileConfig, SceneConfig, SimConfig
+from dynres_jax.config import DEFAULT_PIECES, KINDS, CameraConfig, PileConfig, SceneConfig, SimConfig
 from dynres_jax.control import budget, resolution, tasks
 from dynres_jax.control.mpc import MPCConfig, measure_timing, run_episode
 from dynres_jax.control.objective import inside_share, make_goal
 from dynres_jax.control.planner import PlannerConfig
 from dynres_jax.control.resolution import load_chooser
 from dynres_jax.io import files
+from dynres_jax.io.ckpt import CheckpointError
 from dynres_jax.models.registry import SHIPPED_DYNAMICS, SHIPPED_REGRESSOR, load_dynamics
 from dynres_jax.sim.env import PileEnv
 
@@ -86,11 +87,19 @@ def load_timing(parser: argparse.ArgumentParser, args) -> budget.TimingTable | N
         parser.error(f"--timing {args.timing}: {e}")
 
 
+def load_model(parser: argparse.ArgumentParser, choice: str, ckpt_dir: str, plate_half_width: float):
+    """``registry.load_dynamics``, with a missing or damaged checkpoint named by ``parser.error`` before any work."""
+    try:
+        return load_dynamics(choice, ckpt_dir, plate_half_width)
+    except (FileNotFoundError, CheckpointError) as e:
+        parser.error(f"--ckpt: {e}")
+
+
 def build_loop(args, sim: SimConfig, parser: argparse.ArgumentParser):
     """The simulator, the planner's model, the MPC settings the loop flags ask for and the adaptive-ω chooser (None
     at a fixed ω): (env, dynamics, name, cfg, chooser)."""
     env = PileEnv(sim, backend=args.backend)
-    dynamics, n_max, name = load_dynamics(args.dynamics, args.ckpt or SHIPPED_DYNAMICS, sim.scene.plate_half_width)
+    dynamics, n_max, name = load_model(parser, args.dynamics, args.ckpt or SHIPPED_DYNAMICS, sim.scene.plate_half_width)
     chooser, omega = None, str(args.resolution)
     if omega == "adaptive":
         if not os.path.isdir(args.regressor):
@@ -113,22 +122,33 @@ def main(task: str, argv=None):
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     add_loop_args(parser, task)
     parser.add_argument("--kind", default="coffee", choices=sorted(KINDS))
-    parser.add_argument("--pieces", type=int, default=100)
+    parser.add_argument("--pieces", type=int, default=None,
+                        help="pieces in the pile (default: the kind's count for a pile of 100 coffee beans' area)")
     parser.add_argument("--layout", default="spread" if task == "gather" else "blob",
                         choices=["blob", "two_blobs", "spread"], help="initial pile")
     if task == "redistribute":
         parser.add_argument("--letter", default="T", help="the goal: any characters OpenCV draws (paper: J, T, U)")
     args = parser.parse_args(argv)
+    args.pieces = DEFAULT_PIECES[args.kind] if args.pieces is None else args.pieces
+    if args.pieces < 1:
+        parser.error(f"--pieces must be at least 1, got {args.pieces}")
 
     sim = SimConfig(scene=SceneConfig(kinds=(args.kind,), pieces=(args.pieces,)), pile=PileConfig(layout=args.layout),
                     camera=CameraConfig())
     env, dynamics, name, cfg, chooser, timing = build_loop(args, sim, parser)
 
     rng = np.random.default_rng(args.seed)
-    if task == "gather":
-        goal_mask, goal_info = tasks.gather_goal(rng, env)
-    else:
-        goal_mask, goal_info = tasks.redistribute_goal(rng, env, args.letter)
+    try:
+        if task == "gather":
+            goal_mask, goal_info = tasks.gather_goal(rng, env)
+        else:
+            goal_mask, goal_info = tasks.redistribute_goal(rng, env, args.letter)
+    except ValueError as e:
+        parser.error(str(e))
+    try:
+        files.check_writable(args.out)
+    except OSError as e:
+        parser.error(f"--out: {e}")
     goal = make_goal(goal_mask, env.camera)
     state = env.reset(jax.random.PRNGKey(args.seed))
     start_inside = float(inside_share(state.pos, np.ones(env.scene.n_pieces, bool), goal, env.camera))
@@ -141,11 +161,11 @@ def main(task: str, argv=None):
         timing = measure_timing(state.obs, goal, dynamics, cfg, env.camera)
     state, records, frames = run_episode(env, state, goal, goal_mask, dynamics, cfg, jax.random.PRNGKey(args.seed),
                                          choose_omega=chooser, timing=timing)
-    os.makedirs(args.out, exist_ok=True)
     if timing is not None:
         timing.save(os.path.join(args.out, "timing.json"))
-    iio.imwrite(os.path.join(args.out, "episode.gif"), np.stack(frames), duration=400, loop=0)
-    cv2.imwrite(os.path.join(args.out, "final.png"), cv2.cvtColor(frames[-1], cv2.COLOR_RGB2BGR))
+    files.atomic_write(os.path.join(args.out, "episode.gif"),
+                       lambda f: iio.imwrite(f, np.stack(frames), extension=".gif", duration=400, loop=0))
+    files.write_image(os.path.join(args.out, "final.png"), cv2.cvtColor(frames[-1], cv2.COLOR_RGB2BGR))
     summary = dict(task=task, seed=args.seed, dynamics=name, goal=goal_info,
                    start_inside=start_inside, final_inside=records[-1]["success"],
                    final_distance=records[-1]["distance"], seconds=time.perf_counter() - t0,

@@ -15,6 +15,23 @@ from dynres_jax.sim.env import PileEnv
 
 TASKS = ("gather", "redistribute")
 FILL = (1.3, 1.8)  # goal area / the pieces' footprint area
+GOAL_MARGIN = 0.03  # m: a Gather disc stays this far inside the bin's walls
+
+
+def largest_pile(env: PileEnv) -> int:
+    """The most pieces of this scene's mix (at its mean footprint) whose largest goal disc (FILL[1] times their
+    footprint area) still fits the bin with GOAL_MARGIN to spare."""
+    reach = env.config.scene.bin_half_width - GOAL_MARGIN
+    return int(np.pi * reach**2 / FILL[1] / np.mean(np.pi * env.scene.footprint**2))
+
+
+def check_pile_fits(env: PileEnv) -> None:
+    """ValueError naming the largest piece count that fits when the scene's pile is too large for its goals."""
+    if env.scene.n_pieces > largest_pile(env):
+        kinds = "/".join(env.config.scene.kinds)
+        raise ValueError(f"{env.scene.n_pieces} {kinds} pieces need a goal disc wider than the bin allows "
+                         f"(half width {env.config.scene.bin_half_width} m, {GOAL_MARGIN} m margin): at most "
+                         f"{largest_pile(env)} fit")
 
 
 def _target_area(rng: np.random.Generator, env: PileEnv) -> float:
@@ -22,9 +39,11 @@ def _target_area(rng: np.random.Generator, env: PileEnv) -> float:
 
 
 def gather_goal(rng: np.random.Generator, env: PileEnv) -> tuple[np.ndarray, dict]:
-    """A random disc holding the pile: (mask [H, W] bool, description)."""
+    """A random disc holding the pile: (mask [H, W] bool, description). ValueError (``check_pile_fits``) for a pile
+    too large for the bin."""
+    check_pile_fits(env)
     radius = float(np.sqrt(_target_area(rng, env) / np.pi))
-    lim = env.config.scene.bin_half_width - radius - 0.03
+    lim = env.config.scene.bin_half_width - radius - GOAL_MARGIN
     centre = rng.uniform(-lim, lim, size=2)
     return disc_goal(env.camera, centre, radius), dict(shape="disc", centre=centre.tolist(), radius=radius)
 

@@ -15,6 +15,7 @@ from collections.abc import Callable
 from typing import Any
 
 import jax
+import numpy as np
 import orbax.checkpoint as ocp
 from flax import nnx
 
@@ -112,4 +113,8 @@ def load_module(directory, build: Callable[[dict], nnx.Module], step: int | None
     shapes = jax.tree.map(lambda x: x.shape, module_state)
     if shapes != jax.tree.map(lambda x: x.shape, abstract_state):
         raise CheckpointError(f"checkpoint {directory!r} holds parameters of other shapes than {type(abstract)}")
+    bad = sum(int(np.size(x)) - int(np.isfinite(np.asarray(x)).sum()) for x in jax.tree.leaves(module_state))
+    if bad:
+        raise CheckpointError(f"checkpoint {directory!r} step {meta.get('step')}: {bad} parameter values are not "
+                              "finite (NaN or inf): the files are damaged or the training diverged")
     return nnx.merge(graphdef, module_state), meta, state

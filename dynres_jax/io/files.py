@@ -33,3 +33,25 @@ def write_json(path: str, obj) -> None:
 
 def write_text(path: str, text: str) -> None:
     atomic_write(path, lambda f: f.write(text.encode()))
+
+
+def check_writable(folder: str) -> None:
+    """Create ``folder`` if needed and check that a file can be written there (an OSError naming it otherwise), so a
+    job fails before its work, not after."""
+    try:
+        os.makedirs(folder, exist_ok=True)
+        with tempfile.TemporaryFile(dir=folder, prefix=TMP_PREFIX):
+            pass
+    except OSError as e:
+        raise OSError(f"cannot write to {folder!r}: {e.strerror or e}") from e
+
+
+def write_image(path: str, image) -> None:
+    """Write an image (``cv2.imwrite``: BGR or grey, the format from the extension) atomically; an OSError naming the
+    path when OpenCV cannot encode it."""
+    import cv2
+
+    ok, data = cv2.imencode(os.path.splitext(path)[1] or ".png", image)
+    if not ok:
+        raise OSError(f"OpenCV could not encode an image for {path!r}")
+    atomic_write(path, lambda f: f.write(data.tobytes()))

@@ -5,6 +5,7 @@ The one place where ω becomes what a model is conditioned on (``resolution_code
 from __future__ import annotations
 
 import os
+import warnings
 from dataclasses import dataclass
 
 import jax.numpy as jnp
@@ -98,11 +99,16 @@ def sweep_dynamics(plate_half_width: float):
 
 def load_dynamics(choice: str, ckpt_dir: str, plate_half_width: float, edge_dtype: str = "float32"):
     """The planner's model. choice: "learned" (the checkpoint in ``ckpt_dir``), "sweep" (the heuristic), or "auto"
-    (the checkpoint when there is one); edge_dtype: a learned model's (``learned_dynamics``; the sweep has no
-    network). Returns (radius -> dynamics, n_max the model was trained for, a name)."""
+    (the checkpoint; the heuristic, with a warning, only when ``ckpt_dir`` is the shipped one and it is missing, as in
+    a checkout without its checkpoints: a checkpoint asked for by name is never replaced); edge_dtype: a learned
+    model's (``learned_dynamics``; the sweep has no network). Returns (radius -> dynamics, n_max the model was
+    trained for, a name). FileNotFoundError for a missing checkpoint, ``ckpt.CheckpointError`` for a damaged one."""
     if choice not in ("auto", "learned", "sweep"):
         raise ValueError(f"dynamics must be 'auto', 'learned' or 'sweep', got {choice!r}")
-    if choice == "learned" or (choice == "auto" and ckpt.latest_step(ckpt_dir) is not None):
+    if choice == "auto" and ckpt.latest_step(ckpt_dir) is None and os.path.abspath(ckpt_dir) == SHIPPED_DYNAMICS:
+        warnings.warn(f"no shipped checkpoint in {ckpt_dir}: planning with the sweep heuristic", stacklevel=2)
+        choice = "sweep"
+    if choice != "sweep":
         model, meta, _ = ckpt.load_module(ckpt_dir, build_model)
         dynamics = learned_dynamics(model, edge_dtype)
         edges = "" if jnp.dtype(edge_dtype) == jnp.float32 else f", {jnp.dtype(edge_dtype).name} edges"

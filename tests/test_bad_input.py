@@ -1,0 +1,97 @@
+"""Bad input is named before any work (issue: one model for every kind, bad input refused): piles too large for
+the bin, damaged or missing checkpoints, unwritable output folders, impossible counts; and every kind's default pile
+has the area of 100 coffee beans and fits its goals."""
+
+import os
+
+import jax
+import numpy as np
+import pytest
+from flax import nnx
+
+from dynres_jax.commands import evaluate, gather
+from dynres_jax.config import DEFAULT_PIECES, KINDS, SceneConfig, SimConfig
+from dynres_jax.control import tasks
+from dynres_jax.io import ckpt
+from dynres_jax.learn.train import TrainConfig, card
+from dynres_jax.models.dynamics import DynamicsConfig
+from dynres_jax.models.registry import SHIPPED_DYNAMICS, build_model, load_dynamics, make_model
+from dynres_jax.sim.env import PileEnv
+
+
+def _env(kind, pieces):
+    return PileEnv(SimConfig(scene=SceneConfig(kinds=(kind,), pieces=(pieces,))), backend="mujoco", render=False)
+
+
+@pytest.mark.parametrize("kind", sorted(KINDS))
+def test_every_kinds_default_pile_has_comparable_area_and_its_goals_fit(kind):
+    env = _env(kind, DEFAULT_PIECES[kind])
+    area = np.sum(np.pi * env.scene.footprint**2)
+    coffee = np.sum(np.pi * _env("coffee", 100).scene.footprint**2)
+    assert abs(area / coffee - 1) < 0.15, (kind, area, coffee)
+    for seed in range(20):  # the largest discs too: FILL's upper end
+        mask, info = tasks.gather_goal(np.random.default_rng(seed), env)
+        assert mask.any() and abs(info["centre"][0]) + info["radius"] <= env.config.scene.bin_half_width
+    assert tasks.redistribute_goal(np.random.default_rng(0), env, "U")[0].any()
+
+
+def test_a_pile_too_large_for_the_bin_names_the_largest_that_fits():
+    env = _env("almond", 100)  # the crash of issue 26: "high - low < 0" from deep inside NumPy
+    largest = tasks.largest_pile(env)
+    assert 25 <= largest < 100
+    with pytest.raises(ValueError, match=f"100 almond pieces need a goal disc wider .* at most {largest} fit"):
+        tasks.gather_goal(np.random.default_rng(0), env)
+    tasks.gather_goal(np.random.default_rng(0), _env("almond", largest))  # the named count works
+
+
+def test_a_checkpoint_with_non_finite_weights_is_refused(tmp_path):
+    cfg = TrainConfig(model=DynamicsConfig(hidden=4))
+    model = make_model(cfg.model)
+    model.predictor.layers[0].kernel[...] = model.predictor.layers[0].kernel[...].at[0, :3].set(np.nan)
+    ckpt.save_module(str(tmp_path / "ckpt"), 1, model, card(cfg))
+    with pytest.raises(ckpt.CheckpointError, match="3 parameter values are not finite"):
+        ckpt.load_module(str(tmp_path / "ckpt"), build_model)
+
+
+def test_a_checkpoint_asked_for_by_name_is_never_replaced_by_the_heuristic(tmp_path, capsys):
+    with pytest.raises(FileNotFoundError, match="no checkpoint"):
+        load_dynamics("auto", str(tmp_path / "typo"), 0.04)
+    with pytest.raises(SystemExit):
+        gather.main(["--ckpt", str(tmp_path / "typo"), "--out", str(tmp_path / "out")])
+    assert "--ckpt: no checkpoint" in capsys.readouterr().err
+    assert load_dynamics("auto", SHIPPED_DYNAMICS, 0.04)[2].startswith("learned")
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--pieces", "0"], "--pieces must be at least 1"),
+    (["--kind", "almond", "--pieces", "100"], "at most"),
+    (["--kind", "pebble"], "invalid choice: 'pebble'"),
+])
+def test_bad_task_input_is_named_before_the_episode(argv, message, tmp_path, capsys):
+    with pytest.raises(SystemExit):
+        gather.main([*argv, "--out", str(tmp_path / "out")])
+    assert message in capsys.readouterr().err
+    assert not os.path.exists(tmp_path / "out" / "metrics.json")
+
+
+@pytest.mark.skipif(os.geteuid() == 0, reason="root writes anywhere")
+def test_an_unwritable_out_is_refused_before_the_episode(tmp_path, capsys):
+    locked = tmp_path / "locked"
+    locked.mkdir(mode=0o500)
+    for main in (gather.main, evaluate.main):
+        with pytest.raises(SystemExit):
+            main(["--out", str(locked / "run")])
+        assert "--out: cannot write" in capsys.readouterr().err
+
+
+def test_an_out_that_is_a_file_is_refused_before_the_episode(tmp_path, capsys):
+    (tmp_path / "file").write_text("x")
+    for main in (gather.main, evaluate.main):
+        with pytest.raises(SystemExit):
+            main(["--out", str(tmp_path / "file" / "run")])
+        assert "--out: cannot write" in capsys.readouterr().err
+
+
+def test_the_default_model_still_loads(tmp_path):
+    model, meta, _ = ckpt.load_module(SHIPPED_DYNAMICS, build_model)
+    assert all(np.isfinite(np.asarray(x)).all() for x in jax.tree.leaves(nnx.state(model)))
