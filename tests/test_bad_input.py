@@ -95,3 +95,59 @@ def test_an_out_that_is_a_file_is_refused_before_the_episode(tmp_path, capsys):
 def test_the_default_model_still_loads(tmp_path):
     model, meta, _ = ckpt.load_module(SHIPPED_DYNAMICS, build_model)
     assert all(np.isfinite(np.asarray(x)).all() for x in jax.tree.leaves(nnx.state(model)))
+
+
+def test_characters_the_font_cannot_draw_are_refused():
+    from dynres_jax.config import CameraConfig
+    from dynres_jax.control.objective import text_goal
+    from dynres_jax.sim.camera import Camera
+
+    camera = Camera.top_down(CameraConfig())
+    assert text_goal(camera, "J~", np.zeros(2), 0.08).any()
+    with pytest.raises(ValueError, match=r"cannot draw \['é', 'ω'\]"):
+        text_goal(camera, "éTω", np.zeros(2), 0.08)
+
+
+@pytest.mark.parametrize("field, value, message", [
+    ("K", [[1, 0, 0], [0, float("nan"), 0], [0, 0, 1]], "K must be finite numbers of shape"),
+    ("centre", [0, 0], "centre must be finite numbers of shape"),
+    ("rotation", "identity", "rotation must be"),
+    ("width", 64.5, "whole pixels"),
+    ("width", 100_000, r"outside \[8, 4096\]"),
+])
+def test_a_bad_camera_json_names_its_field(field, value, message):
+    import json
+
+    from dynres_jax.config import CameraConfig
+    from dynres_jax.sim.camera import Camera
+
+    good = json.loads(Camera.top_down(CameraConfig()).to_json())
+    assert Camera.from_json(json.dumps(good)) == Camera.top_down(CameraConfig())
+    with pytest.raises(ValueError, match=message):
+        Camera.from_json(json.dumps({**good, field: value}).replace("NaN", "NaN"))
+
+
+def test_absurd_image_sizes_are_refused_with_the_limit():
+    from dynres_jax.config import CameraConfig
+    from dynres_jax.sim.camera import Camera
+
+    with pytest.raises(ValueError, match=r"100000 x 128 pixels is outside \[8, 4096\]"):
+        Camera.top_down(CameraConfig(width=100_000))
+
+
+def test_plan_names_an_unwritable_out_before_planning(tmp_path, capsys):
+    import cv2
+
+    from dynres_jax.commands import plan
+    from dynres_jax.io import frames
+
+    env = PileEnv(SimConfig(scene=SceneConfig(pieces=(20,))), backend="mujoco")
+    paths = frames.save_frame(str(tmp_path / "frame"), env.reset(jax.random.PRNGKey(0)).obs, env.camera)
+    goal = np.zeros((env.camera.height, env.camera.width), np.uint8)
+    goal[50:70, 50:70] = 255
+    cv2.imwrite(str(tmp_path / "goal.png"), goal)
+    (tmp_path / "file").write_text("x")
+    with pytest.raises(SystemExit):
+        plan.main(["--depth", paths["depth.png"], "--rgb", paths["rgb.png"], "--camera", paths["camera.json"],
+                   "--goal", str(tmp_path / "goal.png"), "--out", str(tmp_path / "file" / "push.png")])
+    assert "cannot write" in capsys.readouterr().err

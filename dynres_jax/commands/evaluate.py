@@ -173,6 +173,8 @@ def main(argv=None):
                          f"{resolution.OMEGA_MAX}], got {m!r}")
     if "cnn" in args.methods:
         check_cnn(parser, args)
+    if args.episodes < 1 or args.steps < 1:
+        parser.error(f"--episodes and --steps must be at least 1, got {args.episodes} and {args.steps}")
     args.pieces = DEFAULT_PIECES[args.kind] if args.pieces is None else args.pieces
     if args.pieces < 1:
         parser.error(f"--pieces must be at least 1, got {args.pieces}")

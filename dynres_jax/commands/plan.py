@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 
 import cv2
 import jax
@@ -21,7 +22,7 @@ from dynres_jax.control.budget import BUCKETS, bucket_for
 from dynres_jax.control.mpc import goal_cost, overlay
 from dynres_jax.control.objective import make_goal
 from dynres_jax.control.planner import PlannerConfig, plan
-from dynres_jax.io import frames
+from dynres_jax.io import files, frames
 from dynres_jax.models.registry import SHIPPED_DYNAMICS
 from dynres_jax.perception import WORKSPACE_HALF_WIDTH, sample_particles
 
@@ -46,8 +47,12 @@ def main(argv=None):
     parser.add_argument("--out", default="push.png", help="the frame with the goal, particles and push drawn")
     args = parser.parse_args(argv)
 
-    obs, camera = frames.load_frame(args.depth, args.rgb, args.camera)
-    goal_mask = frames.load_goal(args.goal, camera)
+    try:
+        obs, camera = frames.load_frame(args.depth, args.rgb, args.camera)
+        goal_mask = frames.load_goal(args.goal, camera)
+        files.check_writable(os.path.dirname(os.path.abspath(args.out)))
+    except (OSError, ValueError) as e:
+        parser.error(str(e))
     goal = make_goal(goal_mask, camera)
     dynamics, n_max, name = load_model(parser, args.dynamics, args.ckpt, args.plate_half_width)
     largest = min(n_max, BUCKETS[-1])
@@ -66,7 +71,7 @@ def main(argv=None):
     ends = np.array([[*action[:2], 0.0], [*action[2:], 0.0]])
     (u0, v0), (u1, v1) = np.asarray(camera.world_to_pixel(ends)[0]) * scale
     cv2.arrowedLine(image, (int(u0), int(v0)), (int(u1), int(v1)), (30, 30, 220), max(2, int(scale)), tipLength=0.15)
-    cv2.imwrite(args.out, cv2.cvtColor(image, cv2.COLOR_RGB2BGR))
+    files.write_image(args.out, cv2.cvtColor(image, cv2.COLOR_RGB2BGR))
     out = dict(push=action.tolist(), predicted_objective=float(result.best_cost), dynamics=name,
                omega=args.resolution, image=args.out)
     print(json.dumps(out))

@@ -110,9 +110,12 @@ def build_loop(args, sim: SimConfig, parser: argparse.ArgumentParser):
         parser.error(f"--resolution must be 'adaptive' or an integer in [1, {largest}] (the model's n_max and the "
                      "largest resolution bucket)")
     timing = load_timing(parser, args)
-    planner = PlannerConfig(samples=args.samples, steps=args.plan_steps, bound=env.action_bound,
-                            max_length=sim.push.max_length, min_length=sim.push.min_length, seed=args.seed)
-    cfg = MPCConfig(steps=args.steps, omega=int(omega), planner=planner, time_budget=args.time_budget)
+    try:
+        planner = PlannerConfig(samples=args.samples, steps=args.plan_steps, bound=env.action_bound,
+                                max_length=sim.push.max_length, min_length=sim.push.min_length, seed=args.seed)
+        cfg = MPCConfig(steps=args.steps, omega=int(omega), planner=planner, time_budget=args.time_budget)
+    except ValueError as e:
+        parser.error(str(e))
     return env, dynamics, name, cfg, chooser, timing
 
 

@@ -177,6 +177,9 @@ def text_goal(camera: Camera, text: str, centre_xy, height_m: float, font: int =
     """
     if not isinstance(text, str) or not text.strip():
         raise ValueError(f"text goal: text must be a non-empty string, got {text!r}")
+    undrawable = sorted({c for c in text if not " " <= c <= "~"})
+    if undrawable:  # OpenCV's Hershey fonts draw printable ASCII and turn anything else into "?"
+        raise ValueError(f"text goal: OpenCV's fonts cannot draw {undrawable} (printable ASCII only)")
     _check_positive("text height_m", height_m)
     thickness_m = height_m / 5 if thickness_m is None else thickness_m
     _check_positive("text thickness_m", thickness_m)

@@ -9,6 +9,7 @@ import os
 import cv2
 import numpy as np
 
+from dynres_jax.io import files
 from dynres_jax.sim.camera import Camera, Observation
 
 NO_READING = 100.0  # m: the depth given to pixels a depth camera saved as 0
@@ -19,10 +20,9 @@ def save_frame(folder: str, obs: Observation, camera: Camera) -> dict[str, str]:
     os.makedirs(folder, exist_ok=True)
     paths = {name: os.path.join(folder, name) for name in ("depth.png", "rgb.png", "camera.json")}
     depth_mm = np.clip(np.round(np.asarray(obs.depth, np.float64) * 1000), 0, 65535).astype(np.uint16)
-    cv2.imwrite(paths["depth.png"], depth_mm)
-    cv2.imwrite(paths["rgb.png"], cv2.cvtColor(np.asarray(obs.rgb, np.uint8), cv2.COLOR_RGB2BGR))
-    with open(paths["camera.json"], "w") as f:
-        f.write(camera.to_json())
+    files.write_image(paths["depth.png"], depth_mm)
+    files.write_image(paths["rgb.png"], cv2.cvtColor(np.asarray(obs.rgb, np.uint8), cv2.COLOR_RGB2BGR))
+    files.write_text(paths["camera.json"], camera.to_json())
     return paths
 
 

@@ -25,6 +25,15 @@ from dynres_jax.config import CameraConfig
 _MISS = jnp.inf
 
 
+MIN_IMAGE, MAX_IMAGE = 8, 4096  # pixels per side: the renderer's and perception's range (a 4K depth frame fits)
+
+
+def check_image_size(width: int, height: int) -> None:
+    """ValueError naming the limits for an image side outside [MIN_IMAGE, MAX_IMAGE] pixels."""
+    if not (MIN_IMAGE <= width <= MAX_IMAGE and MIN_IMAGE <= height <= MAX_IMAGE):
+        raise ValueError(f"image size {width} x {height} pixels is outside [{MIN_IMAGE}, {MAX_IMAGE}] per side")
+
+
 @dataclass(frozen=True, eq=False)
 class Camera:
     """Pinhole camera. K: [3, 3] intrinsics (pixels); rotation: [3, 3] camera-to-world (columns are the camera's
@@ -38,7 +47,8 @@ class Camera:
 
     @classmethod
     def top_down(cls, cfg: CameraConfig) -> Camera:
-        if cfg.width < 8 or cfg.height < 8 or cfg.distance <= 0 or cfg.view_half_width <= 0:
+        check_image_size(cfg.width, cfg.height)
+        if cfg.distance <= 0 or cfg.view_half_width <= 0:
             raise ValueError(f"camera config out of range: {cfg}")
         f = (cfg.width / 2) * cfg.distance / cfg.view_half_width
         K = np.array([[f, 0, cfg.width / 2], [0, f, cfg.height / 2], [0, 0, 1.0]])
@@ -62,12 +72,25 @@ class Camera:
 
     @classmethod
     def from_json(cls, text: str) -> Camera:
+        """A camera from its JSON; ValueError naming a missing field, one of the wrong shape or with a value that is
+        not a finite number, or an image size outside [MIN_IMAGE, MAX_IMAGE]."""
         d = json.loads(text)
         missing = {"K", "rotation", "centre", "width", "height"} - set(d)
         if missing:
             raise ValueError(f"camera JSON lacks {sorted(missing)}")
-        return cls(np.asarray(d["K"], float), np.asarray(d["rotation"], float), np.asarray(d["centre"], float),
-                   int(d["width"]), int(d["height"]))
+        arrays = {}
+        for name, shape in (("K", (3, 3)), ("rotation", (3, 3)), ("centre", (3,)), ("width", ()), ("height", ())):
+            try:
+                a = np.asarray(d[name], float)
+            except (TypeError, ValueError):
+                raise ValueError(f"camera JSON: {name} must be numbers, got {d[name]!r}") from None
+            if a.shape != shape or not np.all(np.isfinite(a)):
+                raise ValueError(f"camera JSON: {name} must be finite numbers of shape {shape}, got {d[name]!r}")
+            arrays[name] = a
+        if arrays["width"] != int(arrays["width"]) or arrays["height"] != int(arrays["height"]):
+            raise ValueError(f"camera JSON: width and height must be whole pixels, got {d['width']}, {d['height']}")
+        check_image_size(int(arrays["width"]), int(arrays["height"]))
+        return cls(arrays["K"], arrays["rotation"], arrays["centre"], int(arrays["width"]), int(arrays["height"]))
 
     # --- geometry ---
     def world_to_pixel(self, points):
