@@ -27,6 +27,8 @@ import numpy as np
 from dynres_jax.sim.camera import Camera, Observation
 
 FOREGROUND_MARGIN = 0.003  # m: a pixel is foreground when its point is this far above the table (z = 0)
+WALL_BAND = 0.01  # m: with real_depth, the workspace shrinks by this much: calibration errors bring wall tops inside
+TABLE_BAND = 0.004  # m: ``table_height`` fits the plane through points this close to the median height
 WORKSPACE_HALF_WIDTH = 0.199  # m: default bin half-width (0.2) less 1 mm, so wall tops and inner faces never count
 COLOUR_TOL = 0.05  # chromaticity distance (r, g, b) / (r + g + b) to the reference colour; shading-invariant
 R_CENTER_MAX = 0.008  # m: the reference's 0.02 normalised units of its 1-unit bin, on our 0.4 m bin
@@ -55,16 +57,43 @@ class Particles(NamedTuple):
         return self.error == 0
 
 
+def median_depth(depth):
+    """depth [H, W] -> its 3 x 3 median [H, W] (edges replicated): a real camera's isolated noisy and flying pixels
+    removed, depth edges kept (``sim.sensor``)."""
+    h, w = depth.shape
+    padded = jnp.pad(depth, 1, mode="edge")
+    return jnp.median(jnp.stack([padded[i:i + h, j:j + w] for i in range(3) for j in range(3)]), axis=0)
+
+
+def table_height(points, candidates):
+    """The table's height under each point, fitted from the frame itself: points [P, 3] (m), candidates [P] bool
+    (the points that may be table) -> [P] m. A plane z = a x + b y + c by least squares through the candidates within
+    TABLE_BAND of their median height (the table is most of the workspace, so the median is on it): a real camera's
+    calibration error tilts and lifts the table by about the foreground margin, which the fit takes out."""
+    z = jnp.where(candidates, points[:, 2], jnp.nan)
+    near = candidates & (jnp.abs(points[:, 2] - jnp.nanmedian(z)) < TABLE_BAND)
+    a = jnp.concatenate([points[:, :2], jnp.ones_like(points[:, :1])], axis=1) * near[:, None]
+    plane = jnp.linalg.solve(a.T @ a + 1e-9 * jnp.eye(3), a.T @ jnp.where(near, points[:, 2], 0.0))
+    return points[:, :2] @ plane[:2] + plane[2]
+
+
 def foreground(observation: Observation, camera: Camera, *, margin: float = FOREGROUND_MARGIN,
-               workspace: float = WORKSPACE_HALF_WIDTH, kind=None, colour=None, colour_tol: float = COLOUR_TOL):
+               workspace: float = WORKSPACE_HALF_WIDTH, kind=None, colour=None, colour_tol: float = COLOUR_TOL,
+               real_depth: bool = False):
     """All pixels as world points and their foreground mask: (points [H*W, 3] m, zero where not foreground,
     valid [H*W] bool). kind: keep only pixels of this kind index (``observation.kind``); colour: keep only pixels
-    whose chromaticity is within ``colour_tol`` of this RGB's (any scale: [0, 1] or [0, 255])."""
-    depth = jnp.asarray(observation.depth, jnp.float32).reshape(-1)
+    whose chromaticity is within ``colour_tol`` of this RGB's (any scale: [0, 1] or [0, 255]); real_depth: a real
+    camera's depth (``sim.sensor``): its 3 x 3 median first (``median_depth``), heights over the table plane fitted
+    from the frame (``table_height``) instead of over z = 0, and a workspace WALL_BAND narrower (a few millimetres of
+    calibration error put wall tops inside it)."""
+    depth = jnp.asarray(observation.depth, jnp.float32)
+    depth = (median_depth(depth) if real_depth else depth).reshape(-1)
     uv = jnp.asarray(camera.pixel_centres(), jnp.float32).reshape(-1, 2)
     finite = jnp.isfinite(depth)
     points = camera.pixel_to_world(uv, jnp.where(finite, depth, 0.0)).astype(jnp.float32)
-    valid = finite & (points[:, 2] > margin) & jnp.all(jnp.abs(points[:, :2]) <= workspace, axis=-1)
+    inside = finite & jnp.all(jnp.abs(points[:, :2]) <= workspace - (WALL_BAND if real_depth else 0.0), axis=-1)
+    height = points[:, 2] - table_height(points, inside) if real_depth else points[:, 2]
+    valid = inside & (height > margin)
     if kind is not None:
         valid &= jnp.asarray(observation.kind).reshape(-1) == kind
     if colour is not None:
@@ -80,7 +109,7 @@ def point_cloud(observation: Observation, camera: Camera, *, max_points: int | N
     """Depth + camera -> (points [P, 3] world m, zero where invalid; valid [P] bool). P = H * W (every pixel a
     candidate) when ``max_points`` is None, else P = max_points: foreground pixels packed first, a uniform random
     subset (one fixed permutation, ``PERMUTATION_SEED``) when there are more than P. ``foreground_kw``: margin,
-    workspace, kind, colour, colour_tol of ``foreground``."""
+    workspace, kind, colour, colour_tol, real_depth of ``foreground``."""
     points, valid = foreground(observation, camera, **foreground_kw)
     if max_points is None:
         return points, valid
@@ -138,9 +167,9 @@ def recentre(particles, points, valid, r_center):
     return jax.lax.map(centre, jnp.asarray(particles, jnp.float32))
 
 
-@functools.partial(jax.jit, static_argnames=("camera", "n_max", "max_points"))
-def _sample_particles(observation, camera, omega, key, n_max, max_points, r_center, foreground_kw):
-    points, valid = point_cloud(observation, camera, max_points=max_points, **foreground_kw)
+@functools.partial(jax.jit, static_argnames=("camera", "n_max", "max_points", "real_depth"))
+def _sample_particles(observation, camera, omega, key, n_max, max_points, r_center, foreground_kw, real_depth):
+    points, valid = point_cloud(observation, camera, max_points=max_points, real_depth=real_depth, **foreground_kw)
     n_points = jnp.sum(valid).astype(jnp.int32)
     omega = jnp.asarray(omega, jnp.int32)
     indices, radius = fps(points, valid, n_max + 1, random_start(key, valid))  # one extra pick: r(ω = n_max)
@@ -188,13 +217,13 @@ def check_particles(particles: Particles, omega, n_max, what: str) -> None:
 def sample_particles(observation: Observation, camera: Camera, omega, key, n_max: int, *,
                      max_points: int | None = None, r_center=None, margin: float = FOREGROUND_MARGIN,
                      workspace: float = WORKSPACE_HALF_WIDTH, kind=None, colour=None,
-                     colour_tol: float = COLOUR_TOL) -> Particles:
+                     colour_tol: float = COLOUR_TOL, real_depth: bool = False) -> Particles:
     """h(y, ω): one observation (depth [H, W], and kind / rgb when restricting) -> Particles with n_max slots, the
     first ω valid. omega: int, may be traced (``jax.vmap`` over ω values equals calling per ω); key: FPS start;
     max_points: see ``point_cloud`` (at 256 x 256, 8192 made h about 5 times faster on an H200); r_center:
     re-centring radius (m), default min(R_CENTER_MAX, 0.5 r(ω)) with r(ω) the covering radius of the ω-sample, 0 to
-    disable; margin, workspace, kind, colour, colour_tol: see ``foreground``. Raises ValueError naming the problem
-    when the result is concrete and the input bad (NaN depth, empty foreground, ω outside [1, n_max], fewer
+    disable; margin, workspace, kind, colour, colour_tol, real_depth: see ``foreground``. Raises ValueError naming the
+    problem when the result is concrete and the input bad (NaN depth, empty foreground, ω outside [1, n_max], fewer
     foreground points than ω); traced, ``Particles.error`` says it.
     """
     if not isinstance(n_max, int | np.integer) or n_max < 1:
@@ -206,7 +235,7 @@ def sample_particles(observation: Observation, camera: Camera, omega, key, n_max
                          f"{(camera.height, camera.width)} (vmap sample_particles over a batch of observations)")
     foreground_kw = dict(margin=margin, workspace=workspace, kind=kind, colour=colour, colour_tol=colour_tol)
     out = _sample_particles(observation, camera, omega, key, int(n_max), max_points and int(max_points), r_center,
-                            foreground_kw)
+                            foreground_kw, bool(real_depth))
     if not isinstance(out.error, jax.core.Tracer):
         check_particles(out, omega, n_max, "sample_particles")
     return out

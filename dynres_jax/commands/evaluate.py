@@ -40,6 +40,7 @@ from dynres_jax.control.objective import make_goal
 from dynres_jax.io import ckpt, files
 from dynres_jax.models.registry import SHIPPED_CNN_DYNAMICS, SHIPPED_DYNAMICS, SHIPPED_REGRESSOR
 from dynres_jax.sim.pool import WorldPool, process_pool
+from dynres_jax.sim.sensor import SENSORS
 from dynres_jax.stats import mcnemar, paired_bootstrap, wilson
 
 SUCCESS = 0.9  # Gather succeeds when this share of the pieces is inside the goal
@@ -153,6 +154,9 @@ def main(argv=None):
                              "baseline at --cnn-omega)")
     add_planner_args(parser)
     parser.add_argument("--kind", default="coffee", choices=sorted(KINDS))
+    parser.add_argument("--sensor", default="none", choices=sorted(SENSORS),
+                        help="a real depth camera's errors on every observation the planner sees (sim.sensor; "
+                             "perception then treats the depth as a real camera's); d and success use the true state")
     parser.add_argument("--pieces", type=int, default=None,
                         help="pieces in the pile (default: the kind's count for a pile of 100 coffee beans' area)")
     parser.add_argument("--ckpt", default=SHIPPED_DYNAMICS)
@@ -208,7 +212,8 @@ def main(argv=None):
                 continue
             dynamics, _, name = cnn_model if method == "cnn" else main_model
             omega = args.cnn_omega if method == "cnn" else int(method) if method.isdigit() else 50
-            cfg = dataclasses.replace(planner_config(pool.env, args), steps=args.steps, omega=omega)
+            cfg = dataclasses.replace(planner_config(pool.env, args), steps=args.steps, omega=omega,
+                                      real_depth=args.sensor != "none")
             chooser = resolution.load_chooser(args.regressor, pool.camera) if method == "adaptive" else None
             oracle = ORACLE_OMEGAS if method == "oracle" else None
             print(f"{args.task}: method {method}, {args.episodes} episodes, dynamics {name}")
@@ -217,6 +222,7 @@ def main(argv=None):
             if timing is None:  # one table for every method: measured with the main model on episode 0
                 timing = timing_table(args, args.out, starts.obs, goals, main_model[0], cfg, pool.camera)
             states, records = run_episodes(pool, starts, goals, dynamics, cfg, keys, choose_omega=chooser,
+                                           sensor=SENSORS[args.sensor],
                                            timing=timing, oracle=oracle)
             r = dict(final_distance=records[-1]["distance"].tolist(), final_inside=records[-1]["success"].tolist(),
                      mean_distance=[float(x["distance"].mean()) for x in records],
@@ -228,7 +234,8 @@ def main(argv=None):
             files.write_json(path, r)
             results[method] = r
     devices = sorted({r.get("device", "unrecorded") for r in results.values()})  # where the methods ran
-    summary = dict(task=args.task, dynamics=main_model[2], device=", ".join(devices),
+    summary = dict(task=args.task, kind=args.kind, pieces=args.pieces, sensor=args.sensor, dynamics=main_model[2],
+                   device=", ".join(devices),
                    time_budget=args.time_budget, samples=args.samples, plan_steps=args.plan_steps,
                    steps=args.steps, **summarise(results))
     files.write_json(os.path.join(args.out, "summary.json"), summary)

@@ -30,6 +30,7 @@ from dynres_jax.perception import check_particles, point_cloud, sample_particles
 
 if TYPE_CHECKING:  # annotations only: the planning half of this module needs no simulator (nor MuJoCo)
     from dynres_jax.sim.env import PileEnv, State
+    from dynres_jax.sim.sensor import DepthSensor
 
 
 @dataclass(frozen=True)
@@ -37,7 +38,8 @@ class MPCConfig:
     """steps: MPC steps per episode (reference 20); omega: particles (fixed resolution); buckets: the particle
     capacities ω is padded to (``budget``); max_points: perception's point cap; planner: the shooting optimiser's
     settings (its steps: the Adam steps of a decision without a time budget, and the most with one); time_budget:
-    seconds per decision on the planning device (None: planner.steps every decision)."""
+    seconds per decision on the planning device (None: planner.steps every decision); real_depth: perception treats the
+    depth as a real camera's (``perception.foreground``: a median filter, the table plane fitted; ``sim.sensor``)."""
 
     steps: int = 20
     omega: int = 50
@@ -45,6 +47,7 @@ class MPCConfig:
     max_points: int | None = 4096
     planner: PlannerConfig = field(default_factory=PlannerConfig)
     time_budget: float | None = None
+    real_depth: bool = False
 
     def __post_init__(self):
         object.__setattr__(self, "buckets", budget.check_buckets(self.buckets))
@@ -122,9 +125,10 @@ def decide(obs, goal: Goal, key, init, dynamics, cfg: MPCConfig, camera, omega=N
         if isinstance(omega, jax.core.Tracer):
             raise ValueError("decide with a traced omega needs its bucket (a static capacity holding every ω)")
         bucket = budget.bucket_for(int(omega), cfg.buckets)
-    particles = sample_particles(obs, camera, omega, k_h, bucket, max_points=cfg.max_points)
+    particles = sample_particles(obs, camera, omega, k_h, bucket, max_points=cfg.max_points, real_depth=cfg.real_depth)
     c_now = objective(particles.positions, particles.mask, goal, camera)
-    initial = sample_pushes(k_plan, *point_cloud(obs, camera, max_points=cfg.max_points), cfg.planner)
+    initial = sample_pushes(k_plan, *point_cloud(obs, camera, max_points=cfg.max_points, real_depth=cfg.real_depth),
+                            cfg.planner)
     init = initial[0] if init is None else jnp.where(warm, init, initial[0])  # no warm start: sample 0 stands in
     result = plan(dynamics(particles.radius), goal_cost(goal, camera, bucket), particles.positions, particles.mask,
                   k_plan, cfg.planner, init=init, steps=steps, initial=initial)
@@ -219,7 +223,8 @@ def _select(trees: list, pick) -> object:
 
 def run_episodes(env, states: State, goals: Goal, dynamics, cfg: MPCConfig, keys, choose_omega=None,
                  log=print, timing: budget.TimingTable | None = None, oracle: tuple[int, ...] | None = None,
-                 goal_masks: np.ndarray | None = None) -> tuple[State, list[dict]] | tuple[State, list[dict], list]:
+                 goal_masks: np.ndarray | None = None, sensor: DepthSensor | None = None
+                 ) -> tuple[State, list[dict]] | tuple[State, list[dict], list]:
     """The closed loop, for one episode or many at once: states and goals batched on a leading axis [B], keys [B].
     Each MPC step is one compiled decision over all episodes (perception, planning, objective: ``decide_batch``) and
     one batched push: ``env`` is a PileEnv (backend "mjx": pushes vmapped on the device; "mujoco": one world after
@@ -236,7 +241,10 @@ def run_episodes(env, states: State, goals: Goal, dynamics, cfg: MPCConfig, keys
     ω, bucket, plan_steps, planning_s (B = 1: the decision's wall time, perception included; else the table's price
     of it, NaN without a budget), c before, predicted c, d and inside share after the push, the push, broken; and
     the step's wall time ``seconds``. The loop stops early when every world broke. goal_masks [B, H, W]: also
-    return GIF frames of episode 0 (goal, particles). Returns the final states and the records (and the frames)."""
+    return GIF frames of episode 0 (goal, particles). sensor: a real camera's errors (``sim.sensor.DepthSensor``):
+    every decision (and choose_omega) sees its noisy depth, through the camera it believes in
+    (``believed_camera``); d and the inside share are measured on the true state. Returns the final states and the
+    records (and the frames)."""
     from dynres_jax.sim.pool import WorldPool
 
     if oracle is not None and (choose_omega is not None or not oracle):
@@ -244,6 +252,8 @@ def run_episodes(env, states: State, goals: Goal, dynamics, cfg: MPCConfig, keys
     if cfg.time_budget is not None and timing is None:
         raise ValueError("run_episodes under a time budget needs a timing table (mpc.measure_timing, --timing FILE)")
     episodes, camera = len(keys), env.camera
+    seen_camera = camera if sensor is None else sensor.believed_camera(camera)
+    sense = jax.jit(jax.vmap(sensor.observe)) if sensor is not None else None
     if isinstance(env, WorldPool):
         push = env.push
     elif env.backend == "mjx":
@@ -261,10 +271,12 @@ def run_episodes(env, states: State, goals: Goal, dynamics, cfg: MPCConfig, keys
     for t in range(cfg.steps):
         t0 = time.perf_counter()
         step_keys = jax.vmap(jax.random.fold_in, in_axes=(0, None))(keys, t)
+        seen = states.obs if sensor is None else sense(states.obs, jax.vmap(jax.random.fold_in, in_axes=(0, None))(
+            step_keys, 1))
         if oracle is not None:
             candidates = [np.full(episodes, w, np.int32) for w in oracle]
         elif choose_omega is not None:
-            candidates = [np.asarray(choose_omega(states.obs, goals), np.int32)]
+            candidates = [np.asarray(choose_omega(seen, goals), np.int32)]
         else:
             candidates = [np.full(episodes, cfg.omega, np.int32)]
         outcomes, drawn = [], []  # drawn: episode 0's particles of each candidate, for its frame
@@ -272,8 +284,8 @@ def run_episodes(env, states: State, goals: Goal, dynamics, cfg: MPCConfig, keys
             buckets, steps = cfg.allot(omega, timing)
             bucket = int(buckets.max())
             t_plan = time.perf_counter()
-            particles, c_now, result = decide_batch(states.obs, goals, step_keys, init, warm, omega, steps,
-                                                    dynamics, cfg, camera, bucket)
+            particles, c_now, result = decide_batch(seen, goals, step_keys, init, warm, omega, steps, dynamics, cfg,
+                                                    seen_camera, bucket)
             action = np.asarray(jax.block_until_ready(result.best[:, 0]))
             wall = time.perf_counter() - t_plan
             after = push(states, action)

@@ -11,8 +11,7 @@ import numpy as np
 
 from dynres_jax.io import files
 from dynres_jax.sim.camera import Camera, Observation
-
-NO_READING = 100.0  # m: the depth given to pixels a depth camera saved as 0
+from dynres_jax.sim.sensor import NO_READING
 
 
 def save_frame(folder: str, obs: Observation, camera: Camera) -> dict[str, str]:
