@@ -76,4 +76,8 @@ class DepthSensor:
         return Camera(camera.K, turn @ camera.rotation, camera.centre + shift, camera.width, camera.height)
 
 
-SENSORS = {"none": None, "realsense": DepthSensor()}  # --sensor's choices
+SENSORS = {  # --sensor's choices
+    "none": None,
+    "realsense": DepthSensor(),
+    "realsense-calibrated": DepthSensor(tilt_deg=0.0, shift_m=0.0),  # the same camera without extrinsic error
+}
