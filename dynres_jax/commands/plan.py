@@ -25,6 +25,7 @@ from dynres_jax.control.planner import PlannerConfig, plan
 from dynres_jax.io import files, frames
 from dynres_jax.models.registry import SHIPPED_DYNAMICS
 from dynres_jax.perception import WORKSPACE_HALF_WIDTH, sample_particles
+from dynres_jax.sim.sensor import SENSORS
 
 
 def main(argv=None):
@@ -45,6 +46,12 @@ def main(argv=None):
     parser.add_argument("--ckpt", default=SHIPPED_DYNAMICS)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", default="push.png", help="the frame with the goal, particles and push drawn")
+    parser.add_argument("--real-depth", action=argparse.BooleanOptionalAction, default=True,
+                        help="perception for a real camera's depth (a 3 x 3 median, the table plane fitted from the "
+                             "frame: perception.foreground); --no-real-depth for a simulator's exact depth")
+    parser.add_argument("--sensor", default="none", choices=sorted(SENSORS),
+                        help="pass the frame through a depth camera's errors first (sim.sensor; to try a saved "
+                             "simulator frame as a camera would give it)")
     args = parser.parse_args(argv)
 
     try:
@@ -54,13 +61,18 @@ def main(argv=None):
     except (OSError, ValueError) as e:
         parser.error(str(e))
     goal = make_goal(goal_mask, camera)
+    if SENSORS[args.sensor] is not None:
+        sensor = SENSORS[args.sensor]
+        obs = sensor.observe(obs, jax.random.PRNGKey(args.seed + 1))
+        camera = sensor.believed_camera(camera, args.seed)
     dynamics, n_max, name = load_model(parser, args.dynamics, args.ckpt, args.plate_half_width)
     largest = min(n_max, BUCKETS[-1])
     if not 1 <= args.resolution <= largest:
         parser.error(f"--resolution must lie in [1, {largest}] (the model's n_max and the largest resolution bucket)")
     key_h, key_plan = jax.random.split(jax.random.PRNGKey(args.seed))
     bucket = bucket_for(args.resolution)
-    particles = sample_particles(obs, camera, args.resolution, key_h, bucket, workspace=args.workspace)
+    particles = sample_particles(obs, camera, args.resolution, key_h, bucket, workspace=args.workspace,
+                                 real_depth=args.real_depth)
     config = PlannerConfig(samples=args.samples, steps=args.plan_steps, bound=args.bound, seed=args.seed)
     result = plan(dynamics(particles.radius), goal_cost(goal, camera, bucket), particles.positions, particles.mask,
                   key_plan, config)
