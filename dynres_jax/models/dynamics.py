@@ -82,7 +82,7 @@ import jax.numpy as jnp
 from flax import nnx
 
 from dynres_jax.config import SceneConfig
-from dynres_jax.models.graph import K_NEIGHBOURS, R_EDGE, build_edges, sweep_displacement
+from dynres_jax.models.graph import K_NEIGHBOURS, R_EDGE, build_edges, push_geometry, sweep_displacement
 
 LENGTH_SCALE = 0.05  # m: displacements and relative positions are divided by this inside the model
 R_REF = 0.02  # m: covering radius whose resolution code is 0
@@ -133,10 +133,7 @@ def _push_frame(action):
     """action [4] -> (frame [3, 3] whose rows are the unit push direction, its left normal and +z; start [2];
     length []). The rows are orthonormal, so ``v @ frame.T`` maps world vectors to the push frame and ``w @ frame``
     maps them back. A zero-length push gets a finite (arbitrary) frame."""
-    action = jnp.asarray(action, jnp.float32)
-    start, delta = action[:2], action[2:] - action[:2]
-    length = jnp.sqrt(jnp.sum(jnp.square(delta)) + 1e-12)
-    along = delta / length
+    start, along, length = push_geometry(action)
     frame = jnp.array([[along[0], along[1], 0.0], [-along[1], along[0], 0.0], [0.0, 0.0, 1.0]])
     return frame, start, length
 

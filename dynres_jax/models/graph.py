@@ -30,13 +30,20 @@ def _smoothstep(x):
     return x * x * (3.0 - 2.0 * x)
 
 
-def _sweep(particles, action, plate_half_width, end_offset, falloff):
-    """The sweep's geometry: (gate [N] in [0, 1], distance left to the end line [N] (m, >= 0), unit direction [2])."""
-    particles = jnp.asarray(particles, jnp.float32)
+def push_geometry(action):
+    """action [4] (x_start, y_start, x_end, y_end) m -> (start [2] m, unit direction [2], length [] m) as the model
+    sees a push (float32; a zero-length push gets a finite, arbitrary direction): the sweep heuristic's and the
+    dynamics model's push frame."""
     action = jnp.asarray(action, jnp.float32)
     start, delta = action[:2], action[2:] - action[:2]
     length = jnp.sqrt(jnp.sum(jnp.square(delta)) + 1e-12)
-    along = delta / length
+    return start, delta / length, length
+
+
+def _sweep(particles, action, plate_half_width, end_offset, falloff):
+    """The sweep's geometry: (gate [N] in [0, 1], distance left to the end line [N] (m, >= 0), unit direction [2])."""
+    particles = jnp.asarray(particles, jnp.float32)
+    start, along, length = push_geometry(action)
     side = jnp.stack([-along[1], along[0]])
     rel = particles[:, :2] - start
     s, t = rel @ along, rel @ side
