@@ -154,3 +154,30 @@ def test_a_new_goal_reuses_the_compiled_plan(episode):
     result = plan(dynamics, goal_cost(other, env.camera), positions, mask, jax.random.PRNGKey(1), config)
     assert _plan_jit._cache_size() == compiled
     assert np.isfinite(float(result.best_cost))
+
+
+def test_a_policy_that_repeats_the_goals_changes_nothing_and_sort_is_the_same_loop(episode):
+    """run_episodes(policy=...) with a policy that orders the fixed goal and ω every step decides exactly as the loop
+    without one, and adds its record fields and scores; Sort's episode records carry the loop's fields."""
+    from dynres_jax.control.mpc import StepTarget, batch
+
+    env, state, goal, _, records, _, _ = episode
+    cfg = MPCConfig(steps=3, omega=6, buckets=(4, 8), max_points=512,
+                    planner=PlannerConfig(samples=8, steps=20, bound=env.action_bound, max_length=0.1))
+
+    class Repeat:
+        def __call__(self, t, obs):
+            return StepTarget(batch(goal), np.array([6]), None, {"order": [t]})
+
+        def score(self, states):
+            return {"pieces_x": [float(np.mean(np.asarray(states.pos[0])[:, 0]))]}
+
+    _, with_policy = run_episodes(env, batch(state), None, sweep_dynamics(0.04), cfg, batch(jax.random.PRNGKey(1)),
+                                  log=lambda s: None, policy=Repeat())
+    for r, p in zip(records, with_policy, strict=True):
+        np.testing.assert_array_equal(p["action"][0], r["action"])
+        assert p["distance"][0] == r["distance"] and p["order"][0] == r["step"]
+    assert np.isfinite(with_policy[-1]["pieces_x"][0])
+    with pytest.raises(ValueError, match="a policy sets each step's ω itself"):
+        run_episodes(env, batch(state), None, sweep_dynamics(0.04), cfg, batch(jax.random.PRNGKey(1)),
+                     policy=Repeat(), oracle=(4, 6))

@@ -125,6 +125,8 @@ def test_tiny_sort_episode_runs_and_records_every_step(env):
     assert frames[0].shape == (192, 192, 3) and frames[0].dtype == np.uint8
     for r in records:
         assert r["phase"] in ("path", "final", "direct") and r["kind"] in (0, 1)
+        assert {"omega", "bucket", "plan_steps", "planning_s", "distance", "success", "action", "inside",
+                "mixing"} <= set(r)  # the one loop's record, with Sort's fields and scores
         assert len(r["waypoint"]) == 2 and np.all(np.abs(r["waypoint"]) <= BIN_HALF_WIDTH)
         assert np.shape(r["centres"]) == (2, 2) and 1 <= r["omega"] <= 20
         assert r["bucket"] == (8 if r["omega"] <= 8 else 32) and r["plan_steps"] == 10

@@ -17,12 +17,10 @@ import dataclasses
 import os
 import time
 
-import cv2
-import imageio.v3 as iio
 import jax
 import numpy as np
 
-from dynres_jax.commands.task import add_loop_args, build_loop
+from dynres_jax.commands.task import add_loop_args, build_loop, write_episode
 from dynres_jax.config import KINDS, CameraConfig, PileConfig, SceneConfig, SimConfig
 from dynres_jax.control.mpc import measure_timing
 from dynres_jax.control.objective import make_goal
@@ -44,7 +42,11 @@ def main(argv=None):
                     pile=PileConfig(layout="two_blobs"), camera=CameraConfig())
     env, dynamics, name, cfg, _, timing = build_loop(args, sim, parser)
 
-    goals_xy, radius, masks = sort_goal(np.random.default_rng(args.seed), env)
+    try:
+        goals_xy, radius, masks = sort_goal(np.random.default_rng(args.seed), env)
+        files.check_writable(args.out)
+    except (OSError, ValueError) as e:
+        parser.error(str(e))
     goals = [make_goal(m, env.camera) for m in masks]
     state = env.reset(jax.random.PRNGKey(args.seed))
     start_inside, start_mixing = sort_scores(state.pos, env.scene.kind, goals, env.camera)
@@ -56,11 +58,9 @@ def main(argv=None):
         timing = measure_timing(state.obs, goals[0], dynamics, cfg, env.camera)
     state, records, frames = sort_episode(env, state, dynamics, cfg, jax.random.PRNGKey(args.seed), goals_xy, radius,
                                           grid_step=args.grid_step, timing=timing)
-    os.makedirs(args.out, exist_ok=True)
     if timing is not None:
         timing.save(os.path.join(args.out, "timing.json"))
-    iio.imwrite(os.path.join(args.out, "episode.gif"), np.stack(frames), duration=400, loop=0)
-    cv2.imwrite(os.path.join(args.out, "final.png"), cv2.cvtColor(frames[-1], cv2.COLOR_RGB2BGR))
+    write_episode(args.out, frames)
     summary = dict(task="sort", seed=args.seed, dynamics=name, kinds=args.kinds, pieces=args.pieces,
                    goals=goals_xy.tolist(), radius=radius, start_inside=start_inside, start_mixing=start_mixing,
                    final_inside=records[-1]["inside"], final_mixing=records[-1]["mixing"],

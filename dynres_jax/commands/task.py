@@ -119,6 +119,13 @@ def build_loop(args, sim: SimConfig, parser: argparse.ArgumentParser):
     return env, dynamics, name, cfg, chooser, timing
 
 
+def write_episode(out: str, frames: list) -> None:
+    """The episode's ``episode.gif`` (every frame) and ``final.png`` (the last) in ``out``, atomically."""
+    files.atomic_write(os.path.join(out, "episode.gif"),
+                       lambda f: iio.imwrite(f, np.stack(frames), extension=".gif", duration=400, loop=0))
+    files.write_image(os.path.join(out, "final.png"), cv2.cvtColor(frames[-1], cv2.COLOR_RGB2BGR))
+
+
 def main(task: str, argv=None):
     description = DESCRIPTIONS[task] + "\n\n" + __doc__.split("\n\n", 2)[2]
     parser = argparse.ArgumentParser(prog=f"python -m experiments.{task}", description=description,
@@ -166,9 +173,7 @@ def main(task: str, argv=None):
                                          choose_omega=chooser, timing=timing)
     if timing is not None:
         timing.save(os.path.join(args.out, "timing.json"))
-    files.atomic_write(os.path.join(args.out, "episode.gif"),
-                       lambda f: iio.imwrite(f, np.stack(frames), extension=".gif", duration=400, loop=0))
-    files.write_image(os.path.join(args.out, "final.png"), cv2.cvtColor(frames[-1], cv2.COLOR_RGB2BGR))
+    write_episode(args.out, frames)
     summary = dict(task=task, seed=args.seed, dynamics=name, goal=goal_info,
                    start_inside=start_inside, final_inside=records[-1]["success"],
                    final_distance=records[-1]["distance"], seconds=time.perf_counter() - t0,

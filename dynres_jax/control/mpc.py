@@ -15,7 +15,7 @@ from __future__ import annotations
 import functools
 import time
 from dataclasses import dataclass, field, replace
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, NamedTuple
 
 import cv2
 import jax
@@ -111,24 +111,26 @@ def overlay(rgb: np.ndarray, goal_mask: np.ndarray, particles: np.ndarray | None
 
 
 def decide(obs, goal: Goal, key, init, dynamics, cfg: MPCConfig, camera, omega=None, *, bucket=None, steps=None,
-           warm=True):
+           warm=True, kind=None):
     """One MPC decision: particles from ``obs`` (h at ω in ``bucket`` slots), c of them, and the plan. Pure, so it
     vmaps over episodes. init [T, 4]: the warm start (the previous plan, shifted), used where ``warm`` (may be
     traced), or None; omega: this step's ω (default cfg.omega; may be traced); bucket: static particle slots
     (default the smallest of cfg.buckets holding a concrete ω; with a traced ω, a bucket holding every ω);
     steps: Adam steps (may be traced; default cfg.planner.steps). The planner's starting pushes pass through random
     points of the perception cloud, not of the particles, so one key gives the same pushes at every ω (common random
-    numbers). Returns (Particles, c [], PlanResult)."""
+    numbers). kind: perceive only the pieces of this kind index (may be traced; None: every piece). Returns
+    (Particles, c [], PlanResult)."""
     k_h, k_plan = jax.random.split(key)
     omega = cfg.omega if omega is None else omega
     if bucket is None:
         if isinstance(omega, jax.core.Tracer):
             raise ValueError("decide with a traced omega needs its bucket (a static capacity holding every ω)")
         bucket = budget.bucket_for(int(omega), cfg.buckets)
-    particles = sample_particles(obs, camera, omega, k_h, bucket, max_points=cfg.max_points, real_depth=cfg.real_depth)
+    particles = sample_particles(obs, camera, omega, k_h, bucket, max_points=cfg.max_points, real_depth=cfg.real_depth,
+                                 kind=kind)
     c_now = objective(particles.positions, particles.mask, goal, camera)
-    initial = sample_pushes(k_plan, *point_cloud(obs, camera, max_points=cfg.max_points, real_depth=cfg.real_depth),
-                            cfg.planner)
+    initial = sample_pushes(k_plan, *point_cloud(obs, camera, max_points=cfg.max_points, real_depth=cfg.real_depth,
+                                                 kind=kind), cfg.planner)
     init = initial[0] if init is None else jnp.where(warm, init, initial[0])  # no warm start: sample 0 stands in
     result = plan(dynamics(particles.radius), goal_cost(goal, camera, bucket), particles.positions, particles.mask,
                   k_plan, cfg.planner, init=init, steps=steps, initial=initial)
@@ -136,22 +138,26 @@ def decide(obs, goal: Goal, key, init, dynamics, cfg: MPCConfig, camera, omega=N
 
 
 @functools.partial(jax.jit, static_argnames=("dynamics", "cfg", "camera", "bucket"))
-def _decide_batch(obs, goal, key, init, warm, omega, steps, *, dynamics, cfg, camera, bucket):
-    def one(obs, goal, key, init, omega, steps):
-        return decide(obs, goal, key, init, dynamics, cfg, camera, omega, bucket=bucket, steps=steps, warm=warm)
+def _decide_batch(obs, goal, key, init, warm, omega, steps, kinds, *, dynamics, cfg, camera, bucket):
+    def one(obs, goal, key, init, omega, steps, kind):
+        return decide(obs, goal, key, init, dynamics, cfg, camera, omega, bucket=bucket, steps=steps, warm=warm,
+                      kind=kind)
 
-    return per_episode(one)(obs, goal, key, init, omega, steps)
+    return per_episode(one)(obs, goal, key, init, omega, steps, kinds)
 
 
-def decide_batch(obs, goal: Goal, key, init, warm, omega, steps, dynamics, cfg: MPCConfig, camera, bucket: int):
+def decide_batch(obs, goal: Goal, key, init, warm, omega, steps, dynamics, cfg: MPCConfig, camera, bucket: int,
+                 kinds=None):
     """``decide`` over a batch of episodes (every argument but warm with a leading axis [B]) as one compiled function
     per bucket (and model, camera and planner): what the closed loop runs and its timing table measures. init
-    [B, T, 4] (ignored unless warm); warm, omega [B] and steps [B] are traced. The particles are checked: bad
+    [B, T, 4] (ignored unless warm); warm, omega [B], steps [B] and kinds [B] (``decide``'s kind; None: every
+    piece) are traced. The particles are checked: bad
     perception input raises a ValueError naming it (``perception.check_particles``)."""
     key_cfg = replace(cfg, steps=1, omega=1, time_budget=None)  # fields a decision does not read: one compile
     omega = np.asarray(omega, np.int32)
     particles, c_now, result = _decide_batch(obs, goal, key, jnp.asarray(init, jnp.float32), jnp.asarray(warm),
                                              jnp.asarray(omega), jnp.asarray(steps, jnp.int32),
+                                             None if kinds is None else jnp.asarray(kinds, jnp.int32),
                                              dynamics=dynamics, cfg=key_cfg, camera=camera, bucket=bucket)
     check_particles(particles, omega, bucket, "perception failed in episodes")
     return particles, c_now, result
@@ -177,6 +183,19 @@ def measure_timing(obs, goal: Goal, dynamics, cfg: MPCConfig, camera, repeats: i
 
     return budget.measure(run, cfg.buckets, samples=cfg.planner.samples, horizon=cfg.planner.horizon,
                           max_steps=cfg.planner.steps, repeats=repeats)
+
+
+class StepTarget(NamedTuple):
+    """A policy's orders for one MPC step of ``run_episodes(policy=)``, arrays with a leading axis [B]: goals (a
+    batched Goal: this step's goal of each decision; the step's d and inside share are scored against it), omega
+    [B], kinds [B] int (the piece kind each decision perceives; None: every piece), record (extra record fields,
+    arrays [B]), draw (optional ``(rgb [H, W, 3], particles [n, 3] or None) -> frame`` of episode 0)."""
+
+    goals: Goal
+    omega: np.ndarray
+    kinds: np.ndarray | None = None
+    record: dict = {}
+    draw: object = None
 
 
 def per_episode(fn):
@@ -223,7 +242,7 @@ def _select(trees: list, pick) -> object:
 
 def run_episodes(env, states: State, goals: Goal, dynamics, cfg: MPCConfig, keys, choose_omega=None,
                  log=print, timing: budget.TimingTable | None = None, oracle: tuple[int, ...] | None = None,
-                 goal_masks: np.ndarray | None = None, sensor: DepthSensor | None = None
+                 goal_masks: np.ndarray | None = None, sensor: DepthSensor | None = None, policy=None
                  ) -> tuple[State, list[dict]] | tuple[State, list[dict], list]:
     """The closed loop, for one episode or many at once: states and goals batched on a leading axis [B], keys [B].
     Each MPC step is one compiled decision over all episodes (perception, planning, objective: ``decide_batch``) and
@@ -243,12 +262,16 @@ def run_episodes(env, states: State, goals: Goal, dynamics, cfg: MPCConfig, keys
     the step's wall time ``seconds``. The loop stops early when every world broke. goal_masks [B, H, W]: also
     return GIF frames of episode 0 (goal, particles). sensor: a real camera's errors (``sim.sensor.DepthSensor``):
     every decision (and choose_omega) sees its noisy depth, through the camera it believes in
-    (``believed_camera``); d and the inside share are measured on the true state. Returns the final states and the
-    records (and the frames)."""
+    (``believed_camera``); d and the inside share are measured on the true state. policy: a task's policy on top of
+    the loop (Sort's A* waypoints, ``sort.SortPolicy``): ``policy(t, obs [B]) -> StepTarget`` sets every step's goals,
+    ω and perceived kind (goals may then be None), and ``policy.score(states) -> {name: [B, ...]}`` adds the task's
+    own scores to each record. Returns the final states and the records (and the frames)."""
     from dynres_jax.sim.pool import WorldPool
 
     if oracle is not None and (choose_omega is not None or not oracle):
         raise ValueError("oracle takes a non-empty tuple of candidate ω, and no choose_omega beside it")
+    if policy is not None and (oracle is not None or choose_omega is not None):
+        raise ValueError("a policy sets each step's ω itself: no oracle or choose_omega beside it")
     if cfg.time_budget is not None and timing is None:
         raise ValueError("run_episodes under a time budget needs a timing table (mpc.measure_timing, --timing FILE)")
     episodes, camera = len(keys), env.camera
@@ -273,7 +296,12 @@ def run_episodes(env, states: State, goals: Goal, dynamics, cfg: MPCConfig, keys
         step_keys = jax.vmap(jax.random.fold_in, in_axes=(0, None))(keys, t)
         seen = states.obs if sensor is None else sense(states.obs, jax.vmap(jax.random.fold_in, in_axes=(0, None))(
             step_keys, 1))
-        if oracle is not None:
+        target = None if policy is None else policy(t, seen)
+        step_goals = goals if target is None else target.goals
+        kinds = None if target is None else target.kinds
+        if target is not None:
+            candidates = [np.asarray(target.omega, np.int32)]
+        elif oracle is not None:
             candidates = [np.full(episodes, w, np.int32) for w in oracle]
         elif choose_omega is not None:
             candidates = [np.asarray(choose_omega(seen, goals), np.int32)]
@@ -284,12 +312,12 @@ def run_episodes(env, states: State, goals: Goal, dynamics, cfg: MPCConfig, keys
             buckets, steps = cfg.allot(omega, timing)
             bucket = int(buckets.max())
             t_plan = time.perf_counter()
-            particles, c_now, result = decide_batch(seen, goals, step_keys, init, warm, omega, steps, dynamics, cfg,
-                                                    seen_camera, bucket)
+            particles, c_now, result = decide_batch(seen, step_goals, step_keys, init, warm, omega, steps, dynamics,
+                                                    cfg, seen_camera, bucket, kinds)
             action = np.asarray(jax.block_until_ready(result.best[:, 0]))
             wall = time.perf_counter() - t_plan
             after = push(states, action)
-            distance, success = measure(after.obs, after.pos, goals)
+            distance, success = measure(after.obs, after.pos, step_goals)
             outcomes.append(dict(omega=omega, bucket=buckets, plan_steps=steps, objective=c_now,
                                  predicted_objective=result.best_cost, best=result.best, states=after,
                                  distance=distance, success=success, action=action, wall=np.full(episodes, wall)))
@@ -305,18 +333,26 @@ def run_episodes(env, states: State, goals: Goal, dynamics, cfg: MPCConfig, keys
                                                                                 strict=True)])
         else:
             planning = np.full(episodes, np.nan)
-        if goal_masks is not None:
+        if target is not None and target.draw is not None:
+            frames.append(target.draw(np.asarray(states.obs.rgb[0]), drawn[pick[0]]))
+        elif goal_masks is not None:
             frames.append(overlay(np.asarray(states.obs.rgb[0]), goal_masks[0], drawn[pick[0]], camera,
                                   label=f"step {t + 1}  ω = {int(kept['omega'][0])}"))
         states, init, warm = kept["states"], _shift(kept["best"]), True
         record = {k: np.asarray(kept[k]) for k in ("omega", "bucket", "plan_steps", "objective", "predicted_objective",
                                                    "distance", "success", "action")}
         record.update(planning_s=planning, broken=np.asarray(states.broken))
+        if target is not None:
+            record.update({k: np.asarray(v) for k, v in target.record.items()},
+                          **{k: np.asarray(v) for k, v in policy.score(states).items()})
         records.append(dict(step=t, seconds=time.perf_counter() - t0, **record))
         _log_step(log, records[-1], cfg.steps)
         if record["broken"].all():
             log("every simulated world broke (NaN or a piece out of the bin); stopping")
             break
+    if target is not None and target.draw is not None:
+        frames.append(target.draw(np.asarray(states.obs.rgb[0]), None))
+        return states, records, frames
     if goal_masks is None:
         return states, records
     frames.append(overlay(np.asarray(states.obs.rgb[0]), goal_masks[0], None, camera))

@@ -14,13 +14,13 @@ Paper mapping:
 - Perceived piles can start closer than 2 ``blob_radius`` (touching or mixed piles); such a start may only be left
   by moves that strictly increase the centre distance until the circles are apart. Goals must not overlap.
 
-Closed loop (``sort_episode``): each MPC step perceives both piles (particles of one kind each, segmentation), takes
-the blob centres as the particle centroids, RE-PLANS the A* path from them (so a pile disturbed by a push is
-handled), and moves the blob of the path's first move: one planning step of Gather (the task objective c on that
-kind's particles only) toward a disc of ``goal_radius`` at that blob's waypoint, up to ``lookahead`` grid steps
-ahead along its current run of moves. When both centres snap to their goals, the piles are gathered into their own
-goal discs alternately; when A* finds no path (no room to pass), the pile farther from its goal heads straight to
-it. The paper's reference code has no Sort; these choices are ours.
+Closed loop (``sort_episode``: ``SortPolicy`` on the one MPC loop, ``mpc.run_episodes``): each MPC step perceives both
+piles (particles of one kind each, segmentation), takes the blob centres as the particle centroids, RE-PLANS the A* path
+from them (so a pile disturbed by a push is handled), and moves the blob of the path's first move: one planning step of
+Gather (the task objective c on that kind's particles only) toward a disc of ``goal_radius`` at that blob's waypoint, up
+to ``lookahead`` grid steps ahead along its current run of moves. When both centres snap to their goals, the piles are
+gathered into their own goal discs alternately; when A* finds no path (no room to pass), the pile farther from its goal
+heads straight to it. The paper's reference code has no Sort; these choices are ours.
 """
 
 from __future__ import annotations
@@ -32,9 +32,8 @@ import jax
 import numpy as np
 
 from dynres_jax.control.budget import TimingTable, bucket_for
-from dynres_jax.control.mpc import MPCConfig, goal_cost, overlay
-from dynres_jax.control.objective import disc_goal, inside_share, make_goal, objective, sort_goals
-from dynres_jax.control.planner import plan
+from dynres_jax.control.mpc import MPCConfig, StepTarget, batch, episode_record, overlay, run_episodes
+from dynres_jax.control.objective import disc_goal, inside_share, make_goal, sort_goals
 from dynres_jax.control.tasks import FILL
 from dynres_jax.perception import point_cloud, sample_particles
 from dynres_jax.sim.env import PileEnv, State
@@ -169,77 +168,79 @@ def _frame(rgb, goal_masks, target_mask, particles, camera) -> np.ndarray:
     return overlay(img.astype(np.uint8), target_mask, particles, camera)
 
 
-def sort_episode(env: PileEnv, state: State, dynamics, cfg: MPCConfig, key, goals_xy, goal_radius: float, log=print,
-                 *, blob_radius: float | None = None, grid_step: float = 0.02, lookahead: int = 3,
-                 timing: TimingTable | None = None) -> tuple[State, list[dict], list[np.ndarray]]:
-    """One Sort episode from ``state``: kind k to the disc of ``goal_radius`` (m) at goals_xy[k] (m).
-    dynamics: ``registry.learned_dynamics(model)`` or ``registry.sweep_dynamics(hw)``; blob_radius: A*'s blob circle (m,
-    default goal_radius); grid_step: A*'s grid (m); lookahead: grid steps a waypoint may lie ahead (>= 1);
-    timing: the table a time budget (cfg.time_budget) is spent by.
-    Returns the final state, one record per step and GIF frames. A record: step, phase ("path": following A*,
-    "final": both at their goals, "direct": A* found no path, the farther pile heads straight to its goal), kind
-    moved, waypoint [2] m, centres [2, 2] m (perceived), astar_steps left, ω, bucket, plan_steps, objective c
-    before / predicted, inside [2] (kind k's share inside goal k), mixing (share inside the other kind's goal),
-    times, action, broken."""
-    if lookahead < 1:
-        raise ValueError(f"lookahead must be at least 1, got {lookahead}")
-    camera, bin_half = env.camera, env.config.scene.bin_half_width
-    goals_xy = np.asarray(goals_xy, np.float64)
-    goal_masks = sort_goals(camera, goals_xy, goal_radius, bin_half_width=bin_half)
-    goals = [make_goal(m, camera) for m in goal_masks]
-    blob_radius = goal_radius if blob_radius is None else blob_radius
-    bound = bin_half - goal_radius - WAYPOINT_EDGE
-    records, frames, turn = [], [], 0
-    for t in range(cfg.steps):
-        k_h, k_plan = jax.random.split(jax.random.fold_in(key, t))
-        particles = [_kind_particles(state.obs, camera, cfg, jax.random.fold_in(k_h, k), k) for k in (0, 1)]
+class SortPolicy:
+    """Sort's A* waypoints as a policy on the one MPC loop (``mpc.run_episodes(policy=...)``), for one episode: every
+    step it perceives both piles (particles of one kind each), re-plans the A* path from their centres and sends the
+    moved blob's particles towards a disc of ``goal_radius`` at its waypoint (module docstring). Its record fields:
+    phase ("path": following A*, "final": both at their goals, "direct": A* found no path, the farther pile heads
+    straight to its goal), kind moved, waypoint [2] m, centres [2, 2] m (perceived), astar_steps left, astar_s; its
+    scores: inside [2] (kind k's share inside goal k) and mixing (the share inside the other kind's goal)."""
+
+    def __init__(self, env: PileEnv, cfg: MPCConfig, key, goals_xy, goal_radius: float, log=print, *,
+                 blob_radius: float | None = None, grid_step: float = 0.02, lookahead: int = 3):
+        if lookahead < 1:
+            raise ValueError(f"lookahead must be at least 1, got {lookahead}")
+        self.env, self.cfg, self.key, self.log = env, cfg, key, log
+        self.camera, self.bin_half = env.camera, env.config.scene.bin_half_width
+        self.goals_xy = np.asarray(goals_xy, np.float64)
+        self.goal_radius, self.grid_step, self.lookahead = goal_radius, grid_step, lookahead
+        self.goal_masks = sort_goals(self.camera, self.goals_xy, goal_radius, bin_half_width=self.bin_half)
+        self.goals = [make_goal(m, self.camera) for m in self.goal_masks]
+        self.blob_radius = goal_radius if blob_radius is None else blob_radius
+        self.bound = self.bin_half - goal_radius - WAYPOINT_EDGE
+        self.turn, self.phase = 0, None
+
+    def __call__(self, t: int, obs) -> StepTarget:
+        obs = jax.tree.map(lambda x: x[0], obs)
+        k_h = jax.random.fold_in(self.key, t)
+        particles = [_kind_particles(obs, self.camera, self.cfg, jax.random.fold_in(k_h, k), k) for k in (0, 1)]
         centres = np.stack([np.asarray(p.positions)[np.asarray(p.mask), :2].mean(0) for p in particles])
         t0 = time.perf_counter()
         try:
-            path = astar_blobs(centres, goals_xy, blob_radius, grid_step, bound)
+            path = astar_blobs(centres, self.goals_xy, self.blob_radius, self.grid_step, self.bound)
         except ValueError as error:
             path = None
-            if not records or records[-1]["phase"] != "direct":
-                log(f"A*: {error}; heading straight to the goals")
+            if self.phase != "direct":
+                self.log(f"A*: {error}; heading straight to the goals")
         astar_s = time.perf_counter() - t0
         if path is None:
-            phase, steps_left = "direct", -1
-            kind = int(np.argmax(np.linalg.norm(centres - goals_xy, axis=1)))
-            waypoint = goals_xy[kind]
+            self.phase, steps_left = "direct", -1
+            kind = int(np.argmax(np.linalg.norm(centres - self.goals_xy, axis=1)))
+            waypoint = self.goals_xy[kind]
         elif len(path) == 1:
-            phase, steps_left, kind, turn = "final", 0, turn % 2, turn + 1
-            waypoint = goals_xy[kind]
+            self.phase, steps_left, kind, self.turn = "final", 0, self.turn % 2, self.turn + 1
+            waypoint = self.goals_xy[kind]
         else:
-            phase, steps_left = "path", len(path) - 1
-            kind, waypoint = _next_waypoint(path, goals_xy, lookahead)
-        target_mask = disc_goal(camera, waypoint, goal_radius, bin_half_width=bin_half)
-        target = goals[kind] if phase == "final" else make_goal(target_mask, camera)
-        p = particles[kind]
-        c_now = float(objective(p.positions, p.mask, target, camera))
-        frames.append(_frame(state.obs.rgb, goal_masks, target_mask,
-                             np.asarray(p.positions)[np.asarray(p.mask)], camera))
-        bucket = int(p.mask.shape[0])
-        steps = cfg.plan_steps(bucket, timing)
-        t0 = time.perf_counter()
-        cost = goal_cost(target, camera, bucket)  # one cost function for every goal, so the planner compiles once
-        result = plan(dynamics(p.radius), cost, p.positions, p.mask, k_plan, cfg.planner, steps=steps)
-        action = np.asarray(jax.block_until_ready(result.best[0]))
-        planning_s = time.perf_counter() - t0
-        if timing is not None:
-            timing.refine(bucket, steps, planning_s)
-        state = env.push(state, action)
-        inside, mixing = sort_scores(state.pos, env.scene.kind, goals, camera)
-        record = dict(step=t, phase=phase, kind=kind, waypoint=np.asarray(waypoint).tolist(),
-                      centres=centres.tolist(), astar_steps=steps_left, omega=int(np.sum(np.asarray(p.mask))),
-                      bucket=bucket, plan_steps=steps,
-                      objective=c_now, predicted_objective=float(result.best_cost), inside=inside, mixing=mixing,
-                      astar_s=astar_s, planning_s=planning_s, action=action.tolist(), broken=bool(state.broken))
-        records.append(record)
-        log(f"step {t + 1:2d}/{cfg.steps}  {phase:6s} kind {kind} -> ({waypoint[0]:+.3f}, {waypoint[1]:+.3f})  "
-            f"A* {steps_left:3d} steps  c={c_now:7.2f} -> {record['predicted_objective']:7.2f}  "
-            f"inside {inside[0]:5.1%} / {inside[1]:5.1%}  mixing {mixing:5.1%}  plan {planning_s:5.2f}s")
-        if record["broken"]:
-            log("the simulated world broke (NaN or a piece out of the bin); stopping the episode")
-            break
-    frames.append(_frame(state.obs.rgb, goal_masks, np.zeros(goal_masks.shape[1:], bool), None, camera))
-    return state, records, frames
+            self.phase, steps_left = "path", len(path) - 1
+            kind, waypoint = _next_waypoint(path, self.goals_xy, self.lookahead)
+        target_mask = disc_goal(self.camera, waypoint, self.goal_radius, bin_half_width=self.bin_half)
+        target = self.goals[kind] if self.phase == "final" else make_goal(target_mask, self.camera)
+
+        def draw(rgb, drawn):
+            return _frame(rgb, self.goal_masks, target_mask if drawn is not None else np.zeros_like(target_mask),
+                          drawn, self.camera)
+
+        record = dict(phase=[self.phase], kind=[kind], waypoint=[np.asarray(waypoint)], centres=[centres],
+                      astar_steps=[steps_left], astar_s=[astar_s])
+        return StepTarget(batch(target), np.array([int(np.sum(np.asarray(particles[kind].mask)))]), np.array([kind]),
+                          record, draw)
+
+    def score(self, states) -> dict:
+        inside, mixing = sort_scores(states.pos[0], self.env.scene.kind, self.goals, self.camera)
+        return dict(inside=[inside], mixing=[mixing])
+
+
+def sort_episode(env: PileEnv, state: State, dynamics, cfg: MPCConfig, key, goals_xy, goal_radius: float, log=print,
+                 *, blob_radius: float | None = None, grid_step: float = 0.02, lookahead: int = 3,
+                 timing: TimingTable | None = None) -> tuple[State, list[dict], list[np.ndarray]]:
+    """One Sort episode from ``state``: kind k to the disc of ``goal_radius`` (m) at goals_xy[k] (m), the one MPC loop
+    (``mpc.run_episode``'s records) with ``SortPolicy`` on top (its fields and scores join each record). dynamics:
+    ``registry.learned_dynamics(model)`` or ``registry.sweep_dynamics(hw)``; blob_radius: A*'s blob circle (m,
+    default goal_radius); grid_step: A*'s grid (m); lookahead: grid steps a waypoint may lie ahead (>= 1); timing:
+    the table a time budget (cfg.time_budget) is spent by. Returns the final state, one record per step and GIF
+    frames."""
+    policy = SortPolicy(env, cfg, key, goals_xy, goal_radius, log, blob_radius=blob_radius, grid_step=grid_step,
+                        lookahead=lookahead)
+    final, records, frames = run_episodes(env, batch(state), None, dynamics, cfg, batch(key), log=log, timing=timing,
+                                          policy=policy)
+    return jax.tree.map(lambda x: x[0], final), [episode_record(r, 0) for r in records], frames
