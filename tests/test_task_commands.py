@@ -82,3 +82,22 @@ def test_bad_task_flags_are_named_before_any_work(argv, message, tmp_path, capsy
     with pytest.raises(SystemExit):
         gather.main([*argv, "--out", str(tmp_path / "never")])
     assert message in capsys.readouterr().err and not (tmp_path / "never").exists()
+
+
+@pytest.mark.parametrize("kind", ["almond", "rice", "mnm", "granola", "candy"])
+def test_gather_runs_on_every_kind_at_its_default_count(kind, tmp_path):
+    """Every kind at DEFAULT_PIECES (coffee: the tests above): a goal that fits, an episode, its files."""
+    from dynres_jax.config import DEFAULT_PIECES
+
+    summary = gather.main(["--kind", kind, "--steps", "1", "--samples", "4", "--plan-steps", "1", "--out",
+                           str(tmp_path)])
+    assert len(summary["steps"]) == 1 and (tmp_path / "episode.gif").exists()
+    metrics = json.loads((tmp_path / "metrics.json").read_text())
+    assert metrics["kind"] == kind and metrics["pieces"] == DEFAULT_PIECES[kind]
+
+
+@pytest.mark.parametrize("pair", [("almond", "mnm"), ("rice", "granola")])
+def test_sort_runs_on_the_issues_pairs(pair, tmp_path):
+    sort.main(["--kinds", *pair, "--pieces", "15", "15", "--steps", "1", "--samples", "4", "--plan-steps", "1",
+               "--out", str(tmp_path)])
+    assert json.loads((tmp_path / "metrics.json").read_text())["kinds"] == list(pair)

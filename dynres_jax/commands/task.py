@@ -174,7 +174,7 @@ def main(task: str, argv=None):
     if timing is not None:
         timing.save(os.path.join(args.out, "timing.json"))
     write_episode(args.out, frames)
-    summary = dict(task=task, seed=args.seed, dynamics=name, goal=goal_info,
+    summary = dict(task=task, seed=args.seed, kind=args.kind, pieces=args.pieces, dynamics=name, goal=goal_info,
                    start_inside=start_inside, final_inside=records[-1]["success"],
                    final_distance=records[-1]["distance"], seconds=time.perf_counter() - t0,
                    mpc=dataclasses.asdict(cfg), timing=timing.to_json() if timing else None, steps=records)
