@@ -24,7 +24,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from dynres_jax.sim.camera import Camera, Observation
+from dynres_jax.sim.camera import Camera, Observation, neighbourhoods
 
 FOREGROUND_MARGIN = 0.003  # m: a pixel is foreground when its point is this far above the table (z = 0)
 WALL_BAND = 0.01  # m: with real_depth, the workspace shrinks by this much: calibration errors bring wall tops inside
@@ -60,9 +60,7 @@ class Particles(NamedTuple):
 def median_depth(depth):
     """depth [H, W] -> its 3 x 3 median [H, W] (edges replicated): a real camera's isolated noisy and flying pixels
     removed, depth edges kept (``sim.sensor``)."""
-    h, w = depth.shape
-    padded = jnp.pad(depth, 1, mode="edge")
-    return jnp.median(jnp.stack([padded[i:i + h, j:j + w] for i in range(3) for j in range(3)]), axis=0)
+    return jnp.median(neighbourhoods(depth), axis=0)
 
 
 def table_height(points, candidates):

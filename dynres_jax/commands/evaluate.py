@@ -32,8 +32,16 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from dynres_jax.commands.task import add_planner_args, check_planner_args, load_model, planner_config, timing_table
-from dynres_jax.config import DEFAULT_PIECES, KINDS, CameraConfig, PileConfig, SceneConfig, SimConfig
+from dynres_jax.commands.task import (
+    add_planner_args,
+    check_out,
+    check_planner_args,
+    load_model,
+    planner_config,
+    resolve_pieces,
+    timing_table,
+)
+from dynres_jax.config import KINDS, CameraConfig, PileConfig, SceneConfig, SimConfig
 from dynres_jax.control import resolution, tasks
 from dynres_jax.control.mpc import run_episodes
 from dynres_jax.control.objective import make_goal
@@ -179,13 +187,8 @@ def main(argv=None):
         check_cnn(parser, args)
     if args.episodes < 1 or args.steps < 1:
         parser.error(f"--episodes and --steps must be at least 1, got {args.episodes} and {args.steps}")
-    args.pieces = DEFAULT_PIECES[args.kind] if args.pieces is None else args.pieces
-    if args.pieces < 1:
-        parser.error(f"--pieces must be at least 1, got {args.pieces}")
-    try:
-        files.check_writable(args.out)
-    except OSError as e:
-        parser.error(f"--out: {e}")
+    resolve_pieces(parser, args)
+    check_out(parser, args.out)
     camera = CameraConfig(width=64, height=64) if args.quick else CameraConfig()
     sim = SimConfig(scene=SceneConfig(kinds=(args.kind,), pieces=(args.pieces,)), camera=camera,
                     pile=PileConfig(layout="spread" if args.task == "gather" else "blob"))

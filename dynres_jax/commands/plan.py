@@ -17,7 +17,7 @@ import cv2
 import jax
 import numpy as np
 
-from dynres_jax.commands.task import load_model
+from dynres_jax.commands.task import check_out, load_model
 from dynres_jax.control.budget import BUCKETS, bucket_for
 from dynres_jax.control.mpc import goal_cost, overlay
 from dynres_jax.control.objective import make_goal
@@ -57,9 +57,9 @@ def main(argv=None):
     try:
         obs, camera = frames.load_frame(args.depth, args.rgb, args.camera)
         goal_mask = frames.load_goal(args.goal, camera)
-        files.check_writable(os.path.dirname(os.path.abspath(args.out)))
     except (OSError, ValueError) as e:
         parser.error(str(e))
+    check_out(parser, os.path.dirname(os.path.abspath(args.out)))
     goal = make_goal(goal_mask, camera)
     if SENSORS[args.sensor] is not None:
         sensor = SENSORS[args.sensor]

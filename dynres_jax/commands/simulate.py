@@ -16,6 +16,7 @@ import numpy as np
 from tqdm import tqdm
 
 from dynres_jax.config import KINDS, CameraConfig, PileConfig, SceneConfig, SimConfig
+from dynres_jax.io import files
 from dynres_jax.sim.camera import Observation
 from dynres_jax.sim.env import PileEnv
 
@@ -72,10 +73,11 @@ def main(argv=None):
 
     os.makedirs(args.out, exist_ok=True)
     iio.imwrite(os.path.join(args.out, "pushes.gif"), np.stack(frames), duration=80, loop=0)
-    cv2.imwrite(os.path.join(args.out, "final_rgb.png"), cv2.cvtColor(np.asarray(state.obs.rgb), cv2.COLOR_RGB2BGR))
+    files.write_image(os.path.join(args.out, "final_rgb.png"),
+                      cv2.cvtColor(np.asarray(state.obs.rgb), cv2.COLOR_RGB2BGR))
     far = cfg.camera.distance
     depth = depth_image(np.asarray(state.obs.depth), far - 0.03, far)
-    cv2.imwrite(os.path.join(args.out, "final_depth.png"), cv2.cvtColor(depth, cv2.COLOR_RGB2BGR))
+    files.write_image(os.path.join(args.out, "final_depth.png"), cv2.cvtColor(depth, cv2.COLOR_RGB2BGR))
     with open(os.path.join(args.out, "actions.json"), "w") as f:
         json.dump(dict(config=repr(cfg), actions=actions, broken=bool(state.broken)), f, indent=1)
     print(f"wrote {len(frames)} frames to {args.out}/pushes.gif, final_rgb.png, final_depth.png, actions.json")

@@ -7,7 +7,8 @@ over blob centres choosing which pile moves where (``dynres_jax.control.sort``):
 Writes ``episode.gif`` (observation; goal of kind 0 blue, of kind 1 orange; the current waypoint disc green; the
 moved kind's particles red), ``final.png`` and ``metrics.json`` (a record per MPC step, the start and final share
 of each kind inside its own goal, and the mixing: the share of pieces inside the other kind's goal). Dynamics: the
-trained checkpoint given by ``--ckpt`` (default ``checkpoints/dynamics`` when it exists), else the sweep heuristic.
+trained checkpoint given by ``--ckpt`` (default: the shipped one); ``--dynamics sweep`` plans with the sweep heuristic
+instead.
 """
 
 from __future__ import annotations
@@ -20,7 +21,7 @@ import time
 import jax
 import numpy as np
 
-from dynres_jax.commands.task import add_loop_args, build_loop, write_episode
+from dynres_jax.commands.task import add_loop_args, build_loop, check_out, write_episode
 from dynres_jax.config import KINDS, CameraConfig, PileConfig, SceneConfig, SimConfig
 from dynres_jax.control.mpc import measure_timing
 from dynres_jax.control.objective import make_goal
@@ -44,9 +45,9 @@ def main(argv=None):
 
     try:
         goals_xy, radius, masks = sort_goal(np.random.default_rng(args.seed), env)
-        files.check_writable(args.out)
-    except (OSError, ValueError) as e:
+    except ValueError as e:
         parser.error(str(e))
+    check_out(parser, args.out)
     goals = [make_goal(m, env.camera) for m in masks]
     state = env.reset(jax.random.PRNGKey(args.seed))
     start_inside, start_mixing = sort_scores(state.pos, env.scene.kind, goals, env.camera)

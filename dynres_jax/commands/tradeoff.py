@@ -224,7 +224,7 @@ def surface(args) -> dict:
     import jax.numpy as jnp
 
     from dynres_jax.config import CameraConfig, PileConfig, PushConfig, SceneConfig, SimConfig
-    from dynres_jax.control.mpc import MPCConfig, measure_timing
+    from dynres_jax.control.mpc import MPCConfig, episode, measure_timing
     from dynres_jax.learn.data import save_npz
     from dynres_jax.models.registry import load_dynamics
 
@@ -254,8 +254,7 @@ def surface(args) -> dict:
             starts, masks = _scenes(kind, args, pool)
             goals = jax.tree.map(lambda *g: jnp.stack(g), *[make_goal(m, pool.camera) for m in masks])
             if timing is None:
-                timing = measure_timing(jax.tree.map(lambda x: x[0], starts.obs), jax.tree.map(lambda x: x[0], goals),
-                                        dynamics, cfg, pool.camera)
+                timing = measure_timing(episode(starts.obs), episode(goals), dynamics, cfg, pool.camera)
             if os.path.exists(path):
                 raw[kind] = dict(np.load(path))
                 continue

@@ -203,7 +203,7 @@ def per_episode(fn):
     differently, and a batch of one should decide bit for bit as the episode alone."""
     def batched(*args):
         if len(jax.tree.leaves(args)[0]) == 1:
-            return batch(fn(*jax.tree.map(lambda x: x[0], args)))
+            return batch(fn(*episode(args)))
         return jax.vmap(fn)(*args)
 
     return batched
@@ -214,19 +214,26 @@ def batch(tree):
     return jax.tree.map(lambda x: jnp.asarray(x)[None], tree)
 
 
+def episode(tree, b: int = 0):
+    """Episode b of a batched pytree: leaf [b] of every leaf (the inverse of ``batch`` for b = 0)."""
+    return jax.tree.map(lambda x: x[b], tree)
+
+
 def _shift(best):
     """The plan of the next step: the remaining pushes, the last one repeated (warm start)."""
     return jnp.concatenate([best[..., 1:, :], best[..., -1:, :]], axis=-2)
 
 
-def run_episode(env: PileEnv, state: State, goal: Goal, goal_mask: np.ndarray, dynamics, cfg: MPCConfig, key,
-                log=print, choose_omega=None, timing: budget.TimingTable | None = None
+def run_episode(env: PileEnv, state: State, goal: Goal | None, goal_mask: np.ndarray | None, dynamics, cfg: MPCConfig,
+                key, log=print, choose_omega=None, timing: budget.TimingTable | None = None, policy=None
                 ) -> tuple[State, list[dict], list[np.ndarray]]:
     """One episode: ``run_episodes`` on a batch of one, its records unbatched to Python numbers and GIF frames drawn
-    with ``goal_mask`` [H, W]. Returns the final state, one record per step and the frames."""
+    with ``goal_mask`` [H, W] (or by the policy; goal and goal_mask are then None). Returns the final state, one
+    record per step and the frames."""
     final, records, frames = run_episodes(env, batch(state), batch(goal), dynamics, cfg, batch(key), log=log,
-                                          choose_omega=choose_omega, timing=timing, goal_masks=goal_mask[None])
-    return jax.tree.map(lambda x: x[0], final), [episode_record(r, 0) for r in records], frames
+                                          choose_omega=choose_omega, timing=timing, policy=policy,
+                                          goal_masks=None if goal_mask is None else goal_mask[None])
+    return episode(final), [episode_record(r, 0) for r in records], frames
 
 
 def episode_record(record: dict, b: int) -> dict:
@@ -283,8 +290,7 @@ def run_episodes(env, states: State, goals: Goal, dynamics, cfg: MPCConfig, keys
         push = jax.jit(jax.vmap(env.push))
     else:
         def push(states, actions):  # C MuJoCo: one world after another
-            worlds = [env.push(jax.tree.map(lambda x, b=b: x[b], states), np.asarray(actions[b]))
-                      for b in range(episodes)]
+            worlds = [env.push(episode(states, b), np.asarray(actions[b])) for b in range(episodes)]
             return jax.tree.map(lambda *x: jnp.stack([jnp.asarray(v) for v in x]), *worlds)
     n = env.scene.n_pieces
     measure = jax.jit(per_episode(lambda obs, pos, goal: (distribution_distance(obs, goal, camera),

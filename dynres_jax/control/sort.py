@@ -32,7 +32,7 @@ import jax
 import numpy as np
 
 from dynres_jax.control.budget import TimingTable, bucket_for
-from dynres_jax.control.mpc import MPCConfig, StepTarget, batch, episode_record, overlay, run_episodes
+from dynres_jax.control.mpc import MPCConfig, StepTarget, batch, episode, overlay, run_episode
 from dynres_jax.control.objective import disc_goal, inside_share, make_goal, sort_goals
 from dynres_jax.control.tasks import FILL
 from dynres_jax.perception import point_cloud, sample_particles
@@ -191,7 +191,7 @@ class SortPolicy:
         self.turn, self.phase = 0, None
 
     def __call__(self, t: int, obs) -> StepTarget:
-        obs = jax.tree.map(lambda x: x[0], obs)
+        obs = episode(obs)
         k_h = jax.random.fold_in(self.key, t)
         particles = [_kind_particles(obs, self.camera, self.cfg, jax.random.fold_in(k_h, k), k) for k in (0, 1)]
         centres = np.stack([np.asarray(p.positions)[np.asarray(p.mask), :2].mean(0) for p in particles])
@@ -241,6 +241,4 @@ def sort_episode(env: PileEnv, state: State, dynamics, cfg: MPCConfig, key, goal
     frames."""
     policy = SortPolicy(env, cfg, key, goals_xy, goal_radius, log, blob_radius=blob_radius, grid_step=grid_step,
                         lookahead=lookahead)
-    final, records, frames = run_episodes(env, batch(state), None, dynamics, cfg, batch(key), log=log, timing=timing,
-                                          policy=policy)
-    return jax.tree.map(lambda x: x[0], final), [episode_record(r, 0) for r in records], frames
+    return run_episode(env, state, None, None, dynamics, cfg, key, log=log, timing=timing, policy=policy)

@@ -25,6 +25,14 @@ from dynres_jax.config import CameraConfig
 _MISS = jnp.inf
 
 
+def neighbourhoods(image):
+    """image [H, W] -> its 3 x 3 neighbourhoods [9, H, W] (edges replicated), row by row: index 4 is the pixel itself,
+    1, 3, 5 and 7 its 4-neighbours (up, left, right, down)."""
+    h, w = image.shape
+    padded = jnp.pad(image, 1, mode="edge")
+    return jnp.stack([padded[i:i + h, j:j + w] for i in range(3) for j in range(3)])
+
+
 MIN_IMAGE, MAX_IMAGE = 8, 4096  # pixels per side: the renderer's and perception's range (a 4K depth frame fits)
 
 

@@ -27,7 +27,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from dynres_jax.sim.camera import Camera, Observation
+from dynres_jax.sim.camera import Camera, Observation, neighbourhoods
 
 NO_READING = 100.0  # m: the depth of a missing reading (beyond the table, so never foreground)
 
@@ -50,10 +50,7 @@ class DepthSensor:
         (vmap it over episodes)."""
         k_noise, k_edge, k_drop, k_fly = jax.random.split(key, 4)
         depth = jnp.asarray(obs.depth, jnp.float32)
-        padded = jnp.pad(depth, 1, mode="edge")
-        h, w = depth.shape
-        neighbours = jnp.stack([padded[1 + di:1 + di + h, 1 + dj:1 + dj + w]
-                                for di in (-1, 0, 1) for dj in (-1, 0, 1)])  # [9, H, W]
+        neighbours = neighbourhoods(depth)  # [9, H, W]
         edge = jnp.max(jnp.abs(neighbours[jnp.array([1, 3, 5, 7])] - depth), axis=0) > self.edge_step
         flying = edge & (jax.random.uniform(k_fly, depth.shape) < self.flying)
         depth = jnp.where(flying, jnp.mean(neighbours, axis=0), depth)
