@@ -135,10 +135,14 @@ class SceneConfig:
         of 3 line-search steps; Newton for scenes with boxes (CG let candy piles diverge). docs/performance.md,
         "Speed": over 2x C MuJoCo on all 16 cores of an H200 host at 100 coffee beans (the default scene: 0.2x), and
         its physics checks."""
-        boxes = any(KINDS[k].geom == "box" for k in kinds if k in KINDS)
-        solver = dict(solver="Newton") if boxes else dict(solver="CG", solver_iterations=8)
-        fast = dict(condim=1, contact_cap=2.0, ls_iterations=3, **solver)
-        return cls(kinds=kinds, pieces=pieces, **{**fast, **overrides})
+        return cls(kinds=kinds, pieces=pieces, **{**fast_fields(kinds), **overrides})
+
+
+def fast_fields(kinds: tuple[str, ...]) -> dict:
+    """The SceneConfig fields that make ``SceneConfig.fast``'s physics for these kinds (the rest stay as given)."""
+    boxes = any(KINDS[k].geom == "box" for k in kinds if k in KINDS)
+    solver = dict(solver="Newton") if boxes else dict(solver="CG", solver_iterations=8)
+    return dict(condim=1, contact_cap=2.0, ls_iterations=3, **solver)
 
 
 @dataclass(frozen=True)

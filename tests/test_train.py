@@ -2,6 +2,9 @@
 
 import dataclasses
 import json
+import os
+import subprocess
+import sys
 import time
 
 import jax
@@ -25,6 +28,7 @@ from dynres_jax.models.dynamics import Dynamics, DynamicsConfig, resolution_code
 from dynres_jax.models.graph import SWEEP_REGIONS
 from dynres_jax.models.registry import build_model
 
+REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 CFG = TrainConfig(steps=4, batch=4, horizon=2, n_max=8, max_points=256, eval_every=2, ckpt_every=2, val_batches=1,
                   model=DynamicsConfig(hidden=16))
 
@@ -179,3 +183,44 @@ def test_a_recipe_is_its_shipped_checkpoints_config(recipe, shipped, monkeypatch
     monkeypatch.setattr(train_dynamics, "train", lambda c, *a, **k: seen.append(c) or {})
     train_dynamics.main(["--data", "d", "--out", "o", "--recipe", recipe, "--steps", "7"])
     assert seen[0] == dataclasses.replace(cfg, steps=7)
+
+
+
+FOUR_DEVICES = """
+import dataclasses, json, sys
+import jax
+from dynres_jax.learn import train
+from tests.test_train import CFG
+assert len(jax.devices()) == 4, jax.devices()
+try:
+    train.train(dataclasses.replace(CFG, batch=6), sys.argv[1], sys.argv[2] + "-bad", progress=False)
+except ValueError as e:
+    print("BAD-BATCH:", e)
+print(json.dumps(train.train(CFG, sys.argv[1], sys.argv[2], progress=False)))
+"""
+
+
+def max_gap(a, b) -> float:
+    return max(jax.tree.leaves(jax.tree.map(lambda x, y: float(np.max(np.abs(np.asarray(x) - np.asarray(y)))), a, b)))
+
+
+def test_four_devices_train_as_one(shards, run, tmp_path):
+    """Data-parallel: the same run on 4 forced CPU devices (each batch split 1 + 1 + 1 + 1) gives the one-device
+    run's parameters and metrics to float tolerance, and its checkpoint restores on one device; a batch that does not
+    split over the devices is named before any work."""
+    out = str(tmp_path / "four")
+    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=4", JAX_PLATFORMS="cpu")
+    proc = subprocess.run([sys.executable, "-c", FOUR_DEVICES, shards, out], cwd=REPO, env=env, capture_output=True,
+                          text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert "BAD-BATCH: batch 6 must be a multiple of the 4 devices" in proc.stdout
+    assert not os.path.exists(out + "-bad")
+    four = json.loads(proc.stdout.strip().splitlines()[-1])
+    one_dir, one = run
+    assert four["devices"] == 4 and one["devices"] == 1
+    for key in ("train_rmse_mm", "val_rmse_mm", "val_distance_mm"):
+        np.testing.assert_allclose(four[key], one[key], rtol=1e-4, err_msg=key)
+    abstract = {"module": nnx.split(build_model(ckpt.load_meta(f"{one_dir}/ckpt")))[1]}
+    a, b = ckpt.restore(f"{one_dir}/ckpt", abstract)[0], ckpt.restore(f"{out}/ckpt", abstract)[0]
+    assert max_gap(a, b) < 1e-5
+    assert max_gap(ckpt.restore(f"{one_dir}/ckpt", abstract, step=2)[0], a) > 1e-4  # training moved them

@@ -19,6 +19,10 @@ and inside share per episode, means per step; resumable: finished methods are sk
 95 % confidence intervals, success rates, and every method paired with adaptive on the same episodes: the mean
 difference of final d with a paired-bootstrap 95 % interval and McNemar's test on success, ``dynres_jax.stats``),
 ``score.png`` (share of episodes with final d below τ, against τ) and ``steps.png`` (mean d over the MPC steps).
+
+Several processes share the episodes through jax.distributed (a launcher, or --coordinator, --num-processes,
+--process-id): process I runs episodes I, I + K, ... of every method and writes ``parts/METHOD.I-of-K.json``;
+process 0 merges them into ``METHOD.json`` and writes the summary.
 """
 
 from __future__ import annotations
@@ -32,6 +36,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from dynres_jax import distributed
 from dynres_jax.commands.task import (
     add_planner_args,
     check_out,
@@ -64,6 +69,30 @@ def episode_goals(task: str, episodes: int, seed: int, env) -> list[np.ndarray]:
         else:
             goals.append(tasks.redistribute_goal(rng, env, "JTU"[i % 3])[0])
     return goals
+
+
+def episode_results(records: list[dict], episodes, name: str) -> dict:
+    """One process's episodes of a method (``run_episodes``' records): per-step arrays [T][B] and the final values
+    [B], with the episode indices [B]."""
+    steps = lambda key: np.stack([x[key] for x in records]).tolist()  # noqa: E731
+    return dict(episode=[int(i) for i in episodes], distance=steps("distance"), inside=steps("success"),
+                omega=steps("omega"), plan_steps=steps("plan_steps"), broken=records[-1]["broken"].tolist(),
+                seconds=float(sum(x["seconds"] for x in records)), dynamics=name,
+                device=jax.devices()[0].device_kind)
+
+
+def merge(parts: list[dict]) -> dict:
+    """The processes' ``episode_results`` of one method -> the method's results in episode order: final d and inside
+    share [E], their means per step [T], ω and Adam steps per step [T][E], broken [E], seconds (the slowest
+    process's)."""
+    order = np.argsort(np.concatenate([p["episode"] for p in parts]))
+    cat = lambda key: np.concatenate([np.asarray(p[key]) for p in parts], axis=-1)[..., order]  # noqa: E731
+    distance, inside = cat("distance"), cat("inside")
+    return dict(final_distance=distance[-1].tolist(), final_inside=inside[-1].tolist(),
+                mean_distance=distance.mean(axis=1).tolist(), mean_inside=inside.mean(axis=1).tolist(),
+                omega=cat("omega").tolist(), broken=cat("broken").tolist(), plan_steps=cat("plan_steps").tolist(),
+                seconds=max(p["seconds"] for p in parts), dynamics=parts[0]["dynamics"], device=parts[0]["device"],
+                processes=len(parts))
 
 
 def summarise(results: dict) -> dict:
@@ -176,7 +205,9 @@ def main(argv=None):
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", required=True)
     parser.add_argument("--quick", action="store_true", help="tiny sizes for a CPU smoke run")
+    distributed.add_args(parser)
     args = parser.parse_args(argv)
+    rank, size = distributed.from_args(parser, args)
     check_planner_args(parser, args)
     for m in args.methods:
         fixed = m.isdigit() and resolution.OMEGA_MIN <= int(m) <= resolution.OMEGA_MAX
@@ -185,8 +216,9 @@ def main(argv=None):
                          f"{resolution.OMEGA_MAX}], got {m!r}")
     if "cnn" in args.methods:
         check_cnn(parser, args)
-    if args.episodes < 1 or args.steps < 1:
-        parser.error(f"--episodes and --steps must be at least 1, got {args.episodes} and {args.steps}")
+    if args.episodes < size or args.steps < 1:
+        parser.error(f"--episodes must be at least the {size} process(es) and --steps at least 1, got "
+                     f"{args.episodes} and {args.steps}")
     resolve_pieces(parser, args)
     check_out(parser, args.out)
     camera = CameraConfig(width=64, height=64) if args.quick else CameraConfig()
@@ -195,7 +227,8 @@ def main(argv=None):
     main_model = load_model(parser, args.dynamics, args.ckpt, sim.scene.plate_half_width)  # (dynamics, n_max, name)
     cnn_model = load_model(parser, "learned", args.cnn_ckpt, sim.scene.plate_half_width) if "cnn" in args.methods \
         else None
-    os.makedirs(args.out, exist_ok=True)
+    os.makedirs(os.path.join(args.out, "parts"), exist_ok=True)
+    mine = np.arange(rank, args.episodes, size)  # this process's episodes
     results = {}
     with process_pool(args.workers) as processes:
         pool = WorldPool(sim, processes)
@@ -204,8 +237,8 @@ def main(argv=None):
         except ValueError as e:
             parser.error(str(e))
         masks = episode_goals(args.task, args.episodes, args.seed, pool.env)
-        goals = jax.tree.map(lambda *g: jnp.stack(g), *[make_goal(m, pool.camera) for m in masks])
-        keys = jax.random.split(jax.random.PRNGKey(args.seed), args.episodes)
+        goals = jax.tree.map(lambda *g: jnp.stack(g), *[make_goal(masks[i], pool.camera) for i in mine])
+        keys = jax.random.split(jax.random.PRNGKey(args.seed), args.episodes)[mine]
         timing = None
         for method in args.methods:
             path = os.path.join(args.out, f"{method}.json")
@@ -219,30 +252,40 @@ def main(argv=None):
                                       real_depth=args.sensor != "none")
             chooser = resolution.load_chooser(args.regressor, pool.camera) if method == "adaptive" else None
             oracle = ORACLE_OMEGAS if method == "oracle" else None
-            print(f"{args.task}: method {method}, {args.episodes} episodes, dynamics {name}")
-            starts = pool.reset(jax.vmap(lambda i: jax.random.fold_in(jax.random.PRNGKey(args.seed), i))(
-                jnp.arange(args.episodes)))
-            if timing is None:  # one table for every method: measured with the main model on episode 0
-                timing = timing_table(args, args.out, starts.obs, goals, main_model[0], cfg, pool.camera)
-            states, records = run_episodes(pool, starts, goals, dynamics, cfg, keys, choose_omega=chooser,
-                                           sensor=SENSORS[args.sensor],
-                                           timing=timing, oracle=oracle)
-            r = dict(final_distance=records[-1]["distance"].tolist(), final_inside=records[-1]["success"].tolist(),
-                     mean_distance=[float(x["distance"].mean()) for x in records],
-                     mean_inside=[float(x["success"].mean()) for x in records],
-                     omega=np.stack([x["omega"] for x in records]).tolist(), broken=records[-1]["broken"].tolist(),
-                     plan_steps=np.stack([x["plan_steps"] for x in records]).tolist(),
-                     seconds=float(sum(x["seconds"] for x in records)), dynamics=name,
-                     device=jax.devices()[0].device_kind)
-            files.write_json(path, r)
-            results[method] = r
+            print(f"{args.task}: method {method}, {len(mine)} of {args.episodes} episodes, dynamics {name}")
+            part = os.path.join(args.out, "parts", f"{method}.{rank}-of-{size}.json")
+            if os.path.exists(part):
+                with open(part) as f:
+                    mine_done = json.load(f)
+            else:
+                starts = pool.reset(jax.vmap(lambda i: jax.random.fold_in(jax.random.PRNGKey(args.seed), i))(
+                    jnp.asarray(mine)))
+                if timing is None:  # one table for every method: measured with the main model on episode 0
+                    timing = timing_table(args, args.out, starts.obs, goals, main_model[0], cfg, pool.camera)
+                _, records = run_episodes(pool, starts, goals, dynamics, cfg, keys, choose_omega=chooser,
+                                          sensor=SENSORS[args.sensor], timing=timing, oracle=oracle)
+                mine_done = episode_results(records, mine, name)
+                if size > 1:
+                    files.write_json(part, mine_done)
+            if size > 1:
+                distributed.barrier(f"evaluate {os.path.abspath(path)}")
+                parts = []
+                for i in range(size):
+                    with open(os.path.join(args.out, "parts", f"{method}.{i}-of-{size}.json")) as f:
+                        parts.append(json.load(f))
+            else:
+                parts = [mine_done]
+            results[method] = merge(parts)
+            if distributed.is_writer():
+                files.write_json(path, results[method])
     devices = sorted({r.get("device", "unrecorded") for r in results.values()})  # where the methods ran
     summary = dict(task=args.task, kind=args.kind, pieces=args.pieces, sensor=args.sensor, dynamics=main_model[2],
                    device=", ".join(devices),
                    time_budget=args.time_budget, samples=args.samples, plan_steps=args.plan_steps,
                    steps=args.steps, **summarise(results))
-    files.write_json(os.path.join(args.out, "summary.json"), summary)
-    plot(results, args.task, args.out)
+    if distributed.is_writer():
+        files.write_json(os.path.join(args.out, "summary.json"), summary)
+        plot(results, args.task, args.out)
     for method, s in summary["methods"].items():
         print(f"{method:>8}: final d {s['final_distance']:8.2f} ± {s['final_distance_ci95']:.2f}  inside "
               f"{s['final_inside']:.1%}  ≥{SUCCESS:.0%} inside in {s['success_share']:.0%} of episodes  "

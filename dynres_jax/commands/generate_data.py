@@ -1,8 +1,14 @@
-"""Generate dynamics training data: batched MJX episodes of random pushes, written in resumable shards.
+"""Generate dynamics training data: episodes of random pushes, written in resumable shards.
 
     python -m experiments.generate_data --out data/piles --episodes 2000 --pushes 10 --worlds 256
     python -m experiments.generate_data --out data/piles --backend mujoco   # C engine on every host core
     python -m experiments.generate_data --out /tmp/quick --quick          # seconds-scale smoke run
+
+The engine (--backend): "auto" (default) is MJX on the fast scene where JAX has a GPU ("mjx-fast") and C MuJoCo worker
+processes elsewhere ("mujoco"); "mjx" is MJX on the default scene. Several processes share a run through
+jax.distributed: under srun or mpirun nothing more is needed; by hand, start K processes with ``--coordinator
+HOST:PORT --num-processes K --process-id I`` (README, "Several GPUs and machines"). Process I makes shards I, I + K,
+...; all write into --out.
 
 Every DataConfig field is a flag of the same name (``--two-kinds 0.5``, ``--pieces 40 100``); given flags override
 the defaults, or the --quick sizes. Run the same command again after a kill: finished shards are kept, the rest
@@ -15,6 +21,7 @@ import argparse
 import dataclasses
 import json
 
+from dynres_jax import distributed
 from dynres_jax.learn import data
 
 
@@ -45,19 +52,18 @@ def main(argv=None) -> dict:
                         help="tiny sizes (6 coffee beans, 48x48, 2 short pushes, 8 episodes of 4 worlds)")
     parser.add_argument("--workers", type=int, default=None,
                         help="C engine processes for --backend mujoco (default: every host core)")
-    parser.add_argument("--part", default="0/1", help="I/K: make only shards I, I + K, ... so K machines (or one "
-                        "process per GPU) share a run over one folder (default 0/1: all)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     names = _add_field_flags(parser)
+    distributed.add_args(parser)
     args = parser.parse_args(argv)
+    distributed.from_args(parser, args)
     overrides = {n: tuple(v) if isinstance(v, list) else v for n in names if (v := getattr(args, n)) is not None}
     try:
         config = data.quick_config(**overrides) if args.quick else data.DataConfig(**overrides)
         data.check_devices(config)
-        part = data.parse_part(args.part)
     except (ValueError, TypeError) as e:
         parser.error(str(e))
-    summary = data.generate(config, args.out, progress=not args.no_progress, workers=args.workers, part=part)
+    summary = data.generate(config, args.out, progress=not args.no_progress, workers=args.workers)
     print(json.dumps(summary, indent=1, sort_keys=True))
     return summary
 

@@ -17,12 +17,16 @@ the pile and differ in the goal (a disc and a letter of the same centre, near th
 shards 2s and 2s + 1 share their goals and differ in the pile (spread over the bin vs one blob near the bin centre,
 so near the goal). With ``--mid-episode K`` each scene first runs K steps of the closed loop towards its goal, so the
 labels cover the states adaptive ω meets mid-episode (the pairs then no longer share their piles).
-Each shard is written atomically (``shard_NNNNN.npz``) and a rerun skips finished shards.
+Each shard is written atomically (``shard_NNNNN.npz``) and a rerun skips finished shards. --backend: the engine that
+executes the planned pushes ("auto": MJX on the fast scene where JAX has a GPU, C worker processes elsewhere). Several
+processes share a run through jax.distributed (a launcher, or --coordinator, --num-processes, --process-id): process
+I labels shards I, I + K, ... into the same --out.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import functools
 import glob
 import os
@@ -32,14 +36,15 @@ import jax
 import numpy as np
 from tqdm import tqdm
 
+from dynres_jax import distributed
 from dynres_jax.commands.task import add_planner_args, check_planner_args, load_model, planner_config, timing_table
 from dynres_jax.config import KINDS, SceneConfig
 from dynres_jax.control import resolution
 from dynres_jax.io import files
-from dynres_jax.learn.data import parse_part, save_npz, shard_path, shards_todo
+from dynres_jax.learn.data import save_npz, shard_path, shards_todo
 from dynres_jax.learn.labels import MID_EPISODE_OMEGA, LabelConfig, label_shard, scene_config, shard_scenes
 from dynres_jax.models.registry import SHIPPED_DYNAMICS
-from dynres_jax.sim.pool import WorldPool, process_pool
+from dynres_jax.sim.pool import BACKENDS, make_pool, process_pool, resolve_backend
 
 
 def main(argv=None):
@@ -63,48 +68,52 @@ def main(argv=None):
     parser.add_argument("--mid-episode", type=int, default=0, metavar="K",
                         help=f"label mid-episode states: each scene first runs K MPC steps towards its goal at "
                              f"ω = {MID_EPISODE_OMEGA} under the same budget (default 0: fresh piles, Fig. 4's pairs)")
-    parser.add_argument("--part", default="0/1", help="I/K: label only shards I, I + K, ... so K machines share a "
-                        "run over one folder (default 0/1: all)")
+    parser.add_argument("--backend", default="auto", choices=BACKENDS,
+                        help="engine of the planned pushes (default auto: mjx-fast with a GPU, else mujoco)")
     parser.add_argument("--quick", action="store_true", help="tiny sizes for a CPU smoke run")
+    distributed.add_args(parser)
     args = parser.parse_args(argv)
-    try:
-        part = parse_part(args.part)
-    except ValueError as e:
-        parser.error(str(e))
+    distributed.from_args(parser, args)
+    args.backend = resolve_backend(args.backend)
     if args.quick:
         args.scenes, args.batch, args.evals, args.repeats, args.pieces = 8, 4, 6, 1, 60  # 60: points for ω = 100
         args.samples, args.plan_steps = 4, 4
     check_planner_args(parser, args)
     try:
         cfg = LabelConfig(kind=args.kind, pieces=args.pieces, batch=args.batch, evals=args.evals, repeats=args.repeats,
-                          seed=args.seed, plan_seed=args.plan_seed, mid_episode=args.mid_episode, quick=args.quick)
+                          seed=args.seed, plan_seed=args.plan_seed, mid_episode=args.mid_episode, quick=args.quick,
+                          backend=args.backend)
     except ValueError as e:
         parser.error(str(e))
     dynamics, n_max, name = load_model(parser, args.dynamics, args.ckpt, SceneConfig.plate_half_width)
     if n_max < resolution.OMEGA_MAX:
         parser.error(f"the dynamics checkpoint holds {n_max} particles; labels need {resolution.OMEGA_MAX}")
     os.makedirs(args.out, exist_ok=True)
-    files.write_json(os.path.join(args.out, "config.json"), dict(vars(args), dynamics_name=name))
+    if distributed.is_writer():
+        files.write_json(os.path.join(args.out, "config.json"), dict(vars(args), dynamics_name=name))
     n_shards = -(-args.scenes // args.batch)
-    todo = shards_todo(args.out, n_shards, part)
+    todo = shards_todo(args.out, n_shards)
     t0 = time.perf_counter()
     planner = functools.partial(planner_config, args=args)
-    with process_pool(args.workers) as processes:
+    workers = process_pool(args.workers) if args.backend == "mujoco" else None
+    with workers or contextlib.nullcontext() as processes:
         timing = None
         if todo and args.time_budget is not None:  # one table for the run, measured on the first scene if not given
-            pool = WorldPool(scene_config(cfg, todo[0]), processes)
+            pool = make_pool(scene_config(cfg, todo[0]), args.backend, processes)
             start, _, goals, _ = shard_scenes(cfg, todo[0], pool)
             timing = timing_table(args, args.out, start.obs, goals, dynamics, planner(pool.env), pool.camera)
         for s in tqdm(todo, desc="label shards", unit="shard"):
             save_npz(shard_path(args.out, s), label_shard(cfg, s, dynamics, planner, processes, timing))
     minutes = (time.perf_counter() - t0) / 60
+    distributed.barrier(f"label {os.path.abspath(args.out)}")
     labels = np.concatenate([np.load(p)["label"] for p in sorted(glob.glob(os.path.join(args.out, "shard_*.npz")))])
     summary = dict(scenes=len(labels), shards_written=len(todo), minutes=minutes,
                    labels_per_minute=len(todo) * args.batch / minutes if todo else 0.0,
                    device=jax.devices()[0].device_kind, dynamics=name,
                    label_mean=float(labels.mean()), label_histogram=np.histogram(labels, bins=10, range=(2, 102))[0]
                    .tolist())
-    files.write_json(os.path.join(args.out, "summary.json"), summary)
+    if distributed.is_writer():
+        files.write_json(os.path.join(args.out, "summary.json"), summary)
     print(summary)
     return summary
 

@@ -21,6 +21,7 @@ import imageio.v3 as iio
 import jax
 import numpy as np
 
+from dynres_jax import distributed
 from dynres_jax.config import DEFAULT_PIECES, KINDS, CameraConfig, PileConfig, SceneConfig, SimConfig
 from dynres_jax.control import budget, resolution, tasks
 from dynres_jax.control.mpc import MPCConfig, episode, measure_timing, run_episode
@@ -221,16 +222,26 @@ def planner_config(env, args) -> MPCConfig:
 def timing_table(args, out_dir: str, obs, goal, dynamics, cfg: MPCConfig, camera) -> budget.TimingTable | None:
     """The run's timing table: ``--timing``'s, else the one an earlier run in ``out_dir`` saved (so a resumed run
     spends the budget as it began), else measured here on one observation and goal (unbatched) and saved there as
-    ``timing.json``. None without a time budget."""
+    ``timing.json``. In a job of several processes, process 0 makes the table and every process spends by it. None
+    without a time budget."""
     if cfg.time_budget is None:
         return None
     saved = os.path.join(out_dir, "timing.json")
-    path = args.timing or (saved if os.path.exists(saved) else None)
-    if path is not None:
-        table = budget.TimingTable.load(path)
-    else:
-        table = measure_timing(episode(obs), episode(goal), dynamics, cfg, camera)
-    table.save(saved)
-    print(f"timing table ({table.device}, {'from ' + path if path else 'measured'}): Adam steps in "
-          f"{cfg.time_budget} s: " + ", ".join(f"bucket {b}: {cfg.plan_steps(b, table)}" for b in cfg.buckets))
-    return table
+
+    def make() -> budget.TimingTable:
+        path = args.timing or (saved if os.path.exists(saved) else None)
+        if path is not None:
+            table = budget.TimingTable.load(path)
+        else:
+            table = measure_timing(episode(obs), episode(goal), dynamics, cfg, camera)
+        table.save(saved)
+        print(f"timing table ({table.device}, {'from ' + path if path else 'measured'}): Adam steps in "
+              f"{cfg.time_budget} s: " + ", ".join(f"bucket {b}: {cfg.plan_steps(b, table)}" for b in cfg.buckets))
+        return table
+
+    if distributed.part()[1] == 1:
+        return make()
+    if distributed.is_writer():
+        make()
+    distributed.barrier(f"timing {os.path.abspath(saved)}")
+    return budget.TimingTable.load(saved)

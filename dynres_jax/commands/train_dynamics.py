@@ -5,6 +5,9 @@
     python -m experiments.train_dynamics --data data/piles --out runs/cnn_dynamics --recipe cnn   # the CNN baseline
     python -m experiments.train_dynamics --data data/piles --out runs/mine --residual --push-frame --steps 5000
 
+Data-parallel: each batch is split over every device of every process (jax.distributed: under srun or mpirun nothing
+more is needed; by hand --coordinator, --num-processes, --process-id); --batch must divide by the device count.
+
 --recipe NAME starts from a named config (``train.RECIPES``: "shipped", the shipped model's; "cnn", the CNN
 baseline's); flags given beside it override its values.
 
@@ -21,6 +24,7 @@ import argparse
 import dataclasses
 import json
 
+from dynres_jax import distributed
 from dynres_jax.learn.train import RECIPES, TrainConfig, train
 from dynres_jax.models.cnn_dynamics import CNNDynamicsConfig
 from dynres_jax.models.dynamics import DynamicsConfig
@@ -75,7 +79,9 @@ def main(argv=None):
     parser.add_argument("--max-minutes", type=float, default=None,
                         help="stop after this much wall time, with a checkpoint (run again to go on)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
+    distributed.add_args(parser)
     args = parser.parse_args(argv)
+    distributed.from_args(parser, args)
     fields = {f.name: getattr(args, f.name) for f in dataclasses.fields(TrainConfig) if f.name != "model"}
     fields["held_out_kinds"] = tuple(args.held_out_kinds)
     wrong = [name for name in (CNN_ONLY if args.model == "gnn" else GNN_ONLY) if getattr(args, name) is not None]
@@ -89,6 +95,7 @@ def main(argv=None):
         options = {**dataclasses.asdict(base.model), **options}
     try:
         cfg = TrainConfig(**fields, model=MODEL_CLASSES[args.model][0](**options))
+        distributed.check_batch(cfg.batch, distributed.batch_mesh())
     except ValueError as e:
         parser.error(str(e))
     print(json.dumps(train(cfg, args.data, args.out, progress=not args.quiet, max_minutes=args.max_minutes)))

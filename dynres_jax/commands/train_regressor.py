@@ -8,7 +8,8 @@ stopping; the held-out piles are never used to choose). Loss: squared error of Ï
 training sample goes through one of the 8 rotations and reflections of the square grid, which leave the label
 unchanged (all six channels are images of a square bin seen from above). Reports the held-out mean absolute error in
 Ï‰ against predicting the training labels' mean, and writes an orbax checkpoint (``dynres_jax.io.ckpt``) with a card,
-``metrics.json`` and a scatter plot.
+``metrics.json`` and a scatter plot. Data-parallel over every device of every process (jax.distributed: a launcher, or
+--coordinator, --num-processes, --process-id); process 0 writes.
 """
 
 from __future__ import annotations
@@ -16,6 +17,7 @@ from __future__ import annotations
 import argparse
 import os
 
+from dynres_jax import distributed
 from dynres_jax.control.resolution import OMEGA_MAX, OMEGA_MIN
 from dynres_jax.io import ckpt, files
 from dynres_jax.learn.regressor import load_labels, train_regressor
@@ -32,10 +34,18 @@ def main(argv=None):
     parser.add_argument("--width", type=int, default=16)
     parser.add_argument("--val-every", type=int, default=100, help="steps between validation scores")
     parser.add_argument("--seed", type=int, default=0)
+    distributed.add_args(parser)
     args = parser.parse_args(argv)
+    distributed.from_args(parser, args)
+    try:
+        distributed.check_batch(args.batch, distributed.batch_mesh())
+    except ValueError as e:
+        parser.error(str(e))
     params, metrics, truth, pred = train_regressor(load_labels(args.labels), steps=args.steps, batch=args.batch,
                                                    lr=args.lr, width=args.width, val_every=args.val_every,
                                                    seed=args.seed)
+    if not distributed.is_writer():
+        return metrics
     os.makedirs(args.out, exist_ok=True)
     ckpt.save(os.path.join(args.out, "ckpt"), args.steps, {"module": params}, dict(width=args.width, **metrics))
     files.write_json(os.path.join(args.out, "metrics.json"), metrics)

@@ -164,7 +164,7 @@ def measure(decide: Callable[[int, int], object], buckets: Sequence[int], *, sam
                 break
             probe = min(4 * probe, max_steps)
         fixed[b], step[b] = short, max((long - short) / probe, 1e-9)
-    device = jax.devices()[0]
+    device = jax.local_devices()[0]
     return TimingTable(f"{device.platform}: {device.device_kind}", samples, horizon, fixed, step)
 
 

@@ -254,11 +254,12 @@ def run_episodes(env, states: State, goals: Goal, dynamics, cfg: MPCConfig, keys
     """The closed loop, for one episode or many at once: states and goals batched on a leading axis [B], keys [B].
     Each MPC step is one compiled decision over all episodes (perception, planning, objective: ``decide_batch``) and
     one batched push: ``env`` is a PileEnv (backend "mjx": pushes vmapped on the device; "mujoco": one world after
-    another) or a ``WorldPool`` (pushes in C worker processes). dynamics: ``registry.learned_dynamics(model)`` or
-    ``registry.sweep_dynamics(hw)``. choose_omega: optional ``(obs [B], goals [B]) -> ω [B]`` called every step
-    (adaptive resolution, ``resolution.load_chooser``); default cfg.omega everywhere. oracle: candidate ω values
-    instead: every step plans at each (same keys), pushes each on a copy of the worlds and keeps, per episode, the
-    one whose push left the lowest d (a greedy upper bound of any chooser of ω).
+    another), a ``WorldPool`` (pushes in C worker processes) or an ``MJXPool``. dynamics:
+    ``registry.learned_dynamics(model)`` or ``registry.sweep_dynamics(hw)``. choose_omega: optional
+    ``(obs [B], goals [B]) -> ω [B]`` called every step (adaptive resolution, ``resolution.load_chooser``); default
+    cfg.omega everywhere. oracle: candidate ω values instead: every step plans at each (same keys), pushes each on a
+    copy of the worlds and keeps, per episode, the one whose push left the lowest d (a greedy upper bound of any
+    chooser of ω).
 
     Each episode's decision runs the Adam steps its own bucket affords (``cfg.plan_steps``); the call runs at the
     largest bucket of the batch, which pads inertly. Under a time budget the steps come from ``timing``
@@ -273,7 +274,7 @@ def run_episodes(env, states: State, goals: Goal, dynamics, cfg: MPCConfig, keys
     the loop (Sort's A* waypoints, ``sort.SortPolicy``): ``policy(t, obs [B]) -> StepTarget`` sets every step's goals,
     ω and perceived kind (goals may then be None), and ``policy.score(states) -> {name: [B, ...]}`` adds the task's
     own scores to each record. Returns the final states and the records (and the frames)."""
-    from dynres_jax.sim.pool import WorldPool
+    from dynres_jax.sim.pool import MJXPool, WorldPool
 
     if oracle is not None and (choose_omega is not None or not oracle):
         raise ValueError("oracle takes a non-empty tuple of candidate ω, and no choose_omega beside it")
@@ -284,7 +285,7 @@ def run_episodes(env, states: State, goals: Goal, dynamics, cfg: MPCConfig, keys
     episodes, camera = len(keys), env.camera
     seen_camera = camera if sensor is None else sensor.believed_camera(camera)
     sense = jax.jit(jax.vmap(sensor.observe)) if sensor is not None else None
-    if isinstance(env, WorldPool):
+    if isinstance(env, WorldPool | MJXPool):
         push = env.push
     elif env.backend == "mjx":
         push = jax.jit(jax.vmap(env.push))

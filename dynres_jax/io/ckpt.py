@@ -4,7 +4,8 @@ The rest of the code never touches orbax. Layout: ``DIR/<step>/`` holds one item
 ``opt``, ...; a restore reads only those it asks for) and ``meta`` (JSON: the config to rebuild the module, anything
 the caller adds). Orbax writes a step to a temporary name and
 renames it when complete, so a killed save never leaves a step that looks finished; ``latest_step`` is where a
-training run resumes.
+training run resumes. Every process of a job reads and writes on its own (no orbax barriers): a data-parallel run
+saves host copies from process 0 alone (``dynres_jax.distributed``) and every process restores.
 """
 
 from __future__ import annotations
@@ -36,8 +37,11 @@ logging.getLogger("absl").addFilter(_QuietReadOnly())
 
 
 def _manager(directory, keep: int | None = 3, read_only: bool = False) -> ocp.CheckpointManager:
-    options = ocp.CheckpointManagerOptions(max_to_keep=keep, create=not read_only, read_only=read_only,
-                                           enable_async_checkpointing=False)
+    if not read_only:
+        os.makedirs(directory, exist_ok=True)  # orbax creates no folder for a manager of one process of several
+    alone = ocp.options.MultiprocessingOptions(primary_host=jax.process_index(), active_processes={jax.process_index()})
+    options = ocp.CheckpointManagerOptions(max_to_keep=keep, create=False, read_only=read_only,
+                                           enable_async_checkpointing=False, multiprocessing_options=alone)
     return ocp.CheckpointManager(os.path.abspath(directory), options=options)
 
 
@@ -81,7 +85,7 @@ def restore(directory, abstract_state: dict[str, Any], step: int | None = None) 
     Arrays land on this process's first device, whatever devices wrote them (a GPU checkpoint restores on a CPU).
     Raises FileNotFoundError (nothing there) or CheckpointError (unreadable, or another structure)."""
     step = _step_or_latest(directory, step)
-    here = jax.sharding.SingleDeviceSharding(jax.devices()[0])
+    here = jax.sharding.SingleDeviceSharding(jax.local_devices()[0])
     placed = jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=here)
                           if hasattr(x, "shape") else x, abstract_state)
     with _manager(directory, read_only=True) as mngr:

@@ -1,12 +1,15 @@
-"""Training data for the dynamics model f: batched MJX episodes of random pushes, written as resumable shards.
+"""Training data for the dynamics model f: batched episodes of random pushes, written as resumable shards.
 
 Generation (``generate``). The run is cut into shards; shard ``i`` holds ``DataConfig.worlds`` episodes simulated
 as one batch of worlds, on one ``SimConfig`` drawn for that shard (piece kind(s), piece count, pile layout) from the
-ranges in ``DataConfig``. Everything random in a shard (its scene and its worlds) comes from ``(seed, i)`` alone,
-so shards can be made in any order, and a killed run resumes by skipping the shard files that exist: the result is
-the one an uninterrupted run writes. An episode is ``pushes`` random pushes through the pile (``PileEnv.sample_push``)
-from a freshly reset pile; frame 0 is the settled pile, frame ``t + 1`` the pile after action ``t``. The worlds of a
-batch are sharded over all visible devices (a 1-D ``Mesh`` named ``"worlds"``), so more GPUs go faster unchanged.
+ranges in ``DataConfig``. The engine (``DataConfig.backend``): MJX on a GPU, on the fast scene (``SceneConfig.fast``);
+C MuJoCo worker processes on a CPU, on the given scene. Everything random in a shard (its scene and its worlds) comes
+from ``(seed, i)`` alone, so shards can be made in any order, and a killed run resumes by skipping the shard files that
+exist: the result is the one an uninterrupted run writes. Several processes of one job (``dynres_jax.distributed``: a
+launcher, or ``--coordinator``) share a run: process I makes shards I, I + K, ... into the same folder. An episode is
+``pushes`` random pushes through the pile (``PileEnv.sample_push``) from a freshly reset pile; frame 0 is the settled
+pile, frame ``t + 1`` the pile after action ``t``. The worlds of an MJX batch are sharded over the process's devices
+(a 1-D ``Mesh`` named ``"worlds"``), so more GPUs go faster.
 Results are bit-identical for the same seed, machine and device count; with another device count XLA compiles a
 different per-device batch and values agree to float32 rounding (then drift apart, as chaotic piles do).
 
@@ -51,13 +54,16 @@ import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from tqdm import tqdm
 
+from dynres_jax import distributed
 from dynres_jax.config import (
     KINDS,
     PushConfig,
     SimConfig,
+    fast_fields,
     replace,
 )
 from dynres_jax.io.files import TMP_PREFIX, atomic_write, write_json, write_text
+from dynres_jax.sim import pool as pools
 from dynres_jax.sim.env import PileEnv
 from dynres_jax.sim.pool import WorldPool, process_pool
 
@@ -89,10 +95,12 @@ class DataConfig:
     layouts: pile layouts to draw from. two_kinds: probability that a shard mixes two kinds (half the pieces each),
       for Sort. image_size: square image side (pixels). seed: everything random derives from (seed, shard index).
     drop_broken: drop episodes whose world broke (else keep them with their ``broken`` flags).
-    backend: "mjx" simulates a shard's worlds as one batch sharded over the JAX devices; "mujoco" runs them in the
-      C engine, one world per host process (``generate``'s ``workers``), and renders the frames on the JAX device.
-      With the default Newton solver C MuJoCo on 16 cores outruns MJX on one H100 about 7x (docs/performance.md,
-      "Speed").
+    backend: "mjx" simulates a shard's worlds as one batch sharded over the JAX devices, "mjx-fast" the same on the
+      fast scene (``SceneConfig.fast`` physics for the shard's kinds: about 3.5x C MuJoCo on all 16 cores of an H200
+      host, where the default scene runs at 0.2x; docs/performance.md, "Speed"); "mujoco" runs them in the C engine,
+      one world per host process (``generate``'s ``workers``), and renders the frames on the JAX device; "auto"
+      (default) is "mjx-fast" where JAX has a GPU and "mujoco" elsewhere (``resolve_backend``: a run's config.json
+      records the engine it used).
     sim: the rest of the simulator (physics, push, camera distance); kinds, pieces, layout and image size above
       override its fields per shard.
     """
@@ -108,7 +116,7 @@ class DataConfig:
     image_size: int = 128
     seed: int = 0
     drop_broken: bool = True
-    backend: str = "mjx"
+    backend: str = "auto"
     sim: SimConfig = field(default_factory=SimConfig)
 
     def __post_init__(self):
@@ -126,8 +134,8 @@ class DataConfig:
         if not 0.0 <= self.two_kinds <= 1.0 or (self.two_kinds > 0 and len(set(self.kinds)) < 2):
             raise ValueError(f"DataConfig.two_kinds must be in [0, 1], and 0 unless two distinct kinds are given; "
                              f"got {self.two_kinds} with kinds {self.kinds}")
-        if self.backend not in ("mjx", "mujoco"):
-            raise ValueError(f"DataConfig.backend must be 'mjx' or 'mujoco', got {self.backend!r}")
+        if self.backend not in pools.BACKENDS:
+            raise ValueError(f"DataConfig.backend must be one of {', '.join(pools.BACKENDS)}, got {self.backend!r}")
         if self.image_size < 8:
             raise ValueError(f"DataConfig.image_size must be at least 8 pixels, got {self.image_size}")
 
@@ -143,14 +151,21 @@ def quick_config(**overrides) -> DataConfig:
     """Tiny sizes for smoke tests on a CPU: 6 coffee beans in a blob, 48 x 48 images, 2 short pushes, 8 episodes
     in shards of 4 worlds. ``overrides``: DataConfig fields by name."""
     quick = DataConfig(episodes=8, pushes=2, worlds=4, kinds=("coffee",), pieces=(6, 6), layouts=("blob",),
-                       two_kinds=0.0, image_size=48,
+                       two_kinds=0.0, image_size=48, backend="mjx",
                        sim=SimConfig(push=PushConfig(max_length=0.08, settle_time=0.04)))
     return replace(quick, **overrides)
 
 
+def resolve_backend(config: DataConfig) -> DataConfig:
+    """``config`` with backend "auto" made concrete (``pool.resolve_backend``: "mjx-fast" on a GPU, else
+    "mujoco")."""
+    return replace(config, backend=pools.resolve_backend(config.backend))
+
+
 def shard_sim_config(config: DataConfig, shard: int) -> SimConfig:
     """The scene of shard ``shard``: kind(s), piece count and layout drawn from ``np.random.default_rng((seed,
-    shard))``; image size from the DataConfig, everything else from ``config.sim``."""
+    shard))``; image size from the DataConfig, everything else from ``config.sim`` (with the fast scene's physics for
+    backend "mjx-fast")."""
     rng = np.random.default_rng((config.seed, shard))
     lo, hi = config.pieces
     n = int(rng.choice(np.arange(lo, hi + 1, config.pieces_step)))
@@ -161,7 +176,9 @@ def shard_sim_config(config: DataConfig, shard: int) -> SimConfig:
     else:
         kinds, pieces = (str(rng.choice(config.kinds)),), (n,)
     sim = config.sim
-    return replace(sim, scene=replace(sim.scene, kinds=kinds, pieces=pieces), pile=replace(sim.pile, layout=layout),
+    physics = fast_fields(kinds) if config.backend == "mjx-fast" else {}
+    return replace(sim, scene=replace(sim.scene, kinds=kinds, pieces=pieces, **physics),
+                   pile=replace(sim.pile, layout=layout),
                    camera=replace(sim.camera, width=config.image_size, height=config.image_size))
 
 
@@ -186,10 +203,10 @@ def save_npz(path: str, arrays: dict) -> None:
 # Generation
 # ---------------------------------------------------------------------------------------------------------------
 def check_devices(config: DataConfig, devices=None) -> list:
-    """The devices a run shards its worlds over (default all visible); ValueError unless worlds divides (backend
-    "mjx"; "mujoco" simulates on host processes and renders on the first device)."""
-    devices = list(devices or jax.devices())
-    if config.backend == "mjx" and config.worlds % len(devices):
+    """The devices a run shards its worlds over (default this process's); ValueError unless worlds divides (MJX;
+    "mujoco" simulates on host processes and renders on the first device)."""
+    devices = list(devices or jax.local_devices())
+    if resolve_backend(config).backend != "mujoco" and config.worlds % len(devices):
         raise ValueError(f"DataConfig.worlds={config.worlds} must be a multiple of the device count "
                          f"{len(devices)} (worlds are split evenly over devices); use e.g. worlds="
                          f"{math.ceil(config.worlds / len(devices)) * len(devices)}")
@@ -227,6 +244,7 @@ def simulate_shard(config: DataConfig, shard: int, devices=None, pool=None) -> d
     """Simulate shard ``shard`` (all ``worlds`` episodes, nothing dropped) -> dict of NumPy arrays with a leading
     world axis (see the module docstring) plus the shard's metadata. ``pool``: worker processes for backend
     "mujoco" (``pool.process_pool``); without one the C episodes run in this process."""
+    config = resolve_backend(config)
     devices = check_devices(config, devices)
     sim = shard_sim_config(config, shard)
     keys = jax.random.split(jax.random.fold_in(jax.random.PRNGKey(config.seed), shard), config.worlds)
@@ -261,34 +279,26 @@ def shard_path(out_dir: str, shard: int) -> str:
     return os.path.join(out_dir, f"shard_{shard:05d}.npz")
 
 
-def parse_part(text: str) -> tuple[int, int]:
-    """``"I/K"`` -> (I, K): this process makes the shards whose index is I modulo K, so K machines (or one process
-    per GPU) split a run over one shared folder. ValueError unless 0 <= I < K."""
-    try:
-        i, k = (int(x) for x in str(text).split("/"))
-    except ValueError:
-        raise ValueError(f"a part is written I/K (e.g. 0/4), got {text!r}") from None
-    if not 0 <= i < k:
-        raise ValueError(f"part {i}/{k}: I must lie in [0, K)")
-    return i, k
-
-
-def shards_todo(out_dir: str, n_shards: int, part: tuple[int, int] = (0, 1)) -> list[int]:
-    """This part's shard indices whose files are not written yet (a rerun resumes where a killed one stopped)."""
-    i, k = part
+def shards_todo(out_dir: str, n_shards: int, part: tuple[int, int] | None = None) -> list[int]:
+    """This process's shard indices whose files are not written yet (a rerun resumes where a killed one stopped).
+    part (I, K): shards I, I + K, ... (default ``distributed.part()``: this process of the job)."""
+    i, k = part or distributed.part()
     return [s for s in range(i, n_shards, k) if not os.path.exists(shard_path(out_dir, s))]
 
 
 def generate(config: DataConfig, out_dir: str, devices=None, progress: bool = True, workers: int | None = None,
-             part: tuple[int, int] = (0, 1)) -> dict:
+             part: tuple[int, int] | None = None) -> dict:
     """Simulate ``config`` into ``out_dir`` (shards, config.json, summary.json), resuming a killed run: shard files
     that exist are kept, the missing ones simulated. Returns the summary (also written to summary.json): totals over
     all shards, and this run's shards written, seconds and ``samples_per_s`` (frames written per second of this
     run, compiles included). ValueError when ``out_dir`` holds a run of another DataConfig, or worlds does not
     divide by the device count. ``workers``: C processes for backend "mujoco" (default every host core).
-    ``part`` (I, K): make only the shards with index I modulo K (``parse_part``); K parts may share a folder, one
-    writer per part."""
+    ``part`` (I, K): make only the shards with index I modulo K (default ``distributed.part()``: process I of a job
+    of K; they share the folder). In a job, every process waits for the others before the summary, which process 0
+    writes; each returns it with its own shards' counts and speed."""
+    config = resolve_backend(config)
     devices = check_devices(config, devices)
+    part = part or distributed.part()
     os.makedirs(out_dir, exist_ok=True)
     for shard in range(part[0], config.n_shards, part[1]):  # half-written shards of a killed run of this part
         for leftover in glob.glob(os.path.join(out_dir, TMP_PREFIX + os.path.basename(shard_path(out_dir, shard))
@@ -324,6 +334,7 @@ def generate(config: DataConfig, out_dir: str, devices=None, progress: bool = Tr
             pending.result()
     bar.close()
     seconds = time.perf_counter() - start
+    distributed.barrier(f"generate {os.path.abspath(out_dir)}")
 
     totals = dict(shards=0, episodes=0, frames=0, broken_dropped=0, simulated=0)
     for _, shard in iter_shards(out_dir, members=("broken", "simulated", "dropped")):
@@ -335,8 +346,10 @@ def generate(config: DataConfig, out_dir: str, devices=None, progress: bool = Tr
     summary = dict(totals, episodes_requested=config.episodes, pushes=config.pushes, shards_written=len(todo),
                    shards_skipped=mine - len(todo), seconds=seconds,
                    samples_per_s=written_frames / seconds if todo else 0.0,
-                   devices=len(devices), device_kind=devices[0].device_kind, backend=config.backend)
-    write_json(os.path.join(out_dir, "summary.json"), summary)
+                   devices=len(devices), device_kind=devices[0].device_kind, backend=config.backend,
+                   process=part[0], processes=part[1])
+    if distributed.is_writer():
+        write_json(os.path.join(out_dir, "summary.json"), summary)
     return summary
 
 

@@ -19,7 +19,7 @@ from dynres_jax.control.mpc import MPCConfig, decide, run_episodes
 from dynres_jax.control.objective import distribution_distance, make_goal
 from dynres_jax.perception import check_particles
 from dynres_jax.sim.env import PileEnv
-from dynres_jax.sim.pool import WorldPool
+from dynres_jax.sim.pool import BACKENDS, make_pool
 
 FIRST = (2, 25, 50, 75, 100)  # the reference's initial ω
 MID_EPISODE_OMEGA = 50  # the resolution of the closed loop that brings scenes mid-episode (--mid-episode)
@@ -35,7 +35,9 @@ class LabelConfig:
     """kind, pieces: the piles; batch: scenes per shard (even: scenes come in pairs); evals: c+ evaluations per scene
     (the first ``len(FIRST)`` at FIRST, the rest by Expected Improvement); repeats: plans averaged per evaluation;
     seed: the scenes; plan_seed: the plans and the BO's draws (default seed + 1); mid_episode: closed-loop steps at
-    ω = MID_EPISODE_OMEGA before labelling (0: fresh piles); quick: tiny camera and pushes for CPU tests."""
+    ω = MID_EPISODE_OMEGA before labelling (0: fresh piles); quick: tiny camera and pushes for CPU tests; backend:
+    the engine that executes the plans' pushes (``pool.BACKENDS``; "mjx-fast" labels c*(ω) in the fast scene's
+    physics)."""
 
     kind: str = "coffee"
     pieces: int = 100
@@ -46,6 +48,7 @@ class LabelConfig:
     plan_seed: int | None = None
     mid_episode: int = 0
     quick: bool = False
+    backend: str = "mujoco"
 
     def __post_init__(self):
         if self.batch % 2 or self.batch < 2:
@@ -54,6 +57,8 @@ class LabelConfig:
             raise ValueError(f"evals must exceed the {len(FIRST)} initial evaluations, got {self.evals}")
         if self.mid_episode < 0 or self.repeats < 1:
             raise ValueError("mid_episode must be >= 0 and repeats >= 1")
+        if self.backend not in BACKENDS:
+            raise ValueError(f"backend must be one of {', '.join(BACKENDS)}, got {self.backend!r}")
 
 
 def scene_config(cfg: LabelConfig, shard: int) -> SimConfig:
@@ -77,7 +82,7 @@ def shard_goals(cfg: LabelConfig, shard: int, env) -> tuple[np.ndarray, np.ndarr
     return np.stack(masks), np.arange(cfg.batch) % 2
 
 
-def shard_scenes(cfg: LabelConfig, shard: int, pool: WorldPool):
+def shard_scenes(cfg: LabelConfig, shard: int, pool):
     """A shard's settled piles (batched State [B]), goal masks [B, H, W], goals (batched Goal) and goal shapes [B]."""
     pile_keys = jax.vmap(lambda j: jax.random.fold_in(jax.random.fold_in(jax.random.PRNGKey(cfg.seed), shard), j))(
         jnp.arange(cfg.batch) // 2)  # scenes 2j and 2j + 1: the same pile
@@ -89,8 +94,9 @@ def shard_scenes(cfg: LabelConfig, shard: int, pool: WorldPool):
 def label_shard(cfg: LabelConfig, shard: int, dynamics, planner: Callable[[PileEnv], MPCConfig], processes,
                 timing: budget.TimingTable | None) -> dict:
     """Label one shard: the arrays of its ``shard_NNNNN.npz``. planner: env -> the MPC settings of every plan (its
-    planner and time budget); timing: the table the budget is spent by (None without a budget)."""
-    pool = WorldPool(scene_config(cfg, shard), processes)
+    planner and time budget); processes: C worker processes (``pool.process_pool``) for backend "mujoco", else
+    None; timing: the table the budget is spent by (None without a budget)."""
+    pool = make_pool(scene_config(cfg, shard), cfg.backend, processes)
     camera, mpc = pool.camera, planner(pool.env)
     b, r = cfg.batch, cfg.repeats
     start, goal_masks, goals, shapes = shard_scenes(cfg, shard, pool)

@@ -5,11 +5,13 @@ Held out: every tenth pile (both of its goals), so no held-out pile was seen in 
 (at least one) is a validation set scored every ``val_every`` steps; the best is kept (early stopping; the held-out
 piles are never used to choose). Loss: squared error of ω scaled to [0, 1]. Augmentation: every training sample goes
 through one of the 8 rotations and reflections of the square grid, which leave the label unchanged (all six channels
-are images of a square bin seen from above).
+are images of a square bin seen from above). Data-parallel as ``learn.train``: each batch split over a mesh axis
+"batch" of every device (``dynres_jax.distributed``), the parameters replicated.
 """
 
 from __future__ import annotations
 
+import functools
 import glob
 import os
 
@@ -18,8 +20,10 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 from flax import nnx
+from jax.sharding import NamedSharding, PartitionSpec
 from tqdm import tqdm
 
+from dynres_jax import distributed
 from dynres_jax.control.resolution import OMEGA_MAX, OMEGA_MIN, Regressor
 
 
@@ -49,14 +53,19 @@ def dihedral(images, turns, flip):
 
 
 def train_regressor(d: dict, steps: int = 3000, batch: int = 64, lr: float = 1e-3, width: int = 16,
-                    val_every: int = 100, seed: int = 0) -> tuple[nnx.State, dict, np.ndarray, np.ndarray]:
+                    val_every: int = 100, seed: int = 0,
+                    devices=None) -> tuple[nnx.State, dict, np.ndarray, np.ndarray]:
     """Train g on labels d (``load_labels``). Returns (the kept parameters, metrics: split sizes, held-out mean
     absolute error in ω against predicting the training labels' mean, correlation, best step; the held-out labels
-    [n] and predictions [n])."""
+    [n] and predictions [n]). devices: the data-parallel devices (default every device of every process); ValueError
+    unless ``batch`` divides by their count."""
+    mesh = distributed.batch_mesh(devices)
+    distributed.check_batch(batch, mesh)
     pile_id = d["shard"] * 7919 + d["pile"]
     held = pile_id % 10 == 9
     val = ~held & np.isin(pile_id, np.unique(pile_id[~held])[::10])  # every tenth of the other piles, at least one
-    x, y = jnp.asarray(d["inputs"]), (jnp.asarray(d["label"], jnp.float32) - OMEGA_MIN) / (OMEGA_MAX - OMEGA_MIN)
+    x = np.asarray(d["inputs"])
+    y = (np.asarray(d["label"], np.float32) - OMEGA_MIN) / (OMEGA_MAX - OMEGA_MIN)
     train_i, val_i, held_i = np.flatnonzero(~held & ~val), np.flatnonzero(val), np.flatnonzero(held)
     if min(len(train_i), len(val_i), len(held_i)) == 0:
         raise ValueError(f"{len(d['label'])} labels are too few to hold out and validate on a tenth of the piles "
@@ -64,30 +73,32 @@ def train_regressor(d: dict, steps: int = 3000, batch: int = 64, lr: float = 1e-
     model = Regressor(width=width, rngs=nnx.Rngs(seed))
     graphdef, params = nnx.split(model)
     opt = optax.adam(optax.cosine_decay_schedule(lr, steps, alpha=0.05))
-    state = opt.init(params)
+    params, state = distributed.replicated((params, opt.init(params)), mesh)
+    whole = NamedSharding(mesh, PartitionSpec())
 
     def loss_fn(p, inputs, target):
         pred = (nnx.merge(graphdef, p)(inputs) - OMEGA_MIN) / (OMEGA_MAX - OMEGA_MIN)
         return jnp.mean(jnp.square(pred - target))
 
-    @jax.jit
-    def step(p, s, idx, turns, flip):
-        loss, grads = jax.value_and_grad(loss_fn)(p, dihedral(x[idx], turns, flip), y[idx])
+    @functools.partial(jax.jit, out_shardings=whole)
+    def step(p, s, inputs, target, turns, flip):
+        loss, grads = jax.value_and_grad(loss_fn)(p, dihedral(inputs, turns, flip), target)
         updates, s = opt.update(grads, s, p)
         return optax.apply_updates(p, updates), s, loss
 
-    validation_loss = jax.jit(lambda p: loss_fn(p, x[val_i], y[val_i]))
+    x_val, y_val = distributed.replicated((x[val_i], y[val_i]), mesh)
+    validation_loss = jax.jit(lambda p: loss_fn(p, x_val, y_val), out_shardings=whole)
     rng = np.random.default_rng(seed)
-    best, best_loss, best_step = params, float(validation_loss(params)), 0
+    best, best_loss, best_step = params, float(distributed.host(validation_loss(params))), 0
     for i in tqdm(range(1, steps + 1), desc="train regressor"):
         idx = rng.choice(train_i, batch)
         turns, flip = rng.integers(0, 4, batch), rng.integers(0, 2, batch)
-        params, state, _ = step(params, state, idx, turns, flip)
+        params, state, _ = step(params, state, *distributed.sharded((x[idx], y[idx], turns, flip), mesh))
         if i % val_every == 0 or i == steps:
-            loss = float(validation_loss(params))
+            loss = float(distributed.host(validation_loss(params)))
             if loss < best_loss:
                 best, best_loss, best_step = params, loss, i
-    params = best
+    params = distributed.host(best)
     predict = jax.jit(lambda p, xs: nnx.merge(graphdef, p)(xs))
     pred = np.asarray(predict(params, x[held_i]))
     truth = d["label"][held_i].astype(np.float64)

@@ -11,6 +11,11 @@ The model is the GNN (``dynamics.Dynamics``, ``TrainConfig.model`` a ``DynamicsC
 (``cnn_dynamics.CNNDynamics``, a ``CNNDynamicsConfig``); both have the same call interface, and the checkpoint's card
 says which (``"model_class"``: "gnn" or "cnn"; cards without it are gnn), so ``build_model`` rebuilds either.
 
+Data-parallel: each batch is split over every device of every process (a mesh axis ``"batch"``,
+``dynres_jax.distributed``), the parameters and optimiser state replicated, so every replica applies the same Adam
+update; ``batch`` must divide by the device count. A batch depends on (seed, step) only, whatever the device count:
+one device and four give the same run to float tolerance. Process 0 writes checkpoints and metrics.
+
 Long runs write a checkpoint (model + optimiser, ``ckpt``) every ``ckpt_every`` steps and resume from the newest;
 metrics go to ``metrics.jsonl`` (one JSON object a line; on resume, lines past the checkpoint are dropped) and
 ``curves.png``.
@@ -30,8 +35,10 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 from flax import nnx
+from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from tqdm import tqdm
 
+from dynres_jax import distributed
 from dynres_jax.io import ckpt, files
 from dynres_jax.learn import data, targets
 from dynres_jax.models.cnn_dynamics import CNNDynamicsConfig
@@ -119,13 +126,17 @@ def make_sample(window: targets.Window, omega, key, camera, cfg: TrainConfig) ->
     return targets.make_sample(window, omega, key, camera, cfg.n_max, max_points=cfg.max_points)
 
 
-def make_step(graphdef, optimizer: optax.GradientTransformation, camera, cfg: TrainConfig):
+def make_step(graphdef, optimizer: optax.GradientTransformation, camera, cfg: TrainConfig,
+              mesh: Mesh | None = None):
     """The jitted training step (params, opt_state, windows, omegas, keys) -> (params, opt_state, errors) and
     evaluation (params, windows, omegas, keys) -> errors; errors as ``rollout_errors``; the loss is
-    ``errors[cfg.loss]``."""
+    ``errors[cfg.loss]``. The batch comes split over ``mesh`` (``distributed.sharded``; default
+    ``distributed.batch_mesh()``); what they return is replicated on it."""
+    mesh = mesh or distributed.batch_mesh()
     sample = jax.vmap(functools.partial(make_sample, camera=camera, cfg=cfg))
+    whole = NamedSharding(mesh, PartitionSpec())
 
-    @jax.jit
+    @functools.partial(jax.jit, out_shardings=whole)
     def step(params, opt_state, windows, omegas, keys):
         samples = sample(windows, omegas, keys)
 
@@ -137,17 +148,20 @@ def make_step(graphdef, optimizer: optax.GradientTransformation, camera, cfg: Tr
         updates, opt_state = optimizer.update(grads, opt_state, params)
         return optax.apply_updates(params, updates), opt_state, errors
 
-    @jax.jit
+    @functools.partial(jax.jit, out_shardings=whole)
     def evaluate(params, windows, omegas, keys):
         return rollout_errors(graphdef, params, sample(windows, omegas, keys))
 
     return step, evaluate
 
 
-def _batch(dataset: targets.Dataset, rng: np.random.Generator, cfg: TrainConfig, key):
+def _batch(dataset: targets.Dataset, rng: np.random.Generator, cfg: TrainConfig, key, mesh: Mesh | None = None):
+    """A batch of windows, ω and keys, split over the mesh (default ``distributed.batch_mesh()``); the same for every
+    process and device count."""
+    mesh = mesh or distributed.batch_mesh()
     windows = targets.random_windows(dataset, rng, cfg.batch, cfg.horizon)
-    omegas = rng.integers(cfg.omega_min, cfg.n_max + 1, cfg.batch)
-    return windows, jnp.asarray(omegas, jnp.int32), jax.random.split(key, cfg.batch)
+    omegas = rng.integers(cfg.omega_min, cfg.n_max + 1, cfg.batch).astype(np.int32)
+    return distributed.sharded((windows, omegas, jax.random.split(key, cfg.batch)), mesh)
 
 
 def plot_curves(metrics_path: str, out_png: str) -> None:
@@ -207,10 +221,13 @@ class _Speed:
 
 
 def train(cfg: TrainConfig, data_dir: str, out_dir: str, progress: bool = True,
-          max_minutes: float | None = None) -> dict:
+          max_minutes: float | None = None, devices=None) -> dict:
     """Train (or resume) into ``out_dir``; returns the final metrics. Checkpoints in ``out_dir/ckpt``.
     ``max_minutes``: stop early once this much wall time has passed, after a validation and a checkpoint (run
-    again to go on)."""
+    again to go on). devices: the data-parallel devices (default every device of every process); ValueError before
+    any work unless ``cfg.batch`` divides by their count."""
+    mesh = distributed.batch_mesh(devices)
+    distributed.check_batch(cfg.batch, mesh)
     train_set, val_set = (targets.without_kinds(targets.load_shards(data_dir, split), cfg.held_out_kinds)
                           for split in ("train", "val"))
     if cfg.horizon > train_set.pushes:
@@ -230,8 +247,10 @@ def train(cfg: TrainConfig, data_dir: str, out_dir: str, progress: bool = True,
             raise ValueError(f"{ckpt_dir} was trained with another TrainConfig ({', '.join(changed)} differ); "
                              "use a new --out or the same flags")
         params, opt_state, start = restored["module"], restored["opt"], meta["step"]
-        _trim_metrics(metrics_path, start)
-    step_fn, eval_fn = make_step(graphdef, optimizer, train_set.camera, cfg)
+        if distributed.is_writer():
+            _trim_metrics(metrics_path, start)
+    params, opt_state = distributed.replicated((params, opt_state), mesh)
+    step_fn, eval_fn = make_step(graphdef, optimizer, train_set.camera, cfg, mesh)
     key = jax.random.PRNGKey(cfg.seed)
     last = {}
     bar = tqdm(range(start, cfg.steps), initial=start, total=cfg.steps, desc="train", disable=not progress)
@@ -239,29 +258,34 @@ def train(cfg: TrainConfig, data_dir: str, out_dir: str, progress: bool = True,
     speed = _Speed(cfg.batch)
     for i in bar:
         rng = np.random.default_rng([cfg.seed, i])  # a step's batch depends on (seed, step) only: resumable
-        params, opt_state, errors = step_fn(params, opt_state, *_batch(train_set, rng, cfg, jax.random.fold_in(key, i)))
+        params, opt_state, errors = step_fn(params, opt_state,
+                                            *_batch(train_set, rng, cfg, jax.random.fold_in(key, i), mesh))
         speed.stepped(params)
         done = i + 1
-        out_of_time = max_minutes is not None and time.perf_counter() - t0 > 60 * max_minutes
+        out_of_time = max_minutes is not None and distributed.agree(time.perf_counter() - t0 > 60 * max_minutes)
         if done % cfg.eval_every == 0 or done == cfg.steps or out_of_time:
             speed.pause(params)
-            val = [eval_fn(params, *_batch(val_set, np.random.default_rng([cfg.seed, VAL_STREAM, b]), cfg,
-                                           jax.random.fold_in(key, VAL_STREAM + b)))
+            val = [distributed.host(eval_fn(params, *_batch(val_set, np.random.default_rng([cfg.seed, VAL_STREAM, b]),
+                                                            cfg, jax.random.fold_in(key, VAL_STREAM + b), mesh)))
                    for b in range(cfg.val_batches)]
             val = {name: float(np.mean([v[name] for v in val])) for name in LOSSES}
-            last = dict(step=done, horizon=cfg.horizon, train_rmse_mm=float(np.sqrt(errors["mse"])) * 1000,
+            train_mse = float(distributed.host(errors)["mse"])
+            last = dict(step=done, horizon=cfg.horizon, train_rmse_mm=float(np.sqrt(train_mse)) * 1000,
                         val_rmse_mm=float(np.sqrt(val["mse"])) * 1000, val_distance_mm=val["distance"] * 1000,
-                        samples_per_s=speed.samples_per_s())
-            with open(metrics_path, "a") as f:
-                f.write(json.dumps(last) + "\n")
+                        samples_per_s=speed.samples_per_s(), devices=mesh.size)
+            if distributed.is_writer():
+                with open(metrics_path, "a") as f:
+                    f.write(json.dumps(last) + "\n")
             bar.set_postfix(train=f"{last['train_rmse_mm']:.2f}mm", val=f"{last['val_rmse_mm']:.2f}mm")
             speed.resume()
         if done % cfg.ckpt_every == 0 or done == cfg.steps or out_of_time:
             speed.pause(params)
-            ckpt.save(ckpt_dir, done, {"module": params, "opt": opt_state}, card(cfg, step=done))
+            if distributed.is_writer():
+                ckpt.save(ckpt_dir, done, distributed.host({"module": params, "opt": opt_state}), card(cfg, step=done))
+            distributed.barrier(f"checkpoint {done}")
             speed.resume()
         if out_of_time:
             break
-    if os.path.exists(metrics_path):
+    if distributed.is_writer() and os.path.exists(metrics_path):
         plot_curves(metrics_path, os.path.join(out_dir, "curves.png"))
     return last

@@ -104,8 +104,8 @@ class PileEnv:
         self._layout = jax.jit(self._initial_qpos)
         model = self.scene.model
         if backend == "mjx":
-            self.mx = mjx.put_model(model, impl="jax")
-            self._data0 = mjx.make_data(self.mx, impl="jax")
+            self.mx = mjx.put_model(model, device=jax.local_devices()[0], impl="jax")
+            self._data0 = mjx.make_data(self.mx, device=jax.local_devices()[0], impl="jax")
             if contact_jacobian == "sparse":
                 mjx_step.check_version()
                 mjx_step.check_supported(model)

@@ -1,5 +1,7 @@
-"""Many C MuJoCo worlds at once: ``WorldPool`` steps worlds in host worker processes, one world per core, and
-renders their observations on the JAX device, with ``PileEnv``'s batched State.
+"""Many worlds at once, with ``PileEnv``'s batched State: ``WorldPool`` steps C MuJoCo worlds in host worker
+processes, one world per core, and renders their observations on the JAX device; ``MJXPool`` steps them as one batch
+in MJX on the device. Both have ``reset(keys)``, ``push(states, actions)``, ``env``, ``camera`` and ``scene``;
+``make_pool`` picks one by engine name (``BACKENDS``).
 
 Why: with the default Newton solver, C MuJoCo on every host core outruns MJX on one GPU several times over
 (docs/performance.md, "Speed"), so data generation and evaluation at scale push through this pool while perception and
@@ -9,6 +11,7 @@ push sampling are small JAX functions); it builds each scene once, from the SimC
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import multiprocessing
 import os
@@ -17,10 +20,14 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from dynres_jax.config import CameraConfig, SceneConfig, SimConfig
+from dynres_jax.config import CameraConfig, SceneConfig, SimConfig, fast_fields
 from dynres_jax.sim.camera import Camera, Renderer
 from dynres_jax.sim.env import PileEnv, State
 from dynres_jax.sim.scene import build_scene
+
+# Engines of batched worlds: MJX on the fast scene (SceneConfig.fast's physics), MJX on the scene as given, the C
+# engine in worker processes, and "auto" (the first on a GPU, the last elsewhere).
+BACKENDS = ("auto", "mjx-fast", "mjx", "mujoco")
 
 
 def _host_only() -> None:
@@ -141,3 +148,45 @@ class WorldPool:
         out["depth"] = np.asarray(obs.depth.astype(jnp.float16)).reshape(frames + obs.depth.shape[1:])
         out["piece"] = np.asarray(obs.piece.astype(jnp.int16)).reshape(frames + obs.piece.shape[1:])
         return out
+
+
+class MJXPool:
+    """Worlds of one SimConfig stepped together in MJX on the JAX device: ``WorldPool``'s interface, with
+    ``reset`` and ``push`` one jitted, vmapped call each (compiled once per pool and batch size)."""
+
+    def __init__(self, config: SimConfig):
+        self.env = PileEnv(config, backend="mjx")
+        self.config, self.camera, self.scene = config, self.env.camera, self.env.scene
+        self._reset, self._push = jax.jit(jax.vmap(self.env.reset)), jax.jit(jax.vmap(self.env.push))
+
+    def reset(self, keys) -> State:
+        """New settled piles, one per key: keys [B, 2] -> State [B]."""
+        return self._reset(jnp.asarray(keys))
+
+    def push(self, states: State, actions) -> State:
+        """One push per world: actions [B, 4] (checked like ``PileEnv.push``; a bad one raises ValueError)."""
+        actions = np.asarray(actions, np.float32)
+        for a in actions:
+            self.env.check_action(a)
+        return self._push(states, jnp.asarray(actions))
+
+
+def resolve_backend(backend: str) -> str:
+    """An engine name of ``BACKENDS`` made concrete: "auto" is "mjx-fast" where JAX's default backend is a GPU,
+    else "mujoco" (C worker processes). ValueError for a name not in BACKENDS."""
+    if backend not in BACKENDS:
+        raise ValueError(f"backend must be one of {', '.join(BACKENDS)}, got {backend!r}")
+    if backend == "auto":
+        return "mjx-fast" if jax.default_backend() == "gpu" else "mujoco"
+    return backend
+
+
+def make_pool(config: SimConfig, backend: str, processes=None) -> WorldPool | MJXPool:
+    """Worlds of ``config`` in the engine ``backend`` (``BACKENDS``): "mujoco" (``WorldPool`` on ``processes``),
+    "mjx" (``MJXPool``) or "mjx-fast" (``MJXPool`` with ``SceneConfig.fast``'s physics for the config's kinds)."""
+    backend = resolve_backend(backend)
+    if backend == "mujoco":
+        return WorldPool(config, processes)
+    if backend == "mjx-fast":
+        config = dataclasses.replace(config, scene=dataclasses.replace(config.scene, **fast_fields(config.scene.kinds)))
+    return MJXPool(config)

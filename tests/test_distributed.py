@@ -1,0 +1,107 @@
+"""Several processes, one job (jax.distributed): two local CPU processes make the shards one process makes, byte for
+byte, and share an evaluation's episodes; bad flag combinations are named before any work."""
+
+import argparse
+import json
+import os
+import socket
+import subprocess
+import sys
+
+import pytest
+
+from dynres_jax import distributed
+from dynres_jax.learn import data
+
+REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+QUICK = data.quick_config(episodes=7)  # 2 shards: 4 episodes, then 3
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("localhost", 0))
+        return s.getsockname()[1]
+
+
+def launch(module_args: list[str], processes: int = 2, timeout: int = 600) -> list[str]:
+    """Run ``python -m MODULE ARGS`` as a job of ``processes`` local CPU processes joined by hand; their stdouts."""
+    port, env = free_port(), dict(os.environ, JAX_PLATFORMS="cpu")
+    procs = [subprocess.Popen([sys.executable, "-m", *module_args, "--coordinator", f"localhost:{port}",
+                               "--num-processes", str(processes), "--process-id", str(i)], cwd=REPO, env=env,
+                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) for i in range(processes)]
+    outs = []
+    for p in procs:
+        out, err = p.communicate(timeout=timeout)
+        assert p.returncode == 0, err[-3000:]
+        outs.append(out)
+    return outs
+
+
+@pytest.fixture(scope="module")
+def two_process_data(tmp_path_factory):
+    """The quick run made by a job of two processes (started first, so it runs beside the one-process run)."""
+    out = str(tmp_path_factory.mktemp("job") / "run")
+    port, env = free_port(), dict(os.environ, JAX_PLATFORMS="cpu")
+    procs = [subprocess.Popen([sys.executable, "-m", "experiments.generate_data", "--quick", "--episodes", "7",
+                               "--no-progress", "--out", out, "--coordinator", f"localhost:{port}",
+                               "--num-processes", "2", "--process-id", str(i)], cwd=REPO, env=env,
+                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) for i in range(2)]
+    yield out, procs
+    for p in procs:
+        if p.poll() is None:
+            p.kill()
+
+
+def test_two_processes_write_the_shards_of_one_byte_for_byte(two_process_data, tmp_path):
+    one = str(tmp_path / "one")
+    data.generate(QUICK, one, progress=False)
+    out, procs = two_process_data
+    summaries = []
+    for p in procs:
+        stdout, stderr = p.communicate(timeout=600)
+        assert p.returncode == 0, stderr[-3000:]
+        summaries.append(json.loads(stdout[stdout.index("{"):]))
+    assert [(s["process"], s["processes"], s["shards_written"]) for s in summaries] == [(0, 2, 1), (1, 2, 1)]
+    assert sorted(f for f in os.listdir(out) if f.endswith(".npz")) == ["shard_00000.npz", "shard_00001.npz"]
+    for shard in (0, 1):
+        with open(data.shard_path(out, shard), "rb") as a, open(data.shard_path(one, shard), "rb") as b:
+            assert a.read() == b.read(), f"shard {shard} differs"
+    with open(os.path.join(out, "summary.json")) as f:  # written once, after both, over both shards
+        summary = json.load(f)
+    assert summary["episodes"] == 7 and summary["shards"] == 2
+
+
+def test_two_processes_share_an_evaluation(tmp_path):
+    """Process I runs episodes I, I + 2, ...; process 0 merges the parts in episode order. Episode 0 (a batch of one
+    in both) is what one process alone makes of it: piles, goals and keys are seeded by episode, not by process."""
+    common = ["--quick", "--task", "gather", "--steps", "1", "--methods", "50", "--samples", "4", "--plan-steps", "2",
+              "--workers", "1", "--dynamics", "sweep"]
+    job, alone = str(tmp_path / "job"), str(tmp_path / "alone")
+    launch(["experiments.evaluate", *common, "--episodes", "2", "--out", job])
+    subprocess.run([sys.executable, "-m", "experiments.evaluate", *common, "--episodes", "1", "--out", alone],
+                   cwd=REPO, check=True, env=dict(os.environ, JAX_PLATFORMS="cpu"), capture_output=True)
+    read = lambda *path: json.load(open(os.path.join(*path)))  # noqa: E731
+    shared, single = read(job, "50.json"), read(alone, "50.json")
+    parts = [read(job, "parts", f"50.{i}-of-2.json") for i in range(2)]
+    assert [p["episode"] for p in parts] == [[0], [1]] and shared["processes"] == 2
+    assert shared["final_distance"] == [p["distance"][-1][0] for p in parts]
+    assert shared["final_distance"][0] == single["final_distance"][0]
+    assert read(job, "summary.json")["methods"]["50"]["episodes"] == 2
+
+
+@pytest.mark.parametrize("flags, message", [
+    (dict(coordinator="localhost:1234"), "missing --num-processes, --process-id"),
+    (dict(coordinator="localhost:1234", num_processes=2, process_id=2), "must lie in"),
+    (dict(coordinator="localhost", num_processes=2, process_id=0), "HOST:PORT"),
+])
+def test_bad_job_flags_are_named(flags, message):
+    with pytest.raises(ValueError, match=message):
+        distributed.initialize(**flags)
+
+
+def test_a_lone_process_is_part_zero_of_one():
+    assert distributed.initialize() == (0, 1) and distributed.is_writer()
+    parser = argparse.ArgumentParser()
+    distributed.add_args(parser)
+    with pytest.raises(SystemExit):
+        distributed.from_args(parser, parser.parse_args(["--process-id", "1"]))
