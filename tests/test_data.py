@@ -392,3 +392,17 @@ def test_c_backend_in_worker_processes_equals_in_process():
     assert np.abs(here["pos"][..., :2]).max() < cfg.sim.scene.bin_half_width
     with pytest.raises(ValueError, match="backend"):
         data.DataConfig(backend="flex")
+
+
+def test_engines_of_a_run():
+    """C MuJoCo by default; "auto" resolves before the run (config.json names the engine used); "mjx-fast" shards
+    carry the fast scene's physics for their kinds, the rest of the scene as drawn."""
+    assert data.DataConfig().backend == "mujoco"
+    assert data.resolve_backend(data.DataConfig(backend="auto")).backend == (
+        "mjx-fast" if jax.default_backend() == "gpu" else "mujoco")
+    cfg = data.DataConfig(backend="mjx-fast", kinds=("candy", "coffee"), two_kinds=0.0)
+    for shard in range(4):
+        fast = data.shard_sim_config(cfg, shard)
+        plain = data.shard_sim_config(data.replace(cfg, backend="mujoco"), shard)
+        assert fast.scene == SceneConfig.fast(plain.scene.kinds, plain.scene.pieces)
+        assert (fast.pile, fast.camera) == (plain.pile, plain.camera)

@@ -6,7 +6,7 @@ import pytest
 
 from dynres_jax.config import PushConfig, SceneConfig, SimConfig
 from dynres_jax.sim.env import PileEnv
-from dynres_jax.sim.pool import WorldPool, process_pool
+from dynres_jax.sim.pool import MJXPool, WorldPool, make_pool, process_pool, resolve_backend
 
 SIM = SimConfig(scene=SceneConfig(pieces=(6,)), push=PushConfig(max_length=0.08, settle_time=0.04))
 
@@ -40,3 +40,31 @@ def test_pool_names_a_bad_action():
     states = pool.reset(jax.random.split(jax.random.PRNGKey(0), 1))
     with pytest.raises(ValueError, match="leaves the workspace"):
         pool.push(states, np.array([[0.0, 0.0, 0.5, 0.0]]))
+
+
+def test_mjx_pool_equals_one_mjx_world_at_a_time():
+    """MJXPool: one vmapped reset and push of 2 worlds equal PileEnv's MJX backend world by world (to float32 rounding
+    of a batched program), and the pushes moved pieces; make_pool names an unknown engine."""
+    pool, env = make_pool(SIM, "mjx"), PileEnv(SIM, backend="mjx")
+    assert isinstance(pool, MJXPool)
+    keys = jax.random.split(jax.random.PRNGKey(3), 2)
+    states = pool.reset(keys)
+    centre = np.asarray(states.pos)[:, :, :2].mean(1)
+    actions = np.concatenate([centre - [[0.04, 0], [0, 0.04]], centre + [[0.03, 0], [0, 0.03]]], 1).astype(np.float32)
+    pushed = pool.push(states, actions)
+    for i, key in enumerate(keys):
+        one = env.push(env.reset(key), actions[i])
+        np.testing.assert_allclose(np.asarray(pushed.pos[i]), np.asarray(one.pos), atol=1e-4)
+    assert np.abs(np.asarray(pushed.pos) - np.asarray(states.pos)).max() > 0.005
+    with pytest.raises(ValueError, match="leaves the workspace"):
+        pool.push(states, np.full((2, 4), 1.0, np.float32))
+    with pytest.raises(ValueError, match="backend must be one of"):
+        make_pool(SIM, "flex")
+
+
+def test_fast_engine_and_auto_choice():
+    """"mjx-fast" simulates SceneConfig.fast's physics for the config's kinds; "auto" is C MuJoCo without a GPU."""
+    assert resolve_backend("auto") == ("mjx-fast" if jax.default_backend() == "gpu" else "mujoco")
+    fast = make_pool(SIM, "mjx-fast").config.scene
+    assert fast == SceneConfig.fast(SIM.scene.kinds, SIM.scene.pieces) and fast != SIM.scene
+    assert make_pool(SIM, "mjx").config.scene == SIM.scene

@@ -4,8 +4,10 @@
     python -m experiments.generate_data --out data/piles --backend mujoco   # C engine on every host core
     python -m experiments.generate_data --out /tmp/quick --quick          # seconds-scale smoke run
 
-The engine (--backend): "auto" (default) is MJX on the fast scene where JAX has a GPU ("mjx-fast") and C MuJoCo worker
-processes elsewhere ("mujoco"); "mjx" is MJX on the default scene. Several processes share a run through
+The engine (--backend): "mujoco" (default) runs C MuJoCo worker processes on every host core; "mjx-fast" is MJX on the
+fast scene (2.8x faster on one H200 than the C workers on its 16 cores, but a model trained on its data does worse in
+the C scene: docs/performance.md, "Data from MJX"); "mjx" is MJX on the default scene; "auto" is "mjx-fast" where JAX
+has a GPU, "mujoco" elsewhere. Several processes share a run through
 jax.distributed: under srun or mpirun nothing more is needed; by hand, start K processes with ``--coordinator
 HOST:PORT --num-processes K --process-id I`` (README, "Several GPUs and machines"). Process I makes shards I, I + K,
 ...; all write into --out.

@@ -18,7 +18,7 @@ shards 2s and 2s + 1 share their goals and differ in the pile (spread over the b
 so near the goal). With ``--mid-episode K`` each scene first runs K steps of the closed loop towards its goal, so the
 labels cover the states adaptive ω meets mid-episode (the pairs then no longer share their piles).
 Each shard is written atomically (``shard_NNNNN.npz``) and a rerun skips finished shards. --backend: the engine that
-executes the planned pushes ("auto": MJX on the fast scene where JAX has a GPU, C worker processes elsewhere). Several
+executes the planned pushes (default "mujoco", C worker processes; "mjx-fast" and "auto" as in generate_data). Several
 processes share a run through jax.distributed (a launcher, or --coordinator, --num-processes, --process-id): process
 I labels shards I, I + K, ... into the same --out.
 """
@@ -68,8 +68,8 @@ def main(argv=None):
     parser.add_argument("--mid-episode", type=int, default=0, metavar="K",
                         help=f"label mid-episode states: each scene first runs K MPC steps towards its goal at "
                              f"ω = {MID_EPISODE_OMEGA} under the same budget (default 0: fresh piles, Fig. 4's pairs)")
-    parser.add_argument("--backend", default="auto", choices=BACKENDS,
-                        help="engine of the planned pushes (default auto: mjx-fast with a GPU, else mujoco)")
+    parser.add_argument("--backend", default="mujoco", choices=BACKENDS,
+                        help="engine of the planned pushes (auto: mjx-fast with a GPU, else mujoco)")
     parser.add_argument("--quick", action="store_true", help="tiny sizes for a CPU smoke run")
     distributed.add_args(parser)
     args = parser.parse_args(argv)
