@@ -3,10 +3,12 @@
 # count (DEFAULT_PIECES: a pile of 100 coffee beans' area), ω = 50, 50 samples x 100 Adam steps, no time budget.
 #   OUT=runs/kinds bash scripts/gpu_kinds.sh
 # Env: KINDS (all six), EPISODES (64), SEED (1000: seeds the project had not used when it was first run), SENSOR
-# (none; realsense: the depth-camera profile of dynres_jax/sim/sensor.py).
+# (none; realsense: the depth-camera profile of dynres_jax/sim/sensor.py), FLAGS (more evaluate flags: --ckpt DIR,
+# --horizon 2, ...).
 set -uo pipefail
 OUT=${OUT:-runs/kinds}; EPISODES=${EPISODES:-64}; SEED=${SEED:-1000}; SENSOR=${SENSOR:-none}
+# shellcheck disable=SC2086
 for kind in ${KINDS:-coffee almond rice mnm granola candy}; do
   python -m experiments.evaluate --task gather --kind "$kind" --episodes "$EPISODES" --methods 50 --samples 50 \
-    --plan-steps 100 --seed "$SEED" --sensor "$SENSOR" --out "$OUT/$kind" 2>&1 | grep -v "it/s\]" | tail -2 || exit
+    --plan-steps 100 --seed "$SEED" --sensor "$SENSOR" ${FLAGS:-} --out "$OUT/$kind" 2>&1 | grep -v "it/s\]" | tail -2 || exit
 done
