@@ -4,6 +4,7 @@ byte, and share an evaluation's episodes; bad flag combinations are named before
 import argparse
 import json
 import os
+import shutil
 import socket
 import subprocess
 import sys
@@ -87,6 +88,55 @@ def test_two_processes_share_an_evaluation(tmp_path):
     assert shared["final_distance"] == [p["distance"][-1][0] for p in parts]
     assert shared["final_distance"][0] == single["final_distance"][0]
     assert read(job, "summary.json")["methods"]["50"]["episodes"] == 2
+
+
+TRAIN_IN_A_JOB = """
+import json, sys
+from dynres_jax import distributed
+distributed.initialize(sys.argv[1], 2, int(sys.argv[2]))
+import jax
+from dynres_jax.learn import train
+from dynres_jax.learn.train import TrainConfig
+from dynres_jax.models.dynamics import DynamicsConfig
+cfg = TrainConfig(steps=4, batch=4, horizon=2, n_max=8, max_points=256, eval_every=2, ckpt_every=2, val_batches=1,
+                  model=DynamicsConfig(hidden=16))
+assert len(jax.devices()) == 4 and len(jax.local_devices()) == 2
+print(json.dumps(train.train(cfg, sys.argv[3], sys.argv[4], progress=False)))
+"""
+
+
+def test_training_spans_two_processes_and_resumes_in_both(tmp_path):
+    """Two processes of two CPU devices each train one model (each batch split over all four): both end with the same
+    metrics, process 0 alone writes the checkpoints and metrics, and with the last checkpoint deleted both restore the
+    one before and train on to the same result (a batch depends on (seed, step) only)."""
+    shards, out = str(tmp_path / "data"), str(tmp_path / "run")
+    data.generate(data.quick_config(episodes=20, pushes=3), shards, progress=False)
+
+    def job() -> list[dict]:
+        port = free_port()
+        env = dict(os.environ, JAX_PLATFORMS="cpu", XLA_FLAGS="--xla_force_host_platform_device_count=2")
+        procs = [subprocess.Popen([sys.executable, "-c", TRAIN_IN_A_JOB, f"localhost:{port}", str(i), shards, out],
+                                  cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                 for i in range(2)]
+        results = []
+        for p in procs:
+            stdout, stderr = p.communicate(timeout=600)
+            assert p.returncode == 0, stderr[-3000:]
+            results.append(json.loads(stdout.strip().splitlines()[-1]))
+        for r in results:
+            r.pop("samples_per_s")  # each process's own clock
+        return results
+
+    first = job()
+    assert first[0] == first[1] and first[0]["devices"] == 4 and first[0]["step"] == 4
+    assert sorted(os.listdir(os.path.join(out, "ckpt"))) == ["2", "4"]
+    with open(os.path.join(out, "metrics.jsonl")) as f:
+        assert [json.loads(line)["step"] for line in f] == [2, 4]  # one writer: no line twice
+    shutil.rmtree(os.path.join(out, "ckpt", "4"))
+    again = job()
+    assert again[0] == again[1]
+    for key in ("train_rmse_mm", "val_rmse_mm", "val_distance_mm"):
+        assert again[0][key] == pytest.approx(first[0][key], rel=1e-5), key
 
 
 @pytest.mark.parametrize("flags, message", [
