@@ -239,7 +239,17 @@ def main(argv=None):
         masks = episode_goals(args.task, args.episodes, args.seed, pool.env)
         goals = jax.tree.map(lambda *g: jnp.stack(g), *[make_goal(masks[i], pool.camera) for i in mine])
         keys = jax.random.split(jax.random.PRNGKey(args.seed), args.episodes)[mine]
+        pile_keys = jax.vmap(lambda i: jax.random.fold_in(jax.random.PRNGKey(args.seed), i))(jnp.asarray(mine))
+        todo = [m for m in args.methods if not os.path.exists(os.path.join(args.out, f"{m}.json"))]
+
+        def loop_config(omega: int):
+            return dataclasses.replace(planner_config(pool.env, args), steps=args.steps, omega=omega,
+                                       real_depth=args.sensor != "none")
+
         timing = None
+        if args.time_budget is not None and todo:  # one table for every method: the main model on the first episode
+            timing = timing_table(args, args.out, pool.reset(pile_keys[:1]).obs, goals, main_model[0], loop_config(50),
+                                  pool.camera)
         for method in args.methods:
             path = os.path.join(args.out, f"{method}.json")
             if os.path.exists(path):
@@ -248,8 +258,7 @@ def main(argv=None):
                 continue
             dynamics, _, name = cnn_model if method == "cnn" else main_model
             omega = args.cnn_omega if method == "cnn" else int(method) if method.isdigit() else 50
-            cfg = dataclasses.replace(planner_config(pool.env, args), steps=args.steps, omega=omega,
-                                      real_depth=args.sensor != "none")
+            cfg = loop_config(omega)
             chooser = resolution.load_chooser(args.regressor, pool.camera) if method == "adaptive" else None
             oracle = ORACLE_OMEGAS if method == "oracle" else None
             print(f"{args.task}: method {method}, {len(mine)} of {args.episodes} episodes, dynamics {name}")
@@ -258,10 +267,7 @@ def main(argv=None):
                 with open(part) as f:
                     mine_done = json.load(f)
             else:
-                starts = pool.reset(jax.vmap(lambda i: jax.random.fold_in(jax.random.PRNGKey(args.seed), i))(
-                    jnp.asarray(mine)))
-                if timing is None:  # one table for every method: measured with the main model on episode 0
-                    timing = timing_table(args, args.out, starts.obs, goals, main_model[0], cfg, pool.camera)
+                starts = pool.reset(pile_keys)
                 _, records = run_episodes(pool, starts, goals, dynamics, cfg, keys, choose_omega=chooser,
                                           sensor=SENSORS[args.sensor], timing=timing, oracle=oracle)
                 mine_done = episode_results(records, mine, name)

@@ -98,9 +98,12 @@ def main(argv=None):
     workers = process_pool(args.workers) if args.backend == "mujoco" else None
     with workers or contextlib.nullcontext() as processes:
         timing = None
-        if todo and args.time_budget is not None:  # one table for the run, measured on the first scene if not given
-            pool = make_pool(scene_config(cfg, todo[0]), args.backend, processes)
-            start, _, goals, _ = shard_scenes(cfg, todo[0], pool)
+        # One table for the run, measured on the first scene to do if not given; in a job every process takes part
+        # (process 0 measures, the rest wait for its table), whether or not it has shards left.
+        if args.time_budget is not None and (todo or distributed.part()[1] > 1):
+            first = (todo or [0])[0]
+            pool = make_pool(scene_config(cfg, first), args.backend, processes)
+            start, _, goals, _ = shard_scenes(cfg, first, pool)
             timing = timing_table(args, args.out, start.obs, goals, dynamics, planner(pool.env), pool.camera)
         for s in tqdm(todo, desc="label shards", unit="shard"):
             save_npz(shard_path(args.out, s), label_shard(cfg, s, dynamics, planner, processes, timing))
