@@ -17,7 +17,8 @@ COMMANDS = sorted(p.stem for p in (ROOT / "experiments").glob("*.py") if '"__mai
 
 def readme_commands() -> list[tuple[str, list[str]]]:
     """Every ``python -m experiments.X ARGS`` the README shows, in code blocks (continuation lines joined) and
-    inline code (which may wrap), as (module, args); chained commands and trailing comments cut off."""
+    inline code (which may wrap), as (module, args); chained commands and trailing comments cut off; a shell loop's
+    variable (``$i``) stands for 0."""
     text = (ROOT / "README.md").read_text()
     blocks = re.findall(r"```[^\n]*\n(.*?)```", text, re.S)
     lines = [line for b in blocks for line in b.replace("\\\n", " ").splitlines()]
@@ -26,7 +27,7 @@ def readme_commands() -> list[tuple[str, list[str]]]:
     found = []
     for line in lines:
         for m in re.finditer(r"python -m (experiments\.\w+)([^&|;]*)", line):
-            found.append((m.group(1), shlex.split(m.group(2), comments=True)))
+            found.append((m.group(1), shlex.split(re.sub(r"\$\w+", "0", m.group(2)), comments=True)))
     return sorted(set((module, tuple(args)) for module, args in found))
 
 
