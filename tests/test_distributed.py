@@ -9,6 +9,7 @@ import socket
 import subprocess
 import sys
 
+import numpy as np
 import pytest
 
 from dynres_jax import distributed
@@ -155,3 +156,43 @@ def test_a_lone_process_is_part_zero_of_one():
     distributed.add_args(parser)
     with pytest.raises(SystemExit):
         distributed.from_args(parser, parser.parse_args(["--process-id", "1"]))
+
+
+REGRESSOR_ON_FOUR = """
+import json, sys
+import jax
+import numpy as np
+sys.path.insert(0, "tests")
+from test_distributed import regressor_run
+assert len(jax.devices()) == 4
+print(json.dumps(regressor_run()))
+"""
+
+
+def regressor_run() -> dict:
+    """g trained on 60 synthetic scenes (labels a function of the inputs' mean), 30 steps of batch 8, on every
+    device: its metrics and a checksum of its parameters."""
+    import jax
+
+    from dynres_jax.learn.regressor import train_regressor
+
+    rng = np.random.default_rng(0)
+    inputs = rng.normal(size=(60, 16, 16, 6)).astype(np.float32)
+    labels = np.clip(50 + 400 * inputs.mean(axis=(1, 2, 3)), 2, 100).astype(np.int32)
+    d = dict(inputs=inputs, label=labels, pile=np.arange(60) // 2, shard=np.zeros(60, np.int64))
+    params, metrics, _, _ = train_regressor(d, steps=30, batch=8, width=4, val_every=10)
+    metrics["checksum"] = float(sum(np.abs(np.asarray(x)).sum() for x in jax.tree.leaves(params)))
+    return metrics
+
+
+def test_regressor_on_four_devices_trains_as_on_one():
+    """g data-parallel: 4 forced CPU devices (each batch of 8 split 2 + 2 + 2 + 2) give one device's run to float
+    tolerance, and training moved the parameters away from their start (steps=0 would keep them)."""
+    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=4", JAX_PLATFORMS="cpu")
+    proc = subprocess.run([sys.executable, "-c", REGRESSOR_ON_FOUR], cwd=REPO, env=env, capture_output=True,
+                          text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    four, one = json.loads(proc.stdout.strip().splitlines()[-1]), regressor_run()
+    for key in ("mae", "validation_mse", "checksum", "best_step"):
+        assert four[key] == pytest.approx(one[key], rel=1e-4), key
+    assert one["best_step"] > 0
