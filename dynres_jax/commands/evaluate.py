@@ -252,7 +252,7 @@ def main(argv=None):
                                   pool.camera)
         for method in args.methods:
             path = os.path.join(args.out, f"{method}.json")
-            if os.path.exists(path):
+            if method not in todo:
                 with open(path) as f:
                     results[method] = json.load(f)
                 continue

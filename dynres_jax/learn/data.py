@@ -59,7 +59,6 @@ from dynres_jax.config import (
     KINDS,
     PushConfig,
     SimConfig,
-    fast_fields,
     replace,
 )
 from dynres_jax.io.files import TMP_PREFIX, atomic_write, write_json, write_text
@@ -166,8 +165,8 @@ def resolve_backend(config: DataConfig) -> DataConfig:
 
 def shard_sim_config(config: DataConfig, shard: int) -> SimConfig:
     """The scene of shard ``shard``: kind(s), piece count and layout drawn from ``np.random.default_rng((seed,
-    shard))``; image size from the DataConfig, everything else from ``config.sim`` (with the fast scene's physics for
-    backend "mjx-fast")."""
+    shard))``; image size from the DataConfig, everything else from ``config.sim``, as the run's engine simulates it
+    (``pool.engine_config``: the fast scene's physics for "mjx-fast")."""
     rng = np.random.default_rng((config.seed, shard))
     lo, hi = config.pieces
     n = int(rng.choice(np.arange(lo, hi + 1, config.pieces_step)))
@@ -178,10 +177,9 @@ def shard_sim_config(config: DataConfig, shard: int) -> SimConfig:
     else:
         kinds, pieces = (str(rng.choice(config.kinds)),), (n,)
     sim = config.sim
-    physics = fast_fields(kinds) if config.backend == "mjx-fast" else {}
-    return replace(sim, scene=replace(sim.scene, kinds=kinds, pieces=pieces, **physics),
-                   pile=replace(sim.pile, layout=layout),
-                   camera=replace(sim.camera, width=config.image_size, height=config.image_size))
+    drawn = replace(sim, scene=replace(sim.scene, kinds=kinds, pieces=pieces), pile=replace(sim.pile, layout=layout),
+                    camera=replace(sim.camera, width=config.image_size, height=config.image_size))
+    return pools.engine_config(drawn, config.backend)
 
 
 # ---------------------------------------------------------------------------------------------------------------

@@ -30,6 +30,14 @@ from dynres_jax.sim.scene import build_scene
 BACKENDS = ("auto", "mjx-fast", "mjx", "mujoco")
 
 
+def _checked(env: PileEnv, actions) -> np.ndarray:
+    """actions [B, 4] as float32, each checked like ``PileEnv.push`` (a bad one raises ValueError naming it)."""
+    actions = np.asarray(actions, np.float32)
+    for a in actions:
+        env.check_action(a)
+    return actions
+
+
 def _host_only() -> None:
     """Worker initialiser: JAX on the host (never the accelerator the parent holds), one thread per process."""
     os.environ["XLA_FLAGS"] = "--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1"
@@ -128,9 +136,7 @@ class WorldPool:
 
     def push(self, states: State, actions) -> State:
         """One push per world: actions [B, 4] (checked like ``PileEnv.push``; a bad one raises ValueError)."""
-        actions = np.asarray(actions, np.float32)
-        for a in actions:
-            self.env.check_action(a)
+        actions = _checked(self.env, actions)
         worlds = zip(*(np.asarray(x) for x in (states.qpos, states.qvel, states.pos, states.mat, states.broken)),
                      strict=True)
         jobs = [(self._json, w, a) for w, a in zip(worlds, actions, strict=True)]
@@ -165,10 +171,7 @@ class MJXPool:
 
     def push(self, states: State, actions) -> State:
         """One push per world: actions [B, 4] (checked like ``PileEnv.push``; a bad one raises ValueError)."""
-        actions = np.asarray(actions, np.float32)
-        for a in actions:
-            self.env.check_action(a)
-        return self._push(states, jnp.asarray(actions))
+        return self._push(states, jnp.asarray(_checked(self.env, actions)))
 
 
 def resolve_backend(backend: str) -> str:
@@ -181,12 +184,17 @@ def resolve_backend(backend: str) -> str:
     return backend
 
 
+def engine_config(config: SimConfig, backend: str) -> SimConfig:
+    """``config`` as the engine ``backend`` simulates it: with ``SceneConfig.fast``'s physics for its kinds under
+    "mjx-fast" (or "auto" on a GPU), else unchanged."""
+    if resolve_backend(backend) != "mjx-fast":
+        return config
+    return dataclasses.replace(config, scene=dataclasses.replace(config.scene, **fast_fields(config.scene.kinds)))
+
+
 def make_pool(config: SimConfig, backend: str, processes=None) -> WorldPool | MJXPool:
     """Worlds of ``config`` in the engine ``backend`` (``BACKENDS``): "mujoco" (``WorldPool`` on ``processes``),
-    "mjx" (``MJXPool``) or "mjx-fast" (``MJXPool`` with ``SceneConfig.fast``'s physics for the config's kinds)."""
-    backend = resolve_backend(backend)
-    if backend == "mujoco":
+    "mjx" (``MJXPool``) or "mjx-fast" (``MJXPool`` on ``engine_config``'s fast physics)."""
+    if resolve_backend(backend) == "mujoco":
         return WorldPool(config, processes)
-    if backend == "mjx-fast":
-        config = dataclasses.replace(config, scene=dataclasses.replace(config.scene, **fast_fields(config.scene.kinds)))
-    return MJXPool(config)
+    return MJXPool(engine_config(config, backend))
