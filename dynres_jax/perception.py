@@ -184,6 +184,24 @@ def _sample_particles(observation, camera, omega, key, n_max, max_points, r_cent
                      error)
 
 
+@functools.partial(jax.jit, static_argnames=("camera", "real_depth"))
+def particle_kinds(observation: Observation, camera: Camera, particles: Particles, real_depth: bool = False):
+    """Each particle's piece kind: the kind (``observation.kind``) of the foreground pixel nearest to it on the table
+    plane -> [n_max] int32, -1 where masked or when no foreground pixel has a kind. For Sort's objective, which scores
+    each kind's particles against its own goal (``objective.kind_objective``)."""
+    points, valid = foreground(observation, camera, real_depth=real_depth)
+    kinds = jnp.asarray(observation.kind, jnp.int32).reshape(-1)
+    labelled = valid & (kinds >= 0)
+    x, y = points[:, 0], points[:, 1]
+
+    def nearest(particle):
+        d2 = jnp.where(labelled, jnp.square(x - particle[0]) + jnp.square(y - particle[1]), jnp.inf)
+        return kinds[jnp.argmin(d2)]
+
+    found = jax.lax.map(nearest, particles.positions)
+    return jnp.where(particles.mask & jnp.any(labelled), found, -1).astype(jnp.int32)
+
+
 def describe_error(error: int, omega=None, n_max=None, n_points=None) -> str:
     """A readable list of the problems in a concrete ``Particles.error`` ('' when 0)."""
     problems = []

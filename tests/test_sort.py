@@ -1,4 +1,5 @@
-"""Sort: the A* blob planner against a brute-force BFS, goal sampling, and a tiny closed-loop episode (CPU)."""
+"""Sort: the A* blob planner against a brute-force BFS, goal sampling, each kind scored against its own goal, and a tiny
+closed-loop episode (CPU)."""
 
 from collections import deque
 
@@ -7,11 +8,19 @@ import numpy as np
 import pytest
 
 from dynres_jax.config import CameraConfig, PileConfig, PushConfig, SceneConfig, SimConfig
-from dynres_jax.control.mpc import MPCConfig
-from dynres_jax.control.objective import BIN_HALF_WIDTH
+from dynres_jax.control.mpc import MPCConfig, StepTarget, batch, episode, goal_cost, run_episodes
+from dynres_jax.control.objective import (
+    BIN_HALF_WIDTH,
+    distribution_distance,
+    kind_objective,
+    make_goal,
+    objective,
+    stack_goals,
+)
 from dynres_jax.control.planner import PlannerConfig
-from dynres_jax.control.sort import astar_blobs, sort_episode, sort_goal
+from dynres_jax.control.sort import astar_blobs, sort_episode, sort_goal, sort_scores
 from dynres_jax.models.registry import sweep_dynamics
+from dynres_jax.perception import particle_kinds, sample_particles
 from dynres_jax.sim.env import PileEnv
 
 STEP = 0.025  # m, the tests' grid
@@ -124,7 +133,7 @@ def test_tiny_sort_episode_runs_and_records_every_step(env):
     assert [r["step"] for r in records] == [0, 1, 2] and len(lines) == 3 and len(frames) == 4
     assert frames[0].shape == (192, 192, 3) and frames[0].dtype == np.uint8
     for r in records:
-        assert r["phase"] in ("path", "final", "direct") and r["kind"] in (0, 1)
+        assert r["phase"] in ("path", "final", "direct") and r["kind"] in ((-1,) if r["phase"] == "final" else (0, 1))
         assert {"omega", "bucket", "plan_steps", "planning_s", "distance", "success", "action", "inside",
                 "mixing"} <= set(r)  # the one loop's record, with Sort's fields and scores
         assert len(r["waypoint"]) == 2 and np.all(np.abs(r["waypoint"]) <= BIN_HALF_WIDTH)
@@ -133,3 +142,60 @@ def test_tiny_sort_episode_runs_and_records_every_step(env):
         assert all(0.0 <= s <= 1.0 for s in r["inside"]) and 0.0 <= r["mixing"] <= 1.0
         assert np.isfinite(r["objective"]) and np.isfinite(r["predicted_objective"])
         assert np.all(np.abs(r["action"]) <= env.action_bound + 1e-5)
+
+
+def test_particle_kinds_match_the_nearest_piece(env):
+    state = env.reset(jax.random.PRNGKey(3))
+    particles = sample_particles(state.obs, env.camera, 20, jax.random.PRNGKey(4), 32)
+    kinds = np.asarray(particle_kinds(state.obs, env.camera, particles))
+    pos, mask = np.asarray(particles.positions), np.asarray(particles.mask)
+    pieces, piece_kind = np.asarray(state.pos)[:, :2], np.asarray(env.scene.kind)
+    reference = [piece_kind[np.argmin(np.sum((pieces - p[:2]) ** 2, axis=1))] for p in pos[mask]]
+    assert np.all(kinds[~mask] == -1) and set(kinds[mask]) == {0, 1}  # both blobs seen
+    assert np.mean(kinds[mask] == reference) >= 0.9
+
+
+def test_kind_objective_scores_each_kind_against_its_own_goal(env):
+    goals_xy, radius, masks = sort_goal(np.random.default_rng(1), env)
+    goals = [make_goal(m, env.camera) for m in masks]
+    rng = np.random.default_rng(2)
+    positions = np.concatenate([rng.uniform(-0.1, 0.1, (12, 2)), np.full((12, 1), 0.01)], axis=1).astype(np.float32)
+    mask = np.arange(12) < 10
+    kinds = rng.integers(0, 2, 12)
+    total = kind_objective(positions, mask, kinds, stack_goals(goals), env.camera)
+    parts = [objective(positions, mask & (kinds == k), goals[k], env.camera) for k in (0, 1)]
+    assert float(total) == pytest.approx(float(parts[0] + parts[1]), rel=1e-5)
+    swapped = kind_objective(positions, mask, 1 - kinds, stack_goals(goals), env.camera)
+    assert abs(float(swapped) - float(total)) > 1e-3  # the labels matter
+    cost = goal_cost(stack_goals(goals), env.camera, 32, kinds)
+    assert float(cost(positions, mask)) == pytest.approx(float(total), rel=1e-5)
+    with pytest.raises(ValueError, match="KindGoals"):
+        goal_cost(stack_goals(goals), env.camera)
+
+
+class FixedKindGoals:
+    """A policy that asks every step for Sort's own two goals (one per kind) at ω = 12."""
+
+    def __init__(self, goals):
+        self.goals = goals
+
+    def __call__(self, t, obs):
+        return StepTarget(batch(stack_goals(self.goals)), np.array([12]), None, {}, None)
+
+    def score(self, states):
+        return {}
+
+
+def test_a_step_against_kind_goals_is_scored_per_kind(env):
+    goals_xy, radius, masks = sort_goal(np.random.default_rng(0), env)
+    goals = [make_goal(m, env.camera) for m in masks]
+    planner = PlannerConfig(samples=8, steps=5, bound=env.action_bound, max_length=0.1)
+    cfg = MPCConfig(steps=1, omega=12, buckets=(8, 32), max_points=512, planner=planner)
+    final, records = run_episodes(env, batch(env.reset(jax.random.PRNGKey(0))), None, sweep_dynamics(0.04), cfg,
+                                  batch(jax.random.PRNGKey(1)), log=lambda _: None, policy=FixedKindGoals(goals))
+    final = episode(final)
+    inside, _ = sort_scores(final.pos, env.scene.kind, goals, env.camera)
+    counts = np.bincount(np.asarray(env.scene.kind))
+    assert records[0]["success"][0] == pytest.approx((inside[0] * counts[0] + inside[1] * counts[1]) / counts.sum())
+    d = [float(distribution_distance(final.obs, goals[k], env.camera, kind=k)) for k in (0, 1)]
+    assert records[0]["distance"][0] == pytest.approx(np.mean(d), rel=1e-5)

@@ -24,9 +24,17 @@ import numpy as np
 from jax.tree_util import Partial
 
 from dynres_jax.control import budget
-from dynres_jax.control.objective import SAMPLES_PER_PARTICLE, Goal, distribution_distance, inside_share, objective
+from dynres_jax.control.objective import (
+    SAMPLES_PER_PARTICLE,
+    Goal,
+    KindGoals,
+    distribution_distance,
+    inside_share,
+    kind_objective,
+    objective,
+)
 from dynres_jax.control.planner import PlannerConfig, plan, sample_pushes
-from dynres_jax.perception import check_particles, point_cloud, sample_particles
+from dynres_jax.perception import check_particles, particle_kinds, point_cloud, sample_particles
 
 if TYPE_CHECKING:  # annotations only: the planning half of this module needs no simulator (nor MuJoCo)
     from dynres_jax.sim.env import PileEnv, State
@@ -77,20 +85,31 @@ def _cost(camera, goal, positions, mask):
     return objective(positions, mask, goal, camera)
 
 
+def _kind_cost(camera, goals, kinds, positions, mask):
+    return kind_objective(positions, mask, kinds, goals, camera)
+
+
 @functools.cache
-def _camera_cost(camera):
+def _camera_cost(camera, per_kind: bool):
     """One function object per camera: the planner's compile cache keys a cost by its function's identity."""
-    return functools.partial(_cost, camera)
+    return functools.partial(_kind_cost if per_kind else _cost, camera)
 
 
-def goal_cost(goal: Goal, camera, bucket: int | None = None) -> Partial:
+def goal_cost(goal: Goal | KindGoals, camera, bucket: int | None = None, kinds=None) -> Partial:
     """The planner's cost: the task objective c of predicted particles against ``goal`` (a pytree argument, so a new
-    goal for the same camera reuses the compiled plan). bucket: the particle capacity; the goal's samples are cut to
-    the SAMPLES_PER_PARTICLE × bucket that c can use at ω <= bucket (the same c, on fewer samples)."""
+    goal for the same camera reuses the compiled plan); for KindGoals, Sort's sum over kinds (``kind_objective``) with
+    the particles' kinds [N]. bucket: the particle capacity; the goal's samples are cut to the
+    SAMPLES_PER_PARTICLE × bucket that c can use at ω <= bucket (the same c, on fewer samples)."""
+    per_kind = isinstance(goal, KindGoals)
+    if per_kind != (kinds is not None):
+        raise ValueError("particle kinds go with KindGoals (Sort's per-kind goals), and only with them")
     if bucket is not None:
-        goal = goal._replace(samples=goal.samples[..., :SAMPLES_PER_PARTICLE * bucket, :],
-                             sample_mask=goal.sample_mask[..., :SAMPLES_PER_PARTICLE * bucket])
-    return Partial(_camera_cost(camera), goal)
+        cut = SAMPLES_PER_PARTICLE * bucket
+        goal = jax.tree.map(lambda g: g._replace(samples=g.samples[..., :cut, :], sample_mask=g.sample_mask[..., :cut]),
+                            goal, is_leaf=lambda x: isinstance(x, Goal))
+    if per_kind:
+        return Partial(_camera_cost(camera, True), goal, kinds)
+    return Partial(_camera_cost(camera, False), goal)
 
 
 def overlay(rgb: np.ndarray, goal_mask: np.ndarray, particles: np.ndarray | None, camera, scale: int = 3,
@@ -118,8 +137,9 @@ def decide(obs, goal: Goal, key, init, dynamics, cfg: MPCConfig, camera, omega=N
     (default the smallest of cfg.buckets holding a concrete ω; with a traced ω, a bucket holding every ω);
     steps: Adam steps (may be traced; default cfg.planner.steps). The planner's starting pushes pass through random
     points of the perception cloud, not of the particles, so one key gives the same pushes at every ω (common random
-    numbers). kind: perceive only the pieces of this kind index (may be traced; None: every piece). Returns
-    (Particles, c [], PlanResult)."""
+    numbers). kind: perceive only the pieces of this kind index (may be traced; None: every piece). goal: a Goal, or
+    KindGoals (Sort: every piece perceived, each particle labelled with its kind, ``perception.particle_kinds``, and
+    c summed over the kinds' goals). Returns (Particles, c [], PlanResult)."""
     k_h, k_plan = jax.random.split(key)
     omega = cfg.omega if omega is None else omega
     if bucket is None:
@@ -128,12 +148,19 @@ def decide(obs, goal: Goal, key, init, dynamics, cfg: MPCConfig, camera, omega=N
         bucket = budget.bucket_for(int(omega), cfg.buckets)
     particles = sample_particles(obs, camera, omega, k_h, bucket, max_points=cfg.max_points, real_depth=cfg.real_depth,
                                  kind=kind)
-    c_now = objective(particles.positions, particles.mask, goal, camera)
+    if isinstance(goal, KindGoals):
+        if kind is not None:
+            raise ValueError("KindGoals score every kind's particles: decide perceives every piece (kind=None)")
+        kinds = particle_kinds(obs, camera, particles, cfg.real_depth)
+        c_now = kind_objective(particles.positions, particles.mask, kinds, goal, camera)
+    else:
+        kinds, c_now = None, objective(particles.positions, particles.mask, goal, camera)
     initial = sample_pushes(k_plan, *point_cloud(obs, camera, max_points=cfg.max_points, real_depth=cfg.real_depth,
                                                  kind=kind), cfg.planner)
     init = initial[0] if init is None else jnp.where(warm, init, initial[0])  # no warm start: sample 0 stands in
-    result = plan(dynamics(particles.radius), goal_cost(goal, camera, bucket), particles.positions, particles.mask,
-                  k_plan, cfg.planner, init=init, steps=steps, initial=initial)
+    cost = goal_cost(goal, camera, bucket, kinds)
+    result = plan(dynamics(particles.radius), cost, particles.positions, particles.mask, k_plan, cfg.planner, init=init,
+                  steps=steps, initial=initial)
     return particles, c_now, result
 
 
@@ -293,9 +320,7 @@ def run_episodes(env, states: State, goals: Goal, dynamics, cfg: MPCConfig, keys
         def push(states, actions):  # C MuJoCo: one world after another
             worlds = [env.push(episode(states, b), np.asarray(actions[b])) for b in range(episodes)]
             return jax.tree.map(lambda *x: jnp.stack([jnp.asarray(v) for v in x]), *worlds)
-    n = env.scene.n_pieces
-    measure = jax.jit(per_episode(lambda obs, pos, goal: (distribution_distance(obs, goal, camera),
-                                                        inside_share(pos, jnp.ones(n, bool), goal, camera))))
+    measure = jax.jit(per_episode(functools.partial(_measure, camera, jnp.asarray(env.scene.kind))))
     records, frames, warm = [], [], False
     init = jnp.zeros((episodes, cfg.planner.horizon, 4), jnp.float32)  # no warm start at the first step
     for t in range(cfg.steps):
@@ -364,6 +389,22 @@ def run_episodes(env, states: State, goals: Goal, dynamics, cfg: MPCConfig, keys
         return states, records
     frames.append(overlay(np.asarray(states.obs.rgb[0]), goal_masks[0], None, camera))
     return states, records, frames
+
+
+def _measure(camera, piece_kinds, obs, pos, goal):
+    """A step's scores on the true state: d of the foreground and the share of pieces inside the goal; for KindGoals,
+    the mean over kinds of d of that kind's foreground to its goal, and the share of pieces inside their own kind's
+    goal."""
+    if not isinstance(goal, KindGoals):
+        return distribution_distance(obs, goal, camera), inside_share(pos, jnp.ones(len(piece_kinds), bool), goal,
+                                                                     camera)
+
+    def one(g, k):
+        mine = piece_kinds == k
+        return distribution_distance(obs, g, camera, kind=k), inside_share(pos, mine, g, camera) * jnp.sum(mine)
+
+    distance, inside = jax.vmap(one)(goal.goals, jnp.arange(goal.goals.mask.shape[0]))
+    return jnp.mean(distance), jnp.sum(inside) / len(piece_kinds)
 
 
 def _log_step(log, r: dict, steps: int) -> None:

@@ -55,6 +55,19 @@ class Goal(NamedTuple):
     sample_mask: jax.Array
 
 
+class KindGoals(NamedTuple):
+    """One goal per piece kind (Sort), a pytree like ``Goal``: goals, a Goal whose every leaf has a leading axis [K]
+    (goal k for kind k; ``stack_goals``). c of a kind-labelled particle set is the sum over kinds of c of that kind's
+    particles against its goal (``kind_objective``)."""
+
+    goals: Goal
+
+
+def stack_goals(goals) -> KindGoals:
+    """A sequence of K Goals of one camera (goal k for kind k) -> KindGoals."""
+    return KindGoals(jax.tree.map(lambda *x: jnp.stack(x), *goals))
+
+
 # ---------------------------------------------------------------------------------------------------------------
 # Goal masks (host, NumPy / OpenCV). Inputs in metres on the table plane; outputs [H, W] bool.
 # ---------------------------------------------------------------------------------------------------------------
@@ -311,6 +324,17 @@ def objective(positions, mask, goal: Goal, camera: Camera):
     positions = jnp.where(mask[:, None], jnp.asarray(positions, jnp.float32), 0.0)
     uv, _ = camera.world_to_pixel(positions)
     return _cost(uv, mask, goal)
+
+
+@functools.partial(jax.jit, static_argnames="camera")
+def kind_objective(positions, mask, kinds, goals: KindGoals, camera: Camera):
+    """Sort's objective: Σ_k c(particles of kind k, goal k). positions [N, 3] (m), mask [N] bool, kinds [N] int (each
+    particle's kind index) -> scalar (pixels). Each kind's c is its own mean over its particles, so both kinds weigh
+    alike whatever their particle counts; a kind with no particle adds 0."""
+    def one(goal, k):
+        return objective(positions, jnp.asarray(mask, bool) & (kinds == k), goal, camera)
+
+    return jnp.sum(jax.vmap(one)(goals.goals, jnp.arange(goals.goals.mask.shape[0])))
 
 
 def squared_distance_to(mask):

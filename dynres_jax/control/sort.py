@@ -16,11 +16,13 @@ Paper mapping:
 
 Closed loop (``sort_episode``: ``SortPolicy`` on the one MPC loop, ``mpc.run_episodes``): each MPC step perceives both
 piles (particles of one kind each, segmentation), takes the blob centres as the particle centroids, RE-PLANS the A* path
-from them (so a pile disturbed by a push is handled), and moves the blob of the path's first move: one planning step of
-Gather (the task objective c on that kind's particles only) toward a disc of ``goal_radius`` at that blob's waypoint, up
-to ``lookahead`` grid steps ahead along its current run of moves. When both centres snap to their goals, the piles are
-gathered into their own goal discs alternately; when A* finds no path (no room to pass), the pile farther from its goal
-heads straight to it. The paper's reference code has no Sort; these choices are ours.
+from them (so a pile disturbed by a push is handled), and plans one push on the particles of the whole scene, each
+labelled with its kind (``perception.particle_kinds``), against one goal per kind (``objective.KindGoals``: c summed
+over the kinds): the blob of the path's first move toward a disc of ``goal_radius`` at its waypoint, up to
+``lookahead`` grid steps ahead along its current run of moves; the other blob toward a disc where it rests (its goal
+when the path does not move it again), so a push through the resting pile costs what it scatters. When both centres
+snap to their goals, both kinds are scored against their own goal discs; when A* finds no path (no room to pass), the
+pile farther from its goal heads straight to it (the other held at its goal). The paper's reference code has no Sort; these choices are ours.
 """
 
 from __future__ import annotations
@@ -33,7 +35,7 @@ import numpy as np
 
 from dynres_jax.control.budget import TimingTable, bucket_for
 from dynres_jax.control.mpc import MPCConfig, StepTarget, batch, episode, overlay, run_episode
-from dynres_jax.control.objective import disc_goal, inside_share, make_goal, sort_goals
+from dynres_jax.control.objective import disc_goal, inside_share, make_goal, sort_goals, stack_goals
 from dynres_jax.control.tasks import FILL
 from dynres_jax.perception import point_cloud, sample_particles
 from dynres_jax.sim.env import PileEnv, State
@@ -139,13 +141,17 @@ def sort_scores(piece_pos, kinds, goals, camera) -> tuple[list[float], float]:
     return inside, wrong / len(kinds)
 
 
-def _kind_particles(obs, camera, cfg: MPCConfig, key, kind: int):
-    """Particles of one kind: ω = min(cfg.omega, that kind's foreground points), so a small pile still samples, in
-    the smallest bucket holding ω."""
-    _, valid = point_cloud(obs, camera, max_points=cfg.max_points, kind=kind)
-    omega = max(min(cfg.omega, int(np.sum(np.asarray(valid)))), 1)
-    return sample_particles(obs, camera, omega, key, bucket_for(omega, cfg.buckets), max_points=cfg.max_points,
-                            kind=kind)
+def _kind_centres(obs, camera, cfg: MPCConfig, key) -> np.ndarray:
+    """The two piles' centres (m) [2, 2]: the mean of each kind's particles (ω = min(cfg.omega, that kind's
+    foreground points), so a small pile still samples, in the smallest bucket holding ω)."""
+    centres = []
+    for k in (0, 1):
+        _, valid = point_cloud(obs, camera, max_points=cfg.max_points, kind=k)
+        omega = max(min(cfg.omega, int(np.sum(np.asarray(valid)))), 1)
+        p = sample_particles(obs, camera, omega, jax.random.fold_in(key, k), bucket_for(omega, cfg.buckets),
+                             max_points=cfg.max_points, kind=k)
+        centres.append(np.asarray(p.positions)[np.asarray(p.mask), :2].mean(0))
+    return np.stack(centres)
 
 
 def _next_waypoint(path: list[np.ndarray], goals_xy: np.ndarray, lookahead: int) -> tuple[int, np.ndarray]:
@@ -160,6 +166,14 @@ def _next_waypoint(path: list[np.ndarray], goals_xy: np.ndarray, lookahead: int)
     return blob, path[j][blob]
 
 
+def _hold_point(path: list[np.ndarray] | None, goals_xy: np.ndarray, blob: int) -> np.ndarray:
+    """Where the resting blob should stay (m): its true goal when the path (None: no path) does not move it again,
+    else its current (snapped) centre."""
+    if path is None or all(np.array_equal(p[blob], path[0][blob]) for p in path):
+        return goals_xy[blob]
+    return path[0][blob]
+
+
 def _frame(rgb, goal_masks, target_mask, particles, camera) -> np.ndarray:
     """RGB frame: goal 0 tinted blue, goal 1 orange, the current target disc green, particles red (``overlay``)."""
     img = np.asarray(rgb, np.float32)
@@ -170,11 +184,14 @@ def _frame(rgb, goal_masks, target_mask, particles, camera) -> np.ndarray:
 
 class SortPolicy:
     """Sort's A* waypoints as a policy on the one MPC loop (``mpc.run_episodes(policy=...)``), for one episode: every
-    step it perceives both piles (particles of one kind each), re-plans the A* path from their centres and sends the
-    moved blob's particles towards a disc of ``goal_radius`` at its waypoint (module docstring). Its record fields:
-    phase ("path": following A*, "final": both at their goals, "direct": A* found no path, the farther pile heads
-    straight to its goal), kind moved, waypoint [2] m, centres [2, 2] m (perceived), astar_steps left, astar_s; its
-    scores: inside [2] (kind k's share inside goal k) and mixing (the share inside the other kind's goal)."""
+    step it perceives both piles, re-plans the A* path from their centres and plans one push on both kinds' particles
+    at once (``objective.KindGoals``): the moved blob's kind towards a disc of ``goal_radius`` at its waypoint, the
+    other kind towards a disc where it should stay (``_hold_point``), so a push that would knock the resting pile
+    apart costs what it breaks. When both piles are at their goals, each kind is scored against its own goal. Its
+    record fields: phase ("path": following A*, "final": both at their goals, "direct": A* found no path, the farther
+    pile heads straight to its goal), kind moved (-1 in "final": both), waypoint [2] m (the moved kind's target
+    centre), centres [2, 2] m (perceived), astar_steps left, astar_s; its scores: inside [2] (kind k's share inside
+    goal k) and mixing (the share inside the other kind's goal)."""
 
     def __init__(self, env: PileEnv, cfg: MPCConfig, key, goals_xy, goal_radius: float, log=print, *,
                  blob_radius: float | None = None, grid_step: float = 0.02, lookahead: int = 3):
@@ -188,13 +205,11 @@ class SortPolicy:
         self.goals = [make_goal(m, self.camera) for m in self.goal_masks]
         self.blob_radius = goal_radius if blob_radius is None else blob_radius
         self.bound = self.bin_half - goal_radius - WAYPOINT_EDGE
-        self.turn, self.phase = 0, None
+        self.phase = None
 
     def __call__(self, t: int, obs) -> StepTarget:
         obs = episode(obs)
-        k_h = jax.random.fold_in(self.key, t)
-        particles = [_kind_particles(obs, self.camera, self.cfg, jax.random.fold_in(k_h, k), k) for k in (0, 1)]
-        centres = np.stack([np.asarray(p.positions)[np.asarray(p.mask), :2].mean(0) for p in particles])
+        centres = _kind_centres(obs, self.camera, self.cfg, jax.random.fold_in(self.key, t))
         t0 = time.perf_counter()
         try:
             path = astar_blobs(centres, self.goals_xy, self.blob_radius, self.grid_step, self.bound)
@@ -203,27 +218,29 @@ class SortPolicy:
             if self.phase != "direct":
                 self.log(f"A*: {error}; heading straight to the goals")
         astar_s = time.perf_counter() - t0
+        targets = self.goals_xy.copy()  # kind k's target centre (m)
         if path is None:
             self.phase, steps_left = "direct", -1
             kind = int(np.argmax(np.linalg.norm(centres - self.goals_xy, axis=1)))
-            waypoint = self.goals_xy[kind]
         elif len(path) == 1:
-            self.phase, steps_left, kind, self.turn = "final", 0, self.turn % 2, self.turn + 1
-            waypoint = self.goals_xy[kind]
+            self.phase, steps_left, kind = "final", 0, -1
         else:
             self.phase, steps_left = "path", len(path) - 1
-            kind, waypoint = _next_waypoint(path, self.goals_xy, self.lookahead)
-        target_mask = disc_goal(self.camera, waypoint, self.goal_radius, bin_half_width=self.bin_half)
-        target = self.goals[kind] if self.phase == "final" else make_goal(target_mask, self.camera)
+            kind, targets[kind] = _next_waypoint(path, self.goals_xy, self.lookahead)
+            targets[1 - kind] = _hold_point(path, self.goals_xy, 1 - kind)
+        masks = [disc_goal(self.camera, c, self.goal_radius, bin_half_width=self.bin_half) for c in targets]
+        target_mask = masks[kind] if kind >= 0 else np.zeros_like(masks[0])
+        omega = min(self.cfg.omega, int(np.sum(np.asarray(point_cloud(obs, self.camera,
+                                                                      max_points=self.cfg.max_points)[1]))))
 
         def draw(rgb, drawn):
             return _frame(rgb, self.goal_masks, target_mask if drawn is not None else np.zeros_like(target_mask),
                           drawn, self.camera)
 
-        record = dict(phase=[self.phase], kind=[kind], waypoint=[np.asarray(waypoint)], centres=[centres],
+        record = dict(phase=[self.phase], kind=[kind], waypoint=[targets[max(kind, 0)]], centres=[centres],
                       astar_steps=[steps_left], astar_s=[astar_s])
-        return StepTarget(batch(target), np.array([int(np.sum(np.asarray(particles[kind].mask)))]), np.array([kind]),
-                          record, draw)
+        return StepTarget(batch(stack_goals([make_goal(m, self.camera) for m in masks])), np.array([max(omega, 1)]),
+                          None, record, draw)
 
     def score(self, states) -> dict:
         inside, mixing = sort_scores(states.pos[0], self.env.scene.kind, self.goals, self.camera)
