@@ -12,6 +12,7 @@ from dynres_jax.control.mpc import MPCConfig, StepTarget, batch, episode, goal_c
 from dynres_jax.control.objective import (
     BIN_HALF_WIDTH,
     distribution_distance,
+    kind_costs,
     kind_objective,
     make_goal,
     objective,
@@ -155,22 +156,36 @@ def test_particle_kinds_match_the_nearest_piece(env):
     assert np.mean(kinds[mask] == reference) >= 0.9
 
 
-def test_kind_objective_scores_each_kind_against_its_own_goal(env):
+def test_kind_objective_pursues_some_kinds_and_holds_the_others(env):
     goals_xy, radius, masks = sort_goal(np.random.default_rng(1), env)
     goals = [make_goal(m, env.camera) for m in masks]
     rng = np.random.default_rng(2)
     positions = np.concatenate([rng.uniform(-0.1, 0.1, (12, 2)), np.full((12, 1), 0.01)], axis=1).astype(np.float32)
-    mask = np.arange(12) < 10
-    kinds = rng.integers(0, 2, 12)
-    total = kind_objective(positions, mask, kinds, stack_goals(goals), env.camera)
-    parts = [objective(positions, mask & (kinds == k), goals[k], env.camera) for k in (0, 1)]
-    assert float(total) == pytest.approx(float(parts[0] + parts[1]), rel=1e-5)
-    swapped = kind_objective(positions, mask, 1 - kinds, stack_goals(goals), env.camera)
+    mask, kinds = np.arange(12) < 10, rng.integers(0, 2, 12)
+    parts = np.array([objective(positions, mask & (kinds == k), goals[k], env.camera) for k in (0, 1)])
+    pursue = stack_goals(goals)
+    assert np.allclose(kind_costs(positions, mask, kinds, pursue, env.camera), parts, rtol=1e-5)
+    total = kind_objective(positions, mask, kinds, pursue, env.camera, parts)
+    assert float(total) == pytest.approx(parts.sum(), rel=1e-5)
+    swapped = kind_objective(positions, mask, 1 - kinds, pursue, env.camera, parts)
     assert abs(float(swapped) - float(total)) > 1e-3  # the labels matter
-    cost = goal_cost(stack_goals(goals), env.camera, 32, kinds)
-    assert float(cost(positions, mask)) == pytest.approx(float(total), rel=1e-5)
+    # kind 1 held: it counts only by how much worse than its baseline it is
+    held = stack_goals(goals, hold=[False, True])
+    assert float(kind_objective(positions, mask, kinds, held, env.camera, parts)) == pytest.approx(parts[0], rel=1e-5)
+    centre = np.append(goals_xy[1], 0.01).astype(np.float32)
+    closer = np.where((kinds == 1)[:, None], 0.5 * (positions + centre), positions)
+    farther = np.where((kinds == 1)[:, None], 2.0 * positions - centre, positions)
+    assert float(kind_objective(closer, mask, kinds, held, env.camera, parts)) == pytest.approx(parts[0], rel=1e-5)
+    worse = float(kind_costs(farther, mask, kinds, held, env.camera)[1]) - parts[1]
+    assert worse > 0
+    assert float(kind_objective(farther, mask, kinds, held, env.camera, parts)) == pytest.approx(parts[0] + worse,
+                                                                                               rel=1e-5)
+    cost = goal_cost(held, env.camera, 32, kinds, parts)
+    assert float(cost(farther, mask)) == pytest.approx(parts[0] + worse, rel=1e-5)
     with pytest.raises(ValueError, match="KindGoals"):
-        goal_cost(stack_goals(goals), env.camera)
+        goal_cost(held, env.camera)
+    with pytest.raises(ValueError, match="one flag per goal"):
+        stack_goals(goals, hold=[True])
 
 
 class FixedKindGoals:

@@ -30,6 +30,7 @@ from dynres_jax.control.objective import (
     KindGoals,
     distribution_distance,
     inside_share,
+    kind_costs,
     kind_objective,
     objective,
 )
@@ -85,8 +86,8 @@ def _cost(camera, goal, positions, mask):
     return objective(positions, mask, goal, camera)
 
 
-def _kind_cost(camera, goals, kinds, positions, mask):
-    return kind_objective(positions, mask, kinds, goals, camera)
+def _kind_cost(camera, goals, kinds, baseline, positions, mask):
+    return kind_objective(positions, mask, kinds, goals, camera, baseline)
 
 
 @functools.cache
@@ -95,20 +96,22 @@ def _camera_cost(camera, per_kind: bool):
     return functools.partial(_kind_cost if per_kind else _cost, camera)
 
 
-def goal_cost(goal: Goal | KindGoals, camera, bucket: int | None = None, kinds=None) -> Partial:
+def goal_cost(goal: Goal | KindGoals, camera, bucket: int | None = None, kinds=None, baseline=None) -> Partial:
     """The planner's cost: the task objective c of predicted particles against ``goal`` (a pytree argument, so a new
-    goal for the same camera reuses the compiled plan); for KindGoals, Sort's sum over kinds (``kind_objective``) with
-    the particles' kinds [N]. bucket: the particle capacity; the goal's samples are cut to the
-    SAMPLES_PER_PARTICLE × bucket that c can use at ω <= bucket (the same c, on fewer samples)."""
+    goal for the same camera reuses the compiled plan); for KindGoals, Sort's objective (``kind_objective``) with the
+    particles' kinds [N] and each kind's c now, baseline [K]. bucket: the particle capacity; the goal's samples are
+    cut to the SAMPLES_PER_PARTICLE × bucket that c can use at ω <= bucket (the same c, on fewer samples)."""
     per_kind = isinstance(goal, KindGoals)
-    if per_kind != (kinds is not None):
-        raise ValueError("particle kinds go with KindGoals (Sort's per-kind goals), and only with them")
+    if per_kind != (kinds is not None) or per_kind != (baseline is not None):
+        raise ValueError("particle kinds and a baseline go with KindGoals (Sort's per-kind goals), and only with them")
     if bucket is not None:
         cut = SAMPLES_PER_PARTICLE * bucket
-        goal = jax.tree.map(lambda g: g._replace(samples=g.samples[..., :cut, :], sample_mask=g.sample_mask[..., :cut]),
-                            goal, is_leaf=lambda x: isinstance(x, Goal))
+        def fewer(g: Goal) -> Goal:
+            return g._replace(samples=g.samples[..., :cut, :], sample_mask=g.sample_mask[..., :cut])
+
+        goal = goal._replace(goals=fewer(goal.goals)) if per_kind else fewer(goal)
     if per_kind:
-        return Partial(_camera_cost(camera, True), goal, kinds)
+        return Partial(_camera_cost(camera, True), goal, kinds, baseline)
     return Partial(_camera_cost(camera, False), goal)
 
 
@@ -139,7 +142,8 @@ def decide(obs, goal: Goal, key, init, dynamics, cfg: MPCConfig, camera, omega=N
     points of the perception cloud, not of the particles, so one key gives the same pushes at every ω (common random
     numbers). kind: perceive only the pieces of this kind index (may be traced; None: every piece). goal: a Goal, or
     KindGoals (Sort: every piece perceived, each particle labelled with its kind, ``perception.particle_kinds``, and
-    c summed over the kinds' goals). Returns (Particles, c [], PlanResult)."""
+    c of ``kind_objective`` with each kind's c now as the held kinds' baseline). Returns (Particles, c [],
+    PlanResult)."""
     k_h, k_plan = jax.random.split(key)
     omega = cfg.omega if omega is None else omega
     if bucket is None:
@@ -152,13 +156,15 @@ def decide(obs, goal: Goal, key, init, dynamics, cfg: MPCConfig, camera, omega=N
         if kind is not None:
             raise ValueError("KindGoals score every kind's particles: decide perceives every piece (kind=None)")
         kinds = particle_kinds(obs, camera, particles, cfg.real_depth)
-        c_now = kind_objective(particles.positions, particles.mask, kinds, goal, camera)
+        baseline = kind_costs(particles.positions, particles.mask, kinds, goal, camera)
+        c_now = kind_objective(particles.positions, particles.mask, kinds, goal, camera, baseline)
     else:
-        kinds, c_now = None, objective(particles.positions, particles.mask, goal, camera)
+        kinds = baseline = None
+        c_now = objective(particles.positions, particles.mask, goal, camera)
     initial = sample_pushes(k_plan, *point_cloud(obs, camera, max_points=cfg.max_points, real_depth=cfg.real_depth,
                                                  kind=kind), cfg.planner)
     init = initial[0] if init is None else jnp.where(warm, init, initial[0])  # no warm start: sample 0 stands in
-    cost = goal_cost(goal, camera, bucket, kinds)
+    cost = goal_cost(goal, camera, bucket, kinds, baseline)
     result = plan(dynamics(particles.radius), cost, particles.positions, particles.mask, k_plan, cfg.planner, init=init,
                   steps=steps, initial=initial)
     return particles, c_now, result
@@ -403,7 +409,7 @@ def _measure(camera, piece_kinds, obs, pos, goal):
         mine = piece_kinds == k
         return distribution_distance(obs, g, camera, kind=k), inside_share(pos, mine, g, camera) * jnp.sum(mine)
 
-    distance, inside = jax.vmap(one)(goal.goals, jnp.arange(goal.goals.mask.shape[0]))
+    distance, inside = jax.vmap(one)(goal.goals, jnp.arange(goal.hold.shape[0]))
     return jnp.mean(distance), jnp.sum(inside) / len(piece_kinds)
 
 

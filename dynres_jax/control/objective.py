@@ -57,15 +57,19 @@ class Goal(NamedTuple):
 
 class KindGoals(NamedTuple):
     """One goal per piece kind (Sort), a pytree like ``Goal``: goals, a Goal whose every leaf has a leading axis [K]
-    (goal k for kind k; ``stack_goals``). c of a kind-labelled particle set is the sum over kinds of c of that kind's
-    particles against its goal (``kind_objective``)."""
+    (goal k for kind k); hold [K] bool: kinds only kept from getting worse, not pursued (``kind_objective``)."""
 
     goals: Goal
+    hold: jax.Array
 
 
-def stack_goals(goals) -> KindGoals:
-    """A sequence of K Goals of one camera (goal k for kind k) -> KindGoals."""
-    return KindGoals(jax.tree.map(lambda *x: jnp.stack(x), *goals))
+def stack_goals(goals, hold=None) -> KindGoals:
+    """A sequence of K Goals of one camera (goal k for kind k) and hold [K] bool (default: pursue every kind) ->
+    KindGoals."""
+    hold = np.zeros(len(goals), bool) if hold is None else np.asarray(hold, bool)
+    if hold.shape != (len(goals),):
+        raise ValueError(f"hold must have one flag per goal ({len(goals)}), got shape {hold.shape}")
+    return KindGoals(jax.tree.map(lambda *x: jnp.stack(x), *goals), jnp.asarray(hold))
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -327,14 +331,24 @@ def objective(positions, mask, goal: Goal, camera: Camera):
 
 
 @functools.partial(jax.jit, static_argnames="camera")
-def kind_objective(positions, mask, kinds, goals: KindGoals, camera: Camera):
-    """Sort's objective: Σ_k c(particles of kind k, goal k). positions [N, 3] (m), mask [N] bool, kinds [N] int (each
-    particle's kind index) -> scalar (pixels). Each kind's c is its own mean over its particles, so both kinds weigh
-    alike whatever their particle counts; a kind with no particle adds 0."""
+def kind_costs(positions, mask, kinds, goals: KindGoals, camera: Camera):
+    """c of each kind's particles against its own goal: positions [N, 3] (m), mask [N] bool, kinds [N] int (each
+    particle's kind index) -> [K] (pixels; 0 for a kind with no particle). Each is a mean over that kind's particles,
+    so kinds weigh alike whatever their particle counts."""
     def one(goal, k):
         return objective(positions, jnp.asarray(mask, bool) & (kinds == k), goal, camera)
 
-    return jnp.sum(jax.vmap(one)(goals.goals, jnp.arange(goals.goals.mask.shape[0])))
+    return jax.vmap(one)(goals.goals, jnp.arange(goals.hold.shape[0]))
+
+
+@functools.partial(jax.jit, static_argnames="camera")
+def kind_objective(positions, mask, kinds, goals: KindGoals, camera: Camera, baseline):
+    """Sort's objective -> scalar (pixels): c_k (``kind_costs``) summed over the pursued kinds, plus, for each held
+    kind, max(0, c_k - baseline_k): what the particles lost against their goal since the baseline [K] (c_k of the
+    particles now), so a push that scatters a resting pile costs what it scatters and a resting pile never draws the
+    push to itself."""
+    costs = kind_costs(positions, mask, kinds, goals, camera)
+    return jnp.sum(jnp.where(goals.hold, jax.nn.relu(costs - baseline), costs))
 
 
 def squared_distance_to(mask):

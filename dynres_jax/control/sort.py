@@ -17,12 +17,13 @@ Paper mapping:
 Closed loop (``sort_episode``: ``SortPolicy`` on the one MPC loop, ``mpc.run_episodes``): each MPC step perceives both
 piles (particles of one kind each, segmentation), takes the blob centres as the particle centroids, RE-PLANS the A* path
 from them (so a pile disturbed by a push is handled), and plans one push on the particles of the whole scene, each
-labelled with its kind (``perception.particle_kinds``), against one goal per kind (``objective.KindGoals``: c summed
-over the kinds): the blob of the path's first move toward a disc of ``goal_radius`` at its waypoint, up to
-``lookahead`` grid steps ahead along its current run of moves; the other blob toward a disc where it rests (its goal
-when the path does not move it again), so a push through the resting pile costs what it scatters. When both centres
-snap to their goals, both kinds are scored against their own goal discs; when A* finds no path (no room to pass), the
-pile farther from its goal heads straight to it (the other held at its goal). The paper's reference code has no Sort; these choices are ours.
+labelled with its kind (``perception.particle_kinds``), with one goal per kind (``objective.KindGoals``): the blob of
+the path's first move is pursued toward a disc of ``goal_radius`` at its waypoint, up to ``lookahead`` grid steps ahead
+along its current run of moves; the other blob is held: only a loss against the disc where it rests (its goal when the
+path does not move it again) counts (``objective.kind_objective``), so a push through the resting pile costs what it
+scatters and the resting pile never draws the push. When both centres snap to their goals, both kinds are pursued into
+their own goal discs; when A* finds no path (no room to pass), the pile farther from its goal is pursued straight to it
+and the other held at its goal. The paper's reference code has no Sort; these choices are ours.
 """
 
 from __future__ import annotations
@@ -185,10 +186,9 @@ def _frame(rgb, goal_masks, target_mask, particles, camera) -> np.ndarray:
 class SortPolicy:
     """Sort's A* waypoints as a policy on the one MPC loop (``mpc.run_episodes(policy=...)``), for one episode: every
     step it perceives both piles, re-plans the A* path from their centres and plans one push on both kinds' particles
-    at once (``objective.KindGoals``): the moved blob's kind towards a disc of ``goal_radius`` at its waypoint, the
-    other kind towards a disc where it should stay (``_hold_point``), so a push that would knock the resting pile
-    apart costs what it breaks. When both piles are at their goals, each kind is scored against its own goal. Its
-    record fields: phase ("path": following A*, "final": both at their goals, "direct": A* found no path, the farther
+    at once (``objective.KindGoals``): the moved blob's kind pursued towards a disc of ``goal_radius`` at its
+    waypoint, the other kind held at a disc where it rests (``_hold_point``; module docstring). Its record fields:
+    phase ("path": following A*, "final": both at their goals, both pursued, "direct": A* found no path, the farther
     pile heads straight to its goal), kind moved (-1 in "final": both), waypoint [2] m (the moved kind's target
     centre), centres [2, 2] m (perceived), astar_steps left, astar_s; its scores: inside [2] (kind k's share inside
     goal k) and mixing (the share inside the other kind's goal)."""
@@ -218,16 +218,18 @@ class SortPolicy:
             if self.phase != "direct":
                 self.log(f"A*: {error}; heading straight to the goals")
         astar_s = time.perf_counter() - t0
-        targets = self.goals_xy.copy()  # kind k's target centre (m)
+        targets, hold = self.goals_xy.copy(), np.ones(2, bool)  # kind k's target centre (m); held kinds
         if path is None:
             self.phase, steps_left = "direct", -1
             kind = int(np.argmax(np.linalg.norm(centres - self.goals_xy, axis=1)))
         elif len(path) == 1:
-            self.phase, steps_left, kind = "final", 0, -1
+            self.phase, steps_left, kind, hold[:] = "final", 0, -1, False
         else:
             self.phase, steps_left = "path", len(path) - 1
             kind, targets[kind] = _next_waypoint(path, self.goals_xy, self.lookahead)
             targets[1 - kind] = _hold_point(path, self.goals_xy, 1 - kind)
+        if kind >= 0:
+            hold[kind] = False
         masks = [disc_goal(self.camera, c, self.goal_radius, bin_half_width=self.bin_half) for c in targets]
         target_mask = masks[kind] if kind >= 0 else np.zeros_like(masks[0])
         omega = min(self.cfg.omega, int(np.sum(np.asarray(point_cloud(obs, self.camera,
@@ -239,8 +241,8 @@ class SortPolicy:
 
         record = dict(phase=[self.phase], kind=[kind], waypoint=[targets[max(kind, 0)]], centres=[centres],
                       astar_steps=[steps_left], astar_s=[astar_s])
-        return StepTarget(batch(stack_goals([make_goal(m, self.camera) for m in masks])), np.array([max(omega, 1)]),
-                          None, record, draw)
+        goals = stack_goals([make_goal(m, self.camera) for m in masks], hold)
+        return StepTarget(batch(goals), np.array([max(omega, 1)]), None, record, draw)
 
     def score(self, states) -> dict:
         inside, mixing = sort_scores(states.pos[0], self.env.scene.kind, self.goals, self.camera)
