@@ -32,6 +32,8 @@ TABLE_BAND = 0.004  # m: ``table_height`` fits the plane through points this clo
 WORKSPACE_HALF_WIDTH = 0.199  # m: default bin half-width (0.2) less 1 mm, so wall tops and inner faces never count
 COLOUR_TOL = 0.05  # chromaticity distance (r, g, b) / (r + g + b) to the reference colour; shading-invariant
 R_CENTER_MAX = 0.008  # m: the reference's 0.02 normalised units of its 1-unit bin, on our 0.4 m bin
+WALL_SEARCH = 0.02  # m: ``calibrate`` looks for the bin's walls this close to where they should be
+MIN_WALL_POINTS = 10  # ``calibrate`` needs this many points on each wall
 PERMUTATION_SEED = 0  # seed of the fixed pixel permutation that subsamples the foreground under ``max_points``
 
 # Bit flags of ``Particles.error``.
@@ -115,6 +117,40 @@ def point_cloud(observation: Observation, camera: Camera, *, max_points: int | N
     (slot,) = jnp.nonzero(valid[perm], size=max_points, fill_value=0)
     kept = jnp.arange(max_points) < jnp.sum(valid)
     return jnp.where(kept[:, None], points[perm[slot]], 0.0), kept
+
+
+def calibrate(observation: Observation, camera: Camera, *, bin_half_width: float, wall_height: float) -> Camera:
+    """The camera's pose refined from one frame of the bin, the way a robot checks its extrinsic calibration (a real
+    camera's error, ``sim.sensor``): the table plane fitted inside the bin gives the tilt and the height, and the bin's
+    walls, which stand symmetric about the origin, give the sideways offset: the two opposite walls' high points
+    (over half the wall height) have x (and y) of opposite sign and equal size in the true frame, so half their sum is
+    the offset. Yaw is not estimated. observation: its depth [H, W] (m; a 3 x 3 median is taken); bin_half_width,
+    wall_height: the bin's inner half-width and wall height (m, ``SceneConfig``). Returns the camera whose world
+    frame is the table's, bin centred. ValueError when a wall is not in view."""
+    depth = np.asarray(median_depth(jnp.asarray(observation.depth, jnp.float32)), np.float64).reshape(-1)
+    points = np.asarray(camera.pixel_to_world(camera.pixel_centres().reshape(-1, 2), depth), np.float64)
+    points = points[np.isfinite(points).all(axis=1)]
+    inner = np.all(np.abs(points[:, :2]) < bin_half_width - WALL_SEARCH, axis=1)
+    near = inner & (np.abs(points[:, 2] - np.median(points[inner, 2])) < TABLE_BAND)
+    a, b, _ = np.linalg.lstsq(np.c_[points[near, :2], np.ones(near.sum())], points[near, 2], rcond=None)[0]
+    normal = np.array([-a, -b, 1.0]) / np.sqrt(a * a + b * b + 1)
+    axis = np.cross(normal, [0.0, 0.0, 1.0])  # turn the table's normal onto z (Rodrigues)
+    sin, cos = np.linalg.norm(axis), normal[2]
+    k = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]]) / max(sin, 1e-12)
+    level = np.eye(3) + sin * k + (1 - cos) * k @ k
+    levelled = points @ level.T
+    offset = np.zeros(3)
+    offset[2] = np.median(levelled[near, 2])
+    high = levelled[:, 2] - offset[2] > wall_height / 2
+    for i in (0, 1):
+        along = np.abs(levelled[:, 1 - i]) < bin_half_width - WALL_SEARCH
+        wall = high & along & (np.abs(np.abs(levelled[:, i]) - bin_half_width) < WALL_SEARCH)
+        sides = [wall & (levelled[:, i] > 0), wall & (levelled[:, i] < 0)]
+        if min(side.sum() for side in sides) < MIN_WALL_POINTS:
+            raise ValueError(f"calibration needs both bin walls across {'xy'[i]} in view: found "
+                             f"{[int(side.sum()) for side in sides]} points on them (at least {MIN_WALL_POINTS} each)")
+        offset[i] = (np.median(levelled[sides[0], i]) + np.median(levelled[sides[1], i])) / 2
+    return Camera(camera.K, level @ camera.rotation, level @ camera.centre - offset, camera.width, camera.height)
 
 
 def random_start(key, valid) -> jax.Array:

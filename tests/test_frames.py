@@ -35,7 +35,8 @@ def test_round_trip_keeps_depth_to_a_millimetre(saved):
     np.testing.assert_array_equal(obs.rgb, np.asarray(state.obs.rgb))
 
 
-@pytest.mark.parametrize("camera_flags", [[], ["--no-real-depth"], ["--sensor", "realsense"]])
+@pytest.mark.parametrize("camera_flags", [[], ["--no-real-depth"], ["--sensor", "realsense"],
+                                          ["--sensor", "realsense", "--calibrate"]])
 def test_plan_command_prints_a_push_inside_the_bound(saved, tmp_path, capsys, camera_flags):
     _, _, paths = saved
     out = plan.main(["--depth", paths["depth.png"], "--rgb", paths["rgb.png"], "--camera", paths["camera.json"],

@@ -18,13 +18,14 @@ import jax
 import numpy as np
 
 from dynres_jax.commands.task import check_out, load_model
+from dynres_jax.config import SceneConfig
 from dynres_jax.control.budget import BUCKETS, bucket_for
 from dynres_jax.control.mpc import goal_cost, overlay
 from dynres_jax.control.objective import make_goal
 from dynres_jax.control.planner import PlannerConfig, plan
 from dynres_jax.io import files, frames
 from dynres_jax.models.registry import SHIPPED_DYNAMICS
-from dynres_jax.perception import WORKSPACE_HALF_WIDTH, sample_particles
+from dynres_jax.perception import WORKSPACE_HALF_WIDTH, calibrate, sample_particles
 from dynres_jax.sim.sensor import SENSORS
 
 
@@ -52,6 +53,11 @@ def main(argv=None):
     parser.add_argument("--sensor", default="none", choices=sorted(SENSORS),
                         help="pass the frame through a depth camera's errors first (sim.sensor; to try a saved "
                              "simulator frame as a camera would give it)")
+    parser.add_argument("--calibrate", action="store_true",
+                        help="refine the camera's pose from the bin in the frame before planning (perception.calibrate:"
+                             " the table plane and the walls of a bin of --bin-half-width and --wall-height)")
+    parser.add_argument("--bin-half-width", type=float, default=SceneConfig().bin_half_width, help="m")
+    parser.add_argument("--wall-height", type=float, default=SceneConfig().wall_height, help="m")
     args = parser.parse_args(argv)
 
     try:
@@ -65,6 +71,11 @@ def main(argv=None):
         sensor = SENSORS[args.sensor]
         obs = sensor.observe(obs, jax.random.PRNGKey(args.seed + 1))
         camera = sensor.believed_camera(camera, args.seed)
+    if args.calibrate:
+        try:
+            camera = calibrate(obs, camera, bin_half_width=args.bin_half_width, wall_height=args.wall_height)
+        except ValueError as e:
+            parser.error(f"--calibrate: {e}")
     dynamics, n_max, name = load_model(parser, args.dynamics, args.ckpt, args.plate_half_width)
     largest = min(n_max, BUCKETS[-1])
     if not 1 <= args.resolution <= largest:

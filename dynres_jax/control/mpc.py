@@ -35,7 +35,7 @@ from dynres_jax.control.objective import (
     objective,
 )
 from dynres_jax.control.planner import PlannerConfig, plan, sample_pushes
-from dynres_jax.perception import check_particles, particle_kinds, point_cloud, sample_particles
+from dynres_jax.perception import calibrate, check_particles, particle_kinds, point_cloud, sample_particles
 
 if TYPE_CHECKING:  # annotations only: the planning half of this module needs no simulator (nor MuJoCo)
     from dynres_jax.sim.env import PileEnv, State
@@ -302,8 +302,9 @@ def run_episodes(env, states: State, goals: Goal, dynamics, cfg: MPCConfig, keys
     of it, NaN without a budget), c before, predicted c, d and inside share after the push, the push, broken; and
     the step's wall time ``seconds``. The loop stops early when every world broke. goal_masks [B, H, W]: also
     return GIF frames of episode 0 (goal, particles). sensor: a real camera's errors (``sim.sensor.DepthSensor``):
-    every decision (and choose_omega) sees its noisy depth, through the camera it believes in
-    (``believed_camera``); d and the inside share are measured on the true state. policy: a task's policy on top of
+    every decision (and choose_omega) sees its noisy depth, through the camera it believes in (``believed_camera``),
+    refined from episode 0's first frame as a robot checks its calibration (``perception.calibrate``); d and the
+    inside share are measured on the true state. policy: a task's policy on top of
     the loop (Sort's A* waypoints, ``sort.SortPolicy``): ``policy(t, obs [B]) -> StepTarget`` sets every step's goals,
     ω and perceived kind (goals may then be None), and ``policy.score(states) -> {name: [B, ...]}`` adds the task's
     own scores to each record. Returns the final states and the records (and the frames)."""
@@ -334,6 +335,8 @@ def run_episodes(env, states: State, goals: Goal, dynamics, cfg: MPCConfig, keys
         step_keys = jax.vmap(jax.random.fold_in, in_axes=(0, None))(keys, t)
         seen = states.obs if sensor is None else sense(states.obs, jax.vmap(jax.random.fold_in, in_axes=(0, None))(
             step_keys, 1))
+        if sensor is not None and t == 0:
+            seen_camera = _calibrated(env, episode(seen), seen_camera, log)
         target = None if policy is None else policy(t, seen)
         step_goals = goals if target is None else target.goals
         kinds = None if target is None else target.kinds
@@ -395,6 +398,16 @@ def run_episodes(env, states: State, goals: Goal, dynamics, cfg: MPCConfig, keys
         return states, records
     frames.append(overlay(np.asarray(states.obs.rgb[0]), goal_masks[0], None, camera))
     return states, records, frames
+
+
+def _calibrated(env, obs, camera, log):
+    """``perception.calibrate`` on one frame of the env's bin, logged: how far it moved and turned the camera."""
+    scene = env.config.scene
+    refined = calibrate(obs, camera, bin_half_width=scene.bin_half_width, wall_height=scene.wall_height)
+    turn = np.degrees(np.arccos(np.clip((np.trace(refined.rotation @ camera.rotation.T) - 1) / 2, -1.0, 1.0)))
+    log(f"camera pose refined from the first frame: moved {1000 * np.linalg.norm(refined.centre - camera.centre):.1f} "
+        f"mm, turned {turn:.2f}°")
+    return refined
 
 
 def _measure(camera, piece_kinds, obs, pos, goal):
