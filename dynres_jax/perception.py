@@ -25,6 +25,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from dynres_jax.sim.camera import Camera, Observation, neighbourhoods
+from dynres_jax.sim.sensor import NO_READING
 
 FOREGROUND_MARGIN = 0.003  # m: a pixel is foreground when its point is this far above the table (z = 0)
 WALL_BAND = 0.01  # m: with real_depth, the workspace shrinks by this much: calibration errors bring wall tops inside
@@ -60,9 +61,13 @@ class Particles(NamedTuple):
 
 
 def median_depth(depth):
-    """depth [H, W] -> its 3 x 3 median [H, W] (edges replicated): a real camera's isolated noisy and flying pixels
-    removed, depth edges kept (``sim.sensor``)."""
-    return jnp.median(neighbourhoods(depth), axis=0)
+    """depth [H, W] -> its 3 x 3 median [H, W] (edges replicated) over the readings a real camera gave, missing ones
+    (``sim.sensor.NO_READING``) left out (``NO_READING`` where all nine are missing): isolated noisy and flying pixels
+    removed, depth edges kept, and a small piece whose edge readings went missing not voted away by them."""
+    near = neighbourhoods(depth)
+    near = jnp.where(near >= NO_READING, jnp.nan, near)
+    median = jnp.nanmedian(near, axis=0)
+    return jnp.where(jnp.isnan(median), NO_READING, median)
 
 
 def table_height(points, candidates):
@@ -122,12 +127,13 @@ def point_cloud(observation: Observation, camera: Camera, *, max_points: int | N
 def calibrate(observation: Observation, camera: Camera, *, bin_half_width: float, wall_height: float) -> Camera:
     """The camera's pose refined from one frame of the bin, the way a robot checks its extrinsic calibration (a real
     camera's error, ``sim.sensor``): the table plane fitted inside the bin gives the tilt and the height, and the bin's
-    walls, which stand symmetric about the origin, give the sideways offset: the two opposite walls' high points
-    (over half the wall height) have x (and y) of opposite sign and equal size in the true frame, so half their sum is
-    the offset. Yaw is not estimated. observation: its depth [H, W] (m; a 3 x 3 median is taken); bin_half_width,
-    wall_height: the bin's inner half-width and wall height (m, ``SceneConfig``). Returns the camera whose world
-    frame is the table's, bin centred. ValueError when a wall is not in view."""
-    depth = np.asarray(median_depth(jnp.asarray(observation.depth, jnp.float32)), np.float64).reshape(-1)
+    walls, which stand symmetric about the origin, give the sideways offset: the two opposite walls' top points (in
+    the top tenth of the wall height) have x (and y) of opposite sign and equal size in the true frame, so half their
+    sum is the offset. Medians throughout make it robust to noisy, flying and missing readings; yaw is not estimated.
+    observation: its depth [H, W] (m); bin_half_width, wall_height: the bin's inner half-width and wall height (m,
+    ``SceneConfig``). Returns the camera whose world frame is the table's, bin centred. ValueError when a wall is not
+    in view."""
+    depth = np.asarray(observation.depth, np.float64).reshape(-1)
     points = np.asarray(camera.pixel_to_world(camera.pixel_centres().reshape(-1, 2), depth), np.float64)
     points = points[np.isfinite(points).all(axis=1)]
     inner = np.all(np.abs(points[:, :2]) < bin_half_width - WALL_SEARCH, axis=1)
@@ -141,7 +147,7 @@ def calibrate(observation: Observation, camera: Camera, *, bin_half_width: float
     levelled = points @ level.T
     offset = np.zeros(3)
     offset[2] = np.median(levelled[near, 2])
-    high = levelled[:, 2] - offset[2] > wall_height / 2
+    high = levelled[:, 2] - offset[2] > 0.9 * wall_height  # wall tops: flying pixels lie lower
     for i in (0, 1):
         along = np.abs(levelled[:, 1 - i]) < bin_half_width - WALL_SEARCH
         wall = high & along & (np.abs(np.abs(levelled[:, i]) - bin_half_width) < WALL_SEARCH)

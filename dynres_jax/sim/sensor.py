@@ -14,9 +14,10 @@ D455 one metre above the table, from its public specifications and the stereo er
 - Extrinsic calibration error: the planner's believed camera is the true one turned by ``tilt_deg`` about a random
   horizontal axis and moved by ``shift_m`` in a random direction (``believed_camera``).
 
-Perception meets this with ``perception.foreground(real_depth=True)`` (``MPCConfig.real_depth``): a 3 x 3 median
-of the depth removes isolated flying and noisy pixels and keeps edges, and heights are taken over the table plane
-fitted from the frame, which takes out the calibration error's tilt and lift.
+Perception meets this with ``perception.calibrate`` (the camera's pose refined from the bin in the first frame: the
+table plane and the walls) and ``perception.foreground(real_depth=True)`` (``MPCConfig.real_depth``): a 3 x 3 median
+of the readings given removes isolated flying and noisy pixels and keeps edges, and heights are taken over the table
+plane fitted from the frame.
 """
 
 from __future__ import annotations
