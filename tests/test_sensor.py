@@ -1,5 +1,7 @@
 """The depth-camera profile (sim.sensor) and perception's answer to it (perception.foreground(real_depth=True))."""
 
+import json
+
 import cv2
 import jax
 import jax.numpy as jnp
@@ -141,3 +143,8 @@ def test_evaluate_runs_through_the_sensor(tmp_path):
                              "--methods", "50", "--samples", "4", "--plan-steps", "2", "--sensor", "realsense",
                              "--out", str(tmp_path)])
     assert summary["sensor"] == "realsense" and np.isfinite(summary["methods"]["50"]["final_distance"])
+    with open(tmp_path / "50.json") as f:
+        run = json.load(f)
+    start, final = np.array(run["start_pieces"]), np.array(run["final_pieces"])  # where every piece began and ended
+    assert start.shape == final.shape == (2, summary["pieces"], 2) and np.all(np.abs(final) < 0.2)
+    assert np.any(np.abs(final - start) > 1e-3)  # the push moved pieces

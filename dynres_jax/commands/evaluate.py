@@ -71,11 +71,13 @@ def episode_goals(task: str, episodes: int, seed: int, env) -> list[np.ndarray]:
     return goals
 
 
-def episode_results(records: list[dict], episodes, name: str) -> dict:
+def episode_results(records: list[dict], episodes, name: str, starts, finals) -> dict:
     """One process's episodes of a method (``run_episodes``' records): per-step arrays [T][B] and the final values
-    [B], with the episode indices [B]."""
+    [B], with the episode indices [B], and where every piece started and ended (starts, finals: State [B])."""
     steps = lambda key: np.stack([x[key] for x in records]).tolist()  # noqa: E731
+    xy = lambda states: np.round(np.asarray(states.pos)[..., :2], 5).tolist()  # noqa: E731  (0.01 mm)
     return dict(episode=[int(i) for i in episodes], distance=steps("distance"), inside=steps("success"),
+                start_pieces=xy(starts), final_pieces=xy(finals),
                 omega=steps("omega"), plan_steps=steps("plan_steps"), broken=records[-1]["broken"].tolist(),
                 seconds=float(sum(x["seconds"] for x in records)), dynamics=name,
                 device=jax.devices()[0].device_kind)
@@ -84,11 +86,13 @@ def episode_results(records: list[dict], episodes, name: str) -> dict:
 def merge(parts: list[dict]) -> dict:
     """The processes' ``episode_results`` of one method -> the method's results in episode order: final d and inside
     share [E], their means per step [T], ω and Adam steps per step [T][E], broken [E], seconds (the slowest
-    process's)."""
+    process's), and every piece's (x, y) at the start and the end [E][N][2] (m)."""
     order = np.argsort(np.concatenate([p["episode"] for p in parts]))
     cat = lambda key: np.concatenate([np.asarray(p[key]) for p in parts], axis=-1)[..., order]  # noqa: E731
     distance, inside = cat("distance"), cat("inside")
+    pieces = lambda key: np.concatenate([np.asarray(p[key]) for p in parts])[order].tolist()  # noqa: E731
     return dict(final_distance=distance[-1].tolist(), final_inside=inside[-1].tolist(),
+                start_pieces=pieces("start_pieces"), final_pieces=pieces("final_pieces"),
                 mean_distance=distance.mean(axis=1).tolist(), mean_inside=inside.mean(axis=1).tolist(),
                 omega=cat("omega").tolist(), broken=cat("broken").tolist(), plan_steps=cat("plan_steps").tolist(),
                 seconds=max(p["seconds"] for p in parts), dynamics=parts[0]["dynamics"], device=parts[0]["device"],
@@ -268,9 +272,9 @@ def main(argv=None):
                     mine_done = json.load(f)
             else:
                 starts = pool.reset(pile_keys)
-                _, records = run_episodes(pool, starts, goals, dynamics, cfg, keys, choose_omega=chooser,
-                                          sensor=SENSORS[args.sensor], timing=timing, oracle=oracle)
-                mine_done = episode_results(records, mine, name)
+                finals, records = run_episodes(pool, starts, goals, dynamics, cfg, keys, choose_omega=chooser,
+                                               sensor=SENSORS[args.sensor], timing=timing, oracle=oracle)
+                mine_done = episode_results(records, mine, name, starts, finals)
                 if size > 1:
                     files.write_json(part, mine_done)
             if size > 1:
