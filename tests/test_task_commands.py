@@ -5,10 +5,11 @@ import json
 
 import imageio.v3 as iio
 import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from dynres_jax.commands import gather, redistribute, sort
+from dynres_jax.commands import evaluate, gather, redistribute, sort
 from dynres_jax.config import PileConfig, SceneConfig, SimConfig
 from dynres_jax.control import tasks
 from dynres_jax.control.mpc import MPCConfig, run_episodes
@@ -101,3 +102,10 @@ def test_sort_runs_on_the_issues_pairs(pair, tmp_path):
     sort.main(["--kinds", *pair, "--pieces", "15", "15", "--steps", "1", "--samples", "4", "--plan-steps", "1",
                "--out", str(tmp_path)])
     assert json.loads((tmp_path / "metrics.json").read_text())["kinds"] == list(pair)
+
+
+def test_exactly_ninety_percent_inside_is_a_success():
+    """Shares as ``inside_share`` computes them (float32 count ratios): 90 of 100 reads 0.89999998 and must count."""
+    shares = [float(jnp.int32(k) / jnp.int32(n)) for k, n in ((90, 100), (89, 100), (18, 20), (17, 20), (9, 10))]
+    assert shares[0] < 0.9  # the rounding the check must allow
+    assert evaluate.succeeded(shares).tolist() == [True, False, True, False, True]
