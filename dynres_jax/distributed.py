@@ -123,9 +123,14 @@ def sharded(tree, mesh: Mesh):
     return _place(tree, NamedSharding(mesh, PartitionSpec("batch")))
 
 
+def whole(mesh: Mesh) -> NamedSharding:
+    """The sharding of an array held whole on every device of the mesh (parameters, optimiser state, metrics)."""
+    return NamedSharding(mesh, PartitionSpec())
+
+
 def replicated(tree, mesh: Mesh):
     """Every leaf whole on every device of the mesh."""
-    return _place(jax.device_get(tree), NamedSharding(mesh, PartitionSpec()))
+    return _place(jax.device_get(tree), whole(mesh))
 
 
 def host(tree):

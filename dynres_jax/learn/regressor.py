@@ -20,7 +20,6 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 from flax import nnx
-from jax.sharding import NamedSharding, PartitionSpec
 from tqdm import tqdm
 
 from dynres_jax import distributed
@@ -74,7 +73,7 @@ def train_regressor(d: dict, steps: int = 3000, batch: int = 64, lr: float = 1e-
     graphdef, params = nnx.split(model)
     opt = optax.adam(optax.cosine_decay_schedule(lr, steps, alpha=0.05))
     params, state = distributed.replicated((params, opt.init(params)), mesh)
-    whole = NamedSharding(mesh, PartitionSpec())
+    whole = distributed.whole(mesh)
 
     def loss_fn(p, inputs, target):
         pred = (nnx.merge(graphdef, p)(inputs) - OMEGA_MIN) / (OMEGA_MAX - OMEGA_MIN)

@@ -35,7 +35,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 from flax import nnx
-from jax.sharding import Mesh, NamedSharding, PartitionSpec
+from jax.sharding import Mesh
 from tqdm import tqdm
 
 from dynres_jax import distributed
@@ -134,7 +134,7 @@ def make_step(graphdef, optimizer: optax.GradientTransformation, camera, cfg: Tr
     ``distributed.batch_mesh()``); what they return is replicated on it."""
     mesh = mesh or distributed.batch_mesh()
     sample = jax.vmap(functools.partial(make_sample, camera=camera, cfg=cfg))
-    whole = NamedSharding(mesh, PartitionSpec())
+    whole = distributed.whole(mesh)
 
     @functools.partial(jax.jit, out_shardings=whole)
     def step(params, opt_state, windows, omegas, keys):
