@@ -24,7 +24,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from dynres_jax.sim.camera import Camera, Observation, neighbourhoods
+from dynres_jax.sim.camera import Camera, Observation, neighbourhoods, rotation_about
 from dynres_jax.sim.sensor import NO_READING
 
 FOREGROUND_MARGIN = 0.003  # m: a pixel is foreground when its point is this far above the table (z = 0)
@@ -140,10 +140,8 @@ def calibrate(observation: Observation, camera: Camera, *, bin_half_width: float
     near = inner & (np.abs(points[:, 2] - np.median(points[inner, 2])) < TABLE_BAND)
     a, b, _ = np.linalg.lstsq(np.c_[points[near, :2], np.ones(near.sum())], points[near, 2], rcond=None)[0]
     normal = np.array([-a, -b, 1.0]) / np.sqrt(a * a + b * b + 1)
-    axis = np.cross(normal, [0.0, 0.0, 1.0])  # turn the table's normal onto z (Rodrigues)
-    sin, cos = np.linalg.norm(axis), normal[2]
-    k = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]]) / max(sin, 1e-12)
-    level = np.eye(3) + sin * k + (1 - cos) * k @ k
+    axis = np.cross(normal, [0.0, 0.0, 1.0])  # turn the table's normal onto z
+    level = rotation_about(axis, np.arctan2(np.linalg.norm(axis), normal[2]))
     levelled = points @ level.T
     offset = np.zeros(3)
     offset[2] = np.median(levelled[near, 2])

@@ -57,13 +57,13 @@ from dynres_jax.sim.sensor import SENSORS
 from dynres_jax.stats import mcnemar, paired_bootstrap, wilson
 
 SUCCESS = 0.9  # Gather succeeds when this share of the pieces is inside the goal
+ORACLE_OMEGAS = (10, 25, 50, 75, 100)  # method "oracle": the ω tried at every step
 
 
 def succeeded(inside) -> np.ndarray:
     """Per episode, whether its final inside share [E] reaches SUCCESS. The shares are float32 ratios of piece counts:
     90 of 100 reads 0.89999998, so the comparison allows float32's rounding (1e-6, far below one piece's share)."""
     return np.asarray(inside, np.float64) >= SUCCESS - 1e-6
-ORACLE_OMEGAS = (10, 25, 50, 75, 100)  # method "oracle": the ω tried at every step
 
 
 def episode_goals(task: str, episodes: int, seed: int, env) -> list[np.ndarray]:

@@ -36,6 +36,15 @@ def neighbourhoods(image):
 MIN_IMAGE, MAX_IMAGE = 8, 4096  # pixels per side: the renderer's and perception's range (a 4K depth frame fits)
 
 
+def rotation_about(axis, angle: float) -> np.ndarray:
+    """The rotation [3, 3] by ``angle`` (radians) about ``axis`` [3] (any length; a zero axis needs angle 0), by
+    Rodrigues' formula."""
+    axis = np.asarray(axis, np.float64)
+    norm = np.linalg.norm(axis)
+    k = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]]) / max(norm, 1e-12)
+    return np.eye(3) + np.sin(angle) * k + (1 - np.cos(angle)) * k @ k
+
+
 def check_image_size(width: int, height: int) -> None:
     """ValueError naming the limits for an image side outside [MIN_IMAGE, MAX_IMAGE] pixels."""
     if not (MIN_IMAGE <= width <= MAX_IMAGE and MIN_IMAGE <= height <= MAX_IMAGE):

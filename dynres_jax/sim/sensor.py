@@ -28,7 +28,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from dynres_jax.sim.camera import Camera, Observation, neighbourhoods
+from dynres_jax.sim.camera import Camera, Observation, neighbourhoods, rotation_about
 
 NO_READING = 100.0  # m: the depth of a missing reading (beyond the table, so never foreground)
 
@@ -66,9 +66,7 @@ class DepthSensor:
         rng = np.random.default_rng(seed)
         axis = np.array([*rng.normal(size=2), 0.0])
         axis /= np.linalg.norm(axis)
-        angle = np.radians(self.tilt_deg)
-        k = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
-        turn = np.eye(3) + np.sin(angle) * k + (1 - np.cos(angle)) * k @ k  # Rodrigues
+        turn = rotation_about(axis, np.radians(self.tilt_deg))
         shift = rng.normal(size=3)
         shift *= self.shift_m / np.linalg.norm(shift)
         return Camera(camera.K, turn @ camera.rotation, camera.centre + shift, camera.width, camera.height)
