@@ -11,6 +11,14 @@ import json
 from dataclasses import dataclass, field
 
 GEOMS = ("sphere", "capsule", "box")
+OMEGA_MIN, OMEGA_MAX = 2, 100  # the resolutions ω a planner may use (the reference's search range); the one place
+
+
+def check_omega(omega, what: str = "omega") -> int:
+    """ω as an int in [OMEGA_MIN, OMEGA_MAX], or a ValueError naming ``what``."""
+    if isinstance(omega, bool) or int(omega) != omega or not OMEGA_MIN <= omega <= OMEGA_MAX:
+        raise ValueError(f"{what} must be an integer in [{OMEGA_MIN}, {OMEGA_MAX}], got {omega!r}")
+    return int(omega)
 
 
 @dataclass(frozen=True)

@@ -112,10 +112,15 @@ def foreground(observation: Observation, camera: Camera, *, margin: float = FORE
 
 def point_cloud(observation: Observation, camera: Camera, *, max_points: int | None = None, **foreground_kw):
     """Depth + camera -> (points [P, 3] world m, zero where invalid; valid [P] bool). P = H * W (every pixel a
-    candidate) when ``max_points`` is None, else P = max_points: foreground pixels packed first, a uniform random
-    subset (one fixed permutation, ``PERMUTATION_SEED``) when there are more than P. ``foreground_kw``: margin,
-    workspace, kind, colour, colour_tol, real_depth of ``foreground``."""
-    points, valid = foreground(observation, camera, **foreground_kw)
+    candidate) when ``max_points`` is None, else P = max_points (``pack``). ``foreground_kw``: margin, workspace,
+    kind, colour, colour_tol, real_depth of ``foreground``."""
+    return pack(*foreground(observation, camera, **foreground_kw), max_points)
+
+
+def pack(points, valid, max_points: int | None):
+    """The foreground (points [H*W, 3], valid [H*W]) in max_points slots: foreground pixels packed first, a uniform
+    random subset (one fixed permutation, ``PERMUTATION_SEED``) when there are more than max_points; unchanged when
+    max_points is None."""
     if max_points is None:
         return points, valid
     perm = jnp.asarray(np.random.default_rng(PERMUTATION_SEED).permutation(valid.shape[0]), jnp.int32)
@@ -205,9 +210,8 @@ def recentre(particles, points, valid, r_center):
     return jax.lax.map(centre, jnp.asarray(particles, jnp.float32))
 
 
-@functools.partial(jax.jit, static_argnames=("camera", "n_max", "max_points", "real_depth"))
-def _sample_particles(observation, camera, omega, key, n_max, max_points, r_center, foreground_kw, real_depth):
-    points, valid = point_cloud(observation, camera, max_points=max_points, real_depth=real_depth, **foreground_kw)
+def _particles(points, valid, depth, omega, key, n_max: int, r_center) -> Particles:
+    """h on a packed cloud (points [P, 3], valid [P]) of a depth image [H, W] (NaN there is an error)."""
     n_points = jnp.sum(valid).astype(jnp.int32)
     omega = jnp.asarray(omega, jnp.int32)
     indices, radius = fps(points, valid, n_max + 1, random_start(key, valid))  # one extra pick: r(ω = n_max)
@@ -215,7 +219,7 @@ def _sample_particles(observation, camera, omega, key, n_max, max_points, r_cent
     if r_center is None:
         r_center = jnp.minimum(R_CENTER_MAX, 0.5 * r_omega)
     positions = recentre(points[indices[:n_max]], points, valid, r_center)
-    error = (jnp.where(~jnp.all(jnp.isfinite(observation.depth)), NAN_DEPTH, 0)
+    error = (jnp.where(~jnp.all(jnp.isfinite(depth)), NAN_DEPTH, 0)
              | jnp.where(n_points == 0, EMPTY_FOREGROUND, 0)
              | jnp.where((omega < 1) | (omega > n_max), BAD_OMEGA, 0)
              | jnp.where((n_points > 0) & (n_points < omega), TOO_FEW_POINTS, 0)).astype(jnp.int32)
@@ -224,13 +228,23 @@ def _sample_particles(observation, camera, omega, key, n_max, max_points, r_cent
                      error)
 
 
-@functools.partial(jax.jit, static_argnames=("camera", "real_depth"))
-def particle_kinds(observation: Observation, camera: Camera, particles: Particles, real_depth: bool = False):
-    """Each particle's piece kind: the kind (``observation.kind``) of the foreground pixel nearest to it on the table
-    plane -> [n_max] int32, -1 where masked or when no foreground pixel has a kind. For Sort's objective, which scores
-    each kind's particles against its own goal (``objective.kind_objective``)."""
-    points, valid = foreground(observation, camera, real_depth=real_depth)
-    kinds = jnp.asarray(observation.kind, jnp.int32).reshape(-1)
+@functools.partial(jax.jit, static_argnames=("camera", "n_max", "max_points", "real_depth"))
+def _sample_particles(observation, camera, omega, key, n_max, max_points, r_center, foreground_kw, real_depth):
+    points, valid = point_cloud(observation, camera, max_points=max_points, real_depth=real_depth, **foreground_kw)
+    return _particles(points, valid, observation.depth, omega, key, n_max, r_center)
+
+
+@functools.partial(jax.jit, static_argnames="n_max")
+def cloud_particles(points, valid, depth, omega, key, n_max: int) -> Particles:
+    """h on a cloud already made (``point_cloud``'s points [P, 3], valid [P]) of the depth image [H, W]: the
+    particles of ``sample_particles`` without computing the cloud again."""
+    return _particles(points, valid, depth, omega, key, n_max, None)
+
+
+def _nearest_kinds(points, valid, kind_image, particles: Particles):
+    """Each particle's kind: that of the nearest labelled foreground pixel (points [H*W, 3], valid [H*W], kind_image
+    [H, W]) on the table plane -> [n_max] int32, -1 where masked or when no pixel has a kind."""
+    kinds = jnp.asarray(kind_image, jnp.int32).reshape(-1)
     labelled = valid & (kinds >= 0)
     x, y = points[:, 0], points[:, 1]
 
@@ -240,6 +254,37 @@ def particle_kinds(observation: Observation, camera: Camera, particles: Particle
 
     found = jax.lax.map(nearest, particles.positions)
     return jnp.where(particles.mask & jnp.any(labelled), found, -1).astype(jnp.int32)
+
+
+@functools.partial(jax.jit, static_argnames=("camera", "real_depth"))
+def particle_kinds(observation: Observation, camera: Camera, particles: Particles, real_depth: bool = False):
+    """Each particle's piece kind: the kind (``observation.kind``) of the foreground pixel nearest to it on the table
+    plane -> [n_max] int32, -1 where masked or when no foreground pixel has a kind. For Sort's objective, which scores
+    each kind's particles against its own goal (``objective.kind_objective``)."""
+    return _nearest_kinds(*foreground(observation, camera, real_depth=real_depth), observation.kind, particles)
+
+
+class Perceived(NamedTuple):
+    """One frame, perceived once: the point cloud (points [P, 3] m, valid [P]; the planner's pushes start through
+    it), the particles h(y, ω) and, where asked (Sort), each particle's kind [n_max] (else None)."""
+
+    points: jax.Array
+    valid: jax.Array
+    particles: Particles
+    kinds: jax.Array | None
+
+
+def perceive(observation: Observation, camera: Camera, omega, key, n_max: int, *, max_points: int | None,
+             real_depth: bool = False, kind=None, with_kinds: bool = False) -> Perceived:
+    """The frame's foreground computed once and everything a decision reads from it (``Perceived``): the cloud of
+    ``point_cloud``, the particles of ``sample_particles`` at ω (may be traced) in n_max slots and, with_kinds,
+    ``particle_kinds``. kind: only the pieces of this kind index (may be traced; None: every piece). Traceable;
+    errors are in ``particles.error``."""
+    points, valid = foreground(observation, camera, real_depth=real_depth, kind=kind)
+    cloud = pack(points, valid, max_points)
+    particles = _particles(*cloud, observation.depth, omega, key, n_max, None)
+    kinds = _nearest_kinds(points, valid, observation.kind, particles) if with_kinds else None
+    return Perceived(*cloud, particles, kinds)
 
 
 def describe_error(error: int, omega=None, n_max=None, n_points=None) -> str:

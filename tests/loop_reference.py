@@ -17,8 +17,8 @@ import tempfile
 
 REFERENCE = os.path.join(os.path.dirname(os.path.abspath(__file__)), "data", "loop_reference.json")
 TINY = ["--samples", "4", "--plan-steps", "3", "--steps", "2"]
-STEP_FIELDS = ("omega", "bucket", "plan_steps", "objective", "predicted_objective", "distance", "success", "action",
-               "inside", "mixing", "phase", "kind", "waypoint", "centres", "astar_steps")
+STEP_FIELDS = ("omega", "bucket", "adam_steps", "objective", "predicted_objective", "distance", "inside", "action",
+               "kind_inside", "mixing", "phase", "kind", "waypoint", "centres", "astar_steps")
 TIMING = dict(device="reference", samples=4, horizon=1, fixed_s={"16": 0.01, "32": 0.012, "64": 0.015, "100": 0.02},
               step_s={"16": 0.004, "32": 0.005, "64": 0.008, "100": 0.011})
 
@@ -61,7 +61,7 @@ def record(folder: str) -> dict:
     runs["evaluate"] = _summary(summary)
     with open(out("evaluate/oracle.json")) as f:
         oracle = json.load(f)
-    runs["evaluate_oracle"] = {k: oracle[k] for k in ("final_distance", "final_inside", "omega", "plan_steps",
+    runs["evaluate_oracle"] = {k: oracle[k] for k in ("final_distance", "final_inside", "omega", "adam_steps",
                                                        "final_pieces")}
     sensed = evaluate.main(["--quick", "--episodes", "2", "--steps", "2", "--pieces", "40", "--samples", "4",
                             "--plan-steps", "3", "--methods", "20", "--sensor", "realsense", "--seed", "8",

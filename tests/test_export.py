@@ -15,7 +15,7 @@ from dynres_jax.control.mpc import goal_cost
 from dynres_jax.control.objective import disc_goal, make_goal
 from dynres_jax.control.planner import PlannerConfig, plan
 from dynres_jax.io import ckpt
-from dynres_jax.io import export as ex
+from dynres_jax import export as ex
 from dynres_jax.models.dynamics import Dynamics, DynamicsConfig
 from dynres_jax.models.registry import load_dynamics
 from dynres_jax.sim.camera import Camera
@@ -91,7 +91,7 @@ def test_wrong_input_shapes_are_jax_errors(exported_file):
 def test_one_file_for_cpu_and_cuda(tiny_ckpt):
     """jax.export lowers the planner for both platforms at once, on a machine without a GPU, and the file reads back
     with both. (Running it costs a second compilation of the planner; done by hand: it runs on the CPU, with plans
-    equal to the live ones up to rounding, dynres_jax/io/export.py.)"""
+    equal to the live ones up to rounding, dynres_jax/export.py.)"""
     exported, info = ex.export_checkpoint(tiny_ckpt, CONFIG, CAMERA, goal_samples=Q, platforms=("cpu", "cuda"))
     assert tuple(exported.platforms) == ("cpu", "cuda") and info["platforms"] == ["cpu", "cuda"]
     again = jax.export.deserialize(exported.serialize())

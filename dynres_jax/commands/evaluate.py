@@ -11,7 +11,7 @@ together: perception and planning vmapped on the JAX device, pushes in C worker 
 more Adam steps. Without it every decision runs ``--plan-steps``.
 "adaptive" picks ω at every step with the regressor g (``--regressor``); "oracle" (an upper bound, not in the default
 list) plans at every ω of ORACLE_OMEGAS each step, pushes each on a copy of the worlds and keeps the one that left the
-lowest d (``mpc.run_episodes(oracle=...)``); the summary then says how much of the oracle's gain over the best fixed
+lowest d (``choosers.OracleOmega``); the summary then says how much of the oracle's gain over the best fixed
 ω adaptive recovers (``oracle_gap``); "cnn" (not in the default list) is the
 paper's CNN-dynamics baseline: the same planner at ω = ``--cnn-omega`` (50) with the CNN checkpoint ``--cnn-ckpt``
 (``experiments.train_dynamics --model cnn``) as its model. Writes per method ``METHOD.json`` (final d
@@ -28,7 +28,6 @@ process 0 merges them into ``METHOD.json`` and writes the summary.
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import os
 
@@ -42,22 +41,22 @@ from dynres_jax.commands.task import (
     check_out,
     check_planner_args,
     load_model,
-    planner_config,
+    mpc_config,
     resolve_pieces,
     timing_table,
 )
-from dynres_jax.config import KINDS, CameraConfig, PileConfig, SceneConfig, SimConfig
+from dynres_jax.config import KINDS, OMEGA_MAX, OMEGA_MIN, CameraConfig, PileConfig, SceneConfig, SimConfig
 from dynres_jax.control import resolution, tasks
-from dynres_jax.control.mpc import run_episodes
-from dynres_jax.control.objective import make_goal
+from dynres_jax.control.choosers import ORACLE_OMEGAS, AdaptiveOmega, Chooser, FixedOmega, OracleOmega
+from dynres_jax.control.mpc import SensorView, run
+from dynres_jax.control.objective import make_goal, stack
 from dynres_jax.io import ckpt, files
 from dynres_jax.models.registry import SHIPPED_CNN_DYNAMICS, SHIPPED_DYNAMICS, SHIPPED_REGRESSOR
 from dynres_jax.sim.pool import WorldPool, process_pool
 from dynres_jax.sim.sensor import SENSORS
 from dynres_jax.stats import mcnemar, paired_bootstrap, wilson
 
-SUCCESS = 0.9  # Gather succeeds when this share of the pieces is inside the goal
-ORACLE_OMEGAS = (10, 25, 50, 75, 100)  # method "oracle": the ω tried at every step
+SUCCESS = 0.9  # an episode succeeds when this share of the pieces ends inside the goal
 
 
 def succeeded(inside) -> np.ndarray:
@@ -82,9 +81,9 @@ def episode_results(records: list[dict], episodes, name: str, starts, finals) ->
     [B], with the episode indices [B], and where every piece started and ended (starts, finals: State [B])."""
     steps = lambda key: np.stack([x[key] for x in records]).tolist()  # noqa: E731
     xy = lambda states: np.round(np.asarray(states.pos)[..., :2], 5).tolist()  # noqa: E731  (0.01 mm)
-    return dict(episode=[int(i) for i in episodes], distance=steps("distance"), inside=steps("success"),
+    return dict(episode=[int(i) for i in episodes], distance=steps("distance"), inside=steps("inside"),
                 start_pieces=xy(starts), final_pieces=xy(finals),
-                omega=steps("omega"), plan_steps=steps("plan_steps"), broken=records[-1]["broken"].tolist(),
+                omega=steps("omega"), adam_steps=steps("adam_steps"), broken=records[-1]["broken"].tolist(),
                 seconds=float(sum(x["seconds"] for x in records)), dynamics=name,
                 device=jax.devices()[0].device_kind)
 
@@ -100,7 +99,7 @@ def merge(parts: list[dict]) -> dict:
     return dict(final_distance=distance[-1].tolist(), final_inside=inside[-1].tolist(),
                 start_pieces=pieces("start_pieces"), final_pieces=pieces("final_pieces"),
                 mean_distance=distance.mean(axis=1).tolist(), mean_inside=inside.mean(axis=1).tolist(),
-                omega=cat("omega").tolist(), broken=cat("broken").tolist(), plan_steps=cat("plan_steps").tolist(),
+                omega=cat("omega").tolist(), broken=cat("broken").tolist(), adam_steps=cat("adam_steps").tolist(),
                 seconds=max(p["seconds"] for p in parts), dynamics=parts[0]["dynamics"], device=parts[0]["device"],
                 processes=len(parts))
 
@@ -175,10 +174,20 @@ def plot(results: dict, task: str, out_dir: str) -> None:
     plt.close(fig)
 
 
+def method_chooser(method: str, goals, args, camera) -> Chooser:
+    """The chooser of an evaluation method against goals [B]: a fixed ω ("50"; "cnn" at --cnn-omega), the regressor
+    ("adaptive") or the oracle over ORACLE_OMEGAS."""
+    if method == "adaptive":
+        return AdaptiveOmega(goals, resolution.load_chooser(args.regressor, camera))
+    if method == "oracle":
+        return OracleOmega(goals, ORACLE_OMEGAS)
+    return FixedOmega(goals, args.cnn_omega if method == "cnn" else int(method))
+
+
 def check_cnn(parser, args) -> None:
     """Method "cnn" needs a CNN checkpoint at --cnn-ckpt and a valid --cnn-omega; parser.error naming what is wrong."""
-    if not resolution.OMEGA_MIN <= args.cnn_omega <= resolution.OMEGA_MAX:
-        parser.error(f"--cnn-omega must lie in [{resolution.OMEGA_MIN}, {resolution.OMEGA_MAX}], got {args.cnn_omega}")
+    if not OMEGA_MIN <= args.cnn_omega <= OMEGA_MAX:
+        parser.error(f"--cnn-omega must lie in [{OMEGA_MIN}, {OMEGA_MAX}], got {args.cnn_omega}")
     if ckpt.latest_step(args.cnn_ckpt) is None:
         parser.error(f"method 'cnn' needs a CNN dynamics checkpoint; there is none in {args.cnn_ckpt!r} (train one "
                      "with python -m experiments.train_dynamics --model cnn, or give --cnn-ckpt)")
@@ -220,10 +229,10 @@ def main(argv=None):
     rank, size = distributed.from_args(parser, args)
     check_planner_args(parser, args)
     for m in args.methods:
-        fixed = m.isdigit() and resolution.OMEGA_MIN <= int(m) <= resolution.OMEGA_MAX
+        fixed = m.isdigit() and OMEGA_MIN <= int(m) <= OMEGA_MAX
         if m not in ("adaptive", "oracle", "cnn") and not fixed:
-            parser.error(f"--methods takes 'adaptive', 'oracle', 'cnn' or integers in [{resolution.OMEGA_MIN}, "
-                         f"{resolution.OMEGA_MAX}], got {m!r}")
+            parser.error(f"--methods takes 'adaptive', 'oracle', 'cnn' or integers in [{OMEGA_MIN}, {OMEGA_MAX}], "
+                         f"got {m!r}")
     if "cnn" in args.methods:
         check_cnn(parser, args)
     if args.episodes < size or args.steps < 1:
@@ -234,7 +243,7 @@ def main(argv=None):
     camera = CameraConfig(width=64, height=64) if args.quick else CameraConfig()
     sim = SimConfig(scene=SceneConfig(kinds=(args.kind,), pieces=(args.pieces,)), camera=camera,
                     pile=PileConfig(layout="spread" if args.task == "gather" else "blob"))
-    main_model = load_model(parser, args.dynamics, args.ckpt, sim.scene.plate_half_width)  # (dynamics, n_max, name)
+    main_model = load_model(parser, args.dynamics, args.ckpt, sim.scene.plate_half_width)
     cnn_model = load_model(parser, "learned", args.cnn_ckpt, sim.scene.plate_half_width) if "cnn" in args.methods \
         else None
     os.makedirs(os.path.join(args.out, "parts"), exist_ok=True)
@@ -247,18 +256,14 @@ def main(argv=None):
         except ValueError as e:
             parser.error(str(e))
         masks = episode_goals(args.task, args.episodes, args.seed, pool.env)
-        goals = jax.tree.map(lambda *g: jnp.stack(g), *[make_goal(masks[i], pool.camera) for i in mine])
+        goals = stack([make_goal(masks[i], pool.camera) for i in mine])
         keys = jax.random.split(jax.random.PRNGKey(args.seed), args.episodes)[mine]
         pile_keys = jax.vmap(lambda i: jax.random.fold_in(jax.random.PRNGKey(args.seed), i))(jnp.asarray(mine))
         todo = [m for m in args.methods if not os.path.exists(os.path.join(args.out, f"{m}.json"))]
-
-        def loop_config(omega: int):
-            return dataclasses.replace(planner_config(pool.env, args), steps=args.steps, omega=omega,
-                                       real_depth=args.sensor != "none")
-
+        cfg = mpc_config(pool.env, args, mpc_steps=args.steps, real_depth=args.sensor != "none")
         timing = None
         if args.time_budget is not None and todo:  # one table for every method: the main model on the first episode
-            timing = timing_table(args, args.out, pool.reset(pile_keys[:1]).obs, goals, main_model[0], loop_config(50),
+            timing = timing_table(args, args.out, pool.reset(pile_keys[:1]).obs, goals, main_model.dynamics, cfg,
                                   pool.camera)
         for method in args.methods:
             path = os.path.join(args.out, f"{method}.json")
@@ -266,21 +271,18 @@ def main(argv=None):
                 with open(path) as f:
                     results[method] = json.load(f)
                 continue
-            dynamics, _, name = cnn_model if method == "cnn" else main_model
-            omega = args.cnn_omega if method == "cnn" else int(method) if method.isdigit() else 50
-            cfg = loop_config(omega)
-            chooser = resolution.load_chooser(args.regressor, pool.camera) if method == "adaptive" else None
-            oracle = ORACLE_OMEGAS if method == "oracle" else None
-            print(f"{args.task}: method {method}, {len(mine)} of {args.episodes} episodes, dynamics {name}")
+            model = cnn_model if method == "cnn" else main_model
+            print(f"{args.task}: method {method}, {len(mine)} of {args.episodes} episodes, dynamics {model.name}")
             part = os.path.join(args.out, "parts", f"{method}.{rank}-of-{size}.json")
             if os.path.exists(part):
                 with open(part) as f:
                     mine_done = json.load(f)
             else:
                 starts = pool.reset(pile_keys)
-                finals, records = run_episodes(pool, starts, goals, dynamics, cfg, keys, choose_omega=chooser,
-                                               sensor=SENSORS[args.sensor], timing=timing, oracle=oracle)
-                mine_done = episode_results(records, mine, name, starts, finals)
+                view = None if args.sensor == "none" else SensorView(SENSORS[args.sensor], pool.env)
+                finals, records = run(pool, starts, method_chooser(method, goals, args, pool.camera), model.dynamics,
+                                      cfg, keys, timing=timing, view=view)
+                mine_done = episode_results(records, mine, model.name, starts, finals)
                 if size > 1:
                     files.write_json(part, mine_done)
             if size > 1:
@@ -295,7 +297,7 @@ def main(argv=None):
             if distributed.is_writer():
                 files.write_json(path, results[method])
     devices = sorted({r.get("device", "unrecorded") for r in results.values()})  # where the methods ran
-    summary = dict(task=args.task, kind=args.kind, pieces=args.pieces, sensor=args.sensor, dynamics=main_model[2],
+    summary = dict(task=args.task, kind=args.kind, pieces=args.pieces, sensor=args.sensor, dynamics=main_model.name,
                    device=", ".join(devices),
                    time_budget=args.time_budget, samples=args.samples, plan_steps=args.plan_steps,
                    steps=args.steps, **summarise(results))

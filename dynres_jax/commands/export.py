@@ -16,7 +16,7 @@ arrays from dynres_jax.control.objective.make_goal (computed once per goal, on a
 jax.random.PRNGKey(seed). --platforms: default this machine's backend; --platforms cuda for a GPU robot works on any
 machine. On the CPU a one-platform file plans bit for bit what the live planner plans; --platforms cpu cuda gives one
 file for both, whose plans differ from the live ones by float rounding, amplified by the optimisation (on a GPU
-neither the live planner nor the file repeats bit for bit from run to run; dynres_jax/io/export.py).
+neither the live planner nor the file repeats bit for bit from run to run; dynres_jax/export.py).
 """
 
 from __future__ import annotations
@@ -29,7 +29,7 @@ import jax
 
 from dynres_jax.config import CameraConfig, PushConfig
 from dynres_jax.control.planner import PlannerConfig
-from dynres_jax.io import export
+from dynres_jax import export
 from dynres_jax.io.ckpt import CheckpointError
 from dynres_jax.models.registry import SHIPPED_DYNAMICS
 from dynres_jax.sim.camera import Camera

@@ -20,10 +20,11 @@ import numpy as np
 from dynres_jax.commands.task import check_out, load_model
 from dynres_jax.config import SceneConfig
 from dynres_jax.control.budget import BUCKETS, bucket_for
-from dynres_jax.control.mpc import goal_cost, overlay
+from dynres_jax.control.decision import goal_cost
 from dynres_jax.control.objective import make_goal
 from dynres_jax.control.planner import PlannerConfig, plan
 from dynres_jax.io import files, frames
+from dynres_jax.io.draw import overlay
 from dynres_jax.models.registry import SHIPPED_DYNAMICS
 from dynres_jax.perception import WORKSPACE_HALF_WIDTH, calibrate, sample_particles
 from dynres_jax.sim.sensor import SENSORS

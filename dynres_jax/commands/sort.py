@@ -6,7 +6,8 @@ over blob centres choosing which pile moves where (``dynres_jax.control.sort``):
 
 Writes ``episode.gif`` (observation; goal of kind 0 blue, of kind 1 orange; the current waypoint disc green; the
 moved kind's particles red), ``final.png`` and ``metrics.json`` (a record per MPC step, the start and final share
-of each kind inside its own goal, and the mixing: the share of pieces inside the other kind's goal). Dynamics: the
+of each kind inside its own goal, and the mixing: the share of pieces inside the other kind's goal; each step's
+``inside`` is the share of all pieces inside their own kind's goal, ``kind_inside`` the share per kind). Dynamics: the
 trained checkpoint given by ``--ckpt`` (default: the shipped one); ``--dynamics sweep`` plans with the sweep heuristic
 instead.
 """
@@ -23,10 +24,12 @@ import numpy as np
 
 from dynres_jax.commands.task import add_loop_args, build_loop, check_out, write_episode
 from dynres_jax.config import KINDS, CameraConfig, PileConfig, SceneConfig, SimConfig
-from dynres_jax.control.mpc import measure_timing
+from dynres_jax.control.decision import batch
+from dynres_jax.control.mpc import measure_timing, run_episode
 from dynres_jax.control.objective import make_goal
-from dynres_jax.control.sort import sort_episode, sort_goal, sort_scores
+from dynres_jax.control.sort import SortPolicy, sort_goal, sort_scores
 from dynres_jax.io import files
+from dynres_jax.io.draw import Frames, overlay, tint
 
 
 def main(argv=None):
@@ -41,7 +44,8 @@ def main(argv=None):
 
     sim = SimConfig(scene=SceneConfig(kinds=tuple(args.kinds), pieces=tuple(args.pieces)),
                     pile=PileConfig(layout="two_blobs"), camera=CameraConfig())
-    env, dynamics, name, cfg, _, timing = build_loop(args, sim, parser)
+    loop = build_loop(args, sim, parser)
+    env, cfg, timing = loop.env, loop.cfg, loop.timing
 
     try:
         goals_xy, radius, masks = sort_goal(np.random.default_rng(args.seed), env)
@@ -52,20 +56,24 @@ def main(argv=None):
     state = env.reset(jax.random.PRNGKey(args.seed))
     start_inside, start_mixing = sort_scores(state.pos, env.scene.kind, goals, env.camera)
     print(f"sort: {args.pieces[0]} {args.kinds[0]} + {args.pieces[1]} {args.kinds[1]} pieces, goals "
-          f"{np.round(goals_xy, 3).tolist()} radius {radius:.3f} m; dynamics: {name}; ω = {args.resolution}; "
-          f"{args.samples} x {args.plan_steps} Adam steps")
+          f"{np.round(goals_xy, 3).tolist()} radius {radius:.3f} m; dynamics: {loop.model.name}; "
+          f"ω = {args.resolution}; {args.samples} x {args.plan_steps} Adam steps")
     t0 = time.perf_counter()
     if cfg.time_budget is not None and timing is None:
-        timing = measure_timing(state.obs, goals[0], dynamics, cfg, env.camera)
-    state, records, frames = sort_episode(env, state, dynamics, cfg, jax.random.PRNGKey(args.seed), goals_xy, radius,
-                                          grid_step=args.grid_step, timing=timing)
+        timing = measure_timing(state.obs, goals[0], loop.model.dynamics, cfg, env.camera)
+    key = jax.random.PRNGKey(args.seed)
+    policy = SortPolicy(env, cfg, loop.omega, key, goals_xy, radius, grid_step=args.grid_step)
+    none = np.zeros_like(masks[0])
+    frames = Frames(lambda rgb, particles, record: overlay(
+        tint(rgb, masks), none if particles is None else policy.target_mask, particles, env.camera))
+    state, records = run_episode(env, state, policy, loop.model.dynamics, cfg, key, timing=timing, on_step=[frames])
     if timing is not None:
         timing.save(os.path.join(args.out, "timing.json"))
-    write_episode(args.out, frames)
-    summary = dict(task="sort", seed=args.seed, dynamics=name, kinds=args.kinds, pieces=args.pieces,
-                   goals=goals_xy.tolist(), radius=radius, start_inside=start_inside, start_mixing=start_mixing,
-                   final_inside=records[-1]["inside"], final_mixing=records[-1]["mixing"],
-                   seconds=time.perf_counter() - t0, mpc=dataclasses.asdict(cfg),
+    write_episode(args.out, frames.finish(batch(state)))
+    summary = dict(task="sort", seed=args.seed, dynamics=loop.model.name, kinds=args.kinds, pieces=args.pieces,
+                   goals=goals_xy.tolist(), radius=radius, resolution=args.resolution, start_inside=start_inside,
+                   start_mixing=start_mixing, final_inside=records[-1]["kind_inside"],
+                   final_mixing=records[-1]["mixing"], seconds=time.perf_counter() - t0, mpc=dataclasses.asdict(cfg),
                    timing=timing.to_json() if timing else None, steps=records)
     files.write_json(os.path.join(args.out, "metrics.json"), summary)
     inside = summary["final_inside"]

@@ -15,6 +15,8 @@ import argparse
 import dataclasses
 import os
 import time
+from collections.abc import Callable
+from dataclasses import dataclass
 
 import cv2
 import imageio.v3 as iio
@@ -22,15 +24,27 @@ import jax
 import numpy as np
 
 from dynres_jax import distributed
-from dynres_jax.config import DEFAULT_PIECES, KINDS, CameraConfig, PileConfig, SceneConfig, SimConfig
-from dynres_jax.control import budget, resolution, tasks
-from dynres_jax.control.mpc import MPCConfig, episode, measure_timing, run_episode
+from dynres_jax.config import (
+    DEFAULT_PIECES,
+    KINDS,
+    OMEGA_MAX,
+    OMEGA_MIN,
+    CameraConfig,
+    PileConfig,
+    SceneConfig,
+    SimConfig,
+)
+from dynres_jax.control import budget, tasks
+from dynres_jax.control.choosers import AdaptiveOmega, Chooser, FixedOmega
+from dynres_jax.control.decision import batch, episode
+from dynres_jax.control.mpc import MPCConfig, measure_timing, run_episode
 from dynres_jax.control.objective import inside_share, make_goal
 from dynres_jax.control.planner import PlannerConfig
 from dynres_jax.control.resolution import load_chooser
 from dynres_jax.io import files
 from dynres_jax.io.ckpt import CheckpointError
-from dynres_jax.models.registry import SHIPPED_DYNAMICS, SHIPPED_REGRESSOR, load_dynamics
+from dynres_jax.io.draw import goal_frames
+from dynres_jax.models.registry import SHIPPED_DYNAMICS, SHIPPED_REGRESSOR, LoadedDynamics, load_dynamics
 from dynres_jax.sim.env import PileEnv
 
 DESCRIPTIONS = {
@@ -103,7 +117,8 @@ def check_out(parser: argparse.ArgumentParser, folder: str) -> None:
         parser.error(f"--out: {e}")
 
 
-def load_model(parser: argparse.ArgumentParser, choice: str, ckpt_dir: str, plate_half_width: float):
+def load_model(parser: argparse.ArgumentParser, choice: str, ckpt_dir: str, plate_half_width: float
+               ) -> LoadedDynamics:
     """``registry.load_dynamics``, with a missing or damaged checkpoint named by ``parser.error`` before any work."""
     try:
         return load_dynamics(choice, ckpt_dir, plate_half_width)
@@ -111,28 +126,44 @@ def load_model(parser: argparse.ArgumentParser, choice: str, ckpt_dir: str, plat
         parser.error(f"--ckpt: {e}")
 
 
-def build_loop(args, sim: SimConfig, parser: argparse.ArgumentParser):
-    """The simulator, the planner's model, the MPC settings the loop flags ask for and the adaptive-ω chooser (None
-    at a fixed ω): (env, dynamics, name, cfg, chooser)."""
+@dataclass(frozen=True)
+class Loop:
+    """What the loop flags ask for: the simulator, the planner's model, the MPC settings, the timing table of
+    --timing (or None), and ω or, for --resolution adaptive, the regressor g's ``(obs [B], goals [B]) -> ω [B]``
+    (omega None)."""
+
+    env: PileEnv
+    model: LoadedDynamics
+    cfg: MPCConfig
+    timing: budget.TimingTable | None
+    omega: int | None
+    regressor: Callable | None
+
+    def chooser(self, goals) -> Chooser:
+        """The loop's chooser against goals [B]: the regressor's ω (adaptive) or the fixed ω."""
+        return FixedOmega(goals, self.omega) if self.regressor is None else AdaptiveOmega(goals, self.regressor)
+
+
+def build_loop(args, sim: SimConfig, parser: argparse.ArgumentParser) -> Loop:
+    """The ``Loop`` of the loop flags; parser.error naming a bad one before any work."""
     env = PileEnv(sim, backend=args.backend)
-    dynamics, n_max, name = load_model(parser, args.dynamics, args.ckpt or SHIPPED_DYNAMICS, sim.scene.plate_half_width)
-    chooser, omega = None, str(args.resolution)
+    model = load_model(parser, args.dynamics, args.ckpt or SHIPPED_DYNAMICS, sim.scene.plate_half_width)
+    regressor, omega, largest = None, str(args.resolution), min(model.n_max, OMEGA_MAX)
     if omega == "adaptive":
         if not os.path.isdir(args.regressor):
             parser.error(f"--resolution adaptive needs a regressor checkpoint; {args.regressor} does not exist")
-        chooser, omega = load_chooser(args.regressor, env.camera), "50"
-    largest = min(n_max, budget.BUCKETS[-1])
-    if not omega.isdigit() or not 1 <= int(omega) <= largest:
-        parser.error(f"--resolution must be 'adaptive' or an integer in [1, {largest}] (the model's n_max and the "
-                     "largest resolution bucket)")
+        regressor = load_chooser(args.regressor, env.camera)
+    elif not omega.isdigit() or not OMEGA_MIN <= int(omega) <= largest:
+        parser.error(f"--resolution must be 'adaptive' or an integer in [{OMEGA_MIN}, {largest}] (the model's n_max "
+                     "and the largest resolution bucket)")
     timing = load_timing(parser, args)
     try:
         planner = PlannerConfig(samples=args.samples, steps=args.plan_steps, bound=env.action_bound,
                                 max_length=sim.push.max_length, min_length=sim.push.min_length, seed=args.seed)
-        cfg = MPCConfig(steps=args.steps, omega=int(omega), planner=planner, time_budget=args.time_budget)
+        cfg = MPCConfig(mpc_steps=args.steps, planner=planner, time_budget=args.time_budget)
     except ValueError as e:
         parser.error(str(e))
-    return env, dynamics, name, cfg, chooser, timing
+    return Loop(env, model, cfg, timing, None if regressor else int(omega), regressor)
 
 
 def write_episode(out: str, frames: list) -> None:
@@ -159,7 +190,8 @@ def main(task: str, argv=None):
 
     sim = SimConfig(scene=SceneConfig(kinds=(args.kind,), pieces=(args.pieces,)), pile=PileConfig(layout=args.layout),
                     camera=CameraConfig())
-    env, dynamics, name, cfg, chooser, timing = build_loop(args, sim, parser)
+    loop = build_loop(args, sim, parser)
+    env, cfg, timing = loop.env, loop.cfg, loop.timing
 
     rng = np.random.default_rng(args.seed)
     try:
@@ -175,20 +207,22 @@ def main(task: str, argv=None):
     start_inside = float(inside_share(state.pos, np.ones(env.scene.n_pieces, bool), goal, env.camera))
     budget_text = (f"{args.samples} samples, {args.plan_steps} Adam steps" if args.time_budget is None else
                    f"{args.samples} samples, {args.time_budget} s per decision (at most {args.plan_steps} Adam steps)")
-    print(f"{task}: {args.pieces} {args.kind} pieces, goal {goal_info}; dynamics: {name}; ω = {args.resolution}; "
-          f"{budget_text}")
+    print(f"{task}: {args.pieces} {args.kind} pieces, goal {goal_info}; dynamics: {loop.model.name}; "
+          f"ω = {args.resolution}; {budget_text}")
     t0 = time.perf_counter()
     if cfg.time_budget is not None and timing is None:
-        timing = measure_timing(state.obs, goal, dynamics, cfg, env.camera)
-    state, records, frames = run_episode(env, state, goal, goal_mask, dynamics, cfg, jax.random.PRNGKey(args.seed),
-                                         choose_omega=chooser, timing=timing)
+        timing = measure_timing(state.obs, goal, loop.model.dynamics, cfg, env.camera)
+    frames = goal_frames(goal_mask, env.camera)
+    state, records = run_episode(env, state, loop.chooser(batch(goal)), loop.model.dynamics, cfg,
+                                 jax.random.PRNGKey(args.seed), timing=timing, on_step=[frames])
     if timing is not None:
         timing.save(os.path.join(args.out, "timing.json"))
-    write_episode(args.out, frames)
-    summary = dict(task=task, seed=args.seed, kind=args.kind, pieces=args.pieces, dynamics=name, goal=goal_info,
-                   start_inside=start_inside, final_inside=records[-1]["success"],
-                   final_distance=records[-1]["distance"], seconds=time.perf_counter() - t0,
-                   mpc=dataclasses.asdict(cfg), timing=timing.to_json() if timing else None, steps=records)
+    write_episode(args.out, frames.finish(batch(state)))
+    summary = dict(task=task, seed=args.seed, kind=args.kind, pieces=args.pieces, dynamics=loop.model.name,
+                   goal=goal_info, resolution=args.resolution, start_inside=start_inside,
+                   final_inside=records[-1]["inside"], final_distance=records[-1]["distance"],
+                   seconds=time.perf_counter() - t0, mpc=dataclasses.asdict(cfg),
+                   timing=timing.to_json() if timing else None, steps=records)
     files.write_json(os.path.join(args.out, "metrics.json"), summary)
     print(f"pieces inside the goal: {start_inside:.0%} -> {summary['final_inside']:.0%}; "
           f"wrote {args.out}/episode.gif, final.png, metrics.json")
@@ -210,13 +244,14 @@ def check_planner_args(parser, args) -> None:
         parser.error("--plan-steps and --samples must be positive")
 
 
-def planner_config(env, args) -> MPCConfig:
-    """The MPC settings of one decision as the planner flags ask (evaluate and label_resolution)."""
+def mpc_config(env, args, mpc_steps: int = 1, real_depth: bool = False) -> MPCConfig:
+    """The MPC settings the planner flags ask for (evaluate and label_resolution): mpc_steps per episode (1: a
+    single decision, as a label's plan)."""
     planner = PlannerConfig(samples=args.samples, steps=args.plan_steps, horizon=args.horizon,
                             bound=env.action_bound, max_length=env.config.push.max_length,
                             min_length=env.config.push.min_length)
-    return MPCConfig(steps=1, omega=resolution.OMEGA_MAX, planner=planner, max_points=1024 if args.quick else 4096,
-                     time_budget=args.time_budget)
+    return MPCConfig(mpc_steps=mpc_steps, planner=planner, max_points=1024 if args.quick else 4096,
+                     time_budget=args.time_budget, real_depth=real_depth)
 
 
 def timing_table(args, out_dir: str, obs, goal, dynamics, cfg: MPCConfig, camera) -> budget.TimingTable | None:
@@ -236,7 +271,7 @@ def timing_table(args, out_dir: str, obs, goal, dynamics, cfg: MPCConfig, camera
             table = measure_timing(episode(obs), episode(goal), dynamics, cfg, camera)
         table.save(saved)
         print(f"timing table ({table.device}, {'from ' + path if path else 'measured'}): Adam steps in "
-              f"{cfg.time_budget} s: " + ", ".join(f"bucket {b}: {cfg.plan_steps(b, table)}" for b in cfg.buckets))
+              f"{cfg.time_budget} s: " + ", ".join(f"bucket {b}: {cfg.adam_steps(b, table)}" for b in cfg.buckets))
         return table
 
     if distributed.part()[1] == 1:

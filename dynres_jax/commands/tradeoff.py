@@ -34,10 +34,22 @@ import argparse
 import glob
 import os
 
+import jax
+import jax.numpy as jnp
 import numpy as np
 
+from dynres_jax.config import CameraConfig, PileConfig, PushConfig, SceneConfig, SimConfig
+from dynres_jax.control import tasks
+from dynres_jax.control.budget import TimingTable, bucket_for
+from dynres_jax.control.decision import decide_batch, episode
+from dynres_jax.control.mpc import MPCConfig, measure_timing
+from dynres_jax.control.objective import distribution_distance, make_goal, stack
+from dynres_jax.control.planner import PlannerConfig
 from dynres_jax.control.resolution import CANDIDATES
 from dynres_jax.io import files
+from dynres_jax.learn.data import save_npz
+from dynres_jax.models.registry import SHIPPED_DYNAMICS, load_dynamics
+from dynres_jax.sim.pool import WorldPool, process_pool
 from dynres_jax.stats import wilson
 
 SURFACE_OMEGAS = (10, 25, 50, 75, 100)
@@ -166,10 +178,6 @@ def reliability(first: str, second: str, out_dir: str) -> dict:
 
 def _scenes(kind: int, args, pool):
     """(start states [S], goal masks [S, H, W]) of one surface scene kind, seeded by (seed, kind, scene)."""
-    import jax
-    import jax.numpy as jnp
-
-    from dynres_jax.control import tasks
 
     keys = jax.vmap(lambda i: jax.random.fold_in(jax.random.PRNGKey(args.seed + kind), i))(jnp.arange(args.scenes))
     starts = pool.reset(keys)
@@ -187,30 +195,16 @@ def _scenes(kind: int, args, pool):
 def _surface_scenes(pool, starts, goals, keys, dynamics, cfg, omegas, steps, scene_name: str) -> dict:
     """c* and the predicted c [ω, N, S] and d before the push [S] of the scenes ``starts`` [S] with ``goals`` [S], each
     planned from its own key in ``keys`` [S] at every ω and N (common random numbers)."""
-    import jax
-    import jax.numpy as jnp
-
-    from dynres_jax.control.budget import bucket_for
-    from dynres_jax.control.mpc import decide
-    from dynres_jax.control.objective import distribution_distance
-    from dynres_jax.perception import check_particles
-
     camera = pool.camera
     measure = jax.jit(jax.vmap(lambda obs, goal: distribution_distance(obs, goal, camera)))
     c_star = np.zeros((len(omegas), len(steps), len(keys)))
     predicted = np.zeros_like(c_star)
-
-    def plan_at(obs, goal, key, n, omega):
-        particles, _, result = decide(obs, goal, key, None, dynamics, cfg, camera, omega, bucket=bucket_for(omega),
-                                      steps=n)
-        return result, particles
-
-    plan_all = jax.jit(jax.vmap(plan_at, in_axes=(0, 0, 0, None, None)), static_argnums=4)
+    init = jnp.zeros((len(keys), cfg.planner.horizon, 4), jnp.float32)  # no warm start
     for i, omega in enumerate(omegas):
         for j, n in enumerate(steps):
-            result, particles = plan_all(starts.obs, goals, keys, jnp.int32(n), omega)
-            check_particles(particles, np.full(len(keys), omega), bucket_for(omega),
-                            f"{scene_name}: perception failed on scenes")
+            result = decide_batch(starts.obs, goals, keys, init, False, np.full(len(keys), omega),
+                                  np.full(len(keys), n), spec=cfg.spec(bucket_for(omega)), dynamics=dynamics,
+                                  camera=camera)[2]
             after = pool.push(starts, result.best[:, 0])
             c_star[i, j], predicted[i, j] = measure(after.obs, goals), result.best_cost
         print(f"  {scene_name}: ω = {omega:3d}: mean c* over N = {steps}: "
@@ -220,20 +214,7 @@ def _surface_scenes(pool, starts, goals, keys, dynamics, cfg, omegas, steps, sce
 
 def surface(args) -> dict:
     """The anytime surface (module docstring) -> the summary written to surface.json."""
-    import jax
-    import jax.numpy as jnp
-
-    from dynres_jax.config import CameraConfig, PileConfig, PushConfig, SceneConfig, SimConfig
-    from dynres_jax.control.mpc import MPCConfig, episode, measure_timing
-    from dynres_jax.learn.data import save_npz
-    from dynres_jax.models.registry import load_dynamics
-
     near_centre_blob = PileConfig(layout="blob", centre_margin=SceneConfig.bin_half_width - LETTER_REACH)
-    from dynres_jax.control.objective import make_goal
-    from dynres_jax.control.planner import PlannerConfig
-    from dynres_jax.models.registry import SHIPPED_DYNAMICS
-    from dynres_jax.sim.pool import WorldPool, process_pool
-
     omegas, steps = SURFACE_OMEGAS, SURFACE_STEPS
     if args.quick:
         args.scenes, args.samples, args.pieces, omegas, steps = 2, 4, 12, (10, 25), (1, 3)
@@ -249,10 +230,10 @@ def surface(args) -> dict:
             pool = WorldPool(sim, processes)
             planner = PlannerConfig(samples=args.samples, steps=max(steps), bound=pool.env.action_bound,
                                     max_length=sim.push.max_length, min_length=sim.push.min_length)
-            cfg = MPCConfig(steps=1, omega=omegas[-1], max_points=1024 if args.quick else 4096, planner=planner)
+            cfg = MPCConfig(mpc_steps=1, max_points=1024 if args.quick else 4096, planner=planner)
             path = os.path.join(args.out, f"surface_{kind}.npz")
             starts, masks = _scenes(kind, args, pool)
-            goals = jax.tree.map(lambda *g: jnp.stack(g), *[make_goal(m, pool.camera) for m in masks])
+            goals = stack([make_goal(m, pool.camera) for m in masks])
             if timing is None:
                 timing = measure_timing(episode(starts.obs), episode(goals), dynamics, cfg, pool.camera)
             if os.path.exists(path):
@@ -283,8 +264,6 @@ def _plot_surface(summary: dict, path: str) -> None:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-
-    from dynres_jax.control.budget import TimingTable, bucket_for
 
     kinds = summary["kinds"]
     fig, axes = plt.subplots(2, len(kinds), figsize=(5 * len(kinds), 7), squeeze=False)

@@ -8,7 +8,7 @@ visits. Padding is inert: a plan at ω in a small bucket equals the same plan in
 Time budget. ``TimingTable`` holds, per bucket and for one device and planner batch, the seconds a decision spends
 outside the Adam steps (``fixed_s``: perception, sampling the pushes, scoring the last ones) and the seconds of one
 Adam step (``step_s``). ``measure`` fills it after compiling, from the wall time of decisions of two step counts;
-``TimingTable.refine`` updates a bucket's step time from the decisions a run makes. ``plan_steps`` is the one
+``TimingTable.refine`` updates a bucket's step time from the decisions a run makes. ``adam_steps`` is the one
 budget function: the Adam steps a decision at a bucket runs under a budget in seconds (or the plain count when
 there is no budget). A table saved beside the labels or evaluation it drove (``save``, ``--timing FILE``) re-derives
 their step counts on any machine.
@@ -24,9 +24,10 @@ from dataclasses import asdict, dataclass, field
 
 import jax
 
+from dynres_jax.config import OMEGA_MAX
 from dynres_jax.io import files
 
-BUCKETS = (16, 32, 64, 100)  # particle capacities; 100 = resolution.OMEGA_MAX, so ω = 100 pads nothing
+BUCKETS = (16, 32, 64, OMEGA_MAX)  # particle capacities; the last is OMEGA_MAX, so ω = OMEGA_MAX pads nothing
 REFINE_WEIGHT = 0.5  # weight of a decision's own step time when a table is refined from it
 REFINE_CLIP = 2.0  # a decision's own step time counts within [1/2, 2] x the table's (one slow outlier moves it little)
 
@@ -128,7 +129,7 @@ class TimingTable:
         return cls(**data, frozen=frozen)
 
 
-def plan_steps(bucket: int, max_steps: int, seconds: float | None = None, table: TimingTable | None = None) -> int:
+def adam_steps(bucket: int, max_steps: int, seconds: float | None = None, table: TimingTable | None = None) -> int:
     """The one budget function: the Adam steps a decision at ``bucket`` runs. No budget (seconds None): max_steps.
     A budget of ``seconds`` per decision: as many steps as ``table`` says fit, at most max_steps."""
     if seconds is None:
@@ -168,4 +169,4 @@ def measure(decide: Callable[[int, int], object], buckets: Sequence[int], *, sam
     return TimingTable(f"{device.platform}: {device.device_kind}", samples, horizon, fixed, step)
 
 
-__all__ = ["BUCKETS", "TimingTable", "bucket_for", "check_buckets", "measure", "plan_steps"]
+__all__ = ["BUCKETS", "TimingTable", "bucket_for", "check_buckets", "measure", "adam_steps"]

@@ -63,13 +63,18 @@ class KindGoals(NamedTuple):
     hold: jax.Array
 
 
+def stack(goals) -> Goal:
+    """A sequence of Goals of one camera -> one Goal with a leading axis (a batch of episodes' goals, or kinds')."""
+    return jax.tree.map(lambda *x: jnp.stack(x), *goals)
+
+
 def stack_goals(goals, hold=None) -> KindGoals:
     """A sequence of K Goals of one camera (goal k for kind k) and hold [K] bool (default: pursue every kind) ->
     KindGoals."""
     hold = np.zeros(len(goals), bool) if hold is None else np.asarray(hold, bool)
     if hold.shape != (len(goals),):
         raise ValueError(f"hold must have one flag per goal ({len(goals)}), got shape {hold.shape}")
-    return KindGoals(jax.tree.map(lambda *x: jnp.stack(x), *goals), jnp.asarray(hold))
+    return KindGoals(stack(goals), jnp.asarray(hold))
 
 
 # ---------------------------------------------------------------------------------------------------------------

@@ -24,7 +24,8 @@ import optax
 from flax import nnx
 from jax.scipy.special import ndtr
 
-OMEGA_MIN, OMEGA_MAX = 2, 100
+from dynres_jax.config import OMEGA_MAX, OMEGA_MIN
+
 W_R = 1e-3  # the reference's weight of the resolution penalty
 FEATURE_SIZE = 32  # regressor input grid (pixels a side)
 LOG_BOUNDS = np.log(np.array([[0.03, 3.0], [0.05, 20.0], [1e-4, 1.0]]))  # length scale, signal var, noise var

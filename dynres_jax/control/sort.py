@@ -14,7 +14,7 @@ Paper mapping:
 - Perceived piles can start closer than 2 ``blob_radius`` (touching or mixed piles); such a start may only be left
   by moves that strictly increase the centre distance until the circles are apart. Goals must not overlap.
 
-Closed loop (``sort_episode``: ``SortPolicy`` on the one MPC loop, ``mpc.run_episodes``): each MPC step perceives both
+Closed loop (``sort_episode``: ``SortPolicy`` choosing on the one MPC loop, ``mpc.run``): each MPC step perceives both
 piles (particles of one kind each, segmentation), takes the blob centres as the particle centroids, RE-PLANS the A* path
 from them (so a pile disturbed by a push is handled), and plans one push on the particles of the whole scene, each
 labelled with its kind (``perception.particle_kinds``), with one goal per kind (``objective.KindGoals``): the blob of
@@ -32,20 +32,23 @@ import heapq
 import time
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 
+from dynres_jax.config import check_omega
 from dynres_jax.control.budget import TimingTable, bucket_for
-from dynres_jax.control.mpc import MPCConfig, StepTarget, batch, episode, overlay, run_episode
+from dynres_jax.control.choosers import Chooser, Orders
+from dynres_jax.control.decision import batch, episode
+from dynres_jax.control.mpc import MPCConfig, run_episode
 from dynres_jax.control.objective import disc_goal, inside_share, make_goal, sort_goals, stack_goals
 from dynres_jax.control.tasks import FILL
-from dynres_jax.perception import point_cloud, sample_particles
+from dynres_jax.perception import check_particles, cloud_particles, foreground, pack
 from dynres_jax.sim.env import PileEnv, State
 
 GOAL_GAP = 0.04  # m: sort goals' rims at least this far apart (room for A*'s snapping of both centres to the grid)
 GOAL_EDGE = 0.01  # m: sort goals' rims at least this far from the bin wall
 SAMPLE_TRIES = 10_000  # rejection-sampling tries for the goal centres
 WAYPOINT_EDGE = 0.005  # m: A*'s bound keeps waypoint discs of goal_radius this far inside the bin
-GOAL_TINTS = np.array([[60.0, 110.0, 235.0], [240.0, 150.0, 40.0]])  # RGB tint of goal 0 (blue) and goal 1 (orange)
 MOVES = [(di, dj) for di in (-1, 0, 1) for dj in (-1, 0, 1) if (di, dj) != (0, 0)]  # 8-connected grid steps
 
 
@@ -142,17 +145,21 @@ def sort_scores(piece_pos, kinds, goals, camera) -> tuple[list[float], float]:
     return inside, wrong / len(kinds)
 
 
-def _kind_centres(obs, camera, cfg: MPCConfig, key) -> np.ndarray:
-    """The two piles' centres (m) [2, 2]: the mean of each kind's particles (ω = min(cfg.omega, that kind's
-    foreground points), so a small pile still samples, in the smallest bucket holding ω)."""
+def _kind_centres(obs, camera, omega: int, max_points: int | None, buckets, key) -> tuple[np.ndarray, int]:
+    """The two piles' centres (m) [2, 2]: the mean of each kind's particles (ω = min(omega, that kind's foreground
+    points), so a small pile still samples, in the smallest bucket holding ω); and the points of the whole cloud.
+    The foreground is computed once for both kinds and the whole cloud."""
+    points, valid = foreground(obs, camera)
+    pieces = jnp.asarray(obs.kind).reshape(-1)
     centres = []
     for k in (0, 1):
-        _, valid = point_cloud(obs, camera, max_points=cfg.max_points, kind=k)
-        omega = max(min(cfg.omega, int(np.sum(np.asarray(valid)))), 1)
-        p = sample_particles(obs, camera, omega, jax.random.fold_in(key, k), bucket_for(omega, cfg.buckets),
-                             max_points=cfg.max_points, kind=k)
+        mine = valid & (pieces == k)
+        cloud = pack(jnp.where(mine[:, None], points, 0.0), mine, max_points)
+        w = max(min(omega, int(np.sum(np.asarray(cloud[1])))), 1)
+        p = cloud_particles(*cloud, obs.depth, w, jax.random.fold_in(key, k), bucket_for(w, buckets))
+        check_particles(p, w, bucket_for(w, buckets), f"Sort's kind {k}")
         centres.append(np.asarray(p.positions)[np.asarray(p.mask), :2].mean(0))
-    return np.stack(centres)
+    return np.stack(centres), int(np.sum(np.asarray(pack(points, valid, max_points)[1])))
 
 
 def _next_waypoint(path: list[np.ndarray], goals_xy: np.ndarray, lookahead: int) -> tuple[int, np.ndarray]:
@@ -175,29 +182,23 @@ def _hold_point(path: list[np.ndarray] | None, goals_xy: np.ndarray, blob: int) 
     return path[0][blob]
 
 
-def _frame(rgb, goal_masks, target_mask, particles, camera) -> np.ndarray:
-    """RGB frame: goal 0 tinted blue, goal 1 orange, the current target disc green, particles red (``overlay``)."""
-    img = np.asarray(rgb, np.float32)
-    for mask, tint in zip(goal_masks, GOAL_TINTS, strict=True):
-        img[mask] = 0.6 * img[mask] + 0.4 * tint
-    return overlay(img.astype(np.uint8), target_mask, particles, camera)
+class SortPolicy(Chooser):
+    """Sort's A* waypoints as a chooser on the one MPC loop (``mpc.run``), for one episode: every step it perceives
+    both piles, re-plans the A* path from their centres and plans one push on both kinds' particles at once at ω
+    (``objective.KindGoals``): the moved blob's kind pursued towards a disc of ``goal_radius`` at its waypoint, the
+    other kind held at a disc where it rests (``_hold_point``; module docstring). ``target_mask`` is the current
+    waypoint's disc (what a frame draws). Its record fields: phase ("path": following A*, "final": both at their
+    goals, both pursued, "direct": A* found no path, the farther pile heads straight to its goal), kind moved (-1 in
+    "final": both), waypoint [2] m (the moved kind's target centre), centres [2, 2] m (perceived), astar_steps left,
+    astar_s; its scores: kind_inside [2] (kind k's share inside goal k) and mixing (the share inside the other kind's
+    goal)."""
 
-
-class SortPolicy:
-    """Sort's A* waypoints as a policy on the one MPC loop (``mpc.run_episodes(policy=...)``), for one episode: every
-    step it perceives both piles, re-plans the A* path from their centres and plans one push on both kinds' particles
-    at once (``objective.KindGoals``): the moved blob's kind pursued towards a disc of ``goal_radius`` at its
-    waypoint, the other kind held at a disc where it rests (``_hold_point``; module docstring). Its record fields:
-    phase ("path": following A*, "final": both at their goals, both pursued, "direct": A* found no path, the farther
-    pile heads straight to its goal), kind moved (-1 in "final": both), waypoint [2] m (the moved kind's target
-    centre), centres [2, 2] m (perceived), astar_steps left, astar_s; its scores: inside [2] (kind k's share inside
-    goal k) and mixing (the share inside the other kind's goal)."""
-
-    def __init__(self, env: PileEnv, cfg: MPCConfig, key, goals_xy, goal_radius: float, log=print, *,
+    def __init__(self, env: PileEnv, cfg: MPCConfig, omega: int, key, goals_xy, goal_radius: float, log=print, *,
                  blob_radius: float | None = None, grid_step: float = 0.02, lookahead: int = 3):
         if lookahead < 1:
             raise ValueError(f"lookahead must be at least 1, got {lookahead}")
-        self.env, self.cfg, self.key, self.log = env, cfg, key, log
+        self.omega, self.max_points, self.buckets = check_omega(omega), cfg.max_points, cfg.buckets
+        self.piece_kinds, self.key, self.log = env.scene.kind, key, log
         self.camera, self.bin_half = env.camera, env.config.scene.bin_half_width
         self.goals_xy = np.asarray(goals_xy, np.float64)
         self.goal_radius, self.grid_step, self.lookahead = goal_radius, grid_step, lookahead
@@ -205,11 +206,12 @@ class SortPolicy:
         self.goals = [make_goal(m, self.camera) for m in self.goal_masks]
         self.blob_radius = goal_radius if blob_radius is None else blob_radius
         self.bound = self.bin_half - goal_radius - WAYPOINT_EDGE
-        self.phase = None
+        self.phase, self.target_mask = None, np.zeros_like(self.goal_masks[0])
 
-    def __call__(self, t: int, obs) -> StepTarget:
+    def __call__(self, t: int, obs) -> Orders:
         obs = episode(obs)
-        centres = _kind_centres(obs, self.camera, self.cfg, jax.random.fold_in(self.key, t))
+        centres, points = _kind_centres(obs, self.camera, self.omega, self.max_points, self.buckets,
+                                        jax.random.fold_in(self.key, t))
         t0 = time.perf_counter()
         try:
             path = astar_blobs(centres, self.goals_xy, self.blob_radius, self.grid_step, self.bound)
@@ -231,33 +233,25 @@ class SortPolicy:
         if kind >= 0:
             hold[kind] = False
         masks = [disc_goal(self.camera, c, self.goal_radius, bin_half_width=self.bin_half) for c in targets]
-        target_mask = masks[kind] if kind >= 0 else np.zeros_like(masks[0])
-        omega = min(self.cfg.omega, int(np.sum(np.asarray(point_cloud(obs, self.camera,
-                                                                      max_points=self.cfg.max_points)[1]))))
-
-        def draw(rgb, drawn):
-            return _frame(rgb, self.goal_masks, target_mask if drawn is not None else np.zeros_like(target_mask),
-                          drawn, self.camera)
-
+        self.target_mask = masks[kind] if kind >= 0 else np.zeros_like(masks[0])
         record = dict(phase=[self.phase], kind=[kind], waypoint=[targets[max(kind, 0)]], centres=[centres],
                       astar_steps=[steps_left], astar_s=[astar_s])
         goals = stack_goals([make_goal(m, self.camera) for m in masks], hold)
-        return StepTarget(batch(goals), np.array([max(omega, 1)]), None, record, draw)
+        return Orders(batch(goals), (np.array([max(min(self.omega, points), 1)]),), None, record)
 
     def score(self, states) -> dict:
-        inside, mixing = sort_scores(states.pos[0], self.env.scene.kind, self.goals, self.camera)
-        return dict(inside=[inside], mixing=[mixing])
+        inside, mixing = sort_scores(states.pos[0], self.piece_kinds, self.goals, self.camera)
+        return dict(kind_inside=[inside], mixing=[mixing])
 
 
-def sort_episode(env: PileEnv, state: State, dynamics, cfg: MPCConfig, key, goals_xy, goal_radius: float, log=print,
+def sort_episode(env: PileEnv, state: State, dynamics, cfg: MPCConfig, omega: int, key, goals_xy, goal_radius: float,
                  *, blob_radius: float | None = None, grid_step: float = 0.02, lookahead: int = 3,
-                 timing: TimingTable | None = None) -> tuple[State, list[dict], list[np.ndarray]]:
-    """One Sort episode from ``state``: kind k to the disc of ``goal_radius`` (m) at goals_xy[k] (m), the one MPC loop
-    (``mpc.run_episode``'s records) with ``SortPolicy`` on top (its fields and scores join each record). dynamics:
-    ``registry.learned_dynamics(model)`` or ``registry.sweep_dynamics(hw)``; blob_radius: A*'s blob circle (m,
-    default goal_radius); grid_step: A*'s grid (m); lookahead: grid steps a waypoint may lie ahead (>= 1); timing:
-    the table a time budget (cfg.time_budget) is spent by. Returns the final state, one record per step and GIF
-    frames."""
-    policy = SortPolicy(env, cfg, key, goals_xy, goal_radius, log, blob_radius=blob_radius, grid_step=grid_step,
-                        lookahead=lookahead)
-    return run_episode(env, state, None, None, dynamics, cfg, key, log=log, timing=timing, policy=policy)
+                 timing: TimingTable | None = None, log=print) -> tuple[State, list[dict]]:
+    """One Sort episode from ``state`` at resolution ω: kind k to the disc of ``goal_radius`` (m) at goals_xy[k] (m),
+    ``mpc.run_episode`` with ``SortPolicy`` choosing (its fields and scores join each record). dynamics: ``registry``
+    (radius -> the planner's model); blob_radius: A*'s blob circle (m, default goal_radius); grid_step: A*'s grid
+    (m); lookahead: grid steps a waypoint may lie ahead (>= 1); timing: the table a time budget (cfg.time_budget) is
+    spent by. Returns the final state and one record per step."""
+    policy = SortPolicy(env, cfg, omega, key, goals_xy, goal_radius, log, blob_radius=blob_radius,
+                        grid_step=grid_step, lookahead=lookahead)
+    return run_episode(env, state, policy, dynamics, cfg, key, timing=timing, log=log)

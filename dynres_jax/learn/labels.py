@@ -14,10 +14,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from dynres_jax.config import CameraConfig, PileConfig, PushConfig, SceneConfig, SimConfig
-from dynres_jax.control import budget, resolution, tasks
-from dynres_jax.control.mpc import MPCConfig, decide, run_episodes
-from dynres_jax.control.objective import distribution_distance, make_goal
-from dynres_jax.perception import check_particles
+from dynres_jax.control import budget, mpc, resolution, tasks
+from dynres_jax.control.choosers import FixedOmega
+from dynres_jax.control.objective import distribution_distance, make_goal, stack
 from dynres_jax.sim.env import PileEnv
 from dynres_jax.sim.pool import BACKENDS, make_pool
 
@@ -87,52 +86,46 @@ def shard_scenes(cfg: LabelConfig, shard: int, pool):
     pile_keys = jax.vmap(lambda j: jax.random.fold_in(jax.random.fold_in(jax.random.PRNGKey(cfg.seed), shard), j))(
         jnp.arange(cfg.batch) // 2)  # scenes 2j and 2j + 1: the same pile
     goal_masks, shapes = shard_goals(cfg, shard, pool.env)
-    goals = jax.tree.map(lambda *g: jnp.stack(g), *[make_goal(m, pool.camera) for m in goal_masks])
+    goals = stack([make_goal(m, pool.camera) for m in goal_masks])
     return pool.reset(pile_keys), goal_masks, goals, shapes
 
 
-def label_shard(cfg: LabelConfig, shard: int, dynamics, planner: Callable[[PileEnv], MPCConfig], processes,
+def label_shard(cfg: LabelConfig, shard: int, dynamics, planner: Callable[[PileEnv], mpc.MPCConfig], processes,
                 timing: budget.TimingTable | None) -> dict:
     """Label one shard: the arrays of its ``shard_NNNNN.npz``. planner: env -> the MPC settings of every plan (its
-    planner and time budget); processes: C worker processes (``pool.process_pool``) for backend "mujoco", else
-    None; timing: the table the budget is spent by (None without a budget)."""
+    planner and time budget; each c*(ω) is one ``mpc.act``: allot, decide, push, measure); processes: C worker
+    processes (``pool.process_pool``) for backend "mujoco", else None; timing: the table the budget is spent by
+    (None without a budget)."""
     pool = make_pool(scene_config(cfg, shard), cfg.backend, processes)
-    camera, mpc = pool.camera, planner(pool.env)
+    camera, mpc_cfg = pool.camera, planner(pool.env)
     b, r = cfg.batch, cfg.repeats
     start, goal_masks, goals, shapes = shard_scenes(cfg, shard, pool)
     measure = jax.jit(jax.vmap(lambda obs, goal: distribution_distance(obs, goal, camera)))
     plan_seed = cfg.seed + 1 if cfg.plan_seed is None else cfg.plan_seed
     if cfg.mid_episode:  # the closed loop at ω = MID_EPISODE_OMEGA first: scenes as adaptive ω meets them
-        mid = dataclasses.replace(mpc, steps=cfg.mid_episode, omega=MID_EPISODE_OMEGA)
         keys = jax.random.split(jax.random.fold_in(jax.random.PRNGKey(plan_seed), 200_000 + shard), b)
-        start, _ = run_episodes(pool, start, goals, dynamics, mid, keys, log=lambda s: None, timing=timing)
+        mid = dataclasses.replace(mpc_cfg, mpc_steps=cfg.mid_episode)
+        start = mpc.run(pool, start, FixedOmega(goals, MID_EPISODE_OMEGA), dynamics, mid, keys, timing=timing,
+                        log=lambda s: None).states
     d0 = measure(start.obs, goals)
-
-    def plan_at(obs, goal, key, omega, steps, bucket):
-        particles, _, result = decide(obs, goal, key, None, dynamics, mpc, camera, omega, bucket=bucket, steps=steps)
-        return result.best[0], particles
-
-    plan_all = jax.jit(jax.vmap(plan_at, in_axes=(0, 0, 0, 0, 0, None)), static_argnums=5)
     rep = lambda x: jnp.repeat(x, r, axis=0)  # noqa: E731  [B] -> [B * R], repeats of a scene adjacent
     starts, goals_r = jax.tree.map(rep, start), jax.tree.map(rep, goals)
+    init = jnp.zeros((b * r, mpc_cfg.planner.horizon, 4), jnp.float32)  # no warm start: each plan from its samples
 
     def c_star(omega, i):
         """c*(ω) [B] of every scene (the mean of its repeats), the variance of that mean [B] (0 with one repeat) and
         the Adam steps [B] each plan ran (its bucket's, under the budget)."""
         keys = jax.random.split(jax.random.fold_in(jax.random.PRNGKey(plan_seed), shard * 100 + i), b * r)
-        buckets, steps = mpc.allot(omega, timing)
-        bucket = int(buckets.max())
-        actions, particles = plan_all(starts.obs, goals_r, keys, rep(omega), rep(jnp.asarray(steps)), bucket)
-        check_particles(particles, rep(omega), bucket, f"shard {shard}: perception failed in plans (scene x "
-                        f"{r} repeats)")
-        after = pool.push(starts, actions)
-        values = np.asarray(measure(after.obs, goals_r)).reshape(b, r)
+        done = mpc.act(pool, starts, starts.obs, goals_r, keys, init, False, rep(omega), None, cfg=mpc_cfg,
+                       timing=timing, dynamics=dynamics, camera=camera,
+                       score=lambda after, g: dict(distance=measure(after.obs, g)))
+        values = np.asarray(done["distance"]).reshape(b, r)
         spread = values.var(axis=1, ddof=1) / r if r > 1 else np.zeros(b)
-        return jnp.asarray(values.mean(axis=1)), spread, steps
+        return jnp.asarray(values.mean(axis=1)), spread, done["adam_steps"][::r]
 
     k = cfg.evals
     omega = jnp.zeros((b, k), jnp.int32)
-    target, c_stars, plan_steps = jnp.zeros((b, k)), jnp.zeros((b, k)), np.zeros((b, k), np.int32)
+    target, c_stars, adam_steps = jnp.zeros((b, k)), jnp.zeros((b, k)), np.zeros((b, k), np.int32)
     repeat_var = np.zeros((b, k))  # the measured variance of each evaluation: the GP's noise floor is its mean
     mask = jnp.zeros((b, k), bool)
     propose = jax.jit(jax.vmap(resolution.next_omega))
@@ -142,7 +135,7 @@ def label_shard(cfg: LabelConfig, shard: int, dynamics, planner: Callable[[PileE
         else:
             w = propose(omega, target, mask, jax.random.split(jax.random.fold_in(jax.random.PRNGKey(plan_seed), i), b),
                         jnp.asarray(repeat_var[:, :i].mean(axis=1)))
-        c, repeat_var[:, i], plan_steps[:, i] = c_star(w, i)
+        c, repeat_var[:, i], adam_steps[:, i] = c_star(w, i)
         omega, mask = omega.at[:, i].set(w), mask.at[:, i].set(True)
         c_stars, target = c_stars.at[:, i].set(c), target.at[:, i].set(resolution.penalised(c, d0, w))
     label, mean = jax.jit(jax.vmap(resolution.best_omega))(omega, target, mask, jax.random.split(
@@ -150,6 +143,6 @@ def label_shard(cfg: LabelConfig, shard: int, dynamics, planner: Callable[[PileE
     inputs = jax.vmap(lambda o, m: resolution.observation_input(o, m, camera))(start.obs, jnp.asarray(goal_masks))
     return dict(inputs=np.asarray(inputs), label=np.asarray(label), gp_mean=np.asarray(mean),
                 omega=np.asarray(omega), c_plus=np.asarray(target), c_star=np.asarray(c_stars), d0=np.asarray(d0),
-                plan_steps=plan_steps, repeat_var=repeat_var,
+                adam_steps=adam_steps, repeat_var=repeat_var,
                 goal_shape=shapes, layout=np.full(b, shard % 2), pile=np.arange(b) // 2, shard=np.int64(shard),
                 mid_episode=np.int64(cfg.mid_episode))

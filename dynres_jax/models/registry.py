@@ -7,11 +7,13 @@ from __future__ import annotations
 import os
 import warnings
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import jax.numpy as jnp
 from flax import nnx
 from jax.tree_util import Partial
 
+from dynres_jax.config import OMEGA_MAX
 from dynres_jax.io import ckpt
 from dynres_jax.models.cnn_dynamics import CNNDynamics, CNNDynamicsConfig
 from dynres_jax.models.dynamics import Dynamics, DynamicsConfig, edge_table, resolution_code, rollout
@@ -97,12 +99,21 @@ def sweep_dynamics(plate_half_width: float):
     return lambda radius: Partial(_sweep, jnp.float32(plate_half_width))
 
 
+class LoadedDynamics(NamedTuple):
+    """``load_dynamics``' answer. dynamics: radius -> the planner's model; n_max: the particles the model was trained
+    for; name: what to call it in logs and results (the checkpoint and its step, or "sweep heuristic")."""
+
+    dynamics: object
+    n_max: int
+    name: str
+
+
 def load_dynamics(choice: str, ckpt_dir: str, plate_half_width: float, edge_dtype: str = "float32"):
     """The planner's model. choice: "learned" (the checkpoint in ``ckpt_dir``), "sweep" (the heuristic), or "auto"
     (the checkpoint; the heuristic, with a warning, only when ``ckpt_dir`` is the shipped one and it is missing, as in
     a checkout without its checkpoints: a checkpoint asked for by name is never replaced); edge_dtype: a learned
-    model's (``learned_dynamics``; the sweep has no network). Returns (radius -> dynamics, n_max the model was
-    trained for, a name). FileNotFoundError for a missing checkpoint, ``ckpt.CheckpointError`` for a damaged one."""
+    model's (``learned_dynamics``; the sweep has no network). Returns a ``LoadedDynamics``. FileNotFoundError for a
+    missing checkpoint, ``ckpt.CheckpointError`` for a damaged one."""
     if choice not in ("auto", "learned", "sweep"):
         raise ValueError(f"dynamics must be 'auto', 'learned' or 'sweep', got {choice!r}")
     if choice == "auto" and ckpt.latest_step(ckpt_dir) is None and os.path.abspath(ckpt_dir) == SHIPPED_DYNAMICS:
@@ -112,5 +123,5 @@ def load_dynamics(choice: str, ckpt_dir: str, plate_half_width: float, edge_dtyp
         model, meta, _ = ckpt.load_module(ckpt_dir, build_model)
         dynamics = learned_dynamics(model, edge_dtype)
         edges = "" if jnp.dtype(edge_dtype) == jnp.float32 else f", {jnp.dtype(edge_dtype).name} edges"
-        return dynamics, meta["train"]["n_max"], f"learned ({ckpt_dir}, step {meta.get('step')}{edges})"
-    return sweep_dynamics(plate_half_width), 100, "sweep heuristic"
+        return LoadedDynamics(dynamics, meta["train"]["n_max"], f"learned ({ckpt_dir}, step {meta.get('step')}{edges})")
+    return LoadedDynamics(sweep_dynamics(plate_half_width), OMEGA_MAX, "sweep heuristic")

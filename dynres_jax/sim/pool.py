@@ -15,6 +15,7 @@ import dataclasses
 import functools
 import multiprocessing
 import os
+from typing import Protocol
 
 import jax
 import jax.numpy as jnp
@@ -156,14 +157,25 @@ class WorldPool:
         return out
 
 
-class MJXPool:
-    """Worlds of one SimConfig stepped together in MJX on the JAX device: ``WorldPool``'s interface, with
-    ``reset`` and ``push`` one jitted, vmapped call each (compiled once per pool and batch size)."""
+class EnvWorlds:
+    """One PileEnv's worlds as a batch: ``reset(keys)`` and ``push(states, actions)`` on States with a leading world
+    axis. An MJX env's are one jitted, vmapped call each (compiled once per env and batch size); a C MuJoCo env's
+    step one world after another in this process."""
 
-    def __init__(self, config: SimConfig):
-        self.env = PileEnv(config, backend="mjx")
-        self.config, self.camera, self.scene = config, self.env.camera, self.env.scene
-        self._reset, self._push = jax.jit(jax.vmap(self.env.reset)), jax.jit(jax.vmap(self.env.push))
+    def __init__(self, env: PileEnv):
+        self.env, self.config, self.camera, self.scene = env, env.config, env.camera, env.scene
+        if env.backend == "mjx":
+            self._reset, self._push = jax.jit(jax.vmap(env.reset)), jax.jit(jax.vmap(env.push))
+        else:
+            self._reset, self._push = self._each(env.reset), self._each(env.push)
+
+    @staticmethod
+    def _each(fn):
+        def batched(*args):
+            worlds = [fn(*(jax.tree.map(lambda x, b=b: x[b], a) for a in args)) for b in range(len(args[-1]))]
+            return jax.tree.map(lambda *x: jnp.stack([jnp.asarray(v) for v in x]), *worlds)
+
+        return batched
 
     def reset(self, keys) -> State:
         """New settled piles, one per key: keys [B, 2] -> State [B]."""
@@ -172,6 +184,24 @@ class MJXPool:
     def push(self, states: State, actions) -> State:
         """One push per world: actions [B, 4] (checked like ``PileEnv.push``; a bad one raises ValueError)."""
         return self._push(states, jnp.asarray(_checked(self.env, actions)))
+
+
+class MJXPool(EnvWorlds):
+    """Worlds of one SimConfig stepped together in MJX on the JAX device (``EnvWorlds`` of an MJX PileEnv)."""
+
+    def __init__(self, config: SimConfig):
+        super().__init__(PileEnv(config, backend="mjx"))
+
+
+class Worlds(Protocol):
+    """What the closed loop pushes (``control.mpc.run``): ``EnvWorlds``, ``MJXPool``, ``WorldPool``."""
+
+    camera: Camera
+    scene: object
+
+    def reset(self, keys) -> State: ...
+
+    def push(self, states: State, actions) -> State: ...
 
 
 def resolve_backend(backend: str) -> str:

@@ -29,7 +29,7 @@ Output: a dict with best [T, 4] float32 m (the lowest-cost push sequence; execut
 
 Platforms. Exported for one platform (the default: the exporting machine's backend; ``platforms=("cuda",)`` lowers
 for a GPU robot on any machine, no GPU needed), the call on the CPU equals ``planner.plan(dynamics(radius),
-mpc.goal_cost(goal, camera), positions, mask, key, config, init if warm else None)`` with the live model bit for bit
+decision.goal_cost(goal, camera), positions, mask, key, config, init if warm else None)`` with the live model bit for bit
 (tests/test_export.py). One file for several platforms (``platforms=("cpu", "cuda")``) works too, but JAX then wraps
 every matrix product, scatter, gather and random-bits call in a per-platform switch, XLA fuses the program
 differently and the floats round differently; the Adam refinement amplifies that (on the CPU, 8 sequences x 20 steps
@@ -55,11 +55,12 @@ import numpy as np
 from jax import export as jax_export
 
 from dynres_jax.config import CameraConfig, SceneConfig
-from dynres_jax.control.mpc import goal_cost
+from dynres_jax.control.decision import goal_cost
 from dynres_jax.control.objective import Goal
 from dynres_jax.control.planner import PlannerConfig, plan
-from dynres_jax.io import files
+from dynres_jax.io import ckpt, files
 from dynres_jax.models.graph import no_gpu_kernels
+from dynres_jax.models.registry import load_dynamics
 from dynres_jax.sim.camera import Camera
 
 FORMAT = "dynres_jax planner, jax.export serialized Exported (StableHLO)"
@@ -150,9 +151,6 @@ def export_checkpoint(ckpt_dir: str, config: PlannerConfig | None = None, camera
     (Exported, its description for the sidecar: ``describe``). config: default ``PlannerConfig()``; camera: default the
     simulator's (``CameraConfig()``).
     Raises FileNotFoundError (no checkpoint there) or ``ckpt.CheckpointError`` (unreadable)."""
-    from dynres_jax.io import ckpt
-    from dynres_jax.models.registry import load_dynamics
-
     config = PlannerConfig() if config is None else config
     camera = Camera.top_down(CameraConfig()) if camera is None else camera
     dynamics, n_max, _ = load_dynamics("learned", ckpt_dir, plate_half_width)

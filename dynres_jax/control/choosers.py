@@ -1,0 +1,74 @@
+"""Choosers: what the closed loop plans for at each MPC step (``mpc.run``). A chooser is called with the step and
+the frames the planner sees, and answers with ``Orders``: the goals, the resolution ω of every episode (or several
+candidate ω, of which the loop keeps per episode the one whose push left the lowest d), and which piece kinds to
+perceive. Fixed ω, the regressor g (adaptive ω, paper Sec. IV-C), the oracle over ω and Sort's A* waypoints
+(``sort.SortPolicy``) are choosers; a new way of choosing is a new chooser, not a new parameter of the loop.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import numpy as np
+
+from dynres_jax.config import check_omega
+from dynres_jax.control.objective import Goal, KindGoals
+
+ORACLE_OMEGAS = (10, 25, 50, 75, 100)  # the oracle's candidates at every step
+
+
+class Orders(NamedTuple):
+    """A chooser's orders for one MPC step, arrays with a leading axis [B]. goals: this step's goal of each
+    decision (a batched Goal or KindGoals; the step's d and inside share are scored against it); omegas: one or more
+    candidate ω [B] each; kinds [B]: the piece kind each decision perceives (None: every piece); record: extra
+    record fields, arrays [B]."""
+
+    goals: Goal | KindGoals
+    omegas: tuple[np.ndarray, ...]
+    kinds: np.ndarray | None = None
+    record: dict = {}
+
+
+class Chooser:
+    """Base of the choosers: ``__call__(t, obs [B]) -> Orders``; ``score(states) -> {name: [B, ...]}`` adds a task's
+    own scores to each step's record (none here)."""
+
+    def __call__(self, t: int, obs) -> Orders:
+        raise NotImplementedError
+
+    def score(self, states) -> dict:
+        return {}
+
+
+class FixedOmega(Chooser):
+    """The same ω for every episode and step, against fixed goals [B]."""
+
+    def __init__(self, goals, omega: int):
+        self.goals, self.omega = goals, check_omega(omega)
+
+    def __call__(self, t, obs) -> Orders:
+        return Orders(self.goals, (np.full(len(obs.depth), self.omega, np.int32),))
+
+
+class AdaptiveOmega(Chooser):
+    """Adaptive resolution: ω of each episode at each step from the regressor g(y, y_g) (``resolution.load_chooser``:
+    a ``(obs [B], goals [B]) -> ω [B]`` function)."""
+
+    def __init__(self, goals, regressor):
+        self.goals, self.regressor = goals, regressor
+
+    def __call__(self, t, obs) -> Orders:
+        return Orders(self.goals, (np.asarray(self.regressor(obs, self.goals), np.int32),))
+
+
+class OracleOmega(Chooser):
+    """Every step plans at each candidate ω (same keys), pushes each on a copy of the worlds and keeps, per episode,
+    the one whose push left the lowest d: a greedy upper bound of any chooser of ω."""
+
+    def __init__(self, goals, omegas=ORACLE_OMEGAS):
+        if not omegas:
+            raise ValueError("the oracle needs at least one candidate ω")
+        self.goals, self.omegas = goals, tuple(check_omega(w, "an oracle candidate") for w in omegas)
+
+    def __call__(self, t, obs) -> Orders:
+        return Orders(self.goals, tuple(np.full(len(obs.depth), w, np.int32) for w in self.omegas))

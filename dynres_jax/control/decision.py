@@ -1,0 +1,146 @@
+"""One MPC decision, pure: a frame perceived once (``perception.perceive``), c of its particles, and the plan.
+
+``DecisionSpec`` (particle capacity, planner, perception settings) is what keys compilation; everything that changes
+from call to call (ω, the Adam steps, the warm start, the keys, the goal) is an argument, so one compiled
+``decide_batch`` serves a whole run per resolution bucket. The planner's starting pushes pass through random points of
+the perception cloud, not of the particles, so one key gives the same pushes at every ω (common random numbers).
+"""
+
+from __future__ import annotations
+
+import functools
+from dataclasses import dataclass
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax.tree_util import Partial
+
+from dynres_jax.control.objective import SAMPLES_PER_PARTICLE, Goal, KindGoals, kind_costs, kind_objective, objective
+from dynres_jax.control.planner import PlannerConfig, plan, sample_pushes
+from dynres_jax.perception import Perceived, check_particles, perceive
+
+
+@dataclass(frozen=True)
+class DecisionSpec:
+    """What a compiled decision is specialised to. capacity: particle slots (a resolution bucket, ``budget``);
+    planner: the shooting optimiser (its ``steps``: the most Adam steps a decision may run); max_points: perception's
+    point cap; real_depth: perception treats the depth as a real camera's (``perception.foreground``)."""
+
+    capacity: int
+    planner: PlannerConfig
+    max_points: int | None = 4096
+    real_depth: bool = False
+
+
+def _cost(camera, goal, positions, mask):
+    return objective(positions, mask, goal, camera)
+
+
+def _kind_cost(camera, goals, kinds, baseline, positions, mask):
+    return kind_objective(positions, mask, kinds, goals, camera, baseline)
+
+
+@functools.cache
+def _camera_cost(camera, per_kind: bool):
+    """One function object per camera: the planner's compile cache keys a cost by its function's identity."""
+    return functools.partial(_kind_cost if per_kind else _cost, camera)
+
+
+def goal_cost(goal: Goal | KindGoals, camera, capacity: int | None = None, kinds=None, baseline=None) -> Partial:
+    """The planner's cost: the task objective c of predicted particles against ``goal`` (a pytree argument, so a new
+    goal for the same camera reuses the compiled plan); for KindGoals, Sort's objective (``kind_objective``) with the
+    particles' kinds [N] and each kind's c now, baseline [K]. capacity: the particle slots; the goal's samples are
+    cut to the SAMPLES_PER_PARTICLE × capacity that c can use at ω <= capacity (the same c, on fewer samples)."""
+    per_kind = isinstance(goal, KindGoals)
+    if per_kind != (kinds is not None) or per_kind != (baseline is not None):
+        raise ValueError("particle kinds and a baseline go with KindGoals (Sort's per-kind goals), and only with them")
+    if capacity is not None:
+        cut = SAMPLES_PER_PARTICLE * capacity
+
+        def fewer(g: Goal) -> Goal:
+            return g._replace(samples=g.samples[..., :cut, :], sample_mask=g.sample_mask[..., :cut])
+
+        goal = goal._replace(goals=fewer(goal.goals)) if per_kind else fewer(goal)
+    if per_kind:
+        return Partial(_camera_cost(camera, True), goal, kinds, baseline)
+    return Partial(_camera_cost(camera, False), goal)
+
+
+def decide(seen: Perceived, goal: Goal | KindGoals, key, init, warm, adam_steps, *, spec: DecisionSpec, dynamics,
+           camera):
+    """c of the perceived particles and the plan. init [T, 4]: the warm start (the previous plan, shifted), used where
+    ``warm`` (may be traced), or None; adam_steps: may be traced. goal: a Goal, or KindGoals (Sort: ``seen.kinds``
+    label the particles, c is ``kind_objective`` with each kind's c now as the held kinds' baseline). dynamics:
+    radius -> the planner's model (``registry``). Returns (c [], PlanResult)."""
+    p = seen.particles
+    if isinstance(goal, KindGoals):
+        baseline = kind_costs(p.positions, p.mask, seen.kinds, goal, camera)
+        c_now = kind_objective(p.positions, p.mask, seen.kinds, goal, camera, baseline)
+    else:
+        baseline = None
+        c_now = objective(p.positions, p.mask, goal, camera)
+    initial = sample_pushes(key, seen.points, seen.valid, spec.planner)
+    init = initial[0] if init is None else jnp.where(warm, init, initial[0])  # no warm start: sample 0 stands in
+    result = plan(dynamics(p.radius), goal_cost(goal, camera, spec.capacity, seen.kinds, baseline), p.positions,
+                  p.mask, key, spec.planner, init=init, steps=adam_steps, initial=initial)
+    return c_now, result
+
+
+def perceive_and_decide(obs, goal, key, init, warm, omega, adam_steps, kind=None, *, spec: DecisionSpec, dynamics,
+                        camera):
+    """One whole decision from a frame: h at ω (``perception.perceive`` with the first half of ``key``), then
+    ``decide`` with the second. kind: perceive only this piece kind (None: every piece; KindGoals need every piece).
+    Returns (Particles, c [], PlanResult)."""
+    k_h, k_plan = jax.random.split(key)
+    seen = perceive(obs, camera, omega, k_h, spec.capacity, max_points=spec.max_points, real_depth=spec.real_depth,
+                    kind=kind, with_kinds=isinstance(goal, KindGoals))
+    c_now, result = decide(seen, goal, k_plan, init, warm, adam_steps, spec=spec, dynamics=dynamics, camera=camera)
+    return seen.particles, c_now, result
+
+
+@functools.partial(jax.jit, static_argnames=("spec", "dynamics", "camera"))
+def _decide_batch(obs, goal, key, init, warm, omega, adam_steps, kinds, *, spec, dynamics, camera):
+    def one(obs, goal, key, init, omega, adam_steps, kind):
+        return perceive_and_decide(obs, goal, key, init, warm, omega, adam_steps, kind, spec=spec, dynamics=dynamics,
+                                   camera=camera)
+
+    return per_episode(one)(obs, goal, key, init, omega, adam_steps, kinds)
+
+
+def decide_batch(obs, goals, keys, init, warm, omega, adam_steps, kinds=None, *, spec: DecisionSpec, dynamics,
+                 camera):
+    """``perceive_and_decide`` over a batch of episodes (every argument but warm with a leading axis [B]) as one
+    compiled function per spec (and model and camera). init [B, T, 4] (ignored unless warm); warm, omega [B],
+    adam_steps [B] and kinds [B] (None: every piece) are traced. The particles are checked: bad perception input
+    raises a ValueError naming it (``perception.check_particles``). Returns (Particles [B], c [B], PlanResult [B])."""
+    if kinds is not None and isinstance(goals, KindGoals):
+        raise ValueError("KindGoals score every kind's particles: a decision perceives every piece (kinds=None)")
+    omega = np.asarray(omega, np.int32)
+    particles, c_now, result = _decide_batch(obs, goals, keys, jnp.asarray(init, jnp.float32), jnp.asarray(warm),
+                                             jnp.asarray(omega), jnp.asarray(adam_steps, jnp.int32),
+                                             None if kinds is None else jnp.asarray(kinds, jnp.int32),
+                                             spec=spec, dynamics=dynamics, camera=camera)
+    check_particles(particles, omega, spec.capacity, "perception failed in episodes")
+    return particles, c_now, result
+
+
+def per_episode(fn):
+    """``jax.vmap(fn)``, except that a batch of one calls fn on its one episode: XLA may round a vmapped reduction
+    differently, and a batch of one should decide bit for bit as the episode alone."""
+    def batched(*args):
+        if len(jax.tree.leaves(args)[0]) == 1:
+            return batch(fn(*episode(args)))
+        return jax.vmap(fn)(*args)
+
+    return batched
+
+
+def batch(tree):
+    """A pytree of one episode as a batch of one: a leading axis [1] on every leaf."""
+    return jax.tree.map(lambda x: jnp.asarray(x)[None], tree)
+
+
+def episode(tree, b: int = 0):
+    """Episode b of a batched pytree: leaf [b] of every leaf (the inverse of ``batch`` for b = 0)."""
+    return jax.tree.map(lambda x: x[b], tree)

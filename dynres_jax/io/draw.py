@@ -1,0 +1,66 @@
+"""Pictures of an episode: a frame with its goal tinted and the planner's particles drawn (``overlay``), Sort's two
+goals tinted (``tint``), and ``Frames``, the closed loop's ``on_step`` callback that collects GIF frames of episode 0.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import cv2
+import numpy as np
+
+GOAL_TINT = np.array([60.0, 200.0, 60.0])  # RGB tint of the goal (green)
+GOAL_TINTS = np.array([[60.0, 110.0, 235.0], [240.0, 150.0, 40.0]])  # Sort: goal 0 blue, goal 1 orange
+
+
+def overlay(rgb: np.ndarray, goal_mask: np.ndarray, particles: np.ndarray | None, camera, scale: int = 3,
+            label: str = ""):
+    """An RGB frame [H, W, 3] uint8 with the goal tinted green, particles [n, 3] (world, m) as red dots and an
+    optional text label in the top-left corner."""
+    img = rgb.astype(np.float32)
+    img[goal_mask] = 0.6 * img[goal_mask] + 0.4 * GOAL_TINT
+    img = cv2.resize(img.astype(np.uint8), (rgb.shape[1] * scale, rgb.shape[0] * scale),
+                     interpolation=cv2.INTER_NEAREST)
+    if particles is not None and len(particles):
+        uv, _ = camera.world_to_pixel(np.asarray(particles, np.float64))
+        for u, v in np.asarray(uv) * scale:
+            cv2.circle(img, (int(u), int(v)), max(2, scale), (220, 30, 30), -1)
+    if label:
+        cv2.putText(img, label.replace("ω", "w"), (6, 18), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (20, 20, 20), 1, cv2.LINE_AA)
+    return img
+
+
+def tint(rgb, goal_masks, tints=GOAL_TINTS) -> np.ndarray:
+    """rgb [H, W, 3] with goal_masks[k] [H, W] tinted by tints[k] (Sort: kind 0's goal blue, kind 1's orange)."""
+    img = np.asarray(rgb, np.float32)
+    for mask, colour in zip(goal_masks, tints, strict=False):
+        img[mask] = 0.6 * img[mask] + 0.4 * colour
+    return img.astype(np.uint8)
+
+
+class Frames:
+    """GIF frames of episode 0, as an ``on_step`` callback of ``control.mpc.run``: ``draw(rgb [H, W, 3], particles
+    [n, 3] m or None, record or None) -> frame`` draws each step's frame before its push with the particles the
+    planner saw (and the step's record), and ``finish(states)`` the final one (particles and record None)."""
+
+    def __init__(self, draw: Callable):
+        self.draw, self.frames = draw, []
+
+    def __call__(self, t: int, states, particles, record: dict) -> None:
+        seen = np.asarray(particles.positions[0])[np.asarray(particles.mask[0])]
+        self.frames.append(self.draw(np.asarray(states.obs.rgb[0]), seen, record))
+
+    def finish(self, states) -> list[np.ndarray]:
+        """Add the final frame; returns every frame."""
+        self.frames.append(self.draw(np.asarray(states.obs.rgb[0]), None, None))
+        return self.frames
+
+
+def goal_frames(goal_mask: np.ndarray, camera) -> Frames:
+    """Frames of a task with one goal (Gather, Redistribute): the goal tinted green, the particles red, the step and
+    its ω as the caption."""
+    def draw(rgb, particles, record):
+        label = "" if record is None else f"step {record['step'] + 1}  ω = {int(record['omega'][0])}"
+        return overlay(rgb, goal_mask, particles, camera, label=label)
+
+    return Frames(draw)
