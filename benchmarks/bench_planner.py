@@ -278,7 +278,7 @@ def _timed_model_and_cost():
     task cost c on the disc goal."""
     from flax import nnx
 
-    from dynres_jax.control.mpc import goal_cost
+    from dynres_jax.control.decision import goal_cost
     from dynres_jax.models.dynamics import Dynamics, DynamicsConfig
 
     camera, goal = _camera_and_goal()

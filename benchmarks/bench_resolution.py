@@ -5,7 +5,7 @@
 
 Batch: on a GPU the reference's 1,500 candidates (M = 50 pushes x R = 30 re-samplings); on a CPU the task commands'
 50 (M = 50, R = 1); ``--batch benchmark|task`` chooses. Model: the shipped checkpoint (float32), cost: c on the
-planner benchmark's disc goal, its samples cut to the bucket as ``mpc.goal_cost`` cuts them. A step's time is the
+planner benchmark's disc goal, its samples cut to the bucket as ``decision.goal_cost`` cuts them. A step's time is the
 difference of the median wall times of plans of N and N / 10 steps over 0.9 N, which removes a call's fixed cost.
 Result keys: ``ms_per_step`` (ω -> ms, in its bucket), ``ms_per_step_padded`` (ω -> ms, padded to 100),
 ``ratio_25_100`` and ``ratio_10_100`` (ms at ω = 25 and 10 over ms at ω = 100).
@@ -50,7 +50,7 @@ def run(quick: bool, batch: str | None = None) -> dict:
 
     from benchmarks.bench_planner import PARTICLE_RADIUS, _camera_and_goal, _piles
     from dynres_jax.control.budget import bucket_for
-    from dynres_jax.control.mpc import goal_cost
+    from dynres_jax.control.decision import goal_cost
     from dynres_jax.control.planner import PlannerConfig
     from dynres_jax.models.registry import SHIPPED_DYNAMICS, load_dynamics
 

@@ -29,7 +29,8 @@ Output: a dict with best [T, 4] float32 m (the lowest-cost push sequence; execut
 
 Platforms. Exported for one platform (the default: the exporting machine's backend; ``platforms=("cuda",)`` lowers
 for a GPU robot on any machine, no GPU needed), the call on the CPU equals ``planner.plan(dynamics(radius),
-decision.goal_cost(goal, camera), positions, mask, key, config, init if warm else None)`` with the live model bit for bit
+decision.goal_cost(goal, camera), positions, mask, key, config, init if warm else None)`` with the live model bit for
+bit
 (tests/test_export.py). One file for several platforms (``platforms=("cpu", "cuda")``) works too, but JAX then wraps
 every matrix product, scatter, gather and random-bits call in a per-platform switch, XLA fuses the program
 differently and the floats round differently; the Adam refinement amplifies that (on the CPU, 8 sequences x 20 steps

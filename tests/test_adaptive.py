@@ -54,7 +54,7 @@ def test_labels_follow_the_bo_recipe_and_resume(labels):
         assert z["inputs"].shape == (4, resolution.FEATURE_SIZE, resolution.FEATURE_SIZE, 6)
         assert np.all(z["pile"] == [0, 0, 1, 1]) and np.all(z["goal_shape"] == [0, 1, 0, 1])
         expect = np.vectorize(lambda w: AFFORDED[bucket_for(int(w))])(z["omega"])
-        assert np.array_equal(z["plan_steps"], expect)  # every ω planned with its bucket's share of the budget
+        assert np.array_equal(z["adam_steps"], expect)  # every ω planned with its bucket's share of the budget
         assert z["repeat_var"].shape == z["omega"].shape and np.all(z["repeat_var"] == 0)  # one repeat: no spread
     assert TimingTable.load(os.path.join(out, "timing.json")).to_json() == TABLE.to_json()  # saved with the labels
     again = label_resolution.main(["--out", out, *QUICK])
@@ -91,10 +91,10 @@ def test_evaluation_fixed_and_adaptive(regressor, timing, tmp_path):
     for method in summary["methods"]:
         with open(tmp_path / f"{method}.json") as f:
             runs[method] = json.load(f)
-        omega, steps = np.array(runs[method]["omega"]), np.array(runs[method]["plan_steps"])
+        omega, steps = np.array(runs[method]["omega"]), np.array(runs[method]["adam_steps"])
         assert np.array_equal(steps, np.vectorize(lambda w: AFFORDED[bucket_for(int(w))])(omega))
     assert np.all(np.array(runs["10"]["omega"]) == 10) and len(runs["10"]["final_distance"]) == 2
-    assert np.all(np.array(runs["75"]["plan_steps"]) == 1)  # a fine ω affords fewer steps under the same budget
+    assert np.all(np.array(runs["75"]["adam_steps"]) == 1)  # a fine ω affords fewer steps under the same budget
     assert summary["reference"] == "adaptive" and set(summary["paired"]) == {"10", "75"}
     delta = summary["paired"]["10"]["delta_d"]
     assert delta["mean"] == pytest.approx(np.mean(np.array(runs["10"]["final_distance"])

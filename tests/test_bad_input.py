@@ -59,7 +59,7 @@ def test_a_checkpoint_asked_for_by_name_is_never_replaced_by_the_heuristic(tmp_p
     with pytest.raises(SystemExit):
         gather.main(["--ckpt", str(tmp_path / "typo"), "--out", str(tmp_path / "out")])
     assert "--ckpt: no checkpoint" in capsys.readouterr().err
-    assert load_dynamics("auto", SHIPPED_DYNAMICS, 0.04)[2].startswith("learned")
+    assert load_dynamics("auto", SHIPPED_DYNAMICS, 0.04).name.startswith("learned")
 
 
 @pytest.mark.parametrize("argv, message", [

@@ -11,8 +11,10 @@ import pytest
 
 from dynres_jax.config import CameraConfig, PileConfig, PushConfig, SceneConfig, SimConfig
 from dynres_jax.control import budget
-from dynres_jax.control.budget import TimingTable, bucket_for, check_buckets, plan_steps
-from dynres_jax.control.mpc import MPCConfig, decide, measure_timing, run_episode
+from dynres_jax.control.budget import TimingTable, adam_steps, bucket_for, check_buckets
+from dynres_jax.control.choosers import FixedOmega
+from dynres_jax.control.decision import batch, perceive_and_decide
+from dynres_jax.control.mpc import MPCConfig, measure_timing, run_episode
 from dynres_jax.control.objective import disc_goal, make_goal
 from dynres_jax.control.planner import PlannerConfig
 from dynres_jax.models.registry import SHIPPED_DYNAMICS, load_dynamics, sweep_dynamics
@@ -40,8 +42,14 @@ def test_bucket_choice():
     for bad in ((), (16, 16), (32, 16), (0, 8), (4.0, 8)):
         with pytest.raises(ValueError, match="buckets"):
             check_buckets(bad)
-    with pytest.raises(ValueError, match="largest bucket"):
-        MPCConfig(omega=40, buckets=(16, 32))
+    with pytest.raises(ValueError, match="exceeds the largest resolution bucket 32"):
+        MPCConfig(buckets=(16, 32)).allot([40])
+
+
+def _decide(state, goal, key, dynamics, cfg, camera, omega, bucket, steps=None):
+    """One decision without a warm start: (Particles, c, PlanResult)."""
+    return perceive_and_decide(state.obs, goal, key, None, False, omega, steps, spec=cfg.spec(bucket),
+                               dynamics=dynamics, camera=camera)
 
 
 def test_padding_is_inert_across_buckets(scene):
@@ -49,10 +57,10 @@ def test_padding_is_inert_across_buckets(scene):
     plan and its cost, with the shipped model."""
     env, state, _, goal, planner = scene
     dynamics, _, _ = load_dynamics("learned", SHIPPED_DYNAMICS, env.config.scene.plate_half_width)
-    cfg = MPCConfig(omega=10, buckets=(16, 32), max_points=512, planner=planner)
+    cfg = MPCConfig(buckets=(16, 32), max_points=512, planner=planner)
     key = jax.random.PRNGKey(3)
-    small = decide(state.obs, goal, key, None, dynamics, cfg, env.camera, 10, bucket=16)
-    large = decide(state.obs, goal, key, None, dynamics, cfg, env.camera, 10, bucket=32)
+    small = _decide(state, goal, key, dynamics, cfg, env.camera, 10, 16)
+    large = _decide(state, goal, key, dynamics, cfg, env.camera, 10, 32)
     assert small[0].positions.shape == (16, 3) and large[0].positions.shape == (32, 3)
     np.testing.assert_allclose(small[0].positions, large[0].positions[:16], atol=1e-6)
     assert not np.any(large[0].mask[16:]) and int(np.sum(small[0].mask)) == 10
@@ -65,11 +73,11 @@ def test_padding_is_inert_across_buckets(scene):
 def test_common_random_numbers_across_omega(scene):
     """One key gives the same starting pushes at every ω (drawn through the perception cloud); another key differs."""
     env, state, _, goal, planner = scene
-    cfg = MPCConfig(omega=10, buckets=(16, 32), max_points=512, planner=planner)
+    cfg = MPCConfig(buckets=(16, 32), max_points=512, planner=planner)
     dyn = sweep_dynamics(env.config.scene.plate_half_width)
 
     def start(omega, key):  # zero Adam steps: the actions are the starting pushes
-        return np.asarray(decide(state.obs, goal, key, None, dyn, cfg, env.camera, omega, steps=0)[2].actions)
+        return np.asarray(_decide(state, goal, key, dyn, cfg, env.camera, omega, bucket_for(omega), 0)[2].actions)
 
     key = jax.random.PRNGKey(7)
     np.testing.assert_array_equal(start(4, key), start(12, key))
@@ -82,10 +90,10 @@ def test_timing_table_formula_refine_and_round_trip(tmp_path):
     assert table.steps(16, 0.5, 1000) == math.floor((0.5 - 0.02) / 0.001) == 480
     assert table.steps(100, 0.5, 1000) == math.floor((0.5 - 0.05) / 0.004) == 112
     assert table.steps(100, 0.5, 50) == 50 and table.steps(100, 0.01, 50) == 0
-    assert plan_steps(16, 200) == 200 and plan_steps(16, 200, 0.5, table) == 200 and plan_steps(100, 1000, 0.5,
+    assert adam_steps(16, 200) == 200 and adam_steps(16, 200, 0.5, table) == 200 and adam_steps(100, 1000, 0.5,
                                                                                                 table) == 112
     with pytest.raises(ValueError, match="needs a timing table"):
-        plan_steps(16, 200, 0.5)
+        adam_steps(16, 200, 0.5)
     with pytest.raises(ValueError, match="no bucket 32"):
         table.steps(32, 0.5, 10)
     table.refine(100, 10, 0.05 + 10 * 0.006)  # a decision slower than the table: step time moves halfway there
@@ -111,15 +119,15 @@ def test_time_budgeted_decisions_return_within_budget_plus_one_step(scene):
     env, state, mask, goal, _ = scene
     planner = PlannerConfig(samples=6, steps=400, bound=env.action_bound, max_length=0.1)
     dyn = sweep_dynamics(env.config.scene.plate_half_width)
-    cfg = MPCConfig(steps=3, omega=12, buckets=(16, 32), max_points=512, planner=planner)
+    cfg = MPCConfig(mpc_steps=3, buckets=(16, 32), max_points=512, planner=planner)
     table = measure_timing(state.obs, goal, dyn, cfg, env.camera)
     assert set(table.step_s) == {16, 32} and all(s > 0 for s in table.step_s.values())
     seconds = table.fixed_s[16] + 40 * table.step_s[16]  # a budget of about 40 steps: it binds below 400
-    cfg = MPCConfig(steps=5, omega=12, buckets=(16, 32), max_points=512, planner=planner, time_budget=seconds)
-    _, records, _ = run_episode(env, state, goal, mask, dyn, cfg, jax.random.PRNGKey(1), log=lambda s: None,
-                                timing=table)
+    cfg = MPCConfig(mpc_steps=5, buckets=(16, 32), max_points=512, planner=planner, time_budget=seconds)
+    _, records = run_episode(env, state, FixedOmega(batch(goal), 12), dyn, cfg, jax.random.PRNGKey(1),
+                             log=lambda s: None, timing=table)
     for r in records:
-        assert r["bucket"] == 16 and 0 < r["plan_steps"] < 400
+        assert r["bucket"] == 16 and 0 < r["adam_steps"] < 400
     # the median decision, with 50 ms for a busy host's jitter (decisions here take milliseconds)
     median = float(np.median([r["planning_s"] for r in records]))
     assert median <= seconds + table.step_s[16] + 0.05, ([r["planning_s"] for r in records], seconds)
@@ -128,13 +136,13 @@ def test_time_budgeted_decisions_return_within_budget_plus_one_step(scene):
 
 def test_a_table_of_another_batch_and_bad_perception_are_named(scene):
     env, state, mask, goal, planner = scene
-    cfg = MPCConfig(steps=1, omega=12, buckets=(16, 32), planner=planner, time_budget=0.1)
+    cfg = MPCConfig(mpc_steps=1, buckets=(16, 32), planner=planner, time_budget=0.1)
     other = TimingTable("x", planner.samples + 1, 1, fixed_s={16: 0.0, 32: 0.0}, step_s={16: 1e-3, 32: 1e-3})
     with pytest.raises(ValueError, match="measured for 7 samples"):
-        cfg.plan_steps(16, other)
+        cfg.adam_steps(16, other)
     dyn = sweep_dynamics(env.config.scene.plate_half_width)
     empty = state.obs._replace(depth=np.full_like(np.asarray(state.obs.depth), np.nan))
     with pytest.raises(ValueError, match="NaN"):
-        run_episode(env, state._replace(obs=empty), goal, mask, dyn, MPCConfig(steps=1, omega=12, buckets=(16, 32),
-                                                                                planner=planner),
-                    jax.random.PRNGKey(0), log=lambda s: None)
+        run_episode(env, state._replace(obs=empty), FixedOmega(batch(goal), 12), dyn,
+                    MPCConfig(mpc_steps=1, buckets=(16, 32), planner=planner), jax.random.PRNGKey(0),
+                    log=lambda s: None)

@@ -5,11 +5,15 @@ import numpy as np
 import pytest
 
 from dynres_jax.config import CameraConfig, PileConfig, PushConfig, SceneConfig, SimConfig
-from dynres_jax.control.mpc import MPCConfig, goal_cost, run_episode, run_episodes
+from dynres_jax.control.choosers import AdaptiveOmega, Chooser, FixedOmega, OracleOmega, Orders
+from dynres_jax.control.decision import batch, goal_cost
+from dynres_jax.control.mpc import MPCConfig, run, run_episode
 from dynres_jax.control.objective import disc_goal, distribution_distance, make_goal
 from dynres_jax.control.planner import PlannerConfig, _plan_jit, plan
+from dynres_jax.io.draw import goal_frames
 from dynres_jax.models.registry import sweep_dynamics
 from dynres_jax.sim.env import PileEnv
+from dynres_jax.sim.pool import EnvWorlds, WorldPool
 
 
 @pytest.fixture(scope="module")
@@ -20,20 +24,20 @@ def episode():
     mask = disc_goal(env.camera, np.array([0.0, 0.0]), 0.06)
     goal = make_goal(mask, env.camera, n_samples=64)
     planner = PlannerConfig(samples=8, steps=20, bound=env.action_bound, max_length=0.1)
-    cfg = MPCConfig(steps=3, omega=6, buckets=(4, 8), max_points=512, planner=planner)
+    cfg = MPCConfig(mpc_steps=3, buckets=(4, 8), max_points=512, planner=planner)
     state = env.reset(jax.random.PRNGKey(0))
-    lines = []
-    final, records, frames = run_episode(env, state, goal, mask, sweep_dynamics(0.04), cfg, jax.random.PRNGKey(1),
-                                         log=lines.append)
-    return env, state, goal, final, records, frames, lines
+    lines, frames = [], goal_frames(mask, env.camera)
+    final, records = run_episode(env, state, FixedOmega(batch(goal), 6), sweep_dynamics(0.04), cfg,
+                                 jax.random.PRNGKey(1), log=lines.append, on_step=[frames])
+    return env, state, goal, final, records, frames.finish(batch(final)), lines
 
 
 def test_episode_records_every_step(episode):
     env, _, _, _, records, frames, lines = episode
     assert [r["step"] for r in records] == [0, 1, 2] and len(lines) == 3 and len(frames) == 4
     for r in records:
-        assert r["omega"] == 6 and 0.0 <= r["success"] <= 1.0 and np.isfinite(r["distance"])
-        assert r["bucket"] == 8 and r["plan_steps"] == 20 and r["planning_s"] > 0
+        assert r["omega"] == 6 and 0.0 <= r["inside"] <= 1.0 and np.isfinite(r["distance"])
+        assert r["bucket"] == 8 and r["adam_steps"] == 20 and r["planning_s"] > 0
         assert np.all(np.abs(r["action"]) <= env.action_bound + 1e-5)
 
 
@@ -44,38 +48,41 @@ def test_episode_brings_the_pile_nearer_the_goal(episode):
 
 
 def test_omega_out_of_range_is_named():
-    with pytest.raises(ValueError, match="omega"):
-        MPCConfig(omega=0)
+    for omega in (0, 1, 101, 2.5):
+        with pytest.raises(ValueError, match="omega must be an integer in"):
+            FixedOmega(None, omega)
+    with pytest.raises(ValueError, match="mpc_steps"):
+        MPCConfig(mpc_steps=0)
 
 
 def test_batched_episodes_equal_one_at_a_time():
-    """run_episodes (MJX, vmapped over episodes) makes the same first decision as run_episode on each episode."""
+    """run over EnvWorlds (MJX, vmapped over episodes) makes the same first decision as run_episode on each episode."""
     sim = SimConfig(scene=SceneConfig(pieces=(6,)), pile=PileConfig(layout="spread"),
                     push=PushConfig(max_length=0.1, settle_time=0.04), camera=CameraConfig(width=48, height=48))
     env = PileEnv(sim, backend="mjx")
     masks = [disc_goal(env.camera, np.array(c), 0.06) for c in ([0.0, 0.0], [0.05, -0.03])]
     goals = [make_goal(m, env.camera, n_samples=32) for m in masks]
     planner = PlannerConfig(samples=4, steps=5, bound=env.action_bound, max_length=0.1)
-    cfg = MPCConfig(steps=1, omega=5, buckets=(6,), max_points=256, planner=planner)
+    cfg = MPCConfig(mpc_steps=1, buckets=(6,), max_points=256, planner=planner)
     keys = jax.random.split(jax.random.PRNGKey(2), 2)
-    starts = jax.vmap(env.reset)(jax.random.split(jax.random.PRNGKey(3), 2))
+    worlds = EnvWorlds(env)
+    starts = worlds.reset(jax.random.split(jax.random.PRNGKey(3), 2))
     batched_goals = jax.tree.map(lambda *x: np.stack(x), *goals)
-    _, records = run_episodes(env, starts, batched_goals, sweep_dynamics(0.04), cfg, keys, log=lambda s: None)
+    _, records = run(worlds, starts, FixedOmega(batched_goals, 5), sweep_dynamics(0.04), cfg, keys, log=lambda s: None)
     for b in range(2):
         start = jax.tree.map(lambda x, b=b: x[b], starts)
-        _, one, _ = run_episode(env, start, goals[b], masks[b], sweep_dynamics(0.04), cfg, keys[b],
-                                log=lambda s: None)
+        _, one = run_episode(env, start, FixedOmega(batch(goals[b]), 5), sweep_dynamics(0.04), cfg, keys[b],
+                             log=lambda s: None)
         np.testing.assert_allclose(records[0]["objective"][b], one[0]["objective"], rtol=1e-4)
         np.testing.assert_allclose(records[0]["predicted_objective"][b], one[0]["predicted_objective"], rtol=1e-3)
-        np.testing.assert_allclose(records[0]["success"][b], one[0]["success"], atol=1 / 6 + 1e-6)
+        np.testing.assert_allclose(records[0]["inside"][b], one[0]["inside"], atol=1 / 6 + 1e-6)
 
 
 def test_pool_episodes_with_per_episode_omega_and_budget_equal_one_at_a_time():
-    """run_episodes on a WorldPool with ω chosen per episode (adaptive) in different buckets and a time budget makes
-    the same decisions as run_episode at each episode's ω in its own bucket: every episode runs the Adam steps its
-    bucket affords (from the same frozen timing table), and the batch's larger bucket pads inertly."""
+    """run on a WorldPool with ω chosen per episode (adaptive) in different buckets and a time budget makes the same
+    decisions as run_episode at each episode's ω in its own bucket: every episode runs the Adam steps its bucket
+    affords (from the same frozen timing table), and the batch's larger bucket pads inertly."""
     from dynres_jax.control.budget import TimingTable
-    from dynres_jax.sim.pool import WorldPool
 
     sim = SimConfig(scene=SceneConfig(pieces=(6,)), pile=PileConfig(layout="spread"),
                     push=PushConfig(max_length=0.1, settle_time=0.04), camera=CameraConfig(width=48, height=48))
@@ -83,33 +90,30 @@ def test_pool_episodes_with_per_episode_omega_and_budget_equal_one_at_a_time():
     masks = [disc_goal(env.camera, np.array(c), 0.06) for c in ([0.0, 0.0], [0.05, -0.03])]
     goals = [make_goal(m, env.camera, n_samples=32) for m in masks]
     planner = PlannerConfig(samples=4, steps=6, bound=env.action_bound, max_length=0.1)
-    cfg = MPCConfig(steps=2, omega=5, buckets=(2, 6), max_points=256, planner=planner, time_budget=0.016)
+    cfg = MPCConfig(mpc_steps=2, buckets=(2, 6), max_points=256, planner=planner, time_budget=0.016)
     timing = TimingTable("test", 4, 1, fixed_s={2: 0.01, 6: 0.01}, step_s={2: 0.0015, 6: 0.003}, frozen=True)
     keys = jax.random.split(jax.random.PRNGKey(2), 2)
     starts = pool.reset(jax.random.split(jax.random.PRNGKey(3), 2))
     omegas = np.array([2, 6])
-    _, records = run_episodes(pool, starts, jax.tree.map(lambda *x: np.stack(x), *goals), sweep_dynamics(0.04), cfg,
-                              keys, choose_omega=lambda obs, goals: omegas, log=lambda s: None, timing=timing)
+    chooser = AdaptiveOmega(jax.tree.map(lambda *x: np.stack(x), *goals), lambda obs, goals: omegas)
+    _, records = run(pool, starts, chooser, sweep_dynamics(0.04), cfg, keys, log=lambda s: None, timing=timing)
     assert [r["omega"].tolist() for r in records] == [[2, 6], [2, 6]]
     assert [r["bucket"].tolist() for r in records] == [[2, 6], [2, 6]]
-    assert [r["plan_steps"].tolist() for r in records] == [[4, 2], [4, 2]]  # floor(6 ms / 1.5 ms), floor(6 / 3)
+    assert [r["adam_steps"].tolist() for r in records] == [[4, 2], [4, 2]]  # floor(6 ms / 1.5 ms), floor(6 / 3)
     np.testing.assert_allclose(records[0]["planning_s"], [0.016, 0.016])
     for b in range(2):
         start = jax.tree.map(lambda x, b=b: x[b], starts)
-        one_cfg = MPCConfig(steps=2, omega=int(omegas[b]), buckets=(2, 6), max_points=256, planner=planner,
-                            time_budget=0.016)
-        _, one, _ = run_episode(env, start, goals[b], masks[b], sweep_dynamics(0.04), one_cfg, keys[b],
-                                log=lambda s: None, timing=timing)
+        _, one = run_episode(env, start, FixedOmega(batch(goals[b]), int(omegas[b])), sweep_dynamics(0.04), cfg,
+                             keys[b], log=lambda s: None, timing=timing)
         for t in range(2):
-            assert one[t]["bucket"] == omegas[b] and one[t]["plan_steps"] == records[t]["plan_steps"][b]
+            assert one[t]["bucket"] == omegas[b] and one[t]["adam_steps"] == records[t]["adam_steps"][b]
             np.testing.assert_allclose(records[t]["predicted_objective"][b], one[t]["predicted_objective"], rtol=1e-3)
-            np.testing.assert_allclose(records[t]["success"][b], one[t]["success"], atol=1e-6)
+            np.testing.assert_allclose(records[t]["inside"][b], one[t]["inside"], atol=1e-6)
 
 
 def test_oracle_keeps_the_best_candidate_per_episode():
-    """oracle=(2, 6): each episode keeps the ω whose push left the lower d, and its record equals that of the run at
-    that fixed ω (same keys); an ω beyond the pile's points is named, not planned on empty particles."""
-    from dynres_jax.sim.pool import WorldPool
+    """The oracle over (2, 6): each episode keeps the ω whose push left the lower d, and its record equals that of the
+    run at that fixed ω (same keys); an ω beyond the pile's points is named, not planned on empty particles."""
 
     sim = SimConfig(scene=SceneConfig(pieces=(6,)), pile=PileConfig(layout="spread"),
                     push=PushConfig(max_length=0.1, settle_time=0.04), camera=CameraConfig(width=48, height=48))
@@ -120,26 +124,25 @@ def test_oracle_keeps_the_best_candidate_per_episode():
     keys = jax.random.split(jax.random.PRNGKey(2), 3)
     starts = pool.reset(jax.random.split(jax.random.PRNGKey(3), 3))
     runs = {}
+    cfg = MPCConfig(mpc_steps=1, buckets=(2, 6), max_points=256, planner=planner)
     for omega in (2, 6):
-        cfg = MPCConfig(steps=1, omega=omega, buckets=(2, 6), max_points=256, planner=planner)
-        runs[omega] = run_episodes(pool, starts, goals, sweep_dynamics(0.04), cfg, keys, log=lambda s: None)[1][0]
-    cfg = MPCConfig(steps=1, omega=2, buckets=(2, 6), max_points=256, planner=planner)
-    _, records = run_episodes(pool, starts, goals, sweep_dynamics(0.04), cfg, keys, log=lambda s: None, oracle=(2, 6))
+        runs[omega] = run(pool, starts, FixedOmega(goals, omega), sweep_dynamics(0.04), cfg, keys,
+                          log=lambda s: None).records[0]
+    _, records = run(pool, starts, OracleOmega(goals, (2, 6)), sweep_dynamics(0.04), cfg, keys, log=lambda s: None)
     best = np.where(runs[6]["distance"] < runs[2]["distance"], 6, 2)
     assert records[0]["omega"].tolist() == best.tolist()
     for b, w in enumerate(best):
         np.testing.assert_allclose(records[0]["distance"][b], runs[w]["distance"][b], rtol=1e-6)
     np.testing.assert_allclose(records[0]["distance"], np.minimum(runs[2]["distance"], runs[6]["distance"]), rtol=1e-6)
     with pytest.raises(ValueError, match="perception failed in episodes"):
-        run_episodes(pool, starts, goals, sweep_dynamics(0.04), MPCConfig(steps=1, omega=5000, buckets=(5000,),
-                                                                          max_points=256, planner=planner),
-                     keys, log=lambda s: None)
+        run(pool, starts, FixedOmega(goals, 100), sweep_dynamics(0.04),
+            MPCConfig(mpc_steps=1, buckets=(100,), max_points=256, planner=planner), keys, log=lambda s: None)
 
 
 def test_time_budget_needs_a_table():
-    cfg = MPCConfig(steps=1, omega=5, buckets=(6,), time_budget=0.1)
+    cfg = MPCConfig(mpc_steps=1, buckets=(6,), time_budget=0.1)
     with pytest.raises(ValueError, match="timing table"):
-        run_episodes(None, None, None, None, cfg, None)
+        run(None, None, FixedOmega(None, 5), None, cfg, None)
 
 
 def test_a_new_goal_reuses_the_compiled_plan(episode):
@@ -156,28 +159,23 @@ def test_a_new_goal_reuses_the_compiled_plan(episode):
     assert np.isfinite(float(result.best_cost))
 
 
-def test_a_policy_that_repeats_the_goals_changes_nothing_and_sort_is_the_same_loop(episode):
-    """run_episodes(policy=...) with a policy that orders the fixed goal and ω every step decides exactly as the loop
-    without one, and adds its record fields and scores; Sort's episode records carry the loop's fields."""
-    from dynres_jax.control.mpc import StepTarget, batch
-
+def test_a_chooser_that_repeats_the_goals_changes_nothing(episode):
+    """A chooser of its own that orders the fixed goal and ω every step decides exactly as FixedOmega, and adds its
+    record fields and scores to every record."""
     env, state, goal, _, records, _, _ = episode
-    cfg = MPCConfig(steps=3, omega=6, buckets=(4, 8), max_points=512,
+    cfg = MPCConfig(mpc_steps=3, buckets=(4, 8), max_points=512,
                     planner=PlannerConfig(samples=8, steps=20, bound=env.action_bound, max_length=0.1))
 
-    class Repeat:
+    class Repeat(Chooser):
         def __call__(self, t, obs):
-            return StepTarget(batch(goal), np.array([6]), None, {"order": [t]})
+            return Orders(batch(goal), (np.array([6]),), None, {"order": [t]})
 
         def score(self, states):
             return {"pieces_x": [float(np.mean(np.asarray(states.pos[0])[:, 0]))]}
 
-    _, with_policy = run_episodes(env, batch(state), None, sweep_dynamics(0.04), cfg, batch(jax.random.PRNGKey(1)),
-                                  log=lambda s: None, policy=Repeat())
-    for r, p in zip(records, with_policy, strict=True):
-        np.testing.assert_array_equal(p["action"][0], r["action"])
-        assert p["distance"][0] == r["distance"] and p["order"][0] == r["step"]
-    assert np.isfinite(with_policy[-1]["pieces_x"][0])
-    with pytest.raises(ValueError, match="a policy sets each step's ω itself"):
-        run_episodes(env, batch(state), None, sweep_dynamics(0.04), cfg, batch(jax.random.PRNGKey(1)),
-                     policy=Repeat(), oracle=(4, 6))
+    _, repeated = run_episode(env, state, Repeat(), sweep_dynamics(0.04), cfg, jax.random.PRNGKey(1),
+                              log=lambda s: None)
+    for r, p in zip(records, repeated, strict=True):
+        np.testing.assert_array_equal(p["action"], r["action"])
+        assert p["distance"] == r["distance"] and p["order"] == r["step"]
+    assert np.isfinite(repeated[-1]["pieces_x"])

@@ -8,7 +8,9 @@ import numpy as np
 import pytest
 
 from dynres_jax.config import CameraConfig, PileConfig, PushConfig, SceneConfig, SimConfig
-from dynres_jax.control.mpc import MPCConfig, StepTarget, batch, episode, goal_cost, run_episodes
+from dynres_jax.control.choosers import Chooser, Orders
+from dynres_jax.control.decision import batch, goal_cost
+from dynres_jax.control.mpc import MPCConfig, run_episode
 from dynres_jax.control.objective import (
     BIN_HALF_WIDTH,
     distribution_distance,
@@ -19,7 +21,8 @@ from dynres_jax.control.objective import (
     stack_goals,
 )
 from dynres_jax.control.planner import PlannerConfig
-from dynres_jax.control.sort import astar_blobs, sort_episode, sort_goal, sort_scores
+from dynres_jax.control.sort import SortPolicy, astar_blobs, sort_goal, sort_scores
+from dynres_jax.io.draw import Frames, overlay, tint
 from dynres_jax.models.registry import sweep_dynamics
 from dynres_jax.perception import particle_kinds, sample_particles
 from dynres_jax.sim.env import PileEnv
@@ -127,20 +130,24 @@ def test_sort_goal_gives_two_disjoint_discs_in_the_bin(env, seed):
 def test_tiny_sort_episode_runs_and_records_every_step(env):
     goals, radius, _ = sort_goal(np.random.default_rng(0), env)
     planner = PlannerConfig(samples=8, steps=10, bound=env.action_bound, max_length=0.1)
-    cfg = MPCConfig(steps=3, omega=20, buckets=(8, 32), max_points=512, planner=planner)
+    cfg = MPCConfig(mpc_steps=3, buckets=(8, 32), max_points=512, planner=planner)
     lines = []
-    _, records, frames = sort_episode(env, env.reset(jax.random.PRNGKey(0)), sweep_dynamics(0.04), cfg,
-                                      jax.random.PRNGKey(1), goals, radius, log=lines.append)
+    policy = SortPolicy(env, cfg, 20, jax.random.PRNGKey(1), goals, radius, lines.append)
+    drawn = Frames(lambda rgb, particles, record: overlay(tint(rgb, policy.goal_masks), policy.target_mask, particles,
+                                                          env.camera))
+    final, records = run_episode(env, env.reset(jax.random.PRNGKey(0)), policy, sweep_dynamics(0.04), cfg,
+                                 jax.random.PRNGKey(1), log=lines.append, on_step=[drawn])
+    frames = drawn.finish(batch(final))
     assert [r["step"] for r in records] == [0, 1, 2] and len(lines) == 3 and len(frames) == 4
     assert frames[0].shape == (192, 192, 3) and frames[0].dtype == np.uint8
     for r in records:
         assert r["phase"] in ("path", "final", "direct") and r["kind"] in ((-1,) if r["phase"] == "final" else (0, 1))
-        assert {"omega", "bucket", "plan_steps", "planning_s", "distance", "success", "action", "inside",
+        assert {"omega", "bucket", "adam_steps", "planning_s", "distance", "inside", "action", "kind_inside",
                 "mixing"} <= set(r)  # the one loop's record, with Sort's fields and scores
         assert len(r["waypoint"]) == 2 and np.all(np.abs(r["waypoint"]) <= BIN_HALF_WIDTH)
         assert np.shape(r["centres"]) == (2, 2) and 1 <= r["omega"] <= 20
-        assert r["bucket"] == (8 if r["omega"] <= 8 else 32) and r["plan_steps"] == 10
-        assert all(0.0 <= s <= 1.0 for s in r["inside"]) and 0.0 <= r["mixing"] <= 1.0
+        assert r["bucket"] == (8 if r["omega"] <= 8 else 32) and r["adam_steps"] == 10
+        assert all(0.0 <= s <= 1.0 for s in r["kind_inside"]) and 0.0 <= r["mixing"] <= 1.0
         assert np.isfinite(r["objective"]) and np.isfinite(r["predicted_objective"])
         assert np.all(np.abs(r["action"]) <= env.action_bound + 1e-5)
 
@@ -188,29 +195,25 @@ def test_kind_objective_pursues_some_kinds_and_holds_the_others(env):
         stack_goals(goals, hold=[True])
 
 
-class FixedKindGoals:
-    """A policy that asks every step for Sort's own two goals (one per kind) at ω = 12."""
+class FixedKindGoals(Chooser):
+    """A chooser that asks every step for Sort's own two goals (one per kind) at ω = 12."""
 
     def __init__(self, goals):
         self.goals = goals
 
     def __call__(self, t, obs):
-        return StepTarget(batch(stack_goals(self.goals)), np.array([12]), None, {}, None)
-
-    def score(self, states):
-        return {}
+        return Orders(batch(stack_goals(self.goals)), (np.array([12]),))
 
 
 def test_a_step_against_kind_goals_is_scored_per_kind(env):
     goals_xy, radius, masks = sort_goal(np.random.default_rng(0), env)
     goals = [make_goal(m, env.camera) for m in masks]
     planner = PlannerConfig(samples=8, steps=5, bound=env.action_bound, max_length=0.1)
-    cfg = MPCConfig(steps=1, omega=12, buckets=(8, 32), max_points=512, planner=planner)
-    final, records = run_episodes(env, batch(env.reset(jax.random.PRNGKey(0))), None, sweep_dynamics(0.04), cfg,
-                                  batch(jax.random.PRNGKey(1)), log=lambda _: None, policy=FixedKindGoals(goals))
-    final = episode(final)
+    cfg = MPCConfig(mpc_steps=1, buckets=(8, 32), max_points=512, planner=planner)
+    final, records = run_episode(env, env.reset(jax.random.PRNGKey(0)), FixedKindGoals(goals), sweep_dynamics(0.04),
+                                 cfg, jax.random.PRNGKey(1), log=lambda _: None)
     inside, _ = sort_scores(final.pos, env.scene.kind, goals, env.camera)
     counts = np.bincount(np.asarray(env.scene.kind))
-    assert records[0]["success"][0] == pytest.approx((inside[0] * counts[0] + inside[1] * counts[1]) / counts.sum())
+    assert records[0]["inside"] == pytest.approx((inside[0] * counts[0] + inside[1] * counts[1]) / counts.sum())
     d = [float(distribution_distance(final.obs, goals[k], env.camera, kind=k)) for k in (0, 1)]
-    assert records[0]["distance"][0] == pytest.approx(np.mean(d), rel=1e-5)
+    assert records[0]["distance"] == pytest.approx(np.mean(d), rel=1e-5)

@@ -12,7 +12,8 @@ import pytest
 from dynres_jax.commands import evaluate, gather, redistribute, sort
 from dynres_jax.config import PileConfig, SceneConfig, SimConfig
 from dynres_jax.control import tasks
-from dynres_jax.control.mpc import MPCConfig, run_episodes
+from dynres_jax.control.choosers import FixedOmega
+from dynres_jax.control.mpc import MPCConfig, run
 from dynres_jax.control.objective import distribution_distance, make_goal
 from dynres_jax.control.planner import PlannerConfig
 from dynres_jax.models.registry import SHIPPED_DYNAMICS, SHIPPED_REGRESSOR, load_dynamics
@@ -35,7 +36,7 @@ def test_gather_adaptive_with_an_explicit_checkpoint_writes_its_episode(tmp_path
         json.dumps(summary))
     assert [r["step"] for r in metrics["steps"]] == [0, 1] and len(frames) == 3  # a frame a step and the end
     for r in metrics["steps"]:
-        assert 2 <= r["omega"] <= 100 and r["bucket"] >= r["omega"] and r["plan_steps"] == 2 and r["planning_s"] > 0
+        assert 2 <= r["omega"] <= 100 and r["bucket"] >= r["omega"] and r["adam_steps"] == 2 and r["planning_s"] > 0
     assert 0 <= metrics["final_inside"] <= 1 and np.isfinite(metrics["final_distance"])
 
 
@@ -47,7 +48,7 @@ def test_redistribute_and_sort_write_their_episodes(tmp_path):
                str(tmp_path / "sort")])
     metrics, frames = _outputs(tmp_path / "sort")
     assert len(metrics["steps"]) == 2 and len(frames) == 3
-    assert all(len(r["inside"]) == 2 and 0 <= r["mixing"] <= 1 for r in metrics["steps"])
+    assert all(len(r["kind_inside"]) == 2 and 0 <= r["mixing"] <= 1 for r in metrics["steps"])
 
 
 def test_the_closed_loop_beats_random_pushes():
@@ -63,9 +64,9 @@ def test_the_closed_loop_beats_random_pushes():
     starts = pool.reset(jax.random.split(jax.random.PRNGKey(1), 4))
     dynamics, _, _ = load_dynamics("learned", SHIPPED_DYNAMICS, sim.scene.plate_half_width)
     planner = PlannerConfig(samples=20, steps=20, bound=env.action_bound, max_length=sim.push.max_length)
-    cfg = MPCConfig(steps=4, omega=25, planner=planner)
-    planned, _ = run_episodes(pool, starts, goals, dynamics, cfg, jax.random.split(jax.random.PRNGKey(2), 4),
-                              log=lambda s: None)
+    cfg = MPCConfig(mpc_steps=4, planner=planner)
+    planned, _ = run(pool, starts, FixedOmega(goals, 25), dynamics, cfg, jax.random.split(jax.random.PRNGKey(2), 4),
+                     log=lambda s: None)
     states = starts
     for t in range(4):
         keys = jax.random.split(jax.random.PRNGKey(100 + t), 4)

@@ -27,9 +27,9 @@ import os
 
 import jax
 
+from dynres_jax import export
 from dynres_jax.config import CameraConfig, PushConfig
 from dynres_jax.control.planner import PlannerConfig
-from dynres_jax import export
 from dynres_jax.io.ckpt import CheckpointError
 from dynres_jax.models.registry import SHIPPED_DYNAMICS
 from dynres_jax.sim.camera import Camera
