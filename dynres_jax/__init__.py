@@ -18,15 +18,9 @@ What the quick start and the notebooks use is importable from here.
 from dynres_jax.config import CameraConfig, PileConfig, PushConfig, SceneConfig, SimConfig
 from dynres_jax.control.choosers import AdaptiveOmega, FixedOmega, OracleOmega
 from dynres_jax.control.decision import goal_cost
+from dynres_jax.control.goals import disc_goal, make_goal, text_goal
 from dynres_jax.control.mpc import MPCConfig, run, run_episode
-from dynres_jax.control.objective import (
-    disc_goal,
-    distribution_distance,
-    inside_share,
-    make_goal,
-    objective,
-    text_goal,
-)
+from dynres_jax.control.objective import distribution_distance, inside_share, objective
 from dynres_jax.control.planner import PlannerConfig, plan
 from dynres_jax.models.registry import SHIPPED_DYNAMICS, SHIPPED_REGRESSOR, load_dynamics
 from dynres_jax.perception import sample_particles

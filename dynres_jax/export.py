@@ -19,7 +19,7 @@ Inputs (``INPUT_NAMES`` order; shapes fixed at export, the sidecar ``FILE.json``
   from which the learned dynamics take their resolution code. It is an input, not computed inside, because it
   depends on the point cloud, not only on the particles.
 - goal_mask [H, W] bool, goal_distance [H, W] float32 px, goal_samples [Q, 2] float32 px, goal_sample_mask [Q] bool:
-  the fields of ``objective.Goal`` (``objective.make_goal(mask, camera, n_samples=Q)``), H x W the camera's image.
+  the fields of ``goals.Goal`` (``goals.make_goal(mask, camera, n_samples=Q)``), H x W the camera's image.
 - key [2] uint32: ``jax.random.PRNGKey(seed)``'s data (the planner's key, not the perception one).
 - init [T, 4] float32 m and warm [] bool: warm start; with warm True, ``init`` (e.g. the previous plan shifted by
   one push) replaces sample 0, as ``planner.plan(init=...)``; with warm False ``init`` is ignored (``plan(init=None)``).
@@ -57,7 +57,7 @@ from jax import export as jax_export
 
 from dynres_jax.config import CameraConfig, SceneConfig
 from dynres_jax.control.decision import goal_cost
-from dynres_jax.control.objective import Goal
+from dynres_jax.control.goals import Goal
 from dynres_jax.control.planner import PlannerConfig, plan
 from dynres_jax.io import ckpt, files
 from dynres_jax.models.graph import no_gpu_kernels
@@ -65,7 +65,7 @@ from dynres_jax.models.registry import load_dynamics
 from dynres_jax.sim.camera import Camera
 
 FORMAT = "dynres_jax planner, jax.export serialized Exported (StableHLO)"
-DEFAULT_GOAL_SAMPLES = 500  # Q: objective.make_goal's default n_samples
+DEFAULT_GOAL_SAMPLES = 500  # Q: goals.make_goal's default n_samples
 INPUT_NAMES = ("positions", "mask", "radius", "goal_mask", "goal_distance", "goal_samples", "goal_sample_mask", "key",
                "init", "warm")
 OUTPUT_NAMES = ("best", "best_cost", "history")
@@ -107,11 +107,11 @@ def input_specs(n_max: int, camera: Camera, config: PlannerConfig, goal_samples:
         ("mask", (n_max,), "bool", "", "valid particles (Particles.mask; the first omega)"),
         ("radius", (), "float32", "m", "FPS covering radius of the omega-sample over the point cloud "
                                        "(Particles.radius): sets the learned dynamics' resolution code"),
-        ("goal_mask", (h, w), "bool", "", "goal pixels (objective.Goal.mask)"),
-        ("goal_distance", (h, w), "float32", "px", "signed distance field, negative inside (objective.Goal.distance)"),
+        ("goal_mask", (h, w), "bool", "", "goal pixels (goals.Goal.mask)"),
+        ("goal_distance", (h, w), "float32", "px", "signed distance field, negative inside (goals.Goal.distance)"),
         ("goal_samples", (goal_samples, 2), "float32", "px", "(u, v) FPS samples of the goal pixel centres "
-                                                             "(objective.Goal.samples)"),
-        ("goal_sample_mask", (goal_samples,), "bool", "", "valid goal samples (objective.Goal.sample_mask)"),
+                                                             "(goals.Goal.samples)"),
+        ("goal_sample_mask", (goal_samples,), "bool", "", "valid goal samples (goals.Goal.sample_mask)"),
         ("key", (2,), "uint32", "", "planner PRNG key: the data of jax.random.PRNGKey(seed)"),
         ("init", (t, 4), "float32", "m", "warm start (x_start, y_start, x_end, y_end) per push; used when warm"),
         ("warm", (), "bool", "", "True: init replaces sample 0 (planner.plan(init=init)); False: init is ignored"),

@@ -14,8 +14,8 @@ from dynres_jax.control import budget
 from dynres_jax.control.budget import TimingTable, adam_steps, bucket_for, check_buckets
 from dynres_jax.control.choosers import FixedOmega
 from dynres_jax.control.decision import batch, perceive_and_decide
+from dynres_jax.control.goals import disc_goal, make_goal
 from dynres_jax.control.mpc import MPCConfig, measure_timing, run_episode
-from dynres_jax.control.objective import disc_goal, make_goal
 from dynres_jax.control.planner import PlannerConfig
 from dynres_jax.models.registry import SHIPPED_DYNAMICS, load_dynamics, sweep_dynamics
 from dynres_jax.sim.env import PileEnv

@@ -12,8 +12,8 @@ from flax import nnx
 from dynres_jax import export as ex
 from dynres_jax.commands import export as export_cli
 from dynres_jax.config import CameraConfig
+from dynres_jax.control.goals import disc_goal, make_goal
 from dynres_jax.control.mpc import goal_cost
-from dynres_jax.control.objective import disc_goal, make_goal
 from dynres_jax.control.planner import PlannerConfig, plan
 from dynres_jax.io import ckpt
 from dynres_jax.models.dynamics import Dynamics, DynamicsConfig

@@ -9,7 +9,7 @@ import pytest
 
 from dynres_jax.commands import plan
 from dynres_jax.config import CameraConfig, SceneConfig, SimConfig
-from dynres_jax.control.objective import disc_goal
+from dynres_jax.control.goals import disc_goal
 from dynres_jax.io import frames
 from dynres_jax.sim.env import PileEnv
 

@@ -7,8 +7,9 @@ import pytest
 from dynres_jax.config import CameraConfig, PileConfig, PushConfig, SceneConfig, SimConfig
 from dynres_jax.control.choosers import AdaptiveOmega, Chooser, FixedOmega, OracleOmega, Orders
 from dynres_jax.control.decision import batch, goal_cost
+from dynres_jax.control.goals import disc_goal, make_goal
 from dynres_jax.control.mpc import MPCConfig, run, run_episode
-from dynres_jax.control.objective import disc_goal, distribution_distance, make_goal
+from dynres_jax.control.objective import distribution_distance
 from dynres_jax.control.planner import PlannerConfig, _plan_jit, plan
 from dynres_jax.io.draw import goal_frames
 from dynres_jax.models.registry import sweep_dynamics

@@ -9,18 +9,8 @@ import pytest
 
 from dynres_jax.config import CameraConfig, SceneConfig, SimConfig
 from dynres_jax.control import objective as obj
-from dynres_jax.control.objective import (
-    bilinear,
-    disc_goal,
-    distribution_distance,
-    inside_share,
-    make_goal,
-    polygon_goal,
-    random_polygon_goal,
-    sort_goals,
-    squared_distance_to,
-    text_goal,
-)
+from dynres_jax.control.goals import disc_goal, make_goal, polygon_goal, random_polygon_goal, sort_goals, text_goal
+from dynres_jax.control.objective import bilinear, distribution_distance, inside_share, squared_distance_to
 from dynres_jax.perception import foreground
 from dynres_jax.sim.camera import Camera
 from dynres_jax.sim.env import PileEnv

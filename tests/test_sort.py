@@ -10,16 +10,9 @@ import pytest
 from dynres_jax.config import CameraConfig, PileConfig, PushConfig, SceneConfig, SimConfig
 from dynres_jax.control.choosers import Chooser, Orders
 from dynres_jax.control.decision import batch, goal_cost
+from dynres_jax.control.goals import BIN_HALF_WIDTH, make_goal, stack_goals
 from dynres_jax.control.mpc import MPCConfig, run_episode
-from dynres_jax.control.objective import (
-    BIN_HALF_WIDTH,
-    distribution_distance,
-    kind_costs,
-    kind_objective,
-    make_goal,
-    objective,
-    stack_goals,
-)
+from dynres_jax.control.objective import distribution_distance, kind_costs, kind_objective, objective
 from dynres_jax.control.planner import PlannerConfig
 from dynres_jax.control.sort import SortPolicy, astar_blobs, sort_goal, sort_scores
 from dynres_jax.io.draw import Frames, overlay, tint

@@ -13,8 +13,9 @@ from dynres_jax.commands import evaluate, gather, redistribute, sort
 from dynres_jax.config import PileConfig, SceneConfig, SimConfig
 from dynres_jax.control import tasks
 from dynres_jax.control.choosers import FixedOmega
+from dynres_jax.control.goals import make_goal
 from dynres_jax.control.mpc import MPCConfig, run
-from dynres_jax.control.objective import distribution_distance, make_goal
+from dynres_jax.control.objective import distribution_distance
 from dynres_jax.control.planner import PlannerConfig
 from dynres_jax.models.registry import SHIPPED_DYNAMICS, SHIPPED_REGRESSOR, load_dynamics
 from dynres_jax.sim.pool import WorldPool

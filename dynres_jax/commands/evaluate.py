@@ -48,8 +48,8 @@ from dynres_jax.commands.task import (
 from dynres_jax.config import KINDS, OMEGA_MAX, OMEGA_MIN, CameraConfig, PileConfig, SceneConfig, SimConfig
 from dynres_jax.control import resolution, tasks
 from dynres_jax.control.choosers import ORACLE_OMEGAS, AdaptiveOmega, Chooser, FixedOmega, OracleOmega
+from dynres_jax.control.goals import make_goal, stack
 from dynres_jax.control.mpc import SensorView, run
-from dynres_jax.control.objective import make_goal, stack
 from dynres_jax.io import ckpt, files
 from dynres_jax.models.registry import SHIPPED_CNN_DYNAMICS, SHIPPED_DYNAMICS, SHIPPED_REGRESSOR
 from dynres_jax.sim.pool import WorldPool, process_pool

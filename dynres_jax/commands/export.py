@@ -12,7 +12,7 @@ camera and checkpoint step). On the robot (needs jax, jaxlib no older than the e
     push = out["best"][0]   # (x_start, y_start, x_end, y_end), metres
 
 The particles (positions, mask, radius) come from perception (dynres_jax.perception.sample_particles), the goal
-arrays from dynres_jax.control.objective.make_goal (computed once per goal, on any machine), key is
+arrays from dynres_jax.control.goals.make_goal (computed once per goal, on any machine), key is
 jax.random.PRNGKey(seed). --platforms: default this machine's backend; --platforms cuda for a GPU robot works on any
 machine. On the CPU a one-platform file plans bit for bit what the live planner plans; --platforms cpu cuda gives one
 file for both, whose plans differ from the live ones by float rounding, amplified by the optimisation (on a GPU
@@ -55,7 +55,7 @@ def main(argv=None):
                         help="camera JSON (Camera.to_json: K, rotation, centre, width, height) the goals' pixels "
                              "belong to (default: the simulator's top-down 128 x 128 camera)")
     parser.add_argument("--goal-samples", type=int, default=export.DEFAULT_GOAL_SAMPLES,
-                        help="Q, the goal's FPS samples (objective.make_goal's n_samples)")
+                        help="Q, the goal's FPS samples (goals.make_goal's n_samples)")
     parser.add_argument("--platforms", nargs="+", choices=PLATFORMS, default=None,
                         help=f"platforms to lower for (default: this machine's, now "
                              f"{jax.export.default_export_platform()}); several give one file for all")

@@ -37,9 +37,8 @@ import numpy as np
 from tqdm import tqdm
 
 from dynres_jax import distributed
-from dynres_jax.commands.task import add_planner_args, check_planner_args, load_model, planner_config, timing_table
-from dynres_jax.config import KINDS, SceneConfig
-from dynres_jax.control import resolution
+from dynres_jax.commands.task import add_planner_args, check_planner_args, load_model, mpc_config, timing_table
+from dynres_jax.config import KINDS, OMEGA_MAX, SceneConfig
 from dynres_jax.io import files
 from dynres_jax.learn.data import save_npz, shard_path, shards_todo
 from dynres_jax.learn.labels import MID_EPISODE_OMEGA, LabelConfig, label_shard, scene_config, shard_scenes
@@ -86,15 +85,15 @@ def main(argv=None):
     except ValueError as e:
         parser.error(str(e))
     dynamics, n_max, name = load_model(parser, args.dynamics, args.ckpt, SceneConfig.plate_half_width)
-    if n_max < resolution.OMEGA_MAX:
-        parser.error(f"the dynamics checkpoint holds {n_max} particles; labels need {resolution.OMEGA_MAX}")
+    if n_max < OMEGA_MAX:
+        parser.error(f"the dynamics checkpoint holds {n_max} particles; labels need {OMEGA_MAX}")
     os.makedirs(args.out, exist_ok=True)
     if distributed.is_writer():
         files.write_json(os.path.join(args.out, "config.json"), dict(vars(args), dynamics_name=name))
     n_shards = -(-args.scenes // args.batch)
     todo = shards_todo(args.out, n_shards)
     t0 = time.perf_counter()
-    planner = functools.partial(planner_config, args=args)
+    planner = functools.partial(mpc_config, args=args)
     workers = process_pool(args.workers) if args.backend == "mujoco" else None
     with workers or contextlib.nullcontext() as processes:
         timing = None

@@ -21,7 +21,7 @@ from dynres_jax.commands.task import check_out, load_model
 from dynres_jax.config import SceneConfig
 from dynres_jax.control.budget import BUCKETS, bucket_for
 from dynres_jax.control.decision import goal_cost
-from dynres_jax.control.objective import make_goal
+from dynres_jax.control.goals import make_goal
 from dynres_jax.control.planner import PlannerConfig, plan
 from dynres_jax.io import files, frames
 from dynres_jax.io.draw import overlay

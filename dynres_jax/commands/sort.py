@@ -25,8 +25,8 @@ import numpy as np
 from dynres_jax.commands.task import add_loop_args, build_loop, check_out, write_episode
 from dynres_jax.config import KINDS, CameraConfig, PileConfig, SceneConfig, SimConfig
 from dynres_jax.control.decision import batch
+from dynres_jax.control.goals import make_goal
 from dynres_jax.control.mpc import measure_timing, run_episode
-from dynres_jax.control.objective import make_goal
 from dynres_jax.control.sort import SortPolicy, sort_goal, sort_scores
 from dynres_jax.io import files
 from dynres_jax.io.draw import Frames, overlay, tint

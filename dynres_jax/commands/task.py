@@ -37,8 +37,9 @@ from dynres_jax.config import (
 from dynres_jax.control import budget, tasks
 from dynres_jax.control.choosers import AdaptiveOmega, Chooser, FixedOmega
 from dynres_jax.control.decision import batch, episode
+from dynres_jax.control.goals import make_goal
 from dynres_jax.control.mpc import MPCConfig, measure_timing, run_episode
-from dynres_jax.control.objective import inside_share, make_goal
+from dynres_jax.control.objective import inside_share
 from dynres_jax.control.planner import PlannerConfig
 from dynres_jax.control.resolution import load_chooser
 from dynres_jax.io import files

@@ -42,8 +42,9 @@ from dynres_jax.config import CameraConfig, PileConfig, PushConfig, SceneConfig,
 from dynres_jax.control import tasks
 from dynres_jax.control.budget import TimingTable, bucket_for
 from dynres_jax.control.decision import decide_batch, episode
+from dynres_jax.control.goals import make_goal, stack
 from dynres_jax.control.mpc import MPCConfig, measure_timing
-from dynres_jax.control.objective import distribution_distance, make_goal, stack
+from dynres_jax.control.objective import distribution_distance
 from dynres_jax.control.planner import PlannerConfig
 from dynres_jax.control.resolution import CANDIDATES
 from dynres_jax.io import files

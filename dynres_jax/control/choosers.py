@@ -12,7 +12,7 @@ from typing import NamedTuple
 import numpy as np
 
 from dynres_jax.config import check_omega
-from dynres_jax.control.objective import Goal, KindGoals
+from dynres_jax.control.goals import Goal, KindGoals
 
 ORACLE_OMEGAS = (10, 25, 50, 75, 100)  # the oracle's candidates at every step
 

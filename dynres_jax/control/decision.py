@@ -16,7 +16,8 @@ import jax.numpy as jnp
 import numpy as np
 from jax.tree_util import Partial
 
-from dynres_jax.control.objective import SAMPLES_PER_PARTICLE, Goal, KindGoals, kind_costs, kind_objective, objective
+from dynres_jax.control.goals import Goal, KindGoals
+from dynres_jax.control.objective import SAMPLES_PER_PARTICLE, kind_costs, kind_objective, objective
 from dynres_jax.control.planner import PlannerConfig, plan, sample_pushes
 from dynres_jax.perception import Perceived, check_particles, perceive
 

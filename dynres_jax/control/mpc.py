@@ -24,7 +24,8 @@ import numpy as np
 from dynres_jax.control import budget
 from dynres_jax.control.choosers import Chooser
 from dynres_jax.control.decision import DecisionSpec, batch, decide_batch, episode, per_episode
-from dynres_jax.control.objective import Goal, KindGoals, distribution_distance, inside_share
+from dynres_jax.control.goals import Goal, KindGoals
+from dynres_jax.control.objective import distribution_distance, inside_share
 from dynres_jax.control.planner import PlannerConfig
 from dynres_jax.perception import calibrate, point_cloud
 from dynres_jax.sim.env import PileEnv, State
@@ -123,22 +124,37 @@ class SensorView:
         return seen, self.camera
 
 
-def act(worlds: Worlds, states: State, seen, goals, keys, init, warm, omega, kinds, *, cfg: MPCConfig,
-        timing: budget.TimingTable | None, dynamics, camera, score: Callable) -> dict:
-    """Allot, decide, push, score: one decision per episode at omega [B] on the frames ``seen`` through ``camera``,
-    its first push executed from ``states`` in ``worlds`` and the result scored by ``score(states, goals) -> dict``.
-    Returns arrays [B]: omega, bucket, adam_steps, objective (c before), predicted_objective, best (the plan),
-    particles, action, states (after), the scores, and wall (the decision's seconds)."""
+class Situation(NamedTuple):
+    """What every candidate decision of one MPC step starts from: states [B] (the true worlds), seen (the frames [B]
+    the planner sees, through ``camera``), goals [B] and kinds [B] (or None) of the chooser's orders, keys [B], the
+    warm start init [B, T, 4] and whether to use it (warm)."""
+
+    states: State
+    seen: object
+    camera: object
+    goals: object
+    kinds: np.ndarray | None
+    keys: jax.Array
+    init: jax.Array
+    warm: bool
+
+
+def act(worlds: Worlds, now: Situation, omega, *, cfg: MPCConfig, timing: budget.TimingTable | None, dynamics,
+        score: Callable) -> dict:
+    """Allot, decide, push, score: one decision per episode at omega [B] from ``now``, its first push executed in
+    ``worlds`` and the result scored by ``score(states, goals) -> dict``. Returns arrays [B]: omega, bucket,
+    adam_steps, objective (c before), predicted_objective, best (the plan), particles, action, states (after), the
+    scores, and wall (the decision's seconds)."""
     buckets, steps = cfg.allot(omega, timing)
     t0 = time.perf_counter()
-    particles, c_now, result = decide_batch(seen, goals, keys, init, warm, omega, steps, kinds,
-                                            spec=cfg.spec(int(buckets.max())), dynamics=dynamics, camera=camera)
+    particles, c_now, result = decide_batch(now.seen, now.goals, now.keys, now.init, now.warm, omega, steps, now.kinds,
+                                            spec=cfg.spec(int(buckets.max())), dynamics=dynamics, camera=now.camera)
     action = np.asarray(jax.block_until_ready(result.best[:, 0]))
     wall = time.perf_counter() - t0
-    after = worlds.push(states, action)
+    after = worlds.push(now.states, action)
     return dict(omega=np.asarray(omega), bucket=buckets, adam_steps=steps, objective=c_now,
                 predicted_objective=result.best_cost, best=result.best, particles=particles, action=action,
-                states=after, wall=np.full(len(action), wall), **score(after, goals))
+                states=after, wall=np.full(len(action), wall), **score(after, now.goals))
 
 
 class Episodes(NamedTuple):
@@ -171,8 +187,8 @@ def run(worlds: Worlds, states: State, chooser: Chooser, dynamics, cfg: MPCConfi
         step_keys = jax.vmap(jax.random.fold_in, in_axes=(0, None))(keys, t)
         seen, camera = view(t, states, step_keys)
         orders = chooser(t, seen)
-        kept = _lowest_distance([act(worlds, states, seen, orders.goals, step_keys, init, warm, omega, orders.kinds,
-                                     cfg=cfg, timing=timing, dynamics=dynamics, camera=camera, score=score)
+        now = Situation(states, seen, camera, orders.goals, orders.kinds, step_keys, init, warm)
+        kept = _lowest_distance([act(worlds, now, omega, cfg=cfg, timing=timing, dynamics=dynamics, score=score)
                                  for omega in orders.omegas])
         record = dict(step=t, **{k: np.asarray(kept[k]) for k in ("omega", "bucket", "adam_steps", "objective",
                                                                   "predicted_objective", "distance", "inside",

@@ -14,10 +14,10 @@ Paper mapping:
 - Perceived piles can start closer than 2 ``blob_radius`` (touching or mixed piles); such a start may only be left
   by moves that strictly increase the centre distance until the circles are apart. Goals must not overlap.
 
-Closed loop (``sort_episode``: ``SortPolicy`` choosing on the one MPC loop, ``mpc.run``): each MPC step perceives both
+Closed loop (``SortPolicy``, a chooser on the one MPC loop, ``mpc.run``): each MPC step perceives both
 piles (particles of one kind each, segmentation), takes the blob centres as the particle centroids, RE-PLANS the A* path
 from them (so a pile disturbed by a push is handled), and plans one push on the particles of the whole scene, each
-labelled with its kind (``perception.particle_kinds``), with one goal per kind (``objective.KindGoals``): the blob of
+labelled with its kind (``perception.particle_kinds``), with one goal per kind (``goals.KindGoals``): the blob of
 the path's first move is pursued toward a disc of ``goal_radius`` at its waypoint, up to ``lookahead`` grid steps ahead
 along its current run of moves; the other blob is held: only a loss against the disc where it rests (its goal when the
 path does not move it again) counts (``objective.kind_objective``), so a push through the resting pile costs what it
@@ -36,14 +36,15 @@ import jax.numpy as jnp
 import numpy as np
 
 from dynres_jax.config import check_omega
-from dynres_jax.control.budget import TimingTable, bucket_for
+from dynres_jax.control.budget import bucket_for
 from dynres_jax.control.choosers import Chooser, Orders
 from dynres_jax.control.decision import batch, episode
-from dynres_jax.control.mpc import MPCConfig, run_episode
-from dynres_jax.control.objective import disc_goal, inside_share, make_goal, sort_goals, stack_goals
+from dynres_jax.control.goals import disc_goal, make_goal, sort_goals, stack_goals
+from dynres_jax.control.mpc import MPCConfig
+from dynres_jax.control.objective import inside_share
 from dynres_jax.control.tasks import FILL
 from dynres_jax.perception import check_particles, cloud_particles, foreground, pack
-from dynres_jax.sim.env import PileEnv, State
+from dynres_jax.sim.env import PileEnv
 
 GOAL_GAP = 0.04  # m: sort goals' rims at least this far apart (room for A*'s snapping of both centres to the grid)
 GOAL_EDGE = 0.01  # m: sort goals' rims at least this far from the bin wall
@@ -185,7 +186,7 @@ def _hold_point(path: list[np.ndarray] | None, goals_xy: np.ndarray, blob: int) 
 class SortPolicy(Chooser):
     """Sort's A* waypoints as a chooser on the one MPC loop (``mpc.run``), for one episode: every step it perceives
     both piles, re-plans the A* path from their centres and plans one push on both kinds' particles at once at ω
-    (``objective.KindGoals``): the moved blob's kind pursued towards a disc of ``goal_radius`` at its waypoint, the
+    (``goals.KindGoals``): the moved blob's kind pursued towards a disc of ``goal_radius`` at its waypoint, the
     other kind held at a disc where it rests (``_hold_point``; module docstring). ``target_mask`` is the current
     waypoint's disc (what a frame draws). Its record fields: phase ("path": following A*, "final": both at their
     goals, both pursued, "direct": A* found no path, the farther pile heads straight to its goal), kind moved (-1 in
@@ -242,16 +243,3 @@ class SortPolicy(Chooser):
     def score(self, states) -> dict:
         inside, mixing = sort_scores(states.pos[0], self.piece_kinds, self.goals, self.camera)
         return dict(kind_inside=[inside], mixing=[mixing])
-
-
-def sort_episode(env: PileEnv, state: State, dynamics, cfg: MPCConfig, omega: int, key, goals_xy, goal_radius: float,
-                 *, blob_radius: float | None = None, grid_step: float = 0.02, lookahead: int = 3,
-                 timing: TimingTable | None = None, log=print) -> tuple[State, list[dict]]:
-    """One Sort episode from ``state`` at resolution ω: kind k to the disc of ``goal_radius`` (m) at goals_xy[k] (m),
-    ``mpc.run_episode`` with ``SortPolicy`` choosing (its fields and scores join each record). dynamics: ``registry``
-    (radius -> the planner's model); blob_radius: A*'s blob circle (m, default goal_radius); grid_step: A*'s grid
-    (m); lookahead: grid steps a waypoint may lie ahead (>= 1); timing: the table a time budget (cfg.time_budget) is
-    spent by. Returns the final state and one record per step."""
-    policy = SortPolicy(env, cfg, omega, key, goals_xy, goal_radius, log, blob_radius=blob_radius,
-                        grid_step=grid_step, lookahead=lookahead)
-    return run_episode(env, state, policy, dynamics, cfg, key, timing=timing, log=log)

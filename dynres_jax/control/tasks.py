@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from dynres_jax.control.objective import disc_goal, text_goal
+from dynres_jax.control.goals import disc_goal, text_goal
 from dynres_jax.sim.env import PileEnv
 
 TASKS = ("gather", "redistribute")

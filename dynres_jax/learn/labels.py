@@ -16,7 +16,8 @@ import numpy as np
 from dynres_jax.config import CameraConfig, PileConfig, PushConfig, SceneConfig, SimConfig
 from dynres_jax.control import budget, mpc, resolution, tasks
 from dynres_jax.control.choosers import FixedOmega
-from dynres_jax.control.objective import distribution_distance, make_goal, stack
+from dynres_jax.control.goals import make_goal, stack
+from dynres_jax.control.objective import distribution_distance
 from dynres_jax.sim.env import PileEnv
 from dynres_jax.sim.pool import BACKENDS, make_pool
 
@@ -116,8 +117,8 @@ def label_shard(cfg: LabelConfig, shard: int, dynamics, planner: Callable[[PileE
         """c*(ω) [B] of every scene (the mean of its repeats), the variance of that mean [B] (0 with one repeat) and
         the Adam steps [B] each plan ran (its bucket's, under the budget)."""
         keys = jax.random.split(jax.random.fold_in(jax.random.PRNGKey(plan_seed), shard * 100 + i), b * r)
-        done = mpc.act(pool, starts, starts.obs, goals_r, keys, init, False, rep(omega), None, cfg=mpc_cfg,
-                       timing=timing, dynamics=dynamics, camera=camera,
+        now = mpc.Situation(starts, starts.obs, camera, goals_r, None, keys, init, False)
+        done = mpc.act(pool, now, rep(omega), cfg=mpc_cfg, timing=timing, dynamics=dynamics,
                        score=lambda after, g: dict(distance=measure(after.obs, g)))
         values = np.asarray(done["distance"]).reshape(b, r)
         spread = values.var(axis=1, ddof=1) / r if r > 1 else np.zeros(b)
