@@ -279,10 +279,10 @@ def _timed_model_and_cost():
     from flax import nnx
 
     from dynres_jax.control.decision import goal_cost
-    from dynres_jax.models.dynamics import Dynamics, DynamicsConfig
+    from dynres_jax.models.dynamics import REFERENCE, Dynamics
 
     camera, goal = _camera_and_goal()
-    return Dynamics(DynamicsConfig(), rngs=nnx.Rngs(0)), goal_cost(goal, camera)
+    return Dynamics(REFERENCE, rngs=nnx.Rngs(0)), goal_cost(goal, camera)
 
 
 def _stage_times(positions: np.ndarray, samples: int, repeats: int) -> dict:
@@ -357,9 +357,9 @@ def _plan_section(model, cost, edge_dtype, positions: np.ndarray, samples: int, 
     def timed(n):
         """(compile s, median s) of a plan of n steps."""
         t0 = time.perf_counter()
-        jax.block_until_ready(plan(dynamics, cost, pile, mask, key, config, steps=n))
+        jax.block_until_ready(plan(dynamics, cost, pile, mask, key, config, adam_steps=n))
         first = time.perf_counter() - t0
-        wall = _median_s(lambda: jax.block_until_ready(plan(dynamics, cost, pile, mask, key, config, steps=n)),
+        wall = _median_s(lambda: jax.block_until_ready(plan(dynamics, cost, pile, mask, key, config, adam_steps=n)),
                          repeats, lambda: None)
         return first - wall, wall
 
@@ -401,7 +401,7 @@ def _jax_planner(positions: np.ndarray, samples: int, steps: int, repeats: int) 
     if quality_model is not model:  # the shipped architecture may differ from the reference's (push frame)
         shipped = dict(section(quality_model, "float32"), model=quality_name, config=vars(quality_model.config))
     dynamics = {d: learned_dynamics(quality_model, d)(PARTICLE_RADIUS) for d in EDGE_DTYPES}
-    plans = {d: plan(dynamics[d], cost, pile, mask, key, config, steps=steps) for d in EDGE_DTYPES}
+    plans = {d: plan(dynamics[d], cost, pile, mask, key, config, adam_steps=steps) for d in EDGE_DTYPES}
 
     def final(f, seq):
         """[R, N, 3]: every re-sampling after the pushes seq [T, 4], by the planner dynamics f."""

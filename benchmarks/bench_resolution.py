@@ -36,7 +36,7 @@ def _ms_per_step(dynamics, cost, positions, mask, config, steps: int, repeats: i
     key = jax.random.PRNGKey(0)
 
     def call(n):
-        return lambda: jax.block_until_ready(plan(dynamics, cost, positions, mask, key, config, steps=n))
+        return lambda: jax.block_until_ready(plan(dynamics, cost, positions, mask, key, config, adam_steps=n))
 
     short = max(1, steps // 10)
     call(short)()  # compile
@@ -63,7 +63,7 @@ def run(quick: bool, batch: str | None = None) -> dict:
     camera, goal = _camera_and_goal()
     dynamics, _, name = load_dynamics("auto", SHIPPED_DYNAMICS, 0.04)
     dynamics = dynamics(PARTICLE_RADIUS)
-    config = PlannerConfig(samples=samples, resamples=resamples, steps=sizes["steps"])
+    config = PlannerConfig(samples=samples, resamples=resamples, adam_steps=sizes["steps"])
     t0 = time.perf_counter()
     def ms_at(omega, slots):  # ms per step of ω valid particles in ``slots`` slots
         positions = _piles(slots, resamples, seed=omega)

@@ -78,7 +78,7 @@ def planner_step(dynamics: Callable, camera: Camera, config: PlannerConfig) -> C
     dynamics: radius (m) -> planner dynamics (the first value of ``registry.load_dynamics``, or
     ``registry.learned_dynamics(model)``); its arrays are closed over, so they become constants of the export.
     camera: the camera the goal's pixels belong to (static). config: the planner's settings (static; one particle
-    set, so resamples must be 1; the step count is ``config.steps``).
+    set, so resamples must be 1; the step count is ``config.adam_steps``).
     """
     if config.resamples != 1:
         raise ValueError(f"the exported planner takes one particle set: PlannerConfig.resamples must be 1, got "
@@ -125,7 +125,7 @@ def output_specs(config: PlannerConfig):
         ("best", (config.horizon, 4), "float32", "m", "the lowest-cost push sequence (x_start, y_start, x_end, "
                                                       "y_end); execute best[0]"),
         ("best_cost", (), "float32", "px", "its predicted task objective c"),
-        ("history", (config.steps,), "float32", "px", "the best cost seen up to each Adam step"),
+        ("history", (config.adam_steps,), "float32", "px", "the best cost seen up to each Adam step"),
     ]
     return [dict(name=n, shape=list(s), dtype=d, units=u, description=e) for n, s, d, u, e in rows]
 

@@ -7,7 +7,7 @@
 set -uo pipefail
 OUT=${OUT:-runs/eval}; EPISODES=${EPISODES:-256}; BUDGET=${BUDGET:-0.25}; TIMING=${TIMING:-docs/budget/timing_cpu.json}
 for task in ${TASKS:-gather redistribute}; do
-  python -m experiments.evaluate --task "$task" --episodes "$EPISODES" --samples 50 --plan-steps 100 \
+  python -m experiments.evaluate --task "$task" --episodes "$EPISODES" --samples 50 --adam-steps 100 \
     --time-budget "$BUDGET" --timing "$TIMING" --methods 10 25 50 75 100 adaptive cnn oracle \
     --out "$OUT/eval_$task" || exit
 done

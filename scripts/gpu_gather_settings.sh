@@ -6,6 +6,6 @@ set -uo pipefail
 OUT=${OUT:-runs/settings}
 for s in ${SETTINGS:-50,100,1 100,200,1 200,200,1 50,100,2 100,200,2}; do
   IFS=, read -r m n t <<< "$s"
-  python -m experiments.evaluate --task gather --methods 50 --samples "$m" --plan-steps "$n" \
+  python -m experiments.evaluate --task gather --methods 50 --samples "$m" --adam-steps "$n" \
     --horizon "$t" --out "$OUT/gather_M${m}_N${n}_T${t}" | tail -1
 done

@@ -10,7 +10,7 @@ OUT=${OUT:-runs/kinds}; EPISODES=${EPISODES:-64}; SEED=${SEED:-1000}; SENSOR=${S
 # shellcheck disable=SC2086
 for kind in ${KINDS:-coffee almond rice mnm granola candy}; do
   python -m experiments.evaluate --task gather --kind "$kind" --episodes "$EPISODES" --methods 50 --samples 50 \
-    --plan-steps 100 --seed "$SEED" --sensor "$SENSOR" ${FLAGS:-} --out "$OUT/$kind" 2>&1 | grep -v "it/s\]" | tail -2 || exit
+    --adam-steps 100 --seed "$SEED" --sensor "$SENSOR" ${FLAGS:-} --out "$OUT/$kind" 2>&1 | grep -v "it/s\]" | tail -2 || exit
   rm -rf "$OUT/$kind/parts"
 done
 # one archive of every kind's results (a device run brings back only so many files)

@@ -41,7 +41,7 @@ def main():
         dynamics = learned_dynamics(model, edge_dtype)(PARTICLE_RADIUS)
 
         def run(dynamics=dynamics):
-            return jax.block_until_ready(plan(dynamics, cost, pile, mask, key, config, steps=args.steps))
+            return jax.block_until_ready(plan(dynamics, cost, pile, mask, key, config, adam_steps=args.steps))
 
         run()
         t0 = time.perf_counter()

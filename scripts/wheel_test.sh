@@ -9,7 +9,7 @@ python3 -m pip wheel -q --no-deps . -w "$work/dist"
 python3 -m venv "$work/venv"
 "$work/venv/bin/python" -m pip install -q "$work"/dist/*.whl
 cd "$work"
-"$work/venv/bin/dynres" gather --steps 1 --samples 4 --plan-steps 2 --out "$work/out"
+"$work/venv/bin/dynres" gather --mpc-steps 1 --samples 4 --adam-steps 2 --out "$work/out"
 "$work/venv/bin/python" - "$work/out/metrics.json" <<'PY'
 import json, sys
 dynamics = json.load(open(sys.argv[1]))["dynamics"]

@@ -16,7 +16,7 @@ import sys
 import tempfile
 
 REFERENCE = os.path.join(os.path.dirname(os.path.abspath(__file__)), "data", "loop_reference.json")
-TINY = ["--samples", "4", "--plan-steps", "3", "--steps", "2"]
+TINY = ["--samples", "4", "--adam-steps", "3", "--mpc-steps", "2"]
 STEP_FIELDS = ("omega", "bucket", "adam_steps", "objective", "predicted_objective", "distance", "inside", "action",
                "kind_inside", "mixing", "phase", "kind", "waypoint", "centres", "astar_steps")
 TIMING = dict(device="reference", samples=4, horizon=1, fixed_s={"16": 0.01, "32": 0.012, "64": 0.015, "100": 0.02},
@@ -55,16 +55,16 @@ def record(folder: str) -> dict:
     runs["redistribute"] = _steps(redistribute.main([*TINY, "--pieces", "40", "--letter", "J", "--resolution", "40",
                                                       "--seed", "5", "--out", out("letter")]))
     runs["sort"] = _steps(sort.main([*TINY, "--pieces", "20", "20", "--seed", "6", "--out", out("sort")]))
-    summary = evaluate.main(["--quick", "--episodes", "2", "--steps", "2", "--pieces", "40", "--samples", "4",
-                             "--plan-steps", "3", "--methods", "25", "adaptive", "oracle", "--seed", "7",
+    summary = evaluate.main(["--quick", "--episodes", "2", "--mpc-steps", "2", "--pieces", "40", "--samples", "4",
+                             "--adam-steps", "3", "--methods", "25", "adaptive", "oracle", "--seed", "7",
                              "--workers", "1", "--out", out("evaluate")])
     runs["evaluate"] = _summary(summary)
     with open(out("evaluate/oracle.json")) as f:
         oracle = json.load(f)
     runs["evaluate_oracle"] = {k: oracle[k] for k in ("final_distance", "final_inside", "omega", "adam_steps",
                                                        "final_pieces")}
-    sensed = evaluate.main(["--quick", "--episodes", "2", "--steps", "2", "--pieces", "40", "--samples", "4",
-                            "--plan-steps", "3", "--methods", "20", "--sensor", "realsense", "--seed", "8",
+    sensed = evaluate.main(["--quick", "--episodes", "2", "--mpc-steps", "2", "--pieces", "40", "--samples", "4",
+                            "--adam-steps", "3", "--methods", "20", "--sensor", "realsense", "--seed", "8",
                             "--workers", "1", "--out", out("sensor")])
     runs["evaluate_sensor"] = _summary(sensed)
     return json.loads(json.dumps(runs))

@@ -16,7 +16,7 @@ QUICK = ["--quick", "--dynamics", "sweep", "--workers", "2"]
 # A hand-made timing table: under a 20 ms budget, buckets 16, 32, 64, 100 afford 10, 5, 2 and 1 Adam steps
 TABLE = TimingTable("test", 4, 1, fixed_s={16: 0.01, 32: 0.01, 64: 0.01, 100: 0.01},
                     step_s={16: 0.001, 32: 0.002, 64: 0.004, 100: 0.008})
-AFFORDED = {16: 4, 32: 4, 64: 2, 100: 1}  # capped by --plan-steps 4 (the quick runs')
+AFFORDED = {16: 4, 32: 4, 64: 2, 100: 1}  # capped by --adam-steps 4 (the quick runs')
 
 
 @pytest.fixture(scope="module")
@@ -82,8 +82,8 @@ def test_regressor_checkpoint_and_metrics(regressor):
 
 def test_evaluation_fixed_and_adaptive(regressor, timing, tmp_path):
     # 60 pieces: enough foreground points at 64 x 64 for any ω up to 100 (the regressor may pick any)
-    summary = evaluate.main(["--quick", "--episodes", "2", "--steps", "2", "--pieces", "60", "--samples", "4",
-                             "--plan-steps", "4", *timing, "--methods", "10", "75", "adaptive", "--regressor",
+    summary = evaluate.main(["--quick", "--episodes", "2", "--mpc-steps", "2", "--pieces", "60", "--samples", "4",
+                             "--adam-steps", "4", *timing, "--methods", "10", "75", "adaptive", "--regressor",
                              os.path.join(regressor[0], "ckpt"), "--dynamics", "sweep", "--workers", "2",
                              "--out", str(tmp_path)])
     assert set(summary["methods"]) == {"10", "75", "adaptive"} and summary["time_budget"] == 0.02

@@ -27,7 +27,7 @@ def scene():
                     push=PushConfig(max_length=0.1, settle_time=0.04), camera=CameraConfig(width=64, height=64))
     env = PileEnv(sim, backend="mujoco")
     mask = disc_goal(env.camera, np.array([0.02, -0.01]), 0.06)
-    planner = PlannerConfig(samples=6, steps=8, bound=env.action_bound, max_length=0.1)
+    planner = PlannerConfig(samples=6, adam_steps=8, bound=env.action_bound, max_length=0.1)
     return env, env.reset(jax.random.PRNGKey(0)), mask, make_goal(mask, env.camera), planner
 
 
@@ -117,7 +117,7 @@ def test_time_budgeted_decisions_return_within_budget_plus_one_step(scene):
     """measure_timing on this CPU, then a budgeted episode: each decision runs the steps the table affords and
     returns within the budget plus one Adam step (the median decision, with an allowance for the host's jitter)."""
     env, state, mask, goal, _ = scene
-    planner = PlannerConfig(samples=6, steps=400, bound=env.action_bound, max_length=0.1)
+    planner = PlannerConfig(samples=6, adam_steps=400, bound=env.action_bound, max_length=0.1)
     dyn = sweep_dynamics(env.config.scene.plate_half_width)
     cfg = MPCConfig(mpc_steps=3, buckets=(16, 32), max_points=512, planner=planner)
     table = measure_timing(state.obs, goal, dyn, cfg, env.camera)

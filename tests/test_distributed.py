@@ -76,8 +76,8 @@ def test_two_processes_write_the_shards_of_one_byte_for_byte(two_process_data, t
 def test_two_processes_share_an_evaluation(tmp_path):
     """Process I runs episodes I, I + 2, ...; process 0 merges the parts in episode order. Episode 0 (a batch of one
     in both) is what one process alone makes of it: piles, goals and keys are seeded by episode, not by process."""
-    common = ["--quick", "--task", "gather", "--steps", "1", "--methods", "50", "--samples", "4", "--plan-steps", "2",
-              "--workers", "1", "--dynamics", "sweep"]
+    common = ["--quick", "--task", "gather", "--mpc-steps", "1", "--methods", "50", "--samples", "4",
+              "--adam-steps", "2", "--workers", "1", "--dynamics", "sweep"]
     job, alone = str(tmp_path / "job"), str(tmp_path / "alone")
     launch(["experiments.evaluate", *common, "--episodes", "2", "--out", job])
     subprocess.run([sys.executable, "-m", "experiments.evaluate", *common, "--episodes", "1", "--out", alone],

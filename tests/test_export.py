@@ -12,8 +12,8 @@ from flax import nnx
 from dynres_jax import export as ex
 from dynres_jax.commands import export as export_cli
 from dynres_jax.config import CameraConfig
+from dynres_jax.control.decision import goal_cost
 from dynres_jax.control.goals import disc_goal, make_goal
-from dynres_jax.control.mpc import goal_cost
 from dynres_jax.control.planner import PlannerConfig, plan
 from dynres_jax.io import ckpt
 from dynres_jax.models.dynamics import Dynamics, DynamicsConfig
@@ -22,7 +22,7 @@ from dynres_jax.sim.camera import Camera
 
 N_MAX, STEP, Q = 12, 7, 16
 CAMERA = Camera.top_down(CameraConfig(width=32, height=32))
-CONFIG = PlannerConfig(samples=4, steps=3, horizon=2)
+CONFIG = PlannerConfig(samples=4, adam_steps=3, horizon=2)
 
 
 @pytest.fixture(scope="module")
@@ -74,7 +74,7 @@ def test_reloaded_file_plans_exactly_like_the_live_planner(tiny_ckpt, reloaded, 
     np.testing.assert_array_equal(np.asarray(out["best"]), np.asarray(live.best))
     np.testing.assert_array_equal(np.asarray(out["best_cost"]), np.asarray(live.best_cost))
     np.testing.assert_array_equal(np.asarray(out["history"]), np.asarray(live.history))
-    assert out["best"].shape == (CONFIG.horizon, 4) and out["history"].shape == (CONFIG.steps,)
+    assert out["best"].shape == (CONFIG.horizon, 4) and out["history"].shape == (CONFIG.adam_steps,)
     # the convenience wrapper passes the same arguments
     again = ex.call(reloaded, positions, mask, radius, goal, key, init if warm else None)
     np.testing.assert_array_equal(np.asarray(again["best"]), np.asarray(live.best))
@@ -102,7 +102,7 @@ def test_cli_writes_the_file_and_its_sidecar(tiny_ckpt, tmp_path, capsys):
     camera_json = tmp_path / "camera.json"
     camera_json.write_text(CAMERA.to_json())
     out = tmp_path / "robot" / "planner.jaxexport"
-    summary = export_cli.main(["--ckpt", tiny_ckpt, "--out", str(out), "--samples", "4", "--steps", "3",
+    summary = export_cli.main(["--ckpt", tiny_ckpt, "--out", str(out), "--samples", "4", "--adam-steps", "3",
                                "--horizon", "2", "--camera", str(camera_json), "--goal-samples", str(Q),
                                "--platforms", "cpu"])
     assert out.stat().st_size == summary["bytes"] > 0

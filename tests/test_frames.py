@@ -40,7 +40,7 @@ def test_round_trip_keeps_depth_to_a_millimetre(saved):
 def test_plan_command_prints_a_push_inside_the_bound(saved, tmp_path, capsys, camera_flags):
     _, _, paths = saved
     out = plan.main(["--depth", paths["depth.png"], "--rgb", paths["rgb.png"], "--camera", paths["camera.json"],
-                     "--goal", paths["goal.png"], "--resolution", "6", "--samples", "4", "--plan-steps", "5",
+                     "--goal", paths["goal.png"], "--resolution", "6", "--samples", "4", "--adam-steps", "5",
                      "--dynamics", "sweep", "--out", str(tmp_path / "push.png"), *camera_flags])
     printed = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert printed["push"] == out["push"] and np.all(np.abs(out["push"]) <= 0.18 + 1e-6)

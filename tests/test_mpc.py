@@ -24,7 +24,7 @@ def episode():
     env = PileEnv(sim, backend="mujoco")
     mask = disc_goal(env.camera, np.array([0.0, 0.0]), 0.06)
     goal = make_goal(mask, env.camera, n_samples=64)
-    planner = PlannerConfig(samples=8, steps=20, bound=env.action_bound, max_length=0.1)
+    planner = PlannerConfig(samples=8, adam_steps=20, bound=env.action_bound, max_length=0.1)
     cfg = MPCConfig(mpc_steps=3, buckets=(4, 8), max_points=512, planner=planner)
     state = env.reset(jax.random.PRNGKey(0))
     lines, frames = [], goal_frames(mask, env.camera)
@@ -63,7 +63,7 @@ def test_batched_episodes_equal_one_at_a_time():
     env = PileEnv(sim, backend="mjx")
     masks = [disc_goal(env.camera, np.array(c), 0.06) for c in ([0.0, 0.0], [0.05, -0.03])]
     goals = [make_goal(m, env.camera, n_samples=32) for m in masks]
-    planner = PlannerConfig(samples=4, steps=5, bound=env.action_bound, max_length=0.1)
+    planner = PlannerConfig(samples=4, adam_steps=5, bound=env.action_bound, max_length=0.1)
     cfg = MPCConfig(mpc_steps=1, buckets=(6,), max_points=256, planner=planner)
     keys = jax.random.split(jax.random.PRNGKey(2), 2)
     worlds = EnvWorlds(env)
@@ -90,7 +90,7 @@ def test_pool_episodes_with_per_episode_omega_and_budget_equal_one_at_a_time():
     pool, env = WorldPool(sim), PileEnv(sim, backend="mujoco")
     masks = [disc_goal(env.camera, np.array(c), 0.06) for c in ([0.0, 0.0], [0.05, -0.03])]
     goals = [make_goal(m, env.camera, n_samples=32) for m in masks]
-    planner = PlannerConfig(samples=4, steps=6, bound=env.action_bound, max_length=0.1)
+    planner = PlannerConfig(samples=4, adam_steps=6, bound=env.action_bound, max_length=0.1)
     cfg = MPCConfig(mpc_steps=2, buckets=(2, 6), max_points=256, planner=planner, time_budget=0.016)
     timing = TimingTable("test", 4, 1, fixed_s={2: 0.01, 6: 0.01}, step_s={2: 0.0015, 6: 0.003}, frozen=True)
     keys = jax.random.split(jax.random.PRNGKey(2), 2)
@@ -121,7 +121,7 @@ def test_oracle_keeps_the_best_candidate_per_episode():
     pool = WorldPool(sim)
     masks = [disc_goal(pool.camera, np.array(c), 0.06) for c in ([0.0, 0.0], [0.05, -0.03], [-0.04, 0.04])]
     goals = jax.tree.map(lambda *x: np.stack(x), *[make_goal(m, pool.camera, n_samples=32) for m in masks])
-    planner = PlannerConfig(samples=4, steps=3, bound=pool.env.action_bound, max_length=0.1)
+    planner = PlannerConfig(samples=4, adam_steps=3, bound=pool.env.action_bound, max_length=0.1)
     keys = jax.random.split(jax.random.PRNGKey(2), 3)
     starts = pool.reset(jax.random.split(jax.random.PRNGKey(3), 3))
     runs = {}
@@ -150,7 +150,7 @@ def test_a_new_goal_reuses_the_compiled_plan(episode):
     """Each MPC step builds its cost for a new goal; the planner must not compile again for it."""
     env, state, goal, *_ = episode
     other = make_goal(disc_goal(env.camera, np.array([0.05, -0.03]), 0.05), env.camera, n_samples=64)
-    config = PlannerConfig(samples=4, steps=3, bound=env.action_bound, max_length=0.1)
+    config = PlannerConfig(samples=4, adam_steps=3, bound=env.action_bound, max_length=0.1)
     positions, mask = state.pos[:6], np.ones(6, bool)
     dynamics = sweep_dynamics(0.04)(0.01)
     plan(dynamics, goal_cost(goal, env.camera), positions, mask, jax.random.PRNGKey(0), config)
@@ -165,7 +165,7 @@ def test_a_chooser_that_repeats_the_goals_changes_nothing(episode):
     record fields and scores to every record."""
     env, state, goal, _, records, _, _ = episode
     cfg = MPCConfig(mpc_steps=3, buckets=(4, 8), max_points=512,
-                    planner=PlannerConfig(samples=8, steps=20, bound=env.action_bound, max_length=0.1))
+                    planner=PlannerConfig(samples=8, adam_steps=20, bound=env.action_bound, max_length=0.1))
 
     class Repeat(Chooser):
         def __call__(self, t, obs):

@@ -22,7 +22,7 @@ from dynres_jax.models.registry import learned_dynamics
 
 BOUND, MIN_LEN, MAX_LEN = 0.181, 0.01, 0.25
 TARGET = jnp.array([0.05, 0.0])
-CFG = PlannerConfig(samples=16, steps=40, bound=BOUND)
+CFG = PlannerConfig(samples=16, adam_steps=40, bound=BOUND)
 
 
 def sweep_dynamics(positions, mask, actions):
@@ -93,7 +93,7 @@ def test_plan_reduces_cost_and_gradient_beats_sampling():
     positions, mask = pile(key)
     initial = float(centroid_cost(positions, mask))
     result = plan(sweep_dynamics, centroid_cost, positions, mask, key, CFG)
-    sampled_only = plan(sweep_dynamics, centroid_cost, positions, mask, key, CFG, steps=0)
+    sampled_only = plan(sweep_dynamics, centroid_cost, positions, mask, key, CFG, adam_steps=0)
     assert result.best.shape == (1, 4) and result.costs.shape == (16,) and result.actions.shape == (16, 1, 4)
     assert result.history.shape == (40,) and np.all(np.isnan(np.asarray(sampled_only.history)))
     assert float(result.best_cost) <= 0.5 * initial
@@ -121,7 +121,7 @@ def test_resamples_equal_mean_cost_by_hand():
     key = jax.random.PRNGKey(4)
     (p0, m0), (p1, m1) = pile(jax.random.PRNGKey(5), n=8), pile(jax.random.PRNGKey(6), n=8)
     # Sampled anywhere: through-the-pile sampling draws from the first re-sampling, which the by-hand scene lacks.
-    config = PlannerConfig(samples=8, steps=20, bound=BOUND, resamples=2, near_pile=False)
+    config = PlannerConfig(samples=8, adam_steps=20, bound=BOUND, resamples=2, near_pile=False)
     result = plan(sweep_dynamics, centroid_cost, jnp.stack([p0, p1]), jnp.stack([m0, m1]), key, config)
 
     # By hand: both re-samplings side by side in one scene (the sweep acts per particle), cost = mean of the two.
@@ -129,7 +129,7 @@ def test_resamples_equal_mean_cost_by_hand():
         return 0.5 * (centroid_cost(final[:8], mask[:8]) + centroid_cost(final[8:], mask[8:]))
 
     by_hand = plan(sweep_dynamics, mean_cost, jnp.concatenate([p0, p1]), jnp.concatenate([m0, m1]), key,
-                   PlannerConfig(samples=8, steps=20, bound=BOUND, near_pile=False))
+                   PlannerConfig(samples=8, adam_steps=20, bound=BOUND, near_pile=False))
     np.testing.assert_allclose(result.best, by_hand.best, atol=1e-5)
     np.testing.assert_allclose(result.costs, by_hand.costs, rtol=1e-4, atol=1e-8)
     final = [sweep_dynamics(p, m, result.actions[0])[-1] for p, m in ((p0, m0), (p1, m1))]
@@ -145,7 +145,7 @@ def test_real_dynamics_end_to_end():
     graphdef, state = nnx.split(Dynamics(DynamicsConfig(hidden=16), rngs=nnx.Rngs(0)))
     positions, mask = pile(jax.random.PRNGKey(7), n=12)
     mask = mask.at[-3:].set(False)
-    config = PlannerConfig(samples=4, horizon=2, steps=3, bound=BOUND)
+    config = PlannerConfig(samples=4, horizon=2, adam_steps=3, bound=BOUND)
     dynamics = Partial(_model_dynamics, graphdef, state, resolution_code(0.01))
     result = plan(dynamics, centroid_cost, positions, mask, jax.random.PRNGKey(0), config)
     best = np.asarray(result.best)
@@ -161,7 +161,7 @@ def test_pair_table_prepared_once_per_plan_plans_the_same():
     model = Dynamics(DynamicsConfig(hidden=16), rngs=nnx.Rngs(0))
     piles = [pile(jax.random.PRNGKey(s), n=12) for s in (7, 8)]
     positions, mask = jnp.stack([p for p, _ in piles]), jnp.stack([m for _, m in piles]).at[1, -3:].set(False)
-    config = PlannerConfig(samples=4, horizon=2, steps=3, bound=BOUND, resamples=2)
+    config = PlannerConfig(samples=4, horizon=2, adam_steps=3, bound=BOUND, resamples=2)
     plain = Partial(_model_dynamics, *nnx.split(model), resolution_code(0.01))
     a, b = (plan(d, centroid_cost, positions, mask, jax.random.PRNGKey(0), config)
             for d in (plain, learned_dynamics(model)(0.01)))
@@ -178,9 +178,9 @@ def test_bfloat16_edges_plan():
     model = Dynamics(DynamicsConfig(hidden=16), rngs=nnx.Rngs(0))
     positions, mask = pile(jax.random.PRNGKey(7), n=12)
     mask = mask.at[-3:].set(False)
-    config = PlannerConfig(samples=8, steps=3, bound=BOUND)
+    config = PlannerConfig(samples=8, adam_steps=3, bound=BOUND)
     key = jax.random.PRNGKey(0)
-    sampled = [plan(learned_dynamics(model, d)(0.01), centroid_cost, positions, mask, key, config, steps=0).costs
+    sampled = [plan(learned_dynamics(model, d)(0.01), centroid_cost, positions, mask, key, config, adam_steps=0).costs
                for d in ("float32", "bfloat16")]
     np.testing.assert_allclose(sampled[1], sampled[0], rtol=0.02)
     dynamics = learned_dynamics(model, "bfloat16")(0.01)
@@ -201,7 +201,7 @@ def test_warm_start():
     key = jax.random.PRNGKey(1)
     positions, mask = pile(key)
     init = jnp.array([[-0.09, 0.0, 0.04, 0.0]])  # sweeps the whole pile to x = 0.05, onto the target
-    result = plan(sweep_dynamics, centroid_cost, positions, mask, key, CFG, init=init, steps=0)
+    result = plan(sweep_dynamics, centroid_cost, positions, mask, key, CFG, init=init, adam_steps=0)
     np.testing.assert_allclose(result.best, project(init, BOUND, MIN_LEN, MAX_LEN), atol=1e-7)
     np.testing.assert_allclose(result.actions[0], init, atol=1e-7)
     refined = plan(sweep_dynamics, centroid_cost, positions, mask, key, CFG, init=init)
@@ -211,23 +211,23 @@ def test_warm_start():
 
 
 def test_traced_step_counts_equal_plans_of_that_many_steps():
-    """Step counts traced and vmapped (one compiled plan of at most CFG.steps) give exactly the plans whose config
+    """Step counts traced and vmapped (one compiled plan of at most CFG.adam_steps) give exactly the plans whose config
     runs that many steps (each compiled alone); the history past the steps run is NaN."""
     positions, mask = pile(jax.random.PRNGKey(4))
     key = jax.random.PRNGKey(5)
     counts = jnp.array([25, 7, 0, 40])
-    batched = jax.vmap(lambda n: plan(sweep_dynamics, centroid_cost, positions, mask, key, CFG, steps=n))(counts)
+    batched = jax.vmap(lambda n: plan(sweep_dynamics, centroid_cost, positions, mask, key, CFG, adam_steps=n))(counts)
     for i, n in enumerate(counts.tolist()):
-        alone = plan(sweep_dynamics, centroid_cost, positions, mask, key, PlannerConfig(samples=16, steps=n,
+        alone = plan(sweep_dynamics, centroid_cost, positions, mask, key, PlannerConfig(samples=16, adam_steps=n,
                                                                                         bound=BOUND))
         np.testing.assert_allclose(np.asarray(batched.best[i]), np.asarray(alone.best), atol=1e-6)
         np.testing.assert_allclose(float(batched.best_cost[i]), float(alone.best_cost), rtol=1e-6)
         np.testing.assert_allclose(np.asarray(batched.actions[i]), np.asarray(alone.actions), atol=1e-6)
         np.testing.assert_allclose(np.asarray(batched.history[i, :n]), np.asarray(alone.history[:n]), rtol=1e-6)
         assert np.all(np.isnan(np.asarray(batched.history[i, n:])))
-    assert plan(sweep_dynamics, centroid_cost, positions, mask, key, CFG, steps=7).history.shape == (40,)
+    assert plan(sweep_dynamics, centroid_cost, positions, mask, key, CFG, adam_steps=7).history.shape == (40,)
     with pytest.raises(ValueError, match="steps=41"):
-        plan(sweep_dynamics, centroid_cost, positions, mask, key, CFG, steps=41)
+        plan(sweep_dynamics, centroid_cost, positions, mask, key, CFG, adam_steps=41)
 
 
 def test_config_errors():
@@ -243,4 +243,4 @@ def test_config_errors():
         PlannerConfig(resamples=0)
     positions, mask = pile(jax.random.PRNGKey(1), n=4)
     with pytest.raises(ValueError, match="resamples"):
-        plan(sweep_dynamics, centroid_cost, positions, mask, None, PlannerConfig(samples=2, steps=1, resamples=2))
+        plan(sweep_dynamics, centroid_cost, positions, mask, None, PlannerConfig(samples=2, adam_steps=1, resamples=2))

@@ -139,8 +139,8 @@ def test_evaluate_runs_through_the_sensor(tmp_path):
     """``evaluate --sensor realsense`` plans on the camera's depth and records it; d is measured on the true state."""
     from dynres_jax.commands import evaluate
 
-    summary = evaluate.main(["--quick", "--dynamics", "sweep", "--workers", "2", "--episodes", "2", "--steps", "1",
-                             "--methods", "50", "--samples", "4", "--plan-steps", "2", "--sensor", "realsense",
+    summary = evaluate.main(["--quick", "--dynamics", "sweep", "--workers", "2", "--episodes", "2", "--mpc-steps", "1",
+                             "--methods", "50", "--samples", "4", "--adam-steps", "2", "--sensor", "realsense",
                              "--out", str(tmp_path)])
     assert summary["sensor"] == "realsense" and np.isfinite(summary["methods"]["50"]["final_distance"])
     with open(tmp_path / "50.json") as f:

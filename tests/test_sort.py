@@ -122,7 +122,7 @@ def test_sort_goal_gives_two_disjoint_discs_in_the_bin(env, seed):
 
 def test_tiny_sort_episode_runs_and_records_every_step(env):
     goals, radius, _ = sort_goal(np.random.default_rng(0), env)
-    planner = PlannerConfig(samples=8, steps=10, bound=env.action_bound, max_length=0.1)
+    planner = PlannerConfig(samples=8, adam_steps=10, bound=env.action_bound, max_length=0.1)
     cfg = MPCConfig(mpc_steps=3, buckets=(8, 32), max_points=512, planner=planner)
     lines = []
     policy = SortPolicy(env, cfg, 20, jax.random.PRNGKey(1), goals, radius, lines.append)
@@ -201,7 +201,7 @@ class FixedKindGoals(Chooser):
 def test_a_step_against_kind_goals_is_scored_per_kind(env):
     goals_xy, radius, masks = sort_goal(np.random.default_rng(0), env)
     goals = [make_goal(m, env.camera) for m in masks]
-    planner = PlannerConfig(samples=8, steps=5, bound=env.action_bound, max_length=0.1)
+    planner = PlannerConfig(samples=8, adam_steps=5, bound=env.action_bound, max_length=0.1)
     cfg = MPCConfig(mpc_steps=1, buckets=(8, 32), max_points=512, planner=planner)
     final, records = run_episode(env, env.reset(jax.random.PRNGKey(0)), FixedKindGoals(goals), sweep_dynamics(0.04),
                                  cfg, jax.random.PRNGKey(1), log=lambda _: None)

@@ -20,7 +20,7 @@ from dynres_jax.control.planner import PlannerConfig
 from dynres_jax.models.registry import SHIPPED_DYNAMICS, SHIPPED_REGRESSOR, load_dynamics
 from dynres_jax.sim.pool import WorldPool
 
-TINY = ["--steps", "2", "--samples", "4", "--plan-steps", "2", "--pieces", "40"]
+TINY = ["--mpc-steps", "2", "--samples", "4", "--adam-steps", "2", "--pieces", "40"]
 
 
 def _outputs(out):
@@ -45,7 +45,7 @@ def test_redistribute_and_sort_write_their_episodes(tmp_path):
     redistribute.main([*TINY, "--letter", "U", "--resolution", "25", "--out", str(tmp_path / "letter")])
     metrics, frames = _outputs(tmp_path / "letter")
     assert metrics["task"] == "redistribute" and [r["omega"] for r in metrics["steps"]] == [25, 25]
-    sort.main(["--steps", "2", "--samples", "4", "--plan-steps", "2", "--pieces", "20", "20", "--out",
+    sort.main(["--mpc-steps", "2", "--samples", "4", "--adam-steps", "2", "--pieces", "20", "20", "--out",
                str(tmp_path / "sort")])
     metrics, frames = _outputs(tmp_path / "sort")
     assert len(metrics["steps"]) == 2 and len(frames) == 3
@@ -64,7 +64,7 @@ def test_the_closed_loop_beats_random_pushes():
     goals = jax.tree.map(lambda *g: np.stack(g), *[make_goal(m, env.camera) for m in masks])
     starts = pool.reset(jax.random.split(jax.random.PRNGKey(1), 4))
     dynamics, _, _ = load_dynamics("learned", SHIPPED_DYNAMICS, sim.scene.plate_half_width)
-    planner = PlannerConfig(samples=20, steps=20, bound=env.action_bound, max_length=sim.push.max_length)
+    planner = PlannerConfig(samples=20, adam_steps=20, bound=env.action_bound, max_length=sim.push.max_length)
     cfg = MPCConfig(mpc_steps=4, planner=planner)
     planned, _ = run(pool, starts, FixedOmega(goals, 25), dynamics, cfg, jax.random.split(jax.random.PRNGKey(2), 4),
                      log=lambda s: None)
@@ -92,7 +92,7 @@ def test_gather_runs_on_every_kind_at_its_default_count(kind, tmp_path):
     """Every kind at DEFAULT_PIECES (coffee: the tests above): a goal that fits, an episode, its files."""
     from dynres_jax.config import DEFAULT_PIECES
 
-    summary = gather.main(["--kind", kind, "--steps", "1", "--samples", "4", "--plan-steps", "1", "--out",
+    summary = gather.main(["--kind", kind, "--mpc-steps", "1", "--samples", "4", "--adam-steps", "1", "--out",
                            str(tmp_path)])
     assert len(summary["steps"]) == 1 and (tmp_path / "episode.gif").exists()
     metrics = json.loads((tmp_path / "metrics.json").read_text())
@@ -101,7 +101,7 @@ def test_gather_runs_on_every_kind_at_its_default_count(kind, tmp_path):
 
 @pytest.mark.parametrize("pair", [("almond", "mnm"), ("rice", "granola")])
 def test_sort_runs_on_the_issues_pairs(pair, tmp_path):
-    sort.main(["--kinds", *pair, "--pieces", "15", "15", "--steps", "1", "--samples", "4", "--plan-steps", "1",
+    sort.main(["--kinds", *pair, "--pieces", "15", "15", "--mpc-steps", "1", "--samples", "4", "--adam-steps", "1",
                "--out", str(tmp_path)])
     assert json.loads((tmp_path / "metrics.json").read_text())["kinds"] == list(pair)
 

@@ -2,13 +2,13 @@
 Redistribute, many episodes at once.
 
     python -m experiments.evaluate --task gather --episodes 64 --out runs/eval
-    python -m experiments.evaluate --task gather --methods 50 --plan-steps 100 --out runs/gather50
+    python -m experiments.evaluate --task gather --methods 50 --adam-steps 100 --out runs/gather50
 
 Episode i of a task has the same pile and goal for every method (seeded by i). Each method runs all episodes
 together: perception and planning vmapped on the JAX device, pushes in C worker processes (``WorldPool``). With
 ``--time-budget S`` every method plans under the same budget of S seconds per decision, spent by one timing table
 (``timing.json``, measured once per resolution bucket on this device or given by ``--timing``): a coarse ω affords
-more Adam steps. Without it every decision runs ``--plan-steps``.
+more Adam steps. Without it every decision runs ``--adam-steps``.
 "adaptive" picks ω at every step with the regressor g (``--regressor``); "oracle" (an upper bound, not in the default
 list) plans at every ω of ORACLE_OMEGAS each step, pushes each on a copy of the worlds and keeps the one that left the
 lowest d (``choosers.OracleOmega``); the summary then says how much of the oracle's gain over the best fixed
@@ -203,7 +203,7 @@ def main(argv=None):
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--task", default="gather", choices=tasks.TASKS)
     parser.add_argument("--episodes", type=int, default=64)
-    parser.add_argument("--steps", type=int, default=20, help="MPC steps per episode")
+    parser.add_argument("--mpc-steps", type=int, default=20, help="MPC steps per episode")
     parser.add_argument("--methods", nargs="+", default=["10", "25", "50", "75", "100", "adaptive"],
                         help="fixed ω (integers), 'adaptive' (the regressor picks ω), 'oracle' (every step keeps the "
                              "best of ω in ORACLE_OMEGAS by the simulated outcome) and 'cnn' (the CNN-dynamics "
@@ -235,9 +235,9 @@ def main(argv=None):
                          f"got {m!r}")
     if "cnn" in args.methods:
         check_cnn(parser, args)
-    if args.episodes < size or args.steps < 1:
-        parser.error(f"--episodes must be at least the {size} process(es) and --steps at least 1, got "
-                     f"{args.episodes} and {args.steps}")
+    if args.episodes < size or args.mpc_steps < 1:
+        parser.error(f"--episodes must be at least the {size} process(es) and --mpc-steps at least 1, got "
+                     f"{args.episodes} and {args.mpc_steps}")
     resolve_pieces(parser, args)
     check_out(parser, args.out)
     camera = CameraConfig(width=64, height=64) if args.quick else CameraConfig()
@@ -260,7 +260,7 @@ def main(argv=None):
         keys = jax.random.split(jax.random.PRNGKey(args.seed), args.episodes)[mine]
         pile_keys = jax.vmap(lambda i: jax.random.fold_in(jax.random.PRNGKey(args.seed), i))(jnp.asarray(mine))
         todo = [m for m in args.methods if not os.path.exists(os.path.join(args.out, f"{m}.json"))]
-        cfg = mpc_config(pool.env, args, mpc_steps=args.steps, real_depth=args.sensor != "none")
+        cfg = mpc_config(pool.env, args, mpc_steps=args.mpc_steps, real_depth=args.sensor != "none")
         timing = None
         if args.time_budget is not None and todo:  # one table for every method: the main model on the first episode
             timing = timing_table(args, args.out, pool.reset(pile_keys[:1]).obs, goals, main_model.dynamics, cfg,
@@ -299,8 +299,8 @@ def main(argv=None):
     devices = sorted({r.get("device", "unrecorded") for r in results.values()})  # where the methods ran
     summary = dict(task=args.task, kind=args.kind, pieces=args.pieces, sensor=args.sensor, dynamics=main_model.name,
                    device=", ".join(devices),
-                   time_budget=args.time_budget, samples=args.samples, plan_steps=args.plan_steps,
-                   steps=args.steps, **summarise(results))
+                   time_budget=args.time_budget, samples=args.samples, adam_steps=args.adam_steps,
+                   mpc_steps=args.mpc_steps, **summarise(results))
     if distributed.is_writer():
         files.write_json(os.path.join(args.out, "summary.json"), summary)
         plot(results, args.task, args.out)

@@ -44,7 +44,7 @@ def main(argv=None):
     parser.add_argument("--ckpt", default=SHIPPED_DYNAMICS, help="dynamics checkpoint (default: the shipped one)")
     parser.add_argument("--out", required=True, help="the file to write; its description goes to OUT.json")
     parser.add_argument("--samples", type=int, default=50, help="action sequences optimised at once (M)")
-    parser.add_argument("--steps", type=int, default=100, help="Adam steps per plan (N)")
+    parser.add_argument("--adam-steps", type=int, default=100, help="Adam steps per plan (N)")
     parser.add_argument("--horizon", type=int, default=defaults.horizon, help="pushes per sequence (T)")
     parser.add_argument("--bound", type=float, default=defaults.bound,
                         help="pushes stay within ±bound m (default: the coffee bin's PileEnv.action_bound)")
@@ -62,7 +62,7 @@ def main(argv=None):
     args = parser.parse_args(argv)
 
     try:
-        config = PlannerConfig(samples=args.samples, steps=args.steps, horizon=args.horizon, bound=args.bound,
+        config = PlannerConfig(samples=args.samples, adam_steps=args.adam_steps, horizon=args.horizon, bound=args.bound,
                                min_length=args.min_length, max_length=args.max_length, lr=args.lr)
     except ValueError as e:
         parser.error(str(e))

@@ -76,7 +76,7 @@ def main(argv=None):
     args.backend = resolve_backend(args.backend)
     if args.quick:
         args.scenes, args.batch, args.evals, args.repeats, args.pieces = 8, 4, 6, 1, 60  # 60: points for ω = 100
-        args.samples, args.plan_steps = 4, 4
+        args.samples, args.adam_steps = 4, 4
     check_planner_args(parser, args)
     try:
         cfg = LabelConfig(kind=args.kind, pieces=args.pieces, batch=args.batch, evals=args.evals, repeats=args.repeats,

@@ -43,7 +43,7 @@ def main(argv=None):
     parser.add_argument("--bound", type=float, default=0.18, help="pushes stay within ±bound m")
     parser.add_argument("--plate-half-width", type=float, default=0.04)
     parser.add_argument("--samples", type=int, default=50)
-    parser.add_argument("--plan-steps", type=int, default=100)
+    parser.add_argument("--adam-steps", type=int, default=100)
     parser.add_argument("--dynamics", default="auto", choices=["auto", "learned", "sweep"])
     parser.add_argument("--ckpt", default=SHIPPED_DYNAMICS)
     parser.add_argument("--seed", type=int, default=0)
@@ -85,7 +85,7 @@ def main(argv=None):
     bucket = bucket_for(args.resolution)
     particles = sample_particles(obs, camera, args.resolution, key_h, bucket, workspace=args.workspace,
                                  real_depth=args.real_depth)
-    config = PlannerConfig(samples=args.samples, steps=args.plan_steps, bound=args.bound, seed=args.seed)
+    config = PlannerConfig(samples=args.samples, adam_steps=args.adam_steps, bound=args.bound, seed=args.seed)
     result = plan(dynamics(particles.radius), goal_cost(goal, camera, bucket), particles.positions, particles.mask,
                   key_plan, config)
     action = np.asarray(result.best[0], np.float64)

@@ -2,7 +2,7 @@
 over blob centres choosing which pile moves where (``dynres_jax.control.sort``):
 
     python -m experiments.sort --out out/sort
-    python -m experiments.sort --kinds coffee candy --pieces 40 20 --steps 30
+    python -m experiments.sort --kinds coffee candy --pieces 40 20 --mpc-steps 30
 
 Writes ``episode.gif`` (observation; goal of kind 0 blue, of kind 1 orange; the current waypoint disc green; the
 moved kind's particles red), ``final.png`` and ``metrics.json`` (a record per MPC step, the start and final share
@@ -57,7 +57,7 @@ def main(argv=None):
     start_inside, start_mixing = sort_scores(state.pos, env.scene.kind, goals, env.camera)
     print(f"sort: {args.pieces[0]} {args.kinds[0]} + {args.pieces[1]} {args.kinds[1]} pieces, goals "
           f"{np.round(goals_xy, 3).tolist()} radius {radius:.3f} m; dynamics: {loop.model.name}; "
-          f"ω = {args.resolution}; {args.samples} x {args.plan_steps} Adam steps")
+          f"ω = {args.resolution}; {args.samples} x {args.adam_steps} Adam steps")
     t0 = time.perf_counter()
     if cfg.time_budget is not None and timing is None:
         timing = measure_timing(state.obs, goals[0], loop.model.dynamics, cfg, env.camera)

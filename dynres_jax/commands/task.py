@@ -57,7 +57,7 @@ DESCRIPTIONS = {
 def add_loop_args(parser: argparse.ArgumentParser, task: str) -> None:
     """The flags every closed-loop task command takes."""
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--steps", type=int, default=20, help="MPC steps")
+    parser.add_argument("--mpc-steps", type=int, default=20, help="MPC steps per episode")
     if task == "sort":
         parser.add_argument("--resolution", type=int, default=50, help="ω: particles the planner reasons with")
     else:
@@ -68,7 +68,7 @@ def add_loop_args(parser: argparse.ArgumentParser, task: str) -> None:
         parser.add_argument("--regressor", default=SHIPPED_REGRESSOR, help="regressor checkpoint for adaptive ω")
     parser.add_argument("--backend", default="mujoco", choices=["mujoco", "mjx"])
     parser.add_argument("--samples", type=int, default=50, help="action sequences optimised at once (M)")
-    parser.add_argument("--plan-steps", type=int, default=100,
+    parser.add_argument("--adam-steps", type=int, default=100,
                         help="Adam steps per plan (N; the most a plan may run under --time-budget)")
     add_budget_args(parser)
     parser.add_argument("--ckpt", default=None, help=f"dynamics checkpoint (default {SHIPPED_DYNAMICS} if present)")
@@ -81,8 +81,8 @@ def add_budget_args(parser: argparse.ArgumentParser) -> None:
     """--time-budget and --timing: every closed-loop command's, labelling's and evaluation's."""
     parser.add_argument("--time-budget", type=float, default=None, metavar="S",
                         help="seconds per decision on this device: each decision runs the Adam steps that fit, at most "
-                             "--plan-steps, from a timing table measured once per resolution bucket (refined from the "
-                             "decisions a single episode makes) and saved as timing.json (default: none, --plan-steps "
+                             "--adam-steps, from a timing table measured once per resolution bucket (refined from the "
+                             "decisions a single episode makes) and saved as timing.json (default: none, --adam-steps "
                              "every decision)")
     parser.add_argument("--timing", default=None, metavar="FILE",
                         help="spend the time budget by this saved timing table (timing.json of an earlier run), "
@@ -159,9 +159,9 @@ def build_loop(args, sim: SimConfig, parser: argparse.ArgumentParser) -> Loop:
                      "and the largest resolution bucket)")
     timing = load_timing(parser, args)
     try:
-        planner = PlannerConfig(samples=args.samples, steps=args.plan_steps, bound=env.action_bound,
+        planner = PlannerConfig(samples=args.samples, adam_steps=args.adam_steps, bound=env.action_bound,
                                 max_length=sim.push.max_length, min_length=sim.push.min_length, seed=args.seed)
-        cfg = MPCConfig(mpc_steps=args.steps, planner=planner, time_budget=args.time_budget)
+        cfg = MPCConfig(mpc_steps=args.mpc_steps, planner=planner, time_budget=args.time_budget)
     except ValueError as e:
         parser.error(str(e))
     return Loop(env, model, cfg, timing, None if regressor else int(omega), regressor)
@@ -206,8 +206,8 @@ def main(task: str, argv=None):
     goal = make_goal(goal_mask, env.camera)
     state = env.reset(jax.random.PRNGKey(args.seed))
     start_inside = float(inside_share(state.pos, np.ones(env.scene.n_pieces, bool), goal, env.camera))
-    budget_text = (f"{args.samples} samples, {args.plan_steps} Adam steps" if args.time_budget is None else
-                   f"{args.samples} samples, {args.time_budget} s per decision (at most {args.plan_steps} Adam steps)")
+    budget_text = (f"{args.samples} samples, {args.adam_steps} Adam steps" if args.time_budget is None else
+                   f"{args.samples} samples, {args.time_budget} s per decision (at most {args.adam_steps} Adam steps)")
     print(f"{task}: {args.pieces} {args.kind} pieces, goal {goal_info}; dynamics: {loop.model.name}; "
           f"ω = {args.resolution}; {budget_text}")
     t0 = time.perf_counter()
@@ -234,21 +234,21 @@ def add_planner_args(parser) -> None:
     """The planner flags of ``experiments.evaluate`` and ``experiments.label_resolution``."""
     add_budget_args(parser)
     parser.add_argument("--samples", type=int, default=20, help="action sequences per plan (paper M = 20)")
-    parser.add_argument("--plan-steps", type=int, default=100, help="Adam steps per plan (the most, under a budget)")
+    parser.add_argument("--adam-steps", type=int, default=100, help="Adam steps per plan (the most, under a budget)")
     parser.add_argument("--horizon", type=int, default=1, help="pushes per planned sequence (paper T = 1)")
 
 
 def check_planner_args(parser, args) -> None:
     """parser.error naming a bad planner flag, before any work."""
     load_timing(parser, args)
-    if args.plan_steps < 1 or args.samples < 1:
-        parser.error("--plan-steps and --samples must be positive")
+    if args.adam_steps < 1 or args.samples < 1:
+        parser.error("--adam-steps and --samples must be positive")
 
 
 def mpc_config(env, args, mpc_steps: int = 1, real_depth: bool = False) -> MPCConfig:
     """The MPC settings the planner flags ask for (evaluate and label_resolution): mpc_steps per episode (1: a
     single decision, as a label's plan)."""
-    planner = PlannerConfig(samples=args.samples, steps=args.plan_steps, horizon=args.horizon,
+    planner = PlannerConfig(samples=args.samples, adam_steps=args.adam_steps, horizon=args.horizon,
                             bound=env.action_bound, max_length=env.config.push.max_length,
                             min_length=env.config.push.min_length)
     return MPCConfig(mpc_steps=mpc_steps, planner=planner, max_points=1024 if args.quick else 4096,

@@ -229,7 +229,7 @@ def surface(args) -> dict:
                             pile=PileConfig(layout="spread") if kind == 0 else near_centre_blob,
                             camera=CameraConfig(width=64, height=64) if args.quick else CameraConfig())
             pool = WorldPool(sim, processes)
-            planner = PlannerConfig(samples=args.samples, steps=max(steps), bound=pool.env.action_bound,
+            planner = PlannerConfig(samples=args.samples, adam_steps=max(steps), bound=pool.env.action_bound,
                                     max_length=sim.push.max_length, min_length=sim.push.min_length)
             cfg = MPCConfig(mpc_steps=1, max_points=1024 if args.quick else 4096, planner=planner)
             path = os.path.join(args.out, f"surface_{kind}.npz")

@@ -62,16 +62,17 @@ def main(argv=None):
                         help="gnn (PropNet) or cnn (baseline)")
     parser.add_argument("--hidden", type=int, default=None, help=f"gnn: width (default {DynamicsConfig.hidden})")
     parser.add_argument("--propagation-steps", type=int, default=None,
-                        help=f"gnn: message-passing steps (DynamicsConfig.steps, default {DynamicsConfig.steps})")
-    parser.add_argument("--push-frame", action="store_true", default=None,
-                        help="gnn: DynamicsConfig.push_frame (push-frame inputs)")
-    parser.add_argument("--world-edges", action="store_true", default=None,
+                        help=f"gnn: message-passing rounds (default {DynamicsConfig.propagation_steps})")
+    parser.add_argument("--push-frame", action=argparse.BooleanOptionalAction, default=None,
+                        help="gnn: DynamicsConfig.push_frame (push-frame inputs; default on)")
+    parser.add_argument("--world-edges", action=argparse.BooleanOptionalAction, default=None,
                         help="gnn: DynamicsConfig.world_edges (with --push-frame: edges stay in the world frame, so "
-                             "the planner builds their codes once per plan)")
-    parser.add_argument("--bin-position", action="store_true", default=None,
-                        help="gnn: DynamicsConfig.bin_position (node inputs say where in the bin a particle is)")
+                             "the planner builds their codes once per plan; default on)")
+    parser.add_argument("--bin-position", action=argparse.BooleanOptionalAction, default=None,
+                        help="gnn: DynamicsConfig.bin_position (node inputs say where in the bin a particle is; "
+                             "default on)")
     parser.add_argument("--residual", action=argparse.BooleanOptionalAction, default=None,
-                        help="correct the sweep heuristic (default: off for gnn, on for cnn)")
+                        help="correct the sweep heuristic (default on; all four off: the paper's architecture)")
     parser.add_argument("--grid", type=int, default=None,
                         help=f"cnn: cells per side (default {CNNDynamicsConfig.grid})")
     parser.add_argument("--channels", type=int, default=None,
@@ -89,8 +90,6 @@ def main(argv=None):
         parser.error(f"--{', --'.join(n.replace('_', '-') for n in wrong)} do not apply to --model {args.model}")
     options = {name: getattr(args, name) for name in (*GNN_ONLY, *CNN_ONLY, "residual")
                if getattr(args, name) is not None}
-    if "propagation_steps" in options:
-        options["steps"] = options.pop("propagation_steps")
     if model_class(base.model) == args.model:  # the recipe's model, with the flags given beside it
         options = {**dataclasses.asdict(base.model), **options}
     try:

@@ -84,7 +84,7 @@ def decide(seen: Perceived, goal: Goal | KindGoals, key, init, warm, adam_steps,
     initial = sample_pushes(key, seen.points, seen.valid, spec.planner)
     init = initial[0] if init is None else jnp.where(warm, init, initial[0])  # no warm start: sample 0 stands in
     result = plan(dynamics(p.radius), goal_cost(goal, camera, spec.capacity, seen.kinds, baseline), p.positions,
-                  p.mask, key, spec.planner, init=init, steps=adam_steps, initial=initial)
+                  p.mask, key, spec.planner, init=init, adam_steps=adam_steps, initial=initial)
     return c_now, result
 
 

@@ -38,7 +38,7 @@ class MPCConfig:
     """mpc_steps: MPC steps per episode (reference 20); buckets: the particle capacities ω is padded to (``budget``);
     max_points: perception's point cap; planner: the shooting optimiser's settings (its steps: the Adam steps of a
     decision without a time budget, and the most with one); time_budget: seconds per decision on the planning device
-    (None: planner.steps every decision); real_depth: perception treats the depth as a real camera's
+    (None: planner.adam_steps every decision); real_depth: perception treats the depth as a real camera's
     (``perception.foreground``: a median filter, the table plane fitted; ``sim.sensor``)."""
 
     mpc_steps: int = 20
@@ -66,7 +66,7 @@ class MPCConfig:
                 self.planner.samples, self.planner.horizon):
             raise ValueError(f"the timing table was measured for {table.samples} samples x horizon {table.horizon}, "
                              f"the planner has {self.planner.samples} x {self.planner.horizon}: measure it again")
-        return budget.adam_steps(bucket, self.planner.steps, self.time_budget, table)
+        return budget.adam_steps(bucket, self.planner.adam_steps, self.time_budget, table)
 
     def allot(self, omegas, table: budget.TimingTable | None = None) -> tuple[np.ndarray, np.ndarray]:
         """Per decision of a batch at omegas [B]: its bucket [B] and the Adam steps [B] it runs (``adam_steps``)."""
@@ -78,8 +78,8 @@ def measure_timing(obs, goal: Goal, dynamics, cfg: MPCConfig, camera, repeats: i
     """A timing table of this device for decisions like ``cfg``'s on ``obs`` and ``goal`` (one decision per call, the
     planner's batch), for every bucket of cfg.buckets, each at its largest ω that ``obs`` has the points for
     (``budget.measure``)."""
-    if cfg.planner.steps < 1:
-        raise ValueError("measuring a timing table needs PlannerConfig.steps >= 1")
+    if cfg.planner.adam_steps < 1:
+        raise ValueError("measuring a timing table needs PlannerConfig.adam_steps >= 1")
     points = int(np.sum(np.asarray(point_cloud(obs, camera, max_points=cfg.max_points)[1])))
     key, init = batch(jax.random.fold_in(jax.random.PRNGKey(0), 0)), jnp.zeros((1, cfg.planner.horizon, 4))
 
@@ -90,7 +90,7 @@ def measure_timing(obs, goal: Goal, dynamics, cfg: MPCConfig, camera, repeats: i
         return result.best[0, 0]
 
     return budget.measure(run, cfg.buckets, samples=cfg.planner.samples, horizon=cfg.planner.horizon,
-                          max_steps=cfg.planner.steps, repeats=repeats)
+                          max_steps=cfg.planner.adam_steps, repeats=repeats)
 
 
 class ExactView:

@@ -20,7 +20,7 @@ Compilation: ``plan`` is jitted with the functions passed as pytrees (``jax.tree
 plain function or lambda is keyed by identity (a new lambda compiles again). The particle count N is the shape of
 the positions: a bucket (``budget``), so a coarse ω plans on fewer slots than a fine one, and the ω valid particles
 of a bucket are a mask (one compiled plan for every ω of a bucket). The Adam step count is traced (a
-``lax.fori_loop`` that runs exactly that many steps, at most ``PlannerConfig.steps``), so any step count, a time
+``lax.fori_loop`` that runs exactly that many steps, at most ``PlannerConfig.adam_steps``), so any step count, a time
 budget's included, reuses the compiled plan; the config's seed is not part of the compiled function's key.
 
 Units: metres. An action is (x_start, y_start, x_end, y_end); every coordinate lies within ±bound and every push
@@ -50,7 +50,7 @@ class PlannerConfig:
 
     samples: M action sequences optimised at once (paper 20, reference demo 50).
     horizon: T pushes per sequence (paper 1).
-    steps: N Adam steps (paper 200); the most a plan may run (its history's length, static).
+    adam_steps: N Adam steps (paper 200); the most a plan may run (its history's length, static).
     lr: Adam learning rate in metres (the reference's 0.05 on its 1-unit bin, scaled to our 0.4 m bin).
     bound: every action coordinate within ±bound m (PileEnv.action_bound; 0.181 m for coffee).
     min_length, max_length: push length range in m (PushConfig).
@@ -63,7 +63,7 @@ class PlannerConfig:
 
     samples: int = 50
     horizon: int = 1
-    steps: int = 200
+    adam_steps: int = 200
     lr: float = 0.02
     bound: float = 0.181
     min_length: float = PushConfig.min_length
@@ -78,8 +78,8 @@ class PlannerConfig:
             raise ValueError(f"PlannerConfig.samples (M) must be >= 1, got {self.samples}")
         if self.horizon < 1:
             raise ValueError(f"PlannerConfig.horizon (T) must be >= 1, got {self.horizon}")
-        if self.steps < 0:
-            raise ValueError(f"PlannerConfig.steps (N) must be >= 0, got {self.steps}")
+        if self.adam_steps < 0:
+            raise ValueError(f"PlannerConfig.adam_steps (N) must be >= 0, got {self.adam_steps}")
         if self.resamples < 1:
             raise ValueError(f"PlannerConfig.resamples (R) must be >= 1, got {self.resamples}")
         if self.bound <= 0:
@@ -91,8 +91,8 @@ class PlannerConfig:
 
 class PlanResult(NamedTuple):
     """best [T, 4]: the lowest-cost sequence seen (projected); best_cost []: its cost; costs [M] and actions
-    [M, T, 4]: every sequence after the final step; history [PlannerConfig.steps]: the best cost seen up to each
-    step run, NaN past the steps run (one slot when PlannerConfig.steps is 0)."""
+    [M, T, 4]: every sequence after the final step; history [PlannerConfig.adam_steps]: the best cost seen up to each
+    step run, NaN past the steps run (one slot when PlannerConfig.adam_steps is 0)."""
 
     best: jax.Array
     best_cost: jax.Array
@@ -204,9 +204,9 @@ def _prepared(dynamics_fn, positions, mask):
     return dynamics_fn, context
 
 
-def _plan(dynamics_fn, cost_fn, positions, mask, key, init, initial, steps, config):
+def _plan(dynamics_fn, cost_fn, positions, mask, key, init, initial, adam_steps, config):
     """The jitted planner; see ``plan``. positions [R, N, 3], mask [R, N], init [T, 4] or None, initial [M, T, 4] or
-    None, steps [] int32 (may be traced, at most config.steps)."""
+    None, adam_steps [] int32 (may be traced, at most config.adam_steps)."""
     c = config
     actions = sample_pushes(key, positions[0], mask[0], c) if initial is None else project(
         initial, c.bound, c.min_length, c.max_length)
@@ -236,9 +236,9 @@ def _plan(dynamics_fn, cost_fn, positions, mask, key, init, initial, steps, conf
         return actions, opt_state, best, best_cost, history.at[i].set(best_cost)
 
     carry = (actions, optimiser.init(actions), actions[0], jnp.asarray(jnp.inf, jnp.float32),
-             jnp.full(max(c.steps, 1), jnp.nan, jnp.float32))  # one slot at least, so the loop body traces
-    steps = jnp.clip(jnp.asarray(steps, jnp.int32), 0, c.steps)
-    actions, _, best, best_cost, history = jax.lax.fori_loop(0, steps, step, carry)
+             jnp.full(max(c.adam_steps, 1), jnp.nan, jnp.float32))  # one slot at least, so the loop body traces
+    adam_steps = jnp.clip(jnp.asarray(adam_steps, jnp.int32), 0, c.adam_steps)
+    actions, _, best, best_cost, history = jax.lax.fori_loop(0, adam_steps, step, carry)
     costs = jax.vmap(objective)(actions)
     best, best_cost = keep_best(best, best_cost, actions, costs)
     return PlanResult(best, best_cost, costs, history, actions)
@@ -248,7 +248,7 @@ _plan_jit = jax.jit(_plan, static_argnames="config")
 
 
 def plan(dynamics_fn, cost_fn, positions, mask, key, config: PlannerConfig = PlannerConfig(), init=None, *,
-         steps=None, initial=None) -> PlanResult:
+         adam_steps=None, initial=None) -> PlanResult:
     """Optimise M action sequences for one MPC step (paper Algorithm 1); returns a ``PlanResult``.
 
     dynamics_fn(positions [N, 3], mask [N], actions [T, 4]) -> [T, N, 3] m; cost_fn(final [N, 3], mask [N]) -> [].
@@ -256,16 +256,16 @@ def plan(dynamics_fn, cost_fn, positions, mask, key, config: PlannerConfig = Pla
     key: a jax.random key (None: PRNGKey(config.seed)). init [T, 4]: warm start, replaces sample 0 (projected).
     initial: optional [M, T, 4], the starting sequences (projected) instead of ``sample_pushes`` through the first
     re-sampling's particles.
-    steps: Adam steps, an int or a traced int32 (``budget.plan_steps``; vmap it over episodes), within
-    [0, config.steps]; default config.steps. The best is the lowest-cost sequence evaluated at any step, so its cost
-    never exceeds the warm start's.
+    adam_steps: an int or a traced int32 (``budget.adam_steps``; vmap it over episodes), within
+    [0, config.adam_steps]; default config.adam_steps. The best is the lowest-cost sequence evaluated at any step, so
+    its cost never exceeds the warm start's.
     """
     positions, mask = _batched(positions, mask, config.resamples)
-    if steps is None:
-        steps = config.steps
-    concrete = not isinstance(steps, jax.core.Tracer)
-    if concrete and not 0 <= int(np.min(steps)) <= int(np.max(steps)) <= config.steps:
-        raise ValueError(f"steps={steps} must lie in [0, PlannerConfig.steps={config.steps}]")
+    if adam_steps is None:
+        adam_steps = config.adam_steps
+    concrete = not isinstance(adam_steps, jax.core.Tracer)
+    if concrete and not 0 <= int(np.min(adam_steps)) <= int(np.max(adam_steps)) <= config.adam_steps:
+        raise ValueError(f"adam_steps={adam_steps} must lie in [0, PlannerConfig.adam_steps={config.adam_steps}]")
     if init is not None:
         init = jnp.asarray(init, jnp.float32)
         if init.shape != (config.horizon, 4):
@@ -278,7 +278,7 @@ def plan(dynamics_fn, cost_fn, positions, mask, key, config: PlannerConfig = Pla
     if key is None:
         key = jax.random.PRNGKey(config.seed)
     return _plan_jit(_as_pytree_fn(dynamics_fn), _as_pytree_fn(cost_fn), positions, mask, key, init, initial,
-                     jnp.asarray(steps, jnp.int32), config=replace(config, seed=0))
+                     jnp.asarray(adam_steps, jnp.int32), config=replace(config, seed=0))
 
 
 __all__ = ["PlanResult", "PlannerConfig", "ZERO_LENGTH_DIRECTION", "plan", "project", "sample_actions",

@@ -9,8 +9,9 @@ A state z is a padded particle set: positions [N, 3] (metres, world frame) with 
 3. Encoders. Node: [guessed displacement (3), attribute (1), resolution code (1)] -> MLP 5 -> H -> H. Edge:
    [attribute of receiver, attribute of sender, p_r - p_s (3, on the current, un-displaced positions), resolution
    code (1)] -> MLP 6 -> H -> H -> H. The attribute is 1 for a particle. ReLU after every encoder layer.
-4. Propagation, ``steps`` times (PropNet): edge effect = ReLU(W_e [edge code, receiver effect, sender effect, code]);
-   node effect = ReLU(W_n [node code, sum of incoming edge effects, code] + node effect), starting from the node code.
+4. Propagation, ``propagation_steps`` times (PropNet): edge effect = ReLU(W_e [edge code, receiver effect, sender
+   effect, code]); node effect = ReLU(W_n [node code, sum of incoming edge effects, code] + node effect), starting
+   from the node code.
 5. Predictor H -> H -> 3: a displacement added to the current position.
 
 Options (``DynamicsConfig``; all off by default, which is the architecture above). ``push_frame``: everything is
@@ -29,7 +30,8 @@ dropped (the particle's height, a pooled global context, edges reaching with the
 sub-pushes: none moved the error by more than a few per cent, ``docs/results.md``) are in the history before
 2026-11-24.
 
-Defaults (H = 64, 3 steps) give 38,403 parameters, the reference's "about 38k".
+The reference's architecture (``REFERENCE``: H = 64, 3 propagation steps, the four options off) has 38,403
+parameters, the reference's "about 38k"; the defaults are the shipped model's (the four options on).
 
 Resolution code. Like the reference, the model is conditioned on the particle density 1/r², r the FPS covering radius
 of the sample (``perception.Particles.radius``): it says how much material one particle stands for, which the
@@ -94,20 +96,22 @@ EDGE_IN = 6  # receiver attribute (1), sender attribute (1), p_r - p_s (3), reso
 
 @dataclass(frozen=True)
 class DynamicsConfig:
-    """Static configuration of f. hidden: width H of every layer; steps: propagation steps; plate_half_width (m):
-    the sweep heuristic's plate; edge_radius (m) and k: the graph; length_scale (m): the model's unit of length;
-    bin_half_width (m): the unit of the ``bin_position`` inputs. The flags: module docstring, "Options"."""
+    """Static configuration of f; the defaults are the shipped model's (``train.RECIPES["shipped"]``). hidden: width
+    H of every layer; propagation_steps: message-passing rounds; plate_half_width (m): the sweep heuristic's plate;
+    edge_radius (m) and k: the graph; length_scale (m): the model's unit of length; bin_half_width (m): the unit of
+    the ``bin_position`` inputs. The flags: module docstring, "Options"; all four off is the reference's
+    architecture (``REFERENCE``)."""
 
     hidden: int = 64
-    steps: int = 3
+    propagation_steps: int = 3
     plate_half_width: float = SceneConfig.plate_half_width
     edge_radius: float = R_EDGE
     k: int = K_NEIGHBOURS
     length_scale: float = LENGTH_SCALE
-    push_frame: bool = False
-    residual: bool = False
-    world_edges: bool = False
-    bin_position: bool = False
+    push_frame: bool = True
+    residual: bool = True
+    world_edges: bool = True
+    bin_position: bool = True
     bin_half_width: float = SceneConfig.bin_half_width
 
     @property
@@ -120,6 +124,9 @@ class DynamicsConfig:
         """Whether the edge encoder sees p_r - p_s rotated into the push frame (push_frame without world_edges), so
         its codes depend on the push and cannot come from a ``pair_table``."""
         return self.push_frame and not self.world_edges
+
+
+REFERENCE = DynamicsConfig(push_frame=False, residual=False, world_edges=False, bin_position=False)  # the paper's f
 
 
 def resolution_code(radius):
@@ -272,7 +279,7 @@ class Dynamics(nnx.Module):
         node_const = node_code @ w_n[:h] + code * w_n[2 * h] + b_n  # [N, H]
         w_terms = jnp.concatenate([w_e[h:2 * h], w_e[2 * h:3 * h]], axis=1)  # [H, 2H]: receiver | sender
         effect = node_code
-        for _ in range(cfg.steps):
+        for _ in range(cfg.propagation_steps):
             node_terms = effect @ w_terms  # [N, 2H]: receiver and sender terms
             incoming = _incoming(table is not None, edge_const, neighbours, edge_mask, node_terms)  # [N, H]
             effect = nnx.relu(node_const + incoming @ w_n[h:2 * h] + effect)

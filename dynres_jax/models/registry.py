@@ -45,7 +45,10 @@ def build_model(meta: dict) -> Dynamics | CNNDynamics:
     name = meta.get("model_class", "gnn")
     if name not in MODEL_CLASSES:
         raise ValueError(f"checkpoint card names model_class {name!r}; known: {', '.join(MODEL_CLASSES)}")
-    return make_model(MODEL_CLASSES[name][0](**meta["dynamics"]))
+    fields = dict(meta["dynamics"])
+    if name == "gnn" and "steps" in fields:  # cards written before the field was named propagation_steps
+        fields["propagation_steps"] = fields.pop("steps")
+    return make_model(MODEL_CLASSES[name][0](**fields))
 
 
 EDGE_DTYPES = ("float32", "bfloat16")  # ``learned_dynamics``'s choices for the GNN's per-edge network
