@@ -266,7 +266,7 @@ def _quality_model(timed_model):
 def _camera_and_goal():
     """(camera, Goal): the default top-down camera and the disc goal both sides score against (built once: the goal's
     FPS samples are computed on the host)."""
-    from dynres_jax.control.objective import disc_goal, make_goal
+    from dynres_jax.control.goals import disc_goal, make_goal
     from dynres_jax.sim.camera import Camera, CameraConfig
 
     camera = Camera.top_down(CameraConfig())

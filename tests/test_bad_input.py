@@ -99,7 +99,7 @@ def test_the_default_model_still_loads(tmp_path):
 
 def test_characters_the_font_cannot_draw_are_refused():
     from dynres_jax.config import CameraConfig
-    from dynres_jax.control.objective import text_goal
+    from dynres_jax.control.goals import text_goal
     from dynres_jax.sim.camera import Camera
 
     camera = Camera.top_down(CameraConfig())

@@ -28,7 +28,8 @@ CONFIG = PlannerConfig(samples=4, adam_steps=3, horizon=2)
 @pytest.fixture(scope="module")
 def tiny_ckpt(tmp_path_factory):
     """A randomly initialised tiny Dynamics model saved as a checkpoint (the card as train.py writes it)."""
-    cfg = DynamicsConfig(hidden=16, steps=1, push_frame=True, residual=True)
+    cfg = DynamicsConfig(hidden=16, propagation_steps=1, push_frame=True, residual=True, world_edges=False,
+                         bin_position=False)
     directory = tmp_path_factory.mktemp("ckpt")
     ckpt.save_module(directory, STEP, Dynamics(cfg, rngs=nnx.Rngs(3)),
                      {"dynamics": dataclasses.asdict(cfg), "train": {"n_max": N_MAX}, "step": STEP})
@@ -114,7 +115,7 @@ def test_cli_writes_the_file_and_its_sidecar(tiny_ckpt, tmp_path, capsys):
     assert shapes["goal_samples"] == ([Q, 2], "float32") and shapes["key"] == ([2], "uint32")
     assert shapes["init"] == ([2, 4], "float32") and shapes["warm"] == ([], "bool")
     assert [o["name"] for o in info["outputs"]] == list(ex.OUTPUT_NAMES)
-    assert info["planner"]["samples"] == 4 and info["planner"]["steps"] == 3 and info["planner"]["horizon"] == 2
+    assert info["planner"]["samples"] == 4 and info["planner"]["adam_steps"] == 3 and info["planner"]["horizon"] == 2
     assert info["checkpoint"]["step"] == STEP and info["platforms"] == ["cpu"] and info["n_max"] == N_MAX
     exported = ex.load(str(out))
     assert [list(a.shape) for a in exported.in_avals] == [i["shape"] for i in info["inputs"]]
