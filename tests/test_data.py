@@ -398,7 +398,7 @@ def test_engines_of_a_run():
     """C MuJoCo by default; "auto" resolves before the run (config.json names the engine used); "mjx-fast" shards
     carry the fast scene's physics for their kinds, the rest of the scene as drawn."""
     assert data.DataConfig().backend == "mujoco"
-    assert data.resolve_backend(data.DataConfig(backend="auto")).backend == (
+    assert data.concrete(data.DataConfig(backend="auto")).backend == (
         "mjx-fast" if jax.default_backend() == "gpu" else "mujoco")
     cfg = data.DataConfig(backend="mjx-fast", kinds=("candy", "coffee"), two_kinds=0.0)
     for shard in range(4):

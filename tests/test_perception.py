@@ -259,3 +259,27 @@ def test_bad_input_traced_returns_the_flag(env, states):
     assert int(few.error) == perception.TOO_FEW_POINTS
     errors = jax.vmap(lambda w: sample_particles(obs, cam, w, key, N_MAX).error)(jnp.array([0, 3, N_MAX + 1]))
     assert errors.tolist() == [perception.BAD_OMEGA, 0, perception.BAD_OMEGA]
+
+
+def test_perceive_is_the_cloud_the_particles_and_the_kinds_of_one_frame():
+    """``perceive`` computes the foreground once and gives what ``point_cloud``, ``sample_particles`` and
+    ``particle_kinds`` give one by one (the same key), for every piece and for one kind."""
+    sim = SimConfig(scene=SceneConfig(kinds=("coffee", "candy"), pieces=(8, 6)), camera=CameraConfig(width=48,
+                                                                                                  height=48))
+    env = PileEnv(sim, backend="mujoco")
+    obs = env.reset(jax.random.PRNGKey(5)).obs
+    key = jax.random.PRNGKey(6)
+    for kind, omega in ((None, 12), (1, 5)):
+        seen = perception.perceive(obs, env.camera, omega, key, 16, max_points=256, kind=kind, with_kinds=True)
+        points, valid = point_cloud(obs, env.camera, max_points=256, kind=kind)
+        particles = sample_particles(obs, env.camera, omega, key, 16, max_points=256, kind=kind)
+        np.testing.assert_array_equal(seen.points, points)
+        np.testing.assert_array_equal(seen.valid, valid)
+        for got, want in zip(seen.particles, particles, strict=True):
+            np.testing.assert_allclose(got, want, atol=1e-6)
+        assert int(np.sum(seen.particles.mask)) == omega
+        if kind is None:
+            kinds = perception.particle_kinds(obs, env.camera, particles)
+            np.testing.assert_array_equal(seen.kinds, kinds)
+            assert set(np.asarray(seen.kinds)[np.asarray(seen.particles.mask)]) == {0, 1}
+    assert perception.perceive(obs, env.camera, 12, key, 16, max_points=256).kinds is None

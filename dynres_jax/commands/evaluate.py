@@ -178,7 +178,7 @@ def method_chooser(method: str, goals, args, camera) -> Chooser:
     """The chooser of an evaluation method against goals [B]: a fixed ω ("50"; "cnn" at --cnn-omega), the regressor
     ("adaptive") or the oracle over ORACLE_OMEGAS."""
     if method == "adaptive":
-        return AdaptiveOmega(goals, resolution.load_chooser(args.regressor, camera))
+        return AdaptiveOmega(goals, resolution.load_regressor(args.regressor, camera))
     if method == "oracle":
         return OracleOmega(goals, ORACLE_OMEGAS)
     return FixedOmega(goals, args.cnn_omega if method == "cnn" else int(method))

@@ -41,7 +41,7 @@ from dynres_jax.control.goals import make_goal
 from dynres_jax.control.mpc import MPCConfig, measure_timing, run_episode
 from dynres_jax.control.objective import inside_share
 from dynres_jax.control.planner import PlannerConfig
-from dynres_jax.control.resolution import load_chooser
+from dynres_jax.control.resolution import load_regressor
 from dynres_jax.io import files
 from dynres_jax.io.ckpt import CheckpointError
 from dynres_jax.io.draw import goal_frames
@@ -153,7 +153,7 @@ def build_loop(args, sim: SimConfig, parser: argparse.ArgumentParser) -> Loop:
     if omega == "adaptive":
         if not os.path.isdir(args.regressor):
             parser.error(f"--resolution adaptive needs a regressor checkpoint; {args.regressor} does not exist")
-        regressor = load_chooser(args.regressor, env.camera)
+        regressor = load_regressor(args.regressor, env.camera)
     elif not omega.isdigit() or not OMEGA_MIN <= int(omega) <= largest:
         parser.error(f"--resolution must be 'adaptive' or an integer in [{OMEGA_MIN}, {largest}] (the model's n_max "
                      "and the largest resolution bucket)")

@@ -16,6 +16,7 @@ their step counts on any machine.
 
 from __future__ import annotations
 
+import json
 import math
 import statistics
 import time
@@ -119,8 +120,6 @@ class TimingTable:
     @classmethod
     def load(cls, path: str, *, frozen: bool = True) -> TimingTable:
         """A table saved by ``save``; frozen (not refined) by default, so a run reproduces the step counts."""
-        import json
-
         with open(path) as f:
             data = json.load(f)
         missing = {"device", "samples", "horizon", "fixed_s", "step_s"} - set(data)

@@ -51,7 +51,7 @@ class FixedOmega(Chooser):
 
 
 class AdaptiveOmega(Chooser):
-    """Adaptive resolution: ω of each episode at each step from the regressor g(y, y_g) (``resolution.load_chooser``:
+    """Adaptive resolution: ω of each episode at each step from the regressor g(y, y_g) (``resolution.load_regressor``:
     a ``(obs [B], goals [B]) -> ω [B]`` function)."""
 
     def __init__(self, goals, regressor):

@@ -25,6 +25,8 @@ from flax import nnx
 from jax.scipy.special import ndtr
 
 from dynres_jax.config import OMEGA_MAX, OMEGA_MIN
+from dynres_jax.io import ckpt
+from dynres_jax.perception import foreground
 
 W_R = 1e-3  # the reference's weight of the resolution penalty
 FEATURE_SIZE = 32  # regressor input grid (pixels a side)
@@ -214,8 +216,6 @@ class Regressor(nnx.Module):
 def observation_input(obs, goal_mask, camera, size: int = FEATURE_SIZE):
     """``regressor_input`` of an Observation (its foreground, ``perception.foreground``) and a goal mask [H, W]:
     what labelling stores and what the adaptive MPC feeds g, computed one way. Pure JAX; vmap over scenes."""
-    from dynres_jax.perception import foreground
-
     current = foreground(obs, camera)[1].reshape(camera.height, camera.width)
     return regressor_input(current, goal_mask, size)
 
@@ -232,11 +232,9 @@ def build_regressor(meta: dict) -> Regressor:
     return Regressor(width=meta["width"], rngs=nnx.Rngs(0))
 
 
-def load_chooser(regressor_dir: str, camera):
-    """Adaptive ω from a trained regressor checkpoint: a jitted ``(obs [B], goals [B]) -> ω [B]`` (Observation and
-    Goal batched), the ``choose_omega`` of ``mpc.run_episodes``."""
-    from dynres_jax.io import ckpt
-
+def load_regressor(regressor_dir: str, camera):
+    """The regressor g of a trained checkpoint as a jitted ``(obs [B], goals [B]) -> ω [B]`` (Observation and Goal
+    batched): what ``choosers.AdaptiveOmega`` asks every MPC step."""
     graphdef, state = nnx.split(ckpt.load_module(regressor_dir, build_regressor)[0])
 
     @jax.jit

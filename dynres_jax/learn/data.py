@@ -63,7 +63,7 @@ from dynres_jax.config import (
 )
 from dynres_jax.io.files import TMP_PREFIX, atomic_write, write_json, write_text
 from dynres_jax.sim import pool as pools
-from dynres_jax.sim.env import PileEnv
+from dynres_jax.sim.env import PileEnv, random_episode
 from dynres_jax.sim.pool import WorldPool, process_pool
 
 KIND_NAMES = tuple(KINDS)  # global kind index used by Dataset.kind and Sample.kind
@@ -98,7 +98,7 @@ class DataConfig:
       fast scene (``SceneConfig.fast`` physics for the shard's kinds: about 3.5x C MuJoCo on all 16 cores of an H200
       host, where the default scene runs at 0.2x; docs/performance.md, "Speed"); "mujoco" runs them in the C engine,
       one world per host process (``generate``'s ``workers``), and renders the frames on the JAX device (default);
-      "auto" is "mjx-fast" where JAX has a GPU and "mujoco" elsewhere (``resolve_backend``: a run's config.json
+      "auto" is "mjx-fast" where JAX has a GPU and "mujoco" elsewhere (``concrete``: a run's config.json
       records the engine it used). Why C is the default: on one H200 "mjx-fast" made the same data set 2.8x faster,
       but the model trained on it gathered coffee in the C scene in 48 % of episodes against 75 % for the model
       trained on C data (docs/performance.md, "Data from MJX").
@@ -157,8 +157,8 @@ def quick_config(**overrides) -> DataConfig:
     return replace(quick, **overrides)
 
 
-def resolve_backend(config: DataConfig) -> DataConfig:
-    """``config`` with backend "auto" made concrete (``pool.resolve_backend``: "mjx-fast" on a GPU, else
+def concrete(config: DataConfig) -> DataConfig:
+    """``config`` with its engine made concrete (``pool.resolve_backend``: "auto" is "mjx-fast" on a GPU, else
     "mujoco")."""
     return replace(config, backend=pools.resolve_backend(config.backend))
 
@@ -206,7 +206,7 @@ def check_devices(config: DataConfig, devices=None) -> list:
     """The devices a run shards its worlds over (default this process's); ValueError unless worlds divides (MJX;
     "mujoco" simulates on host processes and renders on the first device)."""
     devices = list(devices or jax.local_devices())
-    if resolve_backend(config).backend != "mujoco" and config.worlds % len(devices):
+    if concrete(config).backend != "mujoco" and config.worlds % len(devices):
         raise ValueError(f"DataConfig.worlds={config.worlds} must be a multiple of the device count "
                          f"{len(devices)} (worlds are split evenly over devices); use e.g. worlds="
                          f"{math.ceil(config.worlds / len(devices)) * len(devices)}")
@@ -224,17 +224,8 @@ def _episode_fn(sim: SimConfig, pushes: int, devices: tuple):
                     mat=s.mat, broken=s.broken)
 
     def episode(key):
-        k_reset, k_push = jax.random.split(key)
-        s0 = env.reset(k_reset)
-
-        def step(s, k):
-            action = env.sample_push(k, s.pos)
-            s1 = env.push(s, action)
-            return s1._replace(obs=None), (frame(s1), action)
-
-        _, (frames, actions) = jax.lax.scan(step, s0._replace(obs=None), jax.random.split(k_push, pushes))
-        out = jax.tree.map(lambda a, b: jnp.concatenate([a[None], b]), frame(s0), frames)
-        return dict(out, action=actions)
+        frames, actions = random_episode(env, key, pushes, frame)
+        return dict(frames, action=actions)
 
     sharding = NamedSharding(Mesh(np.array(devices), ("worlds",)), PartitionSpec("worlds"))
     return env, jax.jit(jax.vmap(episode), in_shardings=sharding, out_shardings=sharding), sharding
@@ -244,7 +235,7 @@ def simulate_shard(config: DataConfig, shard: int, devices=None, pool=None) -> d
     """Simulate shard ``shard`` (all ``worlds`` episodes, nothing dropped) -> dict of NumPy arrays with a leading
     world axis (see the module docstring) plus the shard's metadata. ``pool``: worker processes for backend
     "mujoco" (``pool.process_pool``); without one the C episodes run in this process."""
-    config = resolve_backend(config)
+    config = concrete(config)
     devices = check_devices(config, devices)
     sim = shard_sim_config(config, shard)
     keys = jax.random.split(jax.random.fold_in(jax.random.PRNGKey(config.seed), shard), config.worlds)
@@ -296,7 +287,7 @@ def generate(config: DataConfig, out_dir: str, devices=None, progress: bool = Tr
     ``part`` (I, K): make only the shards with index I modulo K (default ``distributed.part()``: process I of a job
     of K; they share the folder). In a job, every process waits for the others before the summary, which process 0
     writes; each returns it with its own shards' counts and speed."""
-    config = resolve_backend(config)
+    config = concrete(config)
     devices = check_devices(config, devices)
     part = part or distributed.part()
     os.makedirs(out_dir, exist_ok=True)

@@ -370,3 +370,29 @@ class PileEnv:
                                      None), plate=(pp, pq) if pp[2] < PARK[2] else None)
                   for p, r, pp, pq in frames]
         return self._finish_jit(*arrays, state.broken), frames
+
+
+def python_scan(step, carry, xs):
+    """``jax.lax.scan``'s contract as a Python loop over the leading axis of xs (concrete values: the C engine)."""
+    ys = []
+    for x in xs:
+        carry, y = step(carry, x)
+        ys.append(y)
+    return carry, jax.tree.map(lambda *v: jnp.stack(v), *ys)
+
+
+def random_episode(env: PileEnv, key, pushes: int, record, scan=jax.lax.scan):
+    """Data generation's episode (``learn.data``): a reset and ``pushes`` random pushes through the pile
+    (``PileEnv.sample_push``: always in bounds), the broken flag sticky. record: State -> the arrays kept of a frame;
+    scan: ``jax.lax.scan`` where the episode is traced (MJX, vmapped over worlds), ``python_scan`` for the C engine.
+    Returns (every frame's record stacked [F = pushes + 1], actions [pushes, 4] m)."""
+    k_reset, k_push = jax.random.split(key)
+    s0 = env.reset(k_reset)
+
+    def step(s, k):
+        action = env.sample_push(k, s.pos)
+        s1 = env.simulate(s, *env.plate_trajectory(action))
+        return s1._replace(obs=None), (record(s1), action)
+
+    _, (frames, actions) = scan(step, s0._replace(obs=None), jax.random.split(k_push, pushes))
+    return jax.tree.map(lambda a, b: jnp.concatenate([a[None], b]), record(s0), frames), actions

@@ -23,7 +23,7 @@ import numpy as np
 
 from dynres_jax.config import CameraConfig, SceneConfig, SimConfig, fast_fields
 from dynres_jax.sim.camera import Camera, Renderer
-from dynres_jax.sim.env import PileEnv, State
+from dynres_jax.sim.env import PileEnv, State, python_scan, random_episode
 from dynres_jax.sim.scene import build_scene
 
 # Engines of batched worlds: MJX on the fast scene (SceneConfig.fast's physics), MJX on the scene as given, the C
@@ -84,24 +84,15 @@ def _push(job) -> tuple:
     return _arrays(env.simulate(State(qpos, qvel, pos, mat, None, broken), *env.plate_trajectory(jnp.asarray(action))))
 
 
+def _poses(s: State) -> dict:
+    return dict(pos=s.pos, mat=s.mat, broken=s.broken)
+
+
 def _random_episode(job) -> dict:
-    """A reset and ``pushes`` random pushes through the pile (``PileEnv.sample_push``), as data generation's MJX
-    path does; a world that broke stays as it was."""
+    """``env.random_episode`` in the C engine: poses and broken flags of every frame, and the pushes."""
     sim_json, key, pushes = job
-    env = _env(sim_json)
-    k_reset, k_push = jax.random.split(jnp.asarray(key, jnp.uint32))
-    s = env.reset(k_reset)
-    frames, actions = [s], []
-    for k in jax.random.split(k_push, pushes):
-        action = env.sample_push(k, s.pos) if not s.broken else jnp.array([0.0, 0, env.config.push.min_length, 0])
-        # As MJX's traced push: sampled pushes are in bounds, too-short ones are no-ops; a broken world stays put.
-        if not s.broken:
-            s = env.simulate(s, *env.plate_trajectory(action))
-        frames.append(s)
-        actions.append(action)
-    get = lambda name: np.stack([np.asarray(getattr(f, name)) for f in frames])  # noqa: E731
-    return dict(pos=get("pos"), mat=get("mat"), broken=np.maximum.accumulate(get("broken")),
-                action=np.stack([np.asarray(a, np.float32) for a in actions]))
+    frames, actions = random_episode(_env(sim_json), jnp.asarray(key, jnp.uint32), pushes, _poses, python_scan)
+    return dict({k: np.asarray(v) for k, v in frames.items()}, action=np.asarray(actions, np.float32))
 
 
 @functools.lru_cache(maxsize=16)
