@@ -40,14 +40,15 @@ PERMUTATION_SEED = 0  # seed of the fixed pixel permutation that subsamples the 
 # Bit flags of ``Particles.error``.
 NAN_DEPTH = 1  # the depth image has NaN or infinite pixels
 EMPTY_FOREGROUND = 2  # no foreground point
-BAD_OMEGA = 4  # ω < 1 or ω > n_max
+BAD_OMEGA = 4  # ω < 1 or ω > capacity
 TOO_FEW_POINTS = 8  # fewer foreground points than ω (and at least one)
 
 
 class Particles(NamedTuple):
-    """The output of h. positions [n_max, 3] world (m), zero where masked; mask [n_max] bool, the first ω entries
-    (all False on bad input); radius []: covering radius (m) of the ω-sample over the cloud (0 on bad input);
-    n_points [] int32: foreground points in the cloud; error [] int32: bit flags (0 = ok, see module constants)."""
+    """The output of h in ``capacity`` particle slots (a resolution bucket). positions [capacity, 3] world (m), zero
+    where masked; mask [capacity] bool, the first ω entries (all False on bad input); radius []: covering radius (m)
+    of the ω-sample over the cloud (0 on bad input); n_points [] int32: foreground points in the cloud; error []
+    int32: bit flags (0 = ok, see module constants)."""
 
     positions: jax.Array
     mask: jax.Array
@@ -210,40 +211,40 @@ def recentre(particles, points, valid, r_center):
     return jax.lax.map(centre, jnp.asarray(particles, jnp.float32))
 
 
-def _particles(points, valid, depth, omega, key, n_max: int, r_center) -> Particles:
+def _particles(points, valid, depth, omega, key, capacity: int, r_center) -> Particles:
     """h on a packed cloud (points [P, 3], valid [P]) of a depth image [H, W] (NaN there is an error)."""
     n_points = jnp.sum(valid).astype(jnp.int32)
     omega = jnp.asarray(omega, jnp.int32)
-    indices, radius = fps(points, valid, n_max + 1, random_start(key, valid))  # one extra pick: r(ω = n_max)
-    r_omega = radius[jnp.clip(omega, 0, n_max)]  # covering radius of the ω-sample
+    indices, radius = fps(points, valid, capacity + 1, random_start(key, valid))  # one extra pick: r(ω = capacity)
+    r_omega = radius[jnp.clip(omega, 0, capacity)]  # covering radius of the ω-sample
     if r_center is None:
         r_center = jnp.minimum(R_CENTER_MAX, 0.5 * r_omega)
-    positions = recentre(points[indices[:n_max]], points, valid, r_center)
+    positions = recentre(points[indices[:capacity]], points, valid, r_center)
     error = (jnp.where(~jnp.all(jnp.isfinite(depth)), NAN_DEPTH, 0)
              | jnp.where(n_points == 0, EMPTY_FOREGROUND, 0)
-             | jnp.where((omega < 1) | (omega > n_max), BAD_OMEGA, 0)
+             | jnp.where((omega < 1) | (omega > capacity), BAD_OMEGA, 0)
              | jnp.where((n_points > 0) & (n_points < omega), TOO_FEW_POINTS, 0)).astype(jnp.int32)
-    mask = (jnp.arange(n_max) < omega) & (error == 0)
+    mask = (jnp.arange(capacity) < omega) & (error == 0)
     return Particles(jnp.where(mask[:, None], positions, 0.0), mask, jnp.where(error == 0, r_omega, 0.0), n_points,
                      error)
 
 
-@functools.partial(jax.jit, static_argnames=("camera", "n_max", "max_points", "real_depth"))
-def _sample_particles(observation, camera, omega, key, n_max, max_points, r_center, foreground_kw, real_depth):
+@functools.partial(jax.jit, static_argnames=("camera", "capacity", "max_points", "real_depth"))
+def _sample_particles(observation, camera, omega, key, capacity, max_points, r_center, foreground_kw, real_depth):
     points, valid = point_cloud(observation, camera, max_points=max_points, real_depth=real_depth, **foreground_kw)
-    return _particles(points, valid, observation.depth, omega, key, n_max, r_center)
+    return _particles(points, valid, observation.depth, omega, key, capacity, r_center)
 
 
-@functools.partial(jax.jit, static_argnames="n_max")
-def cloud_particles(points, valid, depth, omega, key, n_max: int) -> Particles:
+@functools.partial(jax.jit, static_argnames="capacity")
+def cloud_particles(points, valid, depth, omega, key, capacity: int) -> Particles:
     """h on a cloud already made (``point_cloud``'s points [P, 3], valid [P]) of the depth image [H, W]: the
     particles of ``sample_particles`` without computing the cloud again."""
-    return _particles(points, valid, depth, omega, key, n_max, None)
+    return _particles(points, valid, depth, omega, key, capacity, None)
 
 
 def _nearest_kinds(points, valid, kind_image, particles: Particles):
     """Each particle's kind: that of the nearest labelled foreground pixel (points [H*W, 3], valid [H*W], kind_image
-    [H, W]) on the table plane -> [n_max] int32, -1 where masked or when no pixel has a kind."""
+    [H, W]) on the table plane -> [capacity] int32, -1 where masked or when no pixel has a kind."""
     kinds = jnp.asarray(kind_image, jnp.int32).reshape(-1)
     labelled = valid & (kinds >= 0)
     x, y = points[:, 0], points[:, 1]
@@ -259,14 +260,14 @@ def _nearest_kinds(points, valid, kind_image, particles: Particles):
 @functools.partial(jax.jit, static_argnames=("camera", "real_depth"))
 def particle_kinds(observation: Observation, camera: Camera, particles: Particles, real_depth: bool = False):
     """Each particle's piece kind: the kind (``observation.kind``) of the foreground pixel nearest to it on the table
-    plane -> [n_max] int32, -1 where masked or when no foreground pixel has a kind. For Sort's objective, which scores
-    each kind's particles against its own goal (``objective.kind_objective``)."""
+    plane -> [capacity] int32, -1 where masked or when no foreground pixel has a kind. For Sort's objective, which
+    scores each kind's particles against its own goal (``objective.kind_objective``)."""
     return _nearest_kinds(*foreground(observation, camera, real_depth=real_depth), observation.kind, particles)
 
 
 class Perceived(NamedTuple):
     """One frame, perceived once: the point cloud (points [P, 3] m, valid [P]; the planner's pushes start through
-    it), the particles h(y, ω) and, where asked (Sort), each particle's kind [n_max] (else None)."""
+    it), the particles h(y, ω) and, where asked (Sort), each particle's kind [capacity] (else None)."""
 
     points: jax.Array
     valid: jax.Array
@@ -274,20 +275,20 @@ class Perceived(NamedTuple):
     kinds: jax.Array | None
 
 
-def perceive(observation: Observation, camera: Camera, omega, key, n_max: int, *, max_points: int | None,
+def perceive(observation: Observation, camera: Camera, omega, key, capacity: int, *, max_points: int | None,
              real_depth: bool = False, kind=None, with_kinds: bool = False) -> Perceived:
     """The frame's foreground computed once and everything a decision reads from it (``Perceived``): the cloud of
-    ``point_cloud``, the particles of ``sample_particles`` at ω (may be traced) in n_max slots and, with_kinds,
+    ``point_cloud``, the particles of ``sample_particles`` at ω (may be traced) in capacity slots and, with_kinds,
     ``particle_kinds``. kind: only the pieces of this kind index (may be traced; None: every piece). Traceable;
     errors are in ``particles.error``."""
     points, valid = foreground(observation, camera, real_depth=real_depth, kind=kind)
     cloud = pack(points, valid, max_points)
-    particles = _particles(*cloud, observation.depth, omega, key, n_max, None)
+    particles = _particles(*cloud, observation.depth, omega, key, capacity, None)
     kinds = _nearest_kinds(points, valid, observation.kind, particles) if with_kinds else None
     return Perceived(*cloud, particles, kinds)
 
 
-def describe_error(error: int, omega=None, n_max=None, n_points=None) -> str:
+def describe_error(error: int, omega=None, capacity=None, n_points=None) -> str:
     """A readable list of the problems in a concrete ``Particles.error`` ('' when 0)."""
     problems = []
     if error & NAN_DEPTH:
@@ -296,47 +297,47 @@ def describe_error(error: int, omega=None, n_max=None, n_points=None) -> str:
         problems.append("empty foreground: no point is above the table margin (within the workspace, of the "
                         "requested kind / colour)")
     if error & BAD_OMEGA:
-        problems.append(f"omega={omega} is outside [1, n_max={n_max}]")
+        problems.append(f"omega={omega} is outside [1, capacity={capacity}]")
     if error & TOO_FEW_POINTS:
         problems.append(f"too few foreground points: {n_points} points for omega={omega}")
     return "; ".join(problems)
 
 
-def check_particles(particles: Particles, omega, n_max, what: str) -> None:
+def check_particles(particles: Particles, omega, capacity, what: str) -> None:
     """Raise a ValueError naming the problem when any of concrete ``particles`` (one set, or a batch [B]: then the
-    failing indices are named too) has error bits. omega: the ω asked for (an int, or [B]); n_max: the slots."""
+    failing indices are named too) has error bits. omega: the ω asked for (an int, or [B]); capacity: the slots."""
     error = np.asarray(particles.error)
     if not error.any():
         return
     bad = np.flatnonzero(error)
     first = int(bad[0]) if error.ndim else ()
     where = f"{what} {bad.tolist()}: " if error.ndim else f"{what}: "
-    raise ValueError(where + describe_error(int(error[first]), int(np.asarray(omega)[first]), n_max,
+    raise ValueError(where + describe_error(int(error[first]), int(np.asarray(omega)[first]), capacity,
                                             int(np.asarray(particles.n_points)[first])))
 
 
-def sample_particles(observation: Observation, camera: Camera, omega, key, n_max: int, *,
+def sample_particles(observation: Observation, camera: Camera, omega, key, capacity: int, *,
                      max_points: int | None = None, r_center=None, margin: float = FOREGROUND_MARGIN,
                      workspace: float = WORKSPACE_HALF_WIDTH, kind=None, colour=None,
                      colour_tol: float = COLOUR_TOL, real_depth: bool = False) -> Particles:
-    """h(y, ω): one observation (depth [H, W], and kind / rgb when restricting) -> Particles with n_max slots, the
+    """h(y, ω): one observation (depth [H, W], and kind / rgb when restricting) -> Particles with capacity slots, the
     first ω valid. omega: int, may be traced (``jax.vmap`` over ω values equals calling per ω); key: FPS start;
     max_points: see ``point_cloud`` (at 256 x 256, 8192 made h about 5 times faster on an H200); r_center:
     re-centring radius (m), default min(R_CENTER_MAX, 0.5 r(ω)) with r(ω) the covering radius of the ω-sample, 0 to
     disable; margin, workspace, kind, colour, colour_tol, real_depth: see ``foreground``. Raises ValueError naming the
-    problem when the result is concrete and the input bad (NaN depth, empty foreground, ω outside [1, n_max], fewer
+    problem when the result is concrete and the input bad (NaN depth, empty foreground, ω outside [1, capacity], fewer
     foreground points than ω); traced, ``Particles.error`` says it.
     """
-    if not isinstance(n_max, int | np.integer) or n_max < 1:
-        raise ValueError(f"n_max must be a positive int, got {n_max!r}")
+    if not isinstance(capacity, int | np.integer) or capacity < 1:
+        raise ValueError(f"capacity must be a positive int, got {capacity!r}")
     if max_points is not None and (not isinstance(max_points, int | np.integer) or max_points < 1):
         raise ValueError(f"max_points must be None or a positive int, got {max_points!r}")
     if tuple(np.shape(observation.depth)) != (camera.height, camera.width):
         raise ValueError(f"depth image has shape {np.shape(observation.depth)}, the camera expects "
                          f"{(camera.height, camera.width)} (vmap sample_particles over a batch of observations)")
     foreground_kw = dict(margin=margin, workspace=workspace, kind=kind, colour=colour, colour_tol=colour_tol)
-    out = _sample_particles(observation, camera, omega, key, int(n_max), max_points and int(max_points), r_center,
+    out = _sample_particles(observation, camera, omega, key, int(capacity), max_points and int(max_points), r_center,
                             foreground_kw, bool(real_depth))
     if not isinstance(out.error, jax.core.Tracer):
-        check_particles(out, omega, n_max, "sample_particles")
+        check_particles(out, omega, capacity, "sample_particles")
     return out

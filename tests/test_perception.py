@@ -228,9 +228,9 @@ def test_bad_input_raises_naming_the_problem(env, states):
     n_points = int(sample_particles(obs, cam, 1, key, N_MAX).n_points)
     with pytest.raises(ValueError, match="empty foreground"):
         sample_particles(obs._replace(depth=jnp.full_like(obs.depth, cam.centre[2])), cam, 3, key, N_MAX)
-    with pytest.raises(ValueError, match=r"omega=0 is outside \[1, n_max=16\]"):
+    with pytest.raises(ValueError, match=r"omega=0 is outside \[1, capacity=16\]"):
         sample_particles(obs, cam, 0, key, N_MAX)
-    with pytest.raises(ValueError, match=r"omega=17 is outside \[1, n_max=16\]"):
+    with pytest.raises(ValueError, match=r"omega=17 is outside \[1, capacity=16\]"):
         sample_particles(obs, cam, N_MAX + 1, key, N_MAX)
     with pytest.raises(ValueError, match=f"too few foreground points: {n_points} points for omega=100"):
         sample_particles(obs, cam, 100, key, 128)
@@ -238,7 +238,7 @@ def test_bad_input_raises_naming_the_problem(env, states):
         sample_particles(obs._replace(depth=obs.depth.at[3, 5].set(jnp.nan)), cam, 3, key, N_MAX)
     with pytest.raises(ValueError, match="shape"):
         sample_particles(obs._replace(depth=obs.depth[:32]), cam, 3, key, N_MAX)
-    with pytest.raises(ValueError, match="n_max"):
+    with pytest.raises(ValueError, match="capacity"):
         sample_particles(obs, cam, 3, key, 0)
 
 
