@@ -1,0 +1,42 @@
+"""The package's shape holds: io/ is the low layer (nothing there imports control/, models/, learn/ or commands/),
+control/ never asks what kind of worlds it pushes, and no module of the library grows past 400 lines."""
+
+import ast
+import pathlib
+
+PACKAGE = pathlib.Path(__file__).resolve().parent.parent / "dynres_jax"
+
+
+def _imports(path: pathlib.Path) -> set[str]:
+    names = set()
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.ImportFrom) and node.module:
+            names.add(node.module)
+        elif isinstance(node, ast.Import):
+            names.update(a.name for a in node.names)
+    return names
+
+
+def test_io_imports_nothing_above_it():
+    above = ("dynres_jax.control", "dynres_jax.models", "dynres_jax.learn", "dynres_jax.commands", "dynres_jax.export")
+    for path in (PACKAGE / "io").glob("*.py"):
+        bad = [m for m in _imports(path) if m.startswith(above)]
+        assert not bad, f"{path.name} imports {bad}"
+
+
+def test_control_never_asks_which_worlds_it_pushes():
+    """No isinstance on a world type and no engine name read in control/: worlds are what ``sim.pool.Worlds`` says."""
+    worlds = {"PileEnv", "WorldPool", "MJXPool", "EnvWorlds"}
+    for path in (PACKAGE / "control").glob("*.py"):
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.Call) and getattr(node.func, "id", None) == "isinstance":
+                named = {n.id for n in ast.walk(node.args[1]) if isinstance(n, ast.Name)}
+                assert not named & worlds, f"{path.name}:{node.lineno} asks isinstance of {named & worlds}"
+            if isinstance(node, ast.Attribute):
+                assert node.attr != "backend", f"{path.name}:{node.lineno} reads an engine name"
+
+
+def test_no_module_over_400_lines():
+    long = {p.relative_to(PACKAGE).as_posix(): n for p in PACKAGE.rglob("*.py")
+            if (n := len(p.read_text().splitlines())) > 400}
+    assert not long, long
