@@ -39,8 +39,10 @@ def _summary(summary: dict) -> dict:
 
 
 def record(folder: str) -> dict:
-    """Run every reference case with outputs under ``folder``; returns the reduced results."""
+    """Run every reference case with outputs under ``folder`` (gather, adaptive, letter, sort, evaluate, sensor);
+    returns the reduced results."""
     from dynres_jax.commands import evaluate, gather, redistribute, sort
+    from dynres_jax.models.registry import SHIPPED_DYNAMICS, SHIPPED_REGRESSOR
 
     timing = os.path.join(folder, "frozen_timing.json")
     with open(timing, "w") as f:
@@ -50,7 +52,8 @@ def record(folder: str) -> dict:
     runs["gather_fixed"] = _steps(gather.main([*TINY, "--pieces", "40", "--resolution", "25", "--seed", "3",
                                                 "--out", out("gather")]))
     runs["gather_adaptive"] = _steps(gather.main([*TINY, "--pieces", "40", "--resolution", "adaptive", "--seed", "4",
-                                                   "--time-budget", "0.03", "--timing", timing,
+                                                   "--time-budget", "0.03", "--timing", timing, "--regressor",
+                                                   SHIPPED_REGRESSOR, "--ckpt", SHIPPED_DYNAMICS,
                                                    "--out", out("adaptive")]))
     runs["redistribute"] = _steps(redistribute.main([*TINY, "--pieces", "40", "--letter", "J", "--resolution", "40",
                                                       "--seed", "5", "--out", out("letter")]))

@@ -4,14 +4,23 @@ the pushes, ω, Adam steps and scores they gave when the reference was written."
 
 import json
 
+import imageio.v3 as iio
 import numpy as np
 import pytest
 from loop_reference import REFERENCE, record
 
+from dynres_jax.config import OMEGA_MIN
+from dynres_jax.models.registry import SHIPPED_DYNAMICS
+
 
 @pytest.fixture(scope="module")
-def runs(tmp_path_factory):
-    return record(str(tmp_path_factory.mktemp("reference")))
+def folder(tmp_path_factory):
+    return tmp_path_factory.mktemp("reference")
+
+
+@pytest.fixture(scope="module")
+def runs(folder):
+    return record(str(folder))
 
 
 def _compare(got, want, where):
@@ -36,3 +45,21 @@ def test_the_loop_repeats_its_recorded_behaviour(runs, case):
     with open(REFERENCE) as f:
         want = json.load(f)[case]
     _compare(runs[case], want, case)
+
+
+@pytest.mark.parametrize("case", ["gather", "adaptive", "letter", "sort"])
+def test_the_task_commands_write_their_episodes(runs, folder, case):
+    """Each task command wrote metrics.json (its summary, JSON-ready), an episode.gif with a frame per MPC step and
+    the end, and final.png; --ckpt names the checkpoint it loaded."""
+    metrics = json.loads((folder / case / "metrics.json").read_text())
+    frames = iio.imread(folder / case / "episode.gif", index=None)
+    assert [r["step"] for r in metrics["steps"]] == [0, 1] and len(frames) == 3
+    assert (folder / case / "final.png").exists()
+    assert frames.ndim == 4 and frames.shape[-1] == 3 and frames.std() > 0
+    assert metrics["dynamics"].startswith(f"learned ({SHIPPED_DYNAMICS}")
+    for r in metrics["steps"]:
+        assert OMEGA_MIN <= r["omega"] <= r["bucket"] and r["planning_s"] > 0
+    if case == "sort":
+        assert all(len(r["kind_inside"]) == 2 and 0 <= r["mixing"] <= 1 for r in metrics["steps"])
+    else:
+        assert 0 <= metrics["final_inside"] <= 1 and np.isfinite(metrics["final_distance"])
