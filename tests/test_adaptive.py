@@ -102,8 +102,10 @@ def test_evaluation_fixed_and_adaptive(regressor, timing, tmp_path):
     adaptive = runs["adaptive"]
     assert np.all((np.array(adaptive["omega"]) >= 2) & (np.array(adaptive["omega"]) <= 100))
     assert (tmp_path / "score.png").read_bytes()[:4] == b"\x89PNG"
-    with pytest.raises(SystemExit):
-        evaluate.main(["--methods", "7000", "--out", str(tmp_path)])
+    for bad in (["--methods", "7000"], ["--methods", "best0"], ["--methods", "best5", "--best-omega", "1"]):
+        with pytest.raises(SystemExit):
+            evaluate.main([*bad, "--out", str(tmp_path)])
+    assert evaluate.best_of("best5") == 5 and evaluate.best_of("best") == evaluate.best_of("50") == 0
 
 
 def test_tradeoff_pairs(labels, tmp_path):

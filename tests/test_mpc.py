@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from dynres_jax.config import CameraConfig, PileConfig, PushConfig, SceneConfig, SimConfig
-from dynres_jax.control.choosers import AdaptiveOmega, Chooser, FixedOmega, OracleOmega, Orders
+from dynres_jax.control.choosers import AdaptiveOmega, BestOfK, Chooser, FixedOmega, OracleOmega, Orders
 from dynres_jax.control.decision import batch, goal_cost
 from dynres_jax.control.goals import disc_goal, make_goal
 from dynres_jax.control.mpc import MPCConfig, run, run_episode
@@ -138,6 +138,37 @@ def test_oracle_keeps_the_best_candidate_per_episode():
     with pytest.raises(ValueError, match="perception failed in episodes"):
         run(pool, starts, FixedOmega(goals, 100), sweep_dynamics(0.04),
             MPCConfig(mpc_steps=1, buckets=(100,), max_points=256, planner=planner), keys, log=lambda s: None)
+
+
+def test_best_of_k_keeps_the_best_of_independent_plans():
+    """BestOfK(ω, 2): draw 0 is FixedOmega's plan (same keys), draw 1 a plan of its own keys that pushes elsewhere;
+    each episode keeps the one whose push left the lower d."""
+    sim = SimConfig(scene=SceneConfig(pieces=(6,)), pile=PileConfig(layout="spread"),
+                    push=PushConfig(max_length=0.1, settle_time=0.04), camera=CameraConfig(width=48, height=48))
+    pool = WorldPool(sim)
+    masks = [disc_goal(pool.camera, np.array(c), 0.06) for c in ([0.0, 0.0], [0.05, -0.03], [-0.04, 0.04])]
+    goals = jax.tree.map(lambda *x: np.stack(x), *[make_goal(m, pool.camera, n_samples=32) for m in masks])
+    planner = PlannerConfig(samples=4, adam_steps=3, bound=pool.env.action_bound, max_length=0.1)
+    cfg = MPCConfig(mpc_steps=1, buckets=(2, 6), max_points=256, planner=planner)  # the oracle test's compiled plan
+    keys = jax.random.split(jax.random.PRNGKey(2), 3)
+    starts = pool.reset(jax.random.split(jax.random.PRNGKey(3), 3))
+
+    class Draw(Chooser):  # one candidate: plan draw d alone
+        def __init__(self, d):
+            self.d = d
+
+        def __call__(self, t, obs):
+            return Orders(goals, (np.full(3, 6, np.int32),), draws=(self.d,))
+
+    one = {d: run(pool, starts, Draw(d), sweep_dynamics(0.04), cfg, keys, log=lambda s: None).records[0]
+           for d in (0, 1)}
+    fixed = run(pool, starts, FixedOmega(goals, 6), sweep_dynamics(0.04), cfg, keys, log=lambda s: None).records[0]
+    np.testing.assert_array_equal(one[0]["action"], fixed["action"])
+    assert not np.allclose(one[0]["action"], one[1]["action"])  # independent keys: other pushes
+    best = run(pool, starts, BestOfK(goals, 6, 2), sweep_dynamics(0.04), cfg, keys, log=lambda s: None).records[0]
+    np.testing.assert_allclose(best["distance"], np.minimum(one[0]["distance"], one[1]["distance"]), rtol=1e-6)
+    with pytest.raises(ValueError, match="K >= 1"):
+        BestOfK(goals, 6, 0)
 
 
 def test_time_budget_needs_a_table():

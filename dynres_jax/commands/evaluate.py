@@ -12,7 +12,9 @@ more Adam steps. Without it every decision runs ``--adam-steps``.
 "adaptive" picks ω at every step with the regressor g (``--regressor``); "oracle" (an upper bound, not in the default
 list) plans at every ω of ORACLE_OMEGAS each step, pushes each on a copy of the worlds and keeps the one that left the
 lowest d (``choosers.OracleOmega``); the summary then says how much of the oracle's gain over the best fixed
-ω adaptive recovers (``oracle_gap``); "cnn" (not in the default list) is the
+ω adaptive recovers (``oracle_gap``); "bestK" (e.g. "best5") is the oracle's control: K plans at ``--best-omega``
+from independent keys each step, the best kept the same way (``choosers.BestOfK``), so the oracle's gain over it is
+what choosing ω adds to choosing among plans; "cnn" (not in the default list) is the
 paper's CNN-dynamics baseline: the same planner at ω = ``--cnn-omega`` (50) with the CNN checkpoint ``--cnn-ckpt``
 (``experiments.train_dynamics --model cnn``) as its model. Writes per method ``METHOD.json`` (final d
 and inside share per episode, means per step; resumable: finished methods are skipped), ``summary.json`` (means with
@@ -30,6 +32,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import re
 
 import jax
 import jax.numpy as jnp
@@ -47,7 +50,7 @@ from dynres_jax.commands.task import (
 )
 from dynres_jax.config import KINDS, OMEGA_MAX, OMEGA_MIN, CameraConfig, PileConfig, SceneConfig, SimConfig
 from dynres_jax.control import resolution, tasks
-from dynres_jax.control.choosers import ORACLE_OMEGAS, AdaptiveOmega, Chooser, FixedOmega, OracleOmega
+from dynres_jax.control.choosers import ORACLE_OMEGAS, AdaptiveOmega, BestOfK, Chooser, FixedOmega, OracleOmega
 from dynres_jax.control.goals import make_goal, stack
 from dynres_jax.control.mpc import SensorView, run
 from dynres_jax.io import ckpt, files
@@ -139,9 +142,11 @@ def summarise(results: dict) -> dict:
 
 
 def label(method: str, r: dict) -> str:
-    """A method's name in the plots: "ω = 50", "adaptive", "CNN, ω = 50"."""
+    """A method's name in the plots: "ω = 50", "adaptive", "CNN, ω = 50", "best of 5, ω = 50"."""
     if method.isdigit():
         return f"ω = {method}"
+    if best_of(method):
+        return f"best of {best_of(method)}, ω = {round(float(np.mean(r['omega'])))}"
     return f"CNN, ω = {round(float(np.mean(r['omega'])))}" if method == "cnn" else method
 
 
@@ -176,12 +181,20 @@ def plot(results: dict, task: str, out_dir: str) -> None:
 
 def method_chooser(method: str, goals, args, camera) -> Chooser:
     """The chooser of an evaluation method against goals [B]: a fixed ω ("50"; "cnn" at --cnn-omega), the regressor
-    ("adaptive") or the oracle over ORACLE_OMEGAS."""
+    ("adaptive"), the oracle over ORACLE_OMEGAS, or the best of K plans at --best-omega ("bestK", e.g. "best5")."""
     if method == "adaptive":
         return AdaptiveOmega(goals, resolution.load_regressor(args.regressor, camera))
     if method == "oracle":
         return OracleOmega(goals, ORACLE_OMEGAS)
+    if best_of(method):
+        return BestOfK(goals, args.best_omega, best_of(method))
     return FixedOmega(goals, args.cnn_omega if method == "cnn" else int(method))
+
+
+def best_of(method: str) -> int:
+    """K of a best-of-K method name ("best5" -> 5), else 0."""
+    match = re.fullmatch(r"best([1-9][0-9]*)", method)
+    return int(match.group(1)) if match else 0
 
 
 def check_cnn(parser, args) -> None:
@@ -206,8 +219,10 @@ def main(argv=None):
     parser.add_argument("--mpc-steps", type=int, default=20, help="MPC steps per episode")
     parser.add_argument("--methods", nargs="+", default=["10", "25", "50", "75", "100", "adaptive"],
                         help="fixed ω (integers), 'adaptive' (the regressor picks ω), 'oracle' (every step keeps the "
-                             "best of ω in ORACLE_OMEGAS by the simulated outcome) and 'cnn' (the CNN-dynamics "
-                             "baseline at --cnn-omega)")
+                             "best of ω in ORACLE_OMEGAS by the simulated outcome), 'bestK' (e.g. best5: every step "
+                             "keeps the best of K plans at --best-omega by the simulated outcome, the oracle's "
+                             "control) and 'cnn' (the CNN-dynamics baseline at --cnn-omega)")
+    parser.add_argument("--best-omega", type=int, default=50, help="ω of the bestK methods")
     add_planner_args(parser)
     parser.add_argument("--kind", default="coffee", choices=sorted(KINDS))
     parser.add_argument("--sensor", default="none", choices=sorted(SENSORS),
@@ -230,9 +245,11 @@ def main(argv=None):
     check_planner_args(parser, args)
     for m in args.methods:
         fixed = m.isdigit() and OMEGA_MIN <= int(m) <= OMEGA_MAX
-        if m not in ("adaptive", "oracle", "cnn") and not fixed:
-            parser.error(f"--methods takes 'adaptive', 'oracle', 'cnn' or integers in [{OMEGA_MIN}, {OMEGA_MAX}], "
-                         f"got {m!r}")
+        if m not in ("adaptive", "oracle", "cnn") and not fixed and not best_of(m):
+            parser.error(f"--methods takes 'adaptive', 'oracle', 'cnn', 'bestK' (K >= 1) or integers in "
+                         f"[{OMEGA_MIN}, {OMEGA_MAX}], got {m!r}")
+    if not OMEGA_MIN <= args.best_omega <= OMEGA_MAX:
+        parser.error(f"--best-omega must lie in [{OMEGA_MIN}, {OMEGA_MAX}], got {args.best_omega}")
     if "cnn" in args.methods:
         check_cnn(parser, args)
     if args.episodes < size or args.mpc_steps < 1:

@@ -1,8 +1,9 @@
 """Choosers: what the closed loop plans for at each MPC step (``mpc.run``). A chooser is called with the step and
 the frames the planner sees, and answers with ``Orders``: the goals, the resolution ω of every episode (or several
 candidate ω, of which the loop keeps per episode the one whose push left the lowest d), and which piece kinds to
-perceive. Fixed ω, the regressor g (adaptive ω, paper Sec. IV-C), the oracle over ω and Sort's A* waypoints
-(``sort.SortPolicy``) are choosers; a new way of choosing is a new chooser, not a new parameter of the loop.
+perceive. Fixed ω, the regressor g (adaptive ω, paper Sec. IV-C), the oracle over ω, the best of K plans at one ω
+and Sort's A* waypoints (``sort.SortPolicy``) are choosers; a new way of choosing is a new chooser, not a new
+parameter of the loop.
 """
 
 from __future__ import annotations
@@ -21,12 +22,14 @@ class Orders(NamedTuple):
     """A chooser's orders for one MPC step, arrays with a leading axis [B]. goals: this step's goal of each
     decision (a batched Goal or KindGoals; the step's d and inside share are scored against it); omegas: one or more
     candidate ω [B] each; kinds [B]: the piece kind each decision perceives (None: every piece); record: extra
-    record fields, arrays [B]."""
+    record fields, arrays [B]; draws: per candidate, which independent plan it is (0: the step's own keys, the same
+    for every ω; d > 0: keys of their own, ``mpc.PLAN_DRAWS``); None: every candidate draw 0."""
 
     goals: Goal | KindGoals
     omegas: tuple[np.ndarray, ...]
     kinds: np.ndarray | None = None
     record: dict = {}
+    draws: tuple[int, ...] | None = None
 
 
 class Chooser:
@@ -72,3 +75,17 @@ class OracleOmega(Chooser):
 
     def __call__(self, t, obs) -> Orders:
         return Orders(self.goals, tuple(np.full(len(obs.depth), w, np.int32) for w in self.omegas))
+
+
+class BestOfK(Chooser):
+    """K plans at one fixed ω from independent keys (draw 0 is ``FixedOmega``'s plan), pushed on copies of the worlds,
+    the one that left the lowest d kept: what choosing among K plans gains without choosing ω (the oracle's control)."""
+
+    def __init__(self, goals, omega: int, k: int):
+        if isinstance(k, bool) or int(k) != k or k < 1:
+            raise ValueError(f"best-of-K needs K >= 1 plans, got {k!r}")
+        self.goals, self.omega, self.k = goals, check_omega(omega), int(k)
+
+    def __call__(self, t, obs) -> Orders:
+        omega = np.full(len(obs.depth), self.omega, np.int32)
+        return Orders(self.goals, (omega,) * self.k, draws=tuple(range(self.k)))

@@ -32,6 +32,8 @@ from dynres_jax.sim.env import PileEnv, State
 from dynres_jax.sim.pool import EnvWorlds, Worlds
 from dynres_jax.sim.sensor import DepthSensor
 
+PLAN_DRAWS = 1 << 20  # plan draw d > 0 folds PLAN_DRAWS + d into a step's keys (away from the sensor's fold 1)
+
 
 @dataclass(frozen=True)
 class MPCConfig:
@@ -188,8 +190,9 @@ def run(worlds: Worlds, states: State, chooser: Chooser, dynamics, cfg: MPCConfi
         seen, camera = view(t, states, step_keys)
         orders = chooser(t, seen)
         now = Situation(states, seen, camera, orders.goals, orders.kinds, step_keys, init, warm)
-        kept = _lowest_distance([act(worlds, now, omega, cfg=cfg, timing=timing, dynamics=dynamics, score=score)
-                                 for omega in orders.omegas])
+        draws = orders.draws or (0,) * len(orders.omegas)
+        kept = _lowest_distance([act(worlds, _drawn(now, d), omega, cfg=cfg, timing=timing, dynamics=dynamics,
+                                     score=score) for omega, d in zip(orders.omegas, draws, strict=True)])
         record = dict(step=t, **{k: np.asarray(kept[k]) for k in ("omega", "bucket", "adam_steps", "objective",
                                                                   "predicted_objective", "distance", "inside",
                                                                   "action")})
@@ -218,6 +221,13 @@ def run_episode(env: PileEnv, state: State, chooser: Chooser, dynamics, cfg: MPC
 def episode_record(record: dict, b: int) -> dict:
     """Episode b's share of a ``run`` record, as Python numbers (JSON-ready)."""
     return {k: (v if k in ("step", "seconds") else np.asarray(v)[b].tolist()) for k, v in record.items()}
+
+
+def _drawn(now: Situation, draw: int) -> Situation:
+    """``now`` with the keys of independent plan ``draw`` (0: the step's own)."""
+    if draw == 0:
+        return now
+    return now._replace(keys=jax.vmap(jax.random.fold_in, in_axes=(0, None))(now.keys, PLAN_DRAWS + draw))
 
 
 def _shift(best):
