@@ -112,20 +112,25 @@ def test_pool_episodes_with_per_episode_omega_and_budget_equal_one_at_a_time():
             np.testing.assert_allclose(records[t]["inside"][b], one[t]["inside"], atol=1e-6)
 
 
-def test_oracle_keeps_the_best_candidate_per_episode():
-    """The oracle over (2, 6): each episode keeps the ω whose push left the lower d, and its record equals that of the
-    run at that fixed ω (same keys); an ω beyond the pile's points is named, not planned on empty particles."""
-
+@pytest.fixture(scope="module")
+def three():
+    """Three tiny Gather scenes in a WorldPool: (pool, goals [3], planner, cfg of one MPC step, keys, starts)."""
     sim = SimConfig(scene=SceneConfig(pieces=(6,)), pile=PileConfig(layout="spread"),
                     push=PushConfig(max_length=0.1, settle_time=0.04), camera=CameraConfig(width=48, height=48))
     pool = WorldPool(sim)
     masks = [disc_goal(pool.camera, np.array(c), 0.06) for c in ([0.0, 0.0], [0.05, -0.03], [-0.04, 0.04])]
     goals = jax.tree.map(lambda *x: np.stack(x), *[make_goal(m, pool.camera, n_samples=32) for m in masks])
     planner = PlannerConfig(samples=4, adam_steps=3, bound=pool.env.action_bound, max_length=0.1)
-    keys = jax.random.split(jax.random.PRNGKey(2), 3)
-    starts = pool.reset(jax.random.split(jax.random.PRNGKey(3), 3))
-    runs = {}
     cfg = MPCConfig(mpc_steps=1, buckets=(2, 6), max_points=256, planner=planner)
+    keys = jax.random.split(jax.random.PRNGKey(2), 3)
+    return pool, goals, planner, cfg, keys, pool.reset(jax.random.split(jax.random.PRNGKey(3), 3))
+
+
+def test_oracle_keeps_the_best_candidate_per_episode(three):
+    """The oracle over (2, 6): each episode keeps the ω whose push left the lower d, and its record equals that of the
+    run at that fixed ω (same keys); an ω beyond the pile's points is named, not planned on empty particles."""
+    pool, goals, planner, cfg, keys, starts = three
+    runs = {}
     for omega in (2, 6):
         runs[omega] = run(pool, starts, FixedOmega(goals, omega), sweep_dynamics(0.04), cfg, keys,
                           log=lambda s: None).records[0]
@@ -140,18 +145,10 @@ def test_oracle_keeps_the_best_candidate_per_episode():
             MPCConfig(mpc_steps=1, buckets=(100,), max_points=256, planner=planner), keys, log=lambda s: None)
 
 
-def test_best_of_k_keeps_the_best_of_independent_plans():
+def test_best_of_k_keeps_the_best_of_independent_plans(three):
     """BestOfK(ω, 2): draw 0 is FixedOmega's plan (same keys), draw 1 a plan of its own keys that pushes elsewhere;
     each episode keeps the one whose push left the lower d."""
-    sim = SimConfig(scene=SceneConfig(pieces=(6,)), pile=PileConfig(layout="spread"),
-                    push=PushConfig(max_length=0.1, settle_time=0.04), camera=CameraConfig(width=48, height=48))
-    pool = WorldPool(sim)
-    masks = [disc_goal(pool.camera, np.array(c), 0.06) for c in ([0.0, 0.0], [0.05, -0.03], [-0.04, 0.04])]
-    goals = jax.tree.map(lambda *x: np.stack(x), *[make_goal(m, pool.camera, n_samples=32) for m in masks])
-    planner = PlannerConfig(samples=4, adam_steps=3, bound=pool.env.action_bound, max_length=0.1)
-    cfg = MPCConfig(mpc_steps=1, buckets=(2, 6), max_points=256, planner=planner)  # the oracle test's compiled plan
-    keys = jax.random.split(jax.random.PRNGKey(2), 3)
-    starts = pool.reset(jax.random.split(jax.random.PRNGKey(3), 3))
+    pool, goals, _, cfg, keys, starts = three
 
     class Draw(Chooser):  # one candidate: plan draw d alone
         def __init__(self, d):
