@@ -15,7 +15,7 @@ from dynres_jax.control.mpc import MPCConfig, run_episode
 from dynres_jax.control.objective import distribution_distance, kind_costs, kind_objective, objective
 from dynres_jax.control.planner import PlannerConfig
 from dynres_jax.control.sort import SortPolicy, astar_blobs, sort_goal, sort_scores
-from dynres_jax.io.draw import Frames, overlay, tint
+from dynres_jax.io.draw import sort_frames
 from dynres_jax.models.registry import sweep_dynamics
 from dynres_jax.perception import particle_kinds, sample_particles
 from dynres_jax.sim.env import PileEnv
@@ -126,8 +126,7 @@ def test_tiny_sort_episode_runs_and_records_every_step(env):
     cfg = MPCConfig(mpc_steps=3, buckets=(8, 32), max_points=512, planner=planner)
     lines = []
     policy = SortPolicy(env, cfg, 20, jax.random.PRNGKey(1), goals, radius, lines.append)
-    drawn = Frames(lambda rgb, particles, record: overlay(tint(rgb, policy.goal_masks), policy.target_mask, particles,
-                                                          env.camera))
+    drawn = sort_frames(policy.goal_masks, lambda: policy.target_mask, env.camera)
     final, records = run_episode(env, env.reset(jax.random.PRNGKey(0)), policy, sweep_dynamics(0.04), cfg,
                                  jax.random.PRNGKey(1), log=lines.append, on_step=[drawn])
     frames = drawn.finish(batch(final))

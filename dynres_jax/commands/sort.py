@@ -29,7 +29,7 @@ from dynres_jax.control.goals import make_goal
 from dynres_jax.control.mpc import measure_timing, run_episode
 from dynres_jax.control.sort import SortPolicy, sort_goal, sort_scores
 from dynres_jax.io import files
-from dynres_jax.io.draw import Frames, overlay, tint
+from dynres_jax.io.draw import sort_frames
 
 
 def main(argv=None):
@@ -63,9 +63,7 @@ def main(argv=None):
         timing = measure_timing(state.obs, goals[0], loop.model.dynamics, cfg, env.camera)
     key = jax.random.PRNGKey(args.seed)
     policy = SortPolicy(env, cfg, loop.omega, key, goals_xy, radius, grid_step=args.grid_step)
-    none = np.zeros_like(masks[0])
-    frames = Frames(lambda rgb, particles, record: overlay(
-        tint(rgb, masks), none if particles is None else policy.target_mask, particles, env.camera))
+    frames = sort_frames(masks, lambda: policy.target_mask, env.camera)
     state, records = run_episode(env, state, policy, loop.model.dynamics, cfg, key, timing=timing, on_step=[frames])
     if timing is not None:
         timing.save(os.path.join(args.out, "timing.json"))

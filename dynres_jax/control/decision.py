@@ -25,7 +25,7 @@ from dynres_jax.perception import Perceived, check_particles, perceive
 @dataclass(frozen=True)
 class DecisionSpec:
     """What a compiled decision is specialised to. capacity: particle slots (a resolution bucket, ``budget``);
-    planner: the shooting optimiser (its ``steps``: the most Adam steps a decision may run); max_points: perception's
+    planner: the shooting optimiser (its ``adam_steps``: the most a decision may run); max_points: perception's
     point cap; real_depth: perception treats the depth as a real camera's (``perception.foreground``)."""
 
     capacity: int

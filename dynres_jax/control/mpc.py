@@ -115,7 +115,7 @@ class SensorView:
         self.camera, self.scene, self.log = sensor.believed_camera(env.camera), env.config.scene, log
 
     def __call__(self, t: int, states: State, keys) -> tuple:
-        seen = self.sense(states.obs, jax.vmap(jax.random.fold_in, in_axes=(0, None))(keys, 1))
+        seen = self.sense(states.obs, fold(keys, 1))
         if t == 0:
             refined = calibrate(episode(seen), self.camera, bin_half_width=self.scene.bin_half_width,
                                 wall_height=self.scene.wall_height)
@@ -186,7 +186,7 @@ def run(worlds: Worlds, states: State, chooser: Chooser, dynamics, cfg: MPCConfi
     init = jnp.zeros((len(keys), cfg.planner.horizon, 4), jnp.float32)  # no warm start at the first step
     for t in range(cfg.mpc_steps):
         t0 = time.perf_counter()
-        step_keys = jax.vmap(jax.random.fold_in, in_axes=(0, None))(keys, t)
+        step_keys = fold(keys, t)
         seen, camera = view(t, states, step_keys)
         orders = chooser(t, seen)
         now = Situation(states, seen, camera, orders.goals, orders.kinds, step_keys, init, warm)
@@ -227,7 +227,12 @@ def _drawn(now: Situation, draw: int) -> Situation:
     """``now`` with the keys of independent plan ``draw`` (0: the step's own)."""
     if draw == 0:
         return now
-    return now._replace(keys=jax.vmap(jax.random.fold_in, in_axes=(0, None))(now.keys, PLAN_DRAWS + draw))
+    return now._replace(keys=fold(now.keys, PLAN_DRAWS + draw))
+
+
+def fold(keys, n: int):
+    """keys [B] each with ``n`` folded in (``jax.random.fold_in``): a step's keys, a sensor's, a plan draw's."""
+    return jax.vmap(jax.random.fold_in, in_axes=(0, None))(keys, n)
 
 
 def _shift(best):

@@ -64,3 +64,13 @@ def goal_frames(goal_mask: np.ndarray, camera) -> Frames:
         return overlay(rgb, goal_mask, particles, camera, label=label)
 
     return Frames(draw)
+
+
+def sort_frames(goal_masks, target_mask: Callable[[], np.ndarray], camera) -> Frames:
+    """Frames of Sort: kind 0's goal blue, kind 1's orange (``tint``), the current waypoint disc ``target_mask()``
+    green (none on the final frame), the particles red."""
+    def draw(rgb, particles, record):
+        target = np.zeros_like(goal_masks[0]) if particles is None else target_mask()
+        return overlay(tint(rgb, goal_masks), target, particles, camera)
+
+    return Frames(draw)
