@@ -2,6 +2,7 @@
 
 import dataclasses
 import os
+import re
 
 import jax
 import jax.numpy as jnp
@@ -59,19 +60,40 @@ def test_checkpoint_of_another_model_is_a_clear_error(saved, tmp_path):
         ckpt.load_module(directory, lambda meta: Dynamics(DynamicsConfig(hidden=32), rngs=nnx.Rngs(0)))
 
 
-def test_corrupt_checkpoint_is_a_clear_error(saved, tmp_path):
-    model, _ = saved
-    directory = tmp_path / "corrupt"
-    ckpt.save_module(directory, 1, model, {"dynamics": dataclasses.asdict(CFG)})
-    corrupted = 0
-    for root, _, files in os.walk(directory / "1" / "module"):
-        for name in files:
-            corrupted += 1
-            with open(os.path.join(root, name), "wb") as f:
-                f.write(b"not a checkpoint")
-    assert corrupted
-    with pytest.raises(ckpt.CheckpointError):
-        ckpt.load_module(directory, build)
+def test_one_flipped_byte_anywhere_is_refused_before_restore_naming_the_file(saved, tmp_path):
+    """Every file of a step, the manifest too: one byte flipped is named, and orbax is never asked to read it."""
+    import shutil
+
+    _, directory = saved
+    step_dir = os.path.join(directory, "7")
+    names = [os.path.relpath(os.path.join(root, n), step_dir) for root, _, ns in os.walk(step_dir) for n in ns]
+    assert len(names) > 10 and ckpt.MANIFEST in names
+    for i, name in enumerate(sorted(names)):
+        copy = tmp_path / str(i)
+        shutil.copytree(directory, copy)
+        path = copy / "7" / name
+        data = bytearray(path.read_bytes())
+        data[len(data) // 2] ^= 0x01
+        path.write_bytes(bytes(data))
+        with pytest.raises(ckpt.CheckpointError, match=re.escape(str(path)) + " is damaged"):
+            ckpt.load_module(copy, build)
+        with pytest.raises(ckpt.CheckpointError, match="damaged"):
+            ckpt.load_meta(copy)
+
+
+def test_a_save_killed_before_its_manifest_is_unfinished(saved, tmp_path):
+    """A step orbax finished but whose manifest was never written is not a checkpoint: not the latest, not readable,
+    and a new save of that step replaces it."""
+    import shutil
+
+    model, directory = saved
+    shutil.copytree(directory, tmp_path / "c")
+    os.remove(tmp_path / "c" / "7" / ckpt.MANIFEST)
+    assert ckpt.latest_step(tmp_path / "c") is None
+    with pytest.raises(FileNotFoundError, match="step 7 has no manifest.json"):
+        ckpt.load_module(tmp_path / "c", build)
+    ckpt.save_module(tmp_path / "c", 7, model, {"dynamics": dataclasses.asdict(CFG)})
+    assert ckpt.latest_step(tmp_path / "c") == 7
 
 
 def test_keeps_the_newest_steps(tmp_path):

@@ -26,6 +26,7 @@ from jax.scipy.special import ndtr
 
 from dynres_jax.config import OMEGA_MAX, OMEGA_MIN
 from dynres_jax.io import ckpt
+from dynres_jax.models.registry import describe
 from dynres_jax.perception import foreground
 
 W_R = 1e-3  # the reference's weight of the resolution penalty
@@ -229,6 +230,8 @@ def choose_omega(graphdef, state, inputs):
 
 def build_regressor(meta: dict) -> Regressor:
     """A fresh regressor from a checkpoint card (``ckpt.load_module``'s ``build``)."""
+    if "width" not in meta or "dynamics" in meta:
+        raise ValueError(f"it holds {describe(meta)}, not an ω regressor")
     return Regressor(width=meta["width"], rngs=nnx.Rngs(0))
 
 

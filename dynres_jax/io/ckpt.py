@@ -3,15 +3,19 @@
 The rest of the code never touches orbax. Layout: ``DIR/<step>/`` holds one item per saved pytree (``module``,
 ``opt``, ...; a restore reads only those it asks for) and ``meta`` (JSON: the config to rebuild the module, anything
 the caller adds). Orbax writes a step to a temporary name and
-renames it when complete, so a killed save never leaves a step that looks finished; ``latest_step`` is where a
-training run resumes. Every process of a job reads and writes on its own (no orbax barriers): a data-parallel run
+renames it when complete; then ``DIR/<step>/manifest.json`` records every file's SHA-256 (written atomically, last),
+and a step counts as finished only with its manifest. Every read checks the step's bytes against it first, so a
+damaged file (one flipped byte) is named before orbax touches it. ``latest_step`` is where a training run resumes. Every process of a job reads and writes on its own (no orbax barriers): a data-parallel run
 saves host copies from process 0 alone (``dynres_jax.distributed``) and every process restores.
 """
 
 from __future__ import annotations
 
+import hashlib
+import json
 import logging
 import os
+import shutil
 from collections.abc import Callable
 from typing import Any
 
@@ -20,9 +24,18 @@ import numpy as np
 import orbax.checkpoint as ocp
 from flax import nnx
 
+from dynres_jax.errors import InputError
+from dynres_jax.io import files
 
-class CheckpointError(ValueError):
-    """A checkpoint exists but cannot be read into what was asked for (corrupt, or another model's)."""
+MANIFEST = "manifest.json"
+
+
+class CheckpointError(InputError):
+    """A checkpoint that cannot be read into what was asked for (damaged, unfinished, or another model's)."""
+
+
+class MissingCheckpoint(CheckpointError, FileNotFoundError):
+    """No finished checkpoint where one was asked for."""
 
 
 class _QuietReadOnly(logging.Filter):
@@ -45,28 +58,94 @@ def _manager(directory, keep: int | None = 3, read_only: bool = False) -> ocp.Ch
     return ocp.CheckpointManager(os.path.abspath(directory), options=options)
 
 
-def latest_step(directory) -> int | None:
-    """The newest complete step in ``directory``, or None when there is none (or no directory)."""
+def _hashes(step_dir: str) -> dict[str, str]:
+    """SHA-256 of every file under ``step_dir`` but the manifest, by path relative to it."""
+    out = {}
+    for root, _, names in os.walk(step_dir):
+        for name in names:
+            path = os.path.join(root, name)
+            rel = os.path.relpath(path, step_dir)
+            if rel != MANIFEST:
+                with open(path, "rb") as f:
+                    out[rel] = hashlib.file_digest(f, "sha256").hexdigest()
+    return dict(sorted(out.items()))
+
+
+def _seal_hash(hashes: dict[str, str]) -> str:
+    return hashlib.sha256(json.dumps(hashes, sort_keys=True).encode()).hexdigest()
+
+
+def seal(directory, step: int) -> None:
+    """Write ``DIR/<step>/manifest.json``: the SHA-256 of every file of the step, and of that list itself."""
+    step_dir = os.path.join(directory, str(step))
+    hashes = _hashes(step_dir)
+    files.write_json(os.path.join(step_dir, MANIFEST), dict(files=hashes, sha256=_seal_hash(hashes)))
+
+
+def verify(directory, step: int) -> None:
+    """CheckpointError naming the first file of ``DIR/<step>`` whose bytes differ from its manifest (or a file missing,
+    added, or a damaged manifest)."""
+    step_dir = os.path.join(directory, str(step))
+    where = f"checkpoint {str(directory)!r} step {step}"
+    try:
+        with open(os.path.join(step_dir, MANIFEST)) as f:
+            manifest = json.load(f)
+        recorded = manifest["files"]
+        intact = manifest["sha256"] == _seal_hash(recorded)
+    except (OSError, ValueError, KeyError, TypeError) as e:
+        raise CheckpointError(f"{where}: its {MANIFEST} is missing or unreadable ({type(e).__name__}); the save was "
+                              "killed or the folder was damaged") from e
+    if not intact:
+        raise CheckpointError(f"{where}: {os.path.join(step_dir, MANIFEST)} is damaged (its own hash differs)")
+    found = _hashes(step_dir)
+    for rel in sorted(set(recorded) | set(found)):
+        if rel not in found:
+            raise CheckpointError(f"{where}: {os.path.join(step_dir, rel)} is missing")
+        if rel not in recorded:
+            raise CheckpointError(f"{where}: {os.path.join(step_dir, rel)} is not in its manifest (added later)")
+        if found[rel] != recorded[rel]:
+            raise CheckpointError(f"{where}: {os.path.join(step_dir, rel)} is damaged (its SHA-256 differs from the "
+                                  "manifest's)")
+
+
+def _steps(directory) -> list[int]:
+    """The steps in ``directory`` whose save finished (orbax renamed the folder and the manifest is written)."""
     if not os.path.isdir(directory):
-        return None
-    with _manager(directory, read_only=True) as mngr:
-        return mngr.latest_step()
+        return []
+    return sorted(int(name) for name in os.listdir(directory)
+                  if name.isdigit() and os.path.isfile(os.path.join(directory, name, MANIFEST)))
+
+
+def latest_step(directory) -> int | None:
+    """The newest finished step in ``directory``, or None when there is none (or no directory)."""
+    steps = _steps(directory)
+    return steps[-1] if steps else None
 
 
 def save(directory, step: int, state: dict[str, Any], meta: dict, keep: int | None = 3) -> None:
     """Write pytrees ``state`` (e.g. {"model": nnx.State, "opt": ...}) and JSON ``meta`` as ``step``; keeps the
     newest ``keep`` steps."""
+    unsealed = os.path.join(directory, str(step))
+    if os.path.isdir(unsealed) and step not in _steps(directory):
+        shutil.rmtree(unsealed)  # a save killed between orbax's rename and the manifest: unfinished
     with _manager(directory, keep) as mngr:
         items = {name: ocp.args.StandardSave(tree) for name, tree in state.items()}
         mngr.save(step, args=ocp.args.Composite(**items, meta=ocp.args.JsonSave(meta)))
         mngr.wait_until_finished()
+    seal(directory, step)
 
 
 def _step_or_latest(directory, step: int | None) -> int:
+    """``step`` (default: the newest), its bytes verified against its manifest."""
     found = latest_step(directory)
     if found is None:
-        raise FileNotFoundError(f"no checkpoint in {directory!r} (missing, empty, or only unfinished saves)")
-    return found if step is None else step
+        unsealed = [n for n in os.listdir(directory) if n.isdigit()] if os.path.isdir(directory) else []
+        hint = (f"; step {max(unsealed, key=int)} has no {MANIFEST}: its save was killed, or it predates manifests "
+                "(if you trust it: dynres_jax.io.ckpt.seal(DIR, STEP))" if unsealed else "")
+        raise MissingCheckpoint(f"no checkpoint in {str(directory)!r} (missing, empty, or only unfinished saves){hint}")
+    step = found if step is None else step
+    verify(directory, step)
+    return step
 
 
 def load_meta(directory, step: int | None = None) -> dict:
@@ -76,7 +155,7 @@ def load_meta(directory, step: int | None = None) -> dict:
         try:
             return dict(mngr.restore(step, args=ocp.args.Composite(meta=ocp.args.JsonRestore()))["meta"])
         except Exception as e:  # orbax raises many types for unreadable files
-            raise CheckpointError(f"checkpoint {directory!r} step {step}: cannot read its card: {e}") from e
+            raise CheckpointError(f"checkpoint {str(directory)!r} step {step}: cannot read its card: {e}") from e
 
 
 def restore(directory, abstract_state: dict[str, Any], step: int | None = None) -> tuple[dict[str, Any], dict]:
@@ -93,8 +172,8 @@ def restore(directory, abstract_state: dict[str, Any], step: int | None = None) 
             items = {name: ocp.args.StandardRestore(tree) for name, tree in placed.items()}
             out = mngr.restore(step, args=ocp.args.Composite(**items, meta=ocp.args.JsonRestore()))
         except Exception as e:
-            raise CheckpointError(f"checkpoint {directory!r} step {step} does not match the requested model or is "
-                                  f"corrupt: {type(e).__name__}: {str(e)[:300]}") from e
+            raise CheckpointError(f"checkpoint {str(directory)!r} step {step} does not match the requested model: "
+                                  f"{type(e).__name__}: {str(e).splitlines()[0][:200] if str(e) else ''}") from e
     return {name: out[name] for name in abstract_state}, dict(out["meta"])
 
 
@@ -107,10 +186,14 @@ def save_module(directory, step: int, module: nnx.Module, meta: dict, extra: dic
 def load_module(directory, build: Callable[[dict], nnx.Module], step: int | None = None,
                 extra: dict[str, Any] | None = None) -> tuple[nnx.Module, dict, dict[str, Any]]:
     """Rebuild a module from its card and restore its state: ``build(meta)`` makes a fresh module (it is only traced,
-    through ``nnx.eval_shape``, so no parameters are initialised). ``extra``: abstract pytrees saved beside it.
+    through ``nnx.eval_shape``, so no parameters are initialised; a ValueError from it, a card of another kind of model,
+becomes a CheckpointError naming the folder). ``extra``: abstract pytrees saved beside it.
     Returns (module, meta, restored extra)."""
     meta = load_meta(directory, step)
-    abstract = nnx.eval_shape(lambda: build(meta))
+    try:
+        abstract = nnx.eval_shape(lambda: build(meta))
+    except (KeyError, TypeError, ValueError) as e:  # the card is another model's: before any restore
+        raise CheckpointError(f"checkpoint {str(directory)!r}: {e}") from e
     graphdef, abstract_state = nnx.split(abstract)
     state, meta = restore(directory, {"module": abstract_state, **(extra or {})}, step)
     module_state = state.pop("module")

@@ -42,6 +42,8 @@ def make_model(config: DynamicsConfig | CNNDynamicsConfig, seed: int = 0) -> Dyn
 def build_model(meta: dict) -> Dynamics | CNNDynamics:
     """A fresh model from a checkpoint card (``ckpt.load_module``'s ``build``): ``meta["model_class"]`` ("gnn", the
     default for cards written before the CNN existed, or "cnn") and its config ``meta["dynamics"]``."""
+    if "dynamics" not in meta:
+        raise ValueError(f"it holds {describe(meta)}, not a dynamics model")
     name = meta.get("model_class", "gnn")
     if name not in MODEL_CLASSES:
         raise ValueError(f"checkpoint card names model_class {name!r}; known: {', '.join(MODEL_CLASSES)}")
@@ -49,6 +51,13 @@ def build_model(meta: dict) -> Dynamics | CNNDynamics:
     if name == "gnn" and "steps" in fields:  # cards written before the field was named propagation_steps
         fields["propagation_steps"] = fields.pop("steps")
     return make_model(MODEL_CLASSES[name][0](**fields))
+
+
+def describe(meta: dict) -> str:
+    """What a checkpoint card holds, in words: "a gnn dynamics model", "a cnn dynamics model", "an ω regressor"."""
+    if "dynamics" in meta:
+        return f"a {meta.get('model_class', 'gnn')} dynamics model"
+    return "an ω regressor" if "width" in meta else "no model this package knows"
 
 
 EDGE_DTYPES = ("float32", "bfloat16")  # ``learned_dynamics``'s choices for the GNN's per-edge network
