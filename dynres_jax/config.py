@@ -8,6 +8,8 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
+import numbers
 from dataclasses import dataclass, field
 
 GEOMS = ("sphere", "capsule", "box")
@@ -19,6 +21,29 @@ def check_omega(omega, what: str = "omega") -> int:
     if isinstance(omega, bool) or int(omega) != omega or not OMEGA_MIN <= omega <= OMEGA_MAX:
         raise ValueError(f"{what} must be an integer in [{OMEGA_MIN}, {OMEGA_MAX}], got {omega!r}")
     return int(omega)
+
+
+def check_fields(cfg) -> None:
+    """Check a config dataclass's fields against their annotations: TypeError naming the field when an ``int``,
+    ``float``, ``bool`` or ``str`` field holds another type (a float field takes whole numbers; a number field never a
+    bool), ValueError for a number that is not finite. Other annotations (tuples, nested configs) are left to the
+    class."""
+    for f in dataclasses.fields(cfg):
+        value, kind = getattr(cfg, f.name), str(f.type)
+        if kind.endswith(" | None"):
+            if value is None:
+                continue
+            kind = kind.removesuffix(" | None")
+        where = f"{type(cfg).__name__}.{f.name}"
+        numeric = isinstance(value, numbers.Real) and not isinstance(value, bool)
+        ok = {"int": numeric and isinstance(value, numbers.Integral), "float": numeric,
+              "bool": isinstance(value, bool) or type(value).__name__ == "bool_", "str": isinstance(value, str)}
+        if kind not in ok:
+            continue
+        if not ok[kind]:
+            raise TypeError(f"{where} must be {'an' if kind == 'int' else 'a'} {kind}, got {value!r}")
+        if kind == "float" and not math.isfinite(value):
+            raise ValueError(f"{where} must be a finite number, got {value!r}")
 
 
 @dataclass(frozen=True)
@@ -115,6 +140,7 @@ class SceneConfig:
     size_seed: int = 0
 
     def __post_init__(self):
+        check_fields(self)
         if len(self.kinds) != len(self.pieces) or not self.kinds:
             raise ValueError(f"kinds {self.kinds} and pieces {self.pieces} must be non-empty and of equal length")
         for k in self.kinds:
@@ -170,6 +196,9 @@ class PushConfig:
     clearance: float = 0.002
     lift_height: float = 0.08
 
+    def __post_init__(self):
+        check_fields(self)
+
 
 @dataclass(frozen=True)
 class PileConfig:
@@ -182,6 +211,7 @@ class PileConfig:
     settle_time: float = 0.2
 
     def __post_init__(self):
+        check_fields(self)
         if self.layout not in ("blob", "two_blobs", "spread"):
             raise ValueError(f"pile layout must be 'blob', 'two_blobs' or 'spread', got {self.layout!r}")
 
@@ -197,6 +227,9 @@ class CameraConfig:
     height: int = 128
     distance: float = 1.0
     view_half_width: float = 0.23
+
+    def __post_init__(self):
+        check_fields(self)
 
 
 @dataclass(frozen=True)

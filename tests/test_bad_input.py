@@ -37,7 +37,7 @@ def test_every_kinds_default_pile_has_comparable_area_and_its_goals_fit(kind):
 
 def test_a_pile_too_large_for_the_bin_names_the_largest_that_fits():
     env = _env("almond", 100)  # the crash of issue 26: "high - low < 0" from deep inside NumPy
-    largest = tasks.largest_pile(env)
+    largest = tasks.largest_pile(env.config.scene)
     assert 25 <= largest < 100
     with pytest.raises(ValueError, match=f"100 almond pieces need a goal disc wider .* at most {largest} fit"):
         tasks.gather_goal(np.random.default_rng(0), env)

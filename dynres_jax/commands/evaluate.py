@@ -29,7 +29,6 @@ process 0 merges them into ``METHOD.json`` and writes the summary.
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import re
@@ -39,11 +38,11 @@ import jax.numpy as jnp
 import numpy as np
 
 from dynres_jax import distributed
+from dynres_jax.commands import checks
 from dynres_jax.commands.task import (
     add_planner_args,
-    check_out,
-    check_planner_args,
     load_model,
+    load_timing,
     mpc_config,
     resolve_pieces,
     timing_table,
@@ -54,7 +53,8 @@ from dynres_jax.control.choosers import ORACLE_OMEGAS, AdaptiveOmega, BestOfK, C
 from dynres_jax.control.goals import make_goal, stack
 from dynres_jax.control.mpc import SensorView, run
 from dynres_jax.io import ckpt, files
-from dynres_jax.models.registry import SHIPPED_CNN_DYNAMICS, SHIPPED_DYNAMICS, SHIPPED_REGRESSOR
+from dynres_jax.models.registry import SHIPPED_CNN_DYNAMICS, SHIPPED_DYNAMICS, SHIPPED_REGRESSOR, describe
+from dynres_jax.sim.camera import Camera
 from dynres_jax.sim.pool import WorldPool, process_pool
 from dynres_jax.sim.sensor import SENSORS
 from dynres_jax.stats import mcnemar, paired_bootstrap, wilson
@@ -191,6 +191,15 @@ def method_chooser(method: str, goals, args, camera) -> Chooser:
     return FixedOmega(goals, args.cnn_omega if method == "cnn" else int(method))
 
 
+def method_omegas(args, cfg) -> list[int]:
+    """Every ω the methods of --methods may plan at (a budget must afford them a step)."""
+    omegas = []
+    for m in args.methods:
+        omegas += ([int(m)] if m.isdigit() else [args.best_omega] if best_of(m) else [args.cnn_omega] if m == "cnn"
+                   else list(ORACLE_OMEGAS) if m == "oracle" else list(cfg.buckets))
+    return omegas
+
+
 def best_of(method: str) -> int:
     """K of a best-of-K method name ("best5" -> 5), else 0."""
     match = re.fullmatch(r"best([1-9][0-9]*)", method)
@@ -199,79 +208,83 @@ def best_of(method: str) -> int:
 
 def check_cnn(parser, args) -> None:
     """Method "cnn" needs a CNN checkpoint at --cnn-ckpt and a valid --cnn-omega; parser.error naming what is wrong."""
-    if not OMEGA_MIN <= args.cnn_omega <= OMEGA_MAX:
-        parser.error(f"--cnn-omega must lie in [{OMEGA_MIN}, {OMEGA_MAX}], got {args.cnn_omega}")
-    if ckpt.latest_step(args.cnn_ckpt) is None:
-        parser.error(f"method 'cnn' needs a CNN dynamics checkpoint; there is none in {args.cnn_ckpt!r} (train one "
-                     "with python -m experiments.train_dynamics --model cnn, or give --cnn-ckpt)")
-    meta = ckpt.load_meta(args.cnn_ckpt)
+    try:
+        meta = ckpt.load_meta(args.cnn_ckpt)
+    except ckpt.CheckpointError as e:
+        parser.error(f"method 'cnn' needs a CNN dynamics checkpoint (python -m experiments.train_dynamics --model cnn)"
+                     f"; --cnn-ckpt: {e}")
     if meta.get("model_class", "gnn") != "cnn":
-        parser.error(f"--cnn-ckpt {args.cnn_ckpt!r} holds a {meta.get('model_class', 'gnn')} model, not a cnn one")
+        parser.error(f"--cnn-ckpt {args.cnn_ckpt!r} holds {describe(meta)}, not a cnn dynamics model")
     if args.cnn_omega > meta["train"]["n_max"]:
         parser.error(f"--cnn-omega {args.cnn_omega} exceeds the CNN model's n_max = {meta['train']['n_max']}")
 
 
+@checks.guarded("evaluate")
 def main(argv=None):
-    parser = argparse.ArgumentParser(prog="python -m experiments.evaluate", description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = checks.parser("evaluate", __doc__)
     parser.add_argument("--task", default="gather", choices=tasks.TASKS)
-    parser.add_argument("--episodes", type=int, default=64)
-    parser.add_argument("--mpc-steps", type=int, default=20, help="MPC steps per episode")
+    parser.add_argument("--episodes", type=checks.count(1), default=64)
+    parser.add_argument("--mpc-steps", type=checks.count(1), default=20, help="MPC steps per episode")
     parser.add_argument("--methods", nargs="+", default=["10", "25", "50", "75", "100", "adaptive"],
                         help="fixed ω (integers), 'adaptive' (the regressor picks ω), 'oracle' (every step keeps the "
                              "best of ω in ORACLE_OMEGAS by the simulated outcome), 'bestK' (e.g. best5: every step "
                              "keeps the best of K plans at --best-omega by the simulated outcome, the oracle's "
                              "control) and 'cnn' (the CNN-dynamics baseline at --cnn-omega)")
-    parser.add_argument("--best-omega", type=int, default=50, help="ω of the bestK methods")
+    parser.add_argument("--best-omega", type=checks.omega, default=50, help="ω of the bestK methods")
     add_planner_args(parser)
     parser.add_argument("--kind", default="coffee", choices=sorted(KINDS))
     parser.add_argument("--sensor", default="none", choices=sorted(SENSORS),
                         help="a real depth camera's errors on every observation the planner sees (sim.sensor; "
                              "perception then treats the depth as a real camera's); d and success use the true state")
-    parser.add_argument("--pieces", type=int, default=None,
+    parser.add_argument("--pieces", type=checks.count(1), default=None,
                         help="pieces in the pile (default: the kind's count for a pile of 100 coffee beans' area)")
     parser.add_argument("--ckpt", default=SHIPPED_DYNAMICS)
     parser.add_argument("--dynamics", default="auto", choices=["auto", "learned", "sweep"])
     parser.add_argument("--regressor", default=SHIPPED_REGRESSOR)
     parser.add_argument("--cnn-ckpt", default=SHIPPED_CNN_DYNAMICS, help="the CNN-dynamics checkpoint of method 'cnn'")
-    parser.add_argument("--cnn-omega", type=int, default=50, help="ω of method 'cnn'")
-    parser.add_argument("--workers", type=int, default=None)
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--cnn-omega", type=checks.omega, default=50, help="ω of method 'cnn'")
+    parser.add_argument("--workers", type=checks.count(1, 1024), default=None)
+    parser.add_argument("--seed", type=checks.seed, default=0)
     parser.add_argument("--out", required=True)
+    checks.add_fresh(parser)
     parser.add_argument("--quick", action="store_true", help="tiny sizes for a CPU smoke run")
     distributed.add_args(parser)
     args = parser.parse_args(argv)
     rank, size = distributed.from_args(parser, args)
-    check_planner_args(parser, args)
+    load_timing(parser, args)
     for m in args.methods:
         fixed = m.isdigit() and OMEGA_MIN <= int(m) <= OMEGA_MAX
         if m not in ("adaptive", "oracle", "cnn") and not fixed and not best_of(m):
             parser.error(f"--methods takes 'adaptive', 'oracle', 'cnn', 'bestK' (K >= 1) or integers in "
                          f"[{OMEGA_MIN}, {OMEGA_MAX}], got {m!r}")
-    if not OMEGA_MIN <= args.best_omega <= OMEGA_MAX:
-        parser.error(f"--best-omega must lie in [{OMEGA_MIN}, {OMEGA_MAX}], got {args.best_omega}")
+    if len(set(args.methods)) < len(args.methods):
+        parser.error(f"--methods names a method twice: {' '.join(args.methods)}")
     if "cnn" in args.methods:
         check_cnn(parser, args)
-    if args.episodes < size or args.mpc_steps < 1:
-        parser.error(f"--episodes must be at least the {size} process(es) and --mpc-steps at least 1, got "
-                     f"{args.episodes} and {args.mpc_steps}")
+    if args.episodes < size:
+        parser.error(f"--episodes must be at least the {size} processes of the job, got {args.episodes}")
     resolve_pieces(parser, args)
-    check_out(parser, args.out)
     camera = CameraConfig(width=64, height=64) if args.quick else CameraConfig()
     sim = SimConfig(scene=SceneConfig(kinds=(args.kind,), pieces=(args.pieces,)), camera=camera,
                     pile=PileConfig(layout="spread" if args.task == "gather" else "blob"))
     main_model = load_model(parser, args.dynamics, args.ckpt, sim.scene.plate_half_width)
     cnn_model = load_model(parser, "learned", args.cnn_ckpt, sim.scene.plate_half_width) if "cnn" in args.methods \
         else None
+    for m in args.methods:
+        omega = int(m) if m.isdigit() else args.best_omega if best_of(m) else None
+        if omega is not None and omega > main_model.n_max:
+            parser.error(f"method {m}: ω = {omega} exceeds the model's n_max = {main_model.n_max}")
+    if "adaptive" in args.methods:
+        try:
+            resolution.load_regressor(args.regressor, Camera.top_down(camera))
+        except ckpt.CheckpointError as e:
+            parser.error(f"--regressor (method adaptive): {e}")
+    checks.claim(args.out, "evaluate", checks.settings(args, ignore=("methods",)), args.fresh)
     os.makedirs(os.path.join(args.out, "parts"), exist_ok=True)
     mine = np.arange(rank, args.episodes, size)  # this process's episodes
     results = {}
     with process_pool(args.workers) as processes:
         pool = WorldPool(sim, processes)
-        try:
-            tasks.check_pile_fits(pool.env)
-        except ValueError as e:
-            parser.error(str(e))
         masks = episode_goals(args.task, args.episodes, args.seed, pool.env)
         goals = stack([make_goal(masks[i], pool.camera) for i in mine])
         keys = jax.random.split(jax.random.PRNGKey(args.seed), args.episodes)[mine]
@@ -281,7 +294,7 @@ def main(argv=None):
         timing = None
         if args.time_budget is not None and todo:  # one table for every method: the main model on the first episode
             timing = timing_table(args, args.out, pool.reset(pile_keys[:1]).obs, goals, main_model.dynamics, cfg,
-                                  pool.camera)
+                                  pool.camera, method_omegas(args, cfg))
         for method in args.methods:
             path = os.path.join(args.out, f"{method}.json")
             if method not in todo:

@@ -25,10 +25,8 @@ I labels shards I, I + K, ... into the same --out.
 
 from __future__ import annotations
 
-import argparse
 import contextlib
 import functools
-import glob
 import os
 import time
 
@@ -37,34 +35,40 @@ import numpy as np
 from tqdm import tqdm
 
 from dynres_jax import distributed
-from dynres_jax.commands.task import add_planner_args, check_planner_args, load_model, mpc_config, timing_table
+from dynres_jax.commands import checks
+from dynres_jax.commands.task import add_planner_args, load_model, load_timing, mpc_config, timing_table
 from dynres_jax.config import KINDS, OMEGA_MAX, SceneConfig
+from dynres_jax.control import tasks
+from dynres_jax.errors import InputError
 from dynres_jax.io import files
-from dynres_jax.learn.data import save_npz, shard_path, shards_todo
+from dynres_jax.learn.data import complete_shards, read_shard, save_npz, shard_path, shards_todo
 from dynres_jax.learn.labels import MID_EPISODE_OMEGA, LabelConfig, label_shard, scene_config, shard_scenes
 from dynres_jax.models.registry import SHIPPED_DYNAMICS
 from dynres_jax.sim.pool import BACKENDS, make_pool, process_pool, resolve_backend
 
 
+@checks.guarded("label_resolution")
 def main(argv=None):
-    parser = argparse.ArgumentParser(prog="python -m experiments.label_resolution", description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = checks.parser("label_resolution", __doc__)
     parser.add_argument("--out", required=True)
-    parser.add_argument("--scenes", type=int, default=1024)
-    parser.add_argument("--batch", type=int, default=128, help="scenes per shard (even)")
-    parser.add_argument("--evals", type=int, default=10, help="c+ evaluations per scene (reference 10)")
-    parser.add_argument("--repeats", type=int, default=2, help="plans averaged per evaluation (reference 5)")
+    checks.add_fresh(parser)
+    parser.add_argument("--scenes", type=checks.count(1), default=1024)
+    parser.add_argument("--batch", type=checks.count(2), default=128, help="scenes per shard (even)")
+    parser.add_argument("--evals", type=checks.count(1), default=10, help="c+ evaluations per scene (reference 10)")
+    parser.add_argument("--repeats", type=checks.count(1), default=2,
+                        help="plans averaged per evaluation (reference 5)")
     add_planner_args(parser)
     parser.add_argument("--kind", default="coffee", choices=sorted(KINDS))
-    parser.add_argument("--pieces", type=int, default=100)
+    parser.add_argument("--pieces", type=checks.count(1), default=100)
     parser.add_argument("--ckpt", default=SHIPPED_DYNAMICS)
     parser.add_argument("--dynamics", default="auto", choices=["auto", "learned", "sweep"])
-    parser.add_argument("--workers", type=int, default=None, help="C engine processes (default: every core)")
-    parser.add_argument("--seed", type=int, default=0, help="the scenes (piles and goals)")
-    parser.add_argument("--plan-seed", type=int, default=None,
+    parser.add_argument("--workers", type=checks.count(1, 1024), default=None,
+                        help="C engine processes (default: every core)")
+    parser.add_argument("--seed", type=checks.seed, default=0, help="the scenes (piles and goals)")
+    parser.add_argument("--plan-seed", type=checks.seed, default=None,
                         help="the plans and the BO's random draws (default: --seed + 1); the same --seed with another "
                              "--plan-seed labels the same scenes again independently (label reliability)")
-    parser.add_argument("--mid-episode", type=int, default=0, metavar="K",
+    parser.add_argument("--mid-episode", type=checks.count(0, 100), default=0, metavar="K",
                         help=f"label mid-episode states: each scene first runs K MPC steps towards its goal at "
                              f"ω = {MID_EPISODE_OMEGA} under the same budget (default 0: fresh piles, Fig. 4's pairs)")
     parser.add_argument("--backend", default="mujoco", choices=BACKENDS,
@@ -74,10 +78,15 @@ def main(argv=None):
     args = parser.parse_args(argv)
     distributed.from_args(parser, args)
     args.backend = resolve_backend(args.backend)
+    checks.quick_sets(parser, args, ("scenes", "batch", "evals", "repeats", "pieces", "samples", "adam_steps"))
     if args.quick:
         args.scenes, args.batch, args.evals, args.repeats, args.pieces = 8, 4, 6, 1, 60  # 60: points for ω = 100
         args.samples, args.adam_steps = 4, 4
-    check_planner_args(parser, args)
+    load_timing(parser, args)
+    try:
+        tasks.check_pile_fits(SceneConfig(kinds=(args.kind,), pieces=(args.pieces,)))
+    except InputError as e:
+        parser.error(f"--pieces: {e}")
     try:
         cfg = LabelConfig(kind=args.kind, pieces=args.pieces, batch=args.batch, evals=args.evals, repeats=args.repeats,
                           seed=args.seed, plan_seed=args.plan_seed, mid_episode=args.mid_episode, quick=args.quick,
@@ -87,7 +96,7 @@ def main(argv=None):
     dynamics, n_max, name = load_model(parser, args.dynamics, args.ckpt, SceneConfig.plate_half_width)
     if n_max < OMEGA_MAX:
         parser.error(f"the dynamics checkpoint holds {n_max} particles; labels need {OMEGA_MAX}")
-    os.makedirs(args.out, exist_ok=True)
+    checks.claim(args.out, "label_resolution", checks.settings(args), args.fresh)
     if distributed.is_writer():
         files.write_json(os.path.join(args.out, "config.json"), dict(vars(args), dynamics_name=name))
     n_shards = -(-args.scenes // args.batch)
@@ -103,12 +112,13 @@ def main(argv=None):
             first = (todo or [0])[0]
             pool = make_pool(scene_config(cfg, first), args.backend, processes)
             start, _, goals, _ = shard_scenes(cfg, first, pool)
-            timing = timing_table(args, args.out, start.obs, goals, dynamics, planner(pool.env), pool.camera)
+            timing = timing_table(args, args.out, start.obs, goals, dynamics, planner(pool.env), pool.camera,
+                                  planner(pool.env).buckets)
         for s in tqdm(todo, desc="label shards", unit="shard"):
             save_npz(shard_path(args.out, s), label_shard(cfg, s, dynamics, planner, processes, timing))
     minutes = (time.perf_counter() - t0) / 60
     distributed.barrier(f"label {os.path.abspath(args.out)}")
-    labels = np.concatenate([np.load(p)["label"] for p in sorted(glob.glob(os.path.join(args.out, "shard_*.npz")))])
+    labels = np.concatenate([read_shard(p, ("label",))["label"] for p in complete_shards(args.out, "--out")])
     summary = dict(scenes=len(labels), shards_written=len(todo), minutes=minutes,
                    labels_per_minute=len(todo) * args.batch / minutes if todo else 0.0,
                    device=jax.devices()[0].device_kind, dynamics=name,

@@ -11,17 +11,17 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 
 import cv2
 import jax
 import numpy as np
 
-from dynres_jax.commands.task import check_out, load_model
+from dynres_jax.commands import checks
+from dynres_jax.commands.task import load_model
 from dynres_jax.config import SceneConfig
-from dynres_jax.control.budget import BUCKETS, bucket_for
+from dynres_jax.control.budget import bucket_for
 from dynres_jax.control.decision import goal_cost
-from dynres_jax.control.goals import make_goal
+from dynres_jax.control.goals import check_within, make_goal
 from dynres_jax.control.planner import PlannerConfig, plan
 from dynres_jax.io import files, frames
 from dynres_jax.io.draw import overlay
@@ -30,23 +30,24 @@ from dynres_jax.perception import WORKSPACE_HALF_WIDTH, calibrate, sample_partic
 from dynres_jax.sim.sensor import SENSORS
 
 
+@checks.guarded("plan")
 def main(argv=None):
-    parser = argparse.ArgumentParser(prog="python -m experiments.plan", description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = checks.parser("plan", __doc__)
     parser.add_argument("--depth", required=True)
     parser.add_argument("--rgb", required=True)
     parser.add_argument("--camera", required=True)
     parser.add_argument("--goal", required=True)
-    parser.add_argument("--resolution", type=int, default=50, help="ω")
-    parser.add_argument("--workspace", type=float, default=WORKSPACE_HALF_WIDTH,
+    parser.add_argument("--resolution", type=checks.omega, default=50, help="ω")
+    parser.add_argument("--workspace", type=checks.number(0.0, 2.0, above=True), default=WORKSPACE_HALF_WIDTH,
                         help="half-width (m) of the square where pieces can be; outside it nothing is foreground")
-    parser.add_argument("--bound", type=float, default=0.18, help="pushes stay within ±bound m")
-    parser.add_argument("--plate-half-width", type=float, default=0.04)
-    parser.add_argument("--samples", type=int, default=50)
-    parser.add_argument("--adam-steps", type=int, default=100)
+    parser.add_argument("--bound", type=checks.number(0.0, 2.0, above=True), default=0.18,
+                        help="pushes stay within ±bound m")
+    parser.add_argument("--plate-half-width", type=checks.number(0.005, 0.5), default=0.04, help="m")
+    parser.add_argument("--samples", type=checks.count(1), default=50)
+    parser.add_argument("--adam-steps", type=checks.count(1), default=100)
     parser.add_argument("--dynamics", default="auto", choices=["auto", "learned", "sweep"])
-    parser.add_argument("--ckpt", default=SHIPPED_DYNAMICS)
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--ckpt", default=None, help=f"dynamics checkpoint (default {SHIPPED_DYNAMICS})")
+    parser.add_argument("--seed", type=checks.seed, default=0)
     parser.add_argument("--out", default="push.png", help="the frame with the goal, particles and push drawn")
     parser.add_argument("--real-depth", action=argparse.BooleanOptionalAction, default=True,
                         help="perception for a real camera's depth (a 3 x 3 median, the table plane fitted from the "
@@ -57,17 +58,19 @@ def main(argv=None):
     parser.add_argument("--calibrate", action="store_true",
                         help="refine the camera's pose from the bin in the frame before planning (perception.calibrate:"
                              " the table plane and the walls of a bin of --bin-half-width and --wall-height)")
-    parser.add_argument("--bin-half-width", type=float, default=SceneConfig().bin_half_width, help="m")
-    parser.add_argument("--wall-height", type=float, default=SceneConfig().wall_height, help="m")
+    parser.add_argument("--bin-half-width", type=checks.number(0.02, 2.0), default=SceneConfig().bin_half_width,
+                        help="m")
+    parser.add_argument("--wall-height", type=checks.number(0.005, 1.0), default=SceneConfig().wall_height, help="m")
     args = parser.parse_args(argv)
 
+    obs, camera = frames.load_frame(args.depth, args.rgb, args.camera)
+    goal_mask = frames.load_goal(args.goal, camera)
     try:
-        obs, camera = frames.load_frame(args.depth, args.rgb, args.camera)
-        goal_mask = frames.load_goal(args.goal, camera)
-    except (OSError, ValueError) as e:
-        parser.error(str(e))
-    check_out(parser, os.path.dirname(os.path.abspath(args.out)))
-    goal = make_goal(goal_mask, camera)
+        check_within(goal_mask, camera, args.workspace)
+        goal = make_goal(goal_mask, camera)
+    except ValueError as e:
+        parser.error(f"--goal {args.goal}: {e}")
+    checks.out_file(args.out, (".png", ".jpg"))
     if SENSORS[args.sensor] is not None:
         sensor = SENSORS[args.sensor]
         obs = sensor.observe(obs, jax.random.PRNGKey(args.seed + 1))
@@ -78,9 +81,8 @@ def main(argv=None):
         except ValueError as e:
             parser.error(f"--calibrate: {e}")
     dynamics, n_max, name = load_model(parser, args.dynamics, args.ckpt, args.plate_half_width)
-    largest = min(n_max, BUCKETS[-1])
-    if not 1 <= args.resolution <= largest:
-        parser.error(f"--resolution must lie in [1, {largest}] (the model's n_max and the largest resolution bucket)")
+    if args.resolution > n_max:
+        parser.error(f"--resolution {args.resolution} exceeds the model's n_max = {n_max}")
     key_h, key_plan = jax.random.split(jax.random.PRNGKey(args.seed))
     bucket = bucket_for(args.resolution)
     particles = sample_particles(obs, camera, args.resolution, key_h, bucket, workspace=args.workspace,

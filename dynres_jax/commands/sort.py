@@ -14,7 +14,6 @@ instead.
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import os
 import time
@@ -22,25 +21,35 @@ import time
 import jax
 import numpy as np
 
-from dynres_jax.commands.task import add_loop_args, build_loop, check_out, write_episode
+from dynres_jax.commands import checks
+from dynres_jax.commands.task import add_loop_args, build_loop, check_budget, write_episode
 from dynres_jax.config import KINDS, CameraConfig, PileConfig, SceneConfig, SimConfig
+from dynres_jax.control import tasks
 from dynres_jax.control.decision import batch
 from dynres_jax.control.goals import make_goal
 from dynres_jax.control.mpc import measure_timing, run_episode
 from dynres_jax.control.sort import SortPolicy, sort_goal, sort_scores
+from dynres_jax.errors import InputError
 from dynres_jax.io import files
 from dynres_jax.io.draw import sort_frames
 
 
+@checks.guarded("sort")
 def main(argv=None):
-    parser = argparse.ArgumentParser(prog="python -m experiments.sort", description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = checks.parser("sort", __doc__)
     add_loop_args(parser, "sort")
     parser.add_argument("--kinds", nargs=2, default=["coffee", "candy"], choices=sorted(KINDS), metavar="KIND",
                         help=f"the two piece kinds, one a pile (from {', '.join(sorted(KINDS))})")
-    parser.add_argument("--pieces", nargs=2, type=int, default=[40, 20], metavar="N", help="pieces of each kind")
-    parser.add_argument("--grid-step", type=float, default=0.02, help="A*'s grid spacing (m)")
+    parser.add_argument("--pieces", nargs=2, type=checks.count(1), default=[40, 20], metavar="N",
+                        help="pieces of each kind")
+    parser.add_argument("--grid-step", type=checks.number(0.002, 0.1), default=0.02, help="A*'s grid spacing (m)")
     args = parser.parse_args(argv)
+    if args.kinds[0] == args.kinds[1]:
+        parser.error(f"--kinds must name two different kinds, got {args.kinds[0]} twice")
+    try:
+        tasks.check_pile_fits(SceneConfig(kinds=tuple(args.kinds), pieces=tuple(args.pieces)))
+    except InputError as e:
+        parser.error(f"--pieces: {e}")
 
     sim = SimConfig(scene=SceneConfig(kinds=tuple(args.kinds), pieces=tuple(args.pieces)),
                     pile=PileConfig(layout="two_blobs"), camera=CameraConfig())
@@ -51,7 +60,7 @@ def main(argv=None):
         goals_xy, radius, masks = sort_goal(np.random.default_rng(args.seed), env)
     except ValueError as e:
         parser.error(str(e))
-    check_out(parser, args.out)
+    checks.claim(args.out, "sort", checks.settings(args), args.fresh)
     goals = [make_goal(m, env.camera) for m in masks]
     state = env.reset(jax.random.PRNGKey(args.seed))
     start_inside, start_mixing = sort_scores(state.pos, env.scene.kind, goals, env.camera)
@@ -61,6 +70,7 @@ def main(argv=None):
     t0 = time.perf_counter()
     if cfg.time_budget is not None and timing is None:
         timing = measure_timing(state.obs, goals[0], loop.model.dynamics, cfg, env.camera)
+        check_budget(cfg, timing, [loop.omega])
     key = jax.random.PRNGKey(args.seed)
     policy = SortPolicy(env, cfg, loop.omega, key, goals_xy, radius, grid_step=args.grid_step)
     frames = sort_frames(masks, lambda: policy.target_mask, env.camera)

@@ -24,6 +24,7 @@ import jax
 import numpy as np
 
 from dynres_jax import distributed
+from dynres_jax.commands import checks
 from dynres_jax.config import (
     DEFAULT_PIECES,
     KINDS,
@@ -42,10 +43,12 @@ from dynres_jax.control.mpc import MPCConfig, measure_timing, run_episode
 from dynres_jax.control.objective import inside_share
 from dynres_jax.control.planner import PlannerConfig
 from dynres_jax.control.resolution import load_regressor
+from dynres_jax.errors import InputError
 from dynres_jax.io import files
 from dynres_jax.io.ckpt import CheckpointError
 from dynres_jax.io.draw import goal_frames
 from dynres_jax.models.registry import SHIPPED_DYNAMICS, SHIPPED_REGRESSOR, LoadedDynamics, load_dynamics
+from dynres_jax.sim.camera import Camera
 from dynres_jax.sim.env import PileEnv
 
 DESCRIPTIONS = {
@@ -56,10 +59,10 @@ DESCRIPTIONS = {
 
 def add_loop_args(parser: argparse.ArgumentParser, task: str) -> None:
     """The flags every closed-loop task command takes."""
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--mpc-steps", type=int, default=20, help="MPC steps per episode")
+    parser.add_argument("--seed", type=checks.seed, default=0)
+    parser.add_argument("--mpc-steps", type=checks.count(1), default=20, help="MPC steps per episode")
     if task == "sort":
-        parser.add_argument("--resolution", type=int, default=50, help="ω: particles the planner reasons with")
+        parser.add_argument("--resolution", type=checks.omega, default=50, help="ω: particles the planner reasons with")
     else:
         parser.add_argument("--resolution", default="50",
                             help="ω, the particles the planner reasons with: an integer, or 'adaptive' (the regressor "
@@ -67,19 +70,20 @@ def add_loop_args(parser: argparse.ArgumentParser, task: str) -> None:
                                  "and beats it on Redistribute, docs/budget/README.md)")
         parser.add_argument("--regressor", default=SHIPPED_REGRESSOR, help="regressor checkpoint for adaptive ω")
     parser.add_argument("--backend", default="mujoco", choices=["mujoco", "mjx"])
-    parser.add_argument("--samples", type=int, default=50, help="action sequences optimised at once (M)")
-    parser.add_argument("--adam-steps", type=int, default=100,
+    parser.add_argument("--samples", type=checks.count(1), default=50, help="action sequences optimised at once (M)")
+    parser.add_argument("--adam-steps", type=checks.count(1), default=100,
                         help="Adam steps per plan (N; the most a plan may run under --time-budget)")
     add_budget_args(parser)
     parser.add_argument("--ckpt", default=None, help=f"dynamics checkpoint (default {SHIPPED_DYNAMICS} if present)")
     parser.add_argument("--dynamics", default="auto", choices=["auto", "learned", "sweep"],
                         help="auto: the checkpoint when there is one, else the sweep heuristic")
     parser.add_argument("--out", default=f"out/{task}")
+    checks.add_fresh(parser)
 
 
 def add_budget_args(parser: argparse.ArgumentParser) -> None:
     """--time-budget and --timing: every closed-loop command's, labelling's and evaluation's."""
-    parser.add_argument("--time-budget", type=float, default=None, metavar="S",
+    parser.add_argument("--time-budget", type=checks.positive, default=None, metavar="S",
                         help="seconds per decision on this device: each decision runs the Adam steps that fit, at most "
                              "--adam-steps, from a timing table measured once per resolution bucket (refined from the "
                              "decisions a single episode makes) and saved as timing.json (default: none, --adam-steps "
@@ -90,9 +94,7 @@ def add_budget_args(parser: argparse.ArgumentParser) -> None:
 
 
 def load_timing(parser: argparse.ArgumentParser, args) -> budget.TimingTable | None:
-    """The --timing table (frozen), or None; parser.error naming a bad --time-budget or --timing, before any work."""
-    if args.time_budget is not None and not args.time_budget > 0:
-        parser.error(f"--time-budget must be a positive number of seconds, got {args.time_budget}")
+    """The --timing table (frozen), or None; parser.error naming a bad --timing, before any work."""
     if args.timing is None:
         return None
     if args.time_budget is None:
@@ -104,26 +106,35 @@ def load_timing(parser: argparse.ArgumentParser, args) -> budget.TimingTable | N
 
 
 def resolve_pieces(parser: argparse.ArgumentParser, args) -> None:
-    """--pieces: the kind's default count (``DEFAULT_PIECES``) when not given; parser.error below 1."""
+    """--pieces: the kind's default count (``DEFAULT_PIECES``) when not given; parser.error naming a pile too large for
+    the bin, from the scene's config alone (before any scene is built)."""
     args.pieces = DEFAULT_PIECES[args.kind] if args.pieces is None else args.pieces
-    if args.pieces < 1:
-        parser.error(f"--pieces must be at least 1, got {args.pieces}")
-
-
-def check_out(parser: argparse.ArgumentParser, folder: str) -> None:
-    """parser.error unless ``folder`` (--out, created if needed) takes files: before the work, not after it."""
     try:
-        files.check_writable(folder)
-    except OSError as e:
-        parser.error(f"--out: {e}")
+        tasks.check_pile_fits(SceneConfig(kinds=(args.kind,), pieces=(args.pieces,)))
+    except InputError as e:
+        parser.error(f"--pieces: {e}")
+
+
+def check_budget(cfg: MPCConfig, table: budget.TimingTable | None, omegas) -> None:
+    """InputError naming --time-budget when it affords no Adam step at some ω of ``omegas`` by ``table``."""
+    if cfg.time_budget is None or table is None:
+        return
+    for omega in sorted(set(omegas)):
+        bucket = budget.bucket_for(omega, cfg.buckets)
+        if cfg.adam_steps(bucket, table) < 1:
+            raise InputError(f"--time-budget {cfg.time_budget} s affords no Adam step at ω = {omega} on "
+                             f"{table.device}: a decision's fixed part takes {table.fixed_s[bucket]:.3g} s and each "
+                             f"step {table.step_s[bucket]:.3g} s; give a larger budget")
 
 
 def load_model(parser: argparse.ArgumentParser, choice: str, ckpt_dir: str, plate_half_width: float
                ) -> LoadedDynamics:
     """``registry.load_dynamics``, with a missing or damaged checkpoint named by ``parser.error`` before any work."""
+    if choice == "sweep" and ckpt_dir is not None and os.path.abspath(ckpt_dir) != SHIPPED_DYNAMICS:
+        parser.error(f"--ckpt {ckpt_dir} is given but --dynamics sweep plans without a checkpoint; drop one of them")
     try:
-        return load_dynamics(choice, ckpt_dir, plate_half_width)
-    except (FileNotFoundError, CheckpointError) as e:
+        return load_dynamics(choice, ckpt_dir or SHIPPED_DYNAMICS, plate_half_width)
+    except CheckpointError as e:
         parser.error(f"--ckpt: {e}")
 
 
@@ -146,24 +157,28 @@ class Loop:
 
 
 def build_loop(args, sim: SimConfig, parser: argparse.ArgumentParser) -> Loop:
-    """The ``Loop`` of the loop flags; parser.error naming a bad one before any work."""
-    env = PileEnv(sim, backend=args.backend)
-    model = load_model(parser, args.dynamics, args.ckpt or SHIPPED_DYNAMICS, sim.scene.plate_half_width)
-    regressor, omega, largest = None, str(args.resolution), min(model.n_max, OMEGA_MAX)
-    if omega == "adaptive":
-        if not os.path.isdir(args.regressor):
-            parser.error(f"--resolution adaptive needs a regressor checkpoint; {args.regressor} does not exist")
-        regressor = load_regressor(args.regressor, env.camera)
-    elif not omega.isdigit() or not OMEGA_MIN <= int(omega) <= largest:
-        parser.error(f"--resolution must be 'adaptive' or an integer in [{OMEGA_MIN}, {largest}] (the model's n_max "
-                     "and the largest resolution bucket)")
+    """The ``Loop`` of the loop flags; parser.error naming a bad flag, before any work (the scene is built last)."""
+    omega = str(args.resolution)
+    if omega != "adaptive" and (not omega.isdigit() or not OMEGA_MIN <= int(omega) <= OMEGA_MAX):
+        parser.error(f"--resolution must be 'adaptive' or an integer in [{OMEGA_MIN}, {OMEGA_MAX}], got {omega!r}")
+    model = load_model(parser, args.dynamics, args.ckpt, sim.scene.plate_half_width)
+    if omega != "adaptive" and int(omega) > model.n_max:
+        parser.error(f"--resolution {omega} exceeds the model's n_max = {model.n_max}")
     timing = load_timing(parser, args)
+    regressor = None
+    if omega == "adaptive":
+        try:
+            regressor = load_regressor(args.regressor, Camera.top_down(sim.camera))
+        except CheckpointError as e:
+            parser.error(f"--regressor: {e}")
+    env = PileEnv(sim, backend=args.backend)
     try:
         planner = PlannerConfig(samples=args.samples, adam_steps=args.adam_steps, bound=env.action_bound,
                                 max_length=sim.push.max_length, min_length=sim.push.min_length, seed=args.seed)
         cfg = MPCConfig(mpc_steps=args.mpc_steps, planner=planner, time_budget=args.time_budget)
     except ValueError as e:
         parser.error(str(e))
+    check_budget(cfg, timing, cfg.buckets if regressor else [int(omega)])
     return Loop(env, model, cfg, timing, None if regressor else int(omega), regressor)
 
 
@@ -175,17 +190,16 @@ def write_episode(out: str, frames: list) -> None:
 
 
 def main(task: str, argv=None):
-    description = DESCRIPTIONS[task] + "\n\n" + __doc__.split("\n\n", 2)[2]
-    parser = argparse.ArgumentParser(prog=f"python -m experiments.{task}", description=description,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = checks.parser(task, DESCRIPTIONS[task] + "\n\n" + __doc__.split("\n\n", 2)[2])
     add_loop_args(parser, task)
     parser.add_argument("--kind", default="coffee", choices=sorted(KINDS))
-    parser.add_argument("--pieces", type=int, default=None,
+    parser.add_argument("--pieces", type=checks.count(1), default=None,
                         help="pieces in the pile (default: the kind's count for a pile of 100 coffee beans' area)")
     parser.add_argument("--layout", default="spread" if task == "gather" else "blob",
                         choices=["blob", "two_blobs", "spread"], help="initial pile")
     if task == "redistribute":
-        parser.add_argument("--letter", default="T", help="the goal: any characters OpenCV draws (paper: J, T, U)")
+        parser.add_argument("--letter", default="T", type=checks.text,
+                            help="the goal: any characters OpenCV draws (paper: J, T, U)")
     args = parser.parse_args(argv)
     resolve_pieces(parser, args)
 
@@ -202,7 +216,7 @@ def main(task: str, argv=None):
             goal_mask, goal_info = tasks.redistribute_goal(rng, env, args.letter)
     except ValueError as e:
         parser.error(str(e))
-    check_out(parser, args.out)
+    checks.claim(args.out, task, checks.settings(args), args.fresh)
     goal = make_goal(goal_mask, env.camera)
     state = env.reset(jax.random.PRNGKey(args.seed))
     start_inside = float(inside_share(state.pos, np.ones(env.scene.n_pieces, bool), goal, env.camera))
@@ -213,6 +227,7 @@ def main(task: str, argv=None):
     t0 = time.perf_counter()
     if cfg.time_budget is not None and timing is None:
         timing = measure_timing(state.obs, goal, loop.model.dynamics, cfg, env.camera)
+        check_budget(cfg, timing, cfg.buckets if loop.regressor else [loop.omega])
     frames = goal_frames(goal_mask, env.camera)
     state, records = run_episode(env, state, loop.chooser(batch(goal)), loop.model.dynamics, cfg,
                                  jax.random.PRNGKey(args.seed), timing=timing, on_step=[frames])
@@ -233,16 +248,11 @@ def main(task: str, argv=None):
 def add_planner_args(parser) -> None:
     """The planner flags of ``experiments.evaluate`` and ``experiments.label_resolution``."""
     add_budget_args(parser)
-    parser.add_argument("--samples", type=int, default=20, help="action sequences per plan (paper M = 20)")
-    parser.add_argument("--adam-steps", type=int, default=100, help="Adam steps per plan (the most, under a budget)")
-    parser.add_argument("--horizon", type=int, default=1, help="pushes per planned sequence (paper T = 1)")
-
-
-def check_planner_args(parser, args) -> None:
-    """parser.error naming a bad planner flag, before any work."""
-    load_timing(parser, args)
-    if args.adam_steps < 1 or args.samples < 1:
-        parser.error("--adam-steps and --samples must be positive")
+    parser.add_argument("--samples", type=checks.count(1), default=20, help="action sequences per plan (paper M = 20)")
+    parser.add_argument("--adam-steps", type=checks.count(1), default=100,
+                        help="Adam steps per plan (the most, under a budget)")
+    parser.add_argument("--horizon", type=checks.count(1, 10), default=1,
+                        help="pushes per planned sequence (paper T = 1)")
 
 
 def mpc_config(env, args, mpc_steps: int = 1, real_depth: bool = False) -> MPCConfig:
@@ -255,11 +265,12 @@ def mpc_config(env, args, mpc_steps: int = 1, real_depth: bool = False) -> MPCCo
                      time_budget=args.time_budget, real_depth=real_depth)
 
 
-def timing_table(args, out_dir: str, obs, goal, dynamics, cfg: MPCConfig, camera) -> budget.TimingTable | None:
+def timing_table(args, out_dir: str, obs, goal, dynamics, cfg: MPCConfig, camera, omegas
+                 ) -> budget.TimingTable | None:
     """The run's timing table: ``--timing``'s, else the one an earlier run in ``out_dir`` saved (so a resumed run
     spends the budget as it began), else measured here on one observation and goal (unbatched) and saved there as
     ``timing.json``. In a job of several processes, process 0 makes the table and every process spends by it. None
-    without a time budget."""
+    without a time budget; InputError (``check_budget``) when it affords no Adam step at one of ``omegas``."""
     if cfg.time_budget is None:
         return None
     saved = os.path.join(out_dir, "timing.json")
@@ -276,8 +287,11 @@ def timing_table(args, out_dir: str, obs, goal, dynamics, cfg: MPCConfig, camera
         return table
 
     if distributed.part()[1] == 1:
-        return make()
-    if distributed.is_writer():
-        make()
-    distributed.barrier(f"timing {os.path.abspath(saved)}")
-    return budget.TimingTable.load(saved)
+        table = make()
+    else:
+        if distributed.is_writer():
+            make()
+        distributed.barrier(f"timing {os.path.abspath(saved)}")
+        table = budget.TimingTable.load(saved)
+    check_budget(cfg, table, omegas)
+    return table

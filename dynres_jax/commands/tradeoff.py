@@ -31,7 +31,6 @@ higher, lower or equal, with 95 % Wilson intervals, and ``tradeoff.png`` with th
 from __future__ import annotations
 
 import argparse
-import glob
 import os
 
 import jax
@@ -48,7 +47,7 @@ from dynres_jax.control.objective import distribution_distance
 from dynres_jax.control.planner import PlannerConfig
 from dynres_jax.control.resolution import CANDIDATES
 from dynres_jax.io import files
-from dynres_jax.learn.data import save_npz
+from dynres_jax.learn.data import complete_shards, read_shard, save_npz
 from dynres_jax.models.registry import SHIPPED_DYNAMICS, load_dynamics
 from dynres_jax.sim.pool import WorldPool, process_pool
 from dynres_jax.stats import wilson
@@ -90,10 +89,7 @@ def main(argv=None):
         return reliability(*args.reliability, args.out)
     if not args.labels:
         parser.error("give --labels (Fig. 4), --surface or --reliability")
-    shards = {int(z["shard"]): dict(z) for z in map(np.load, sorted(glob.glob(os.path.join(args.labels,
-                                                                                          "shard_*.npz"))))}
-    if not shards:
-        parser.error(f"no label shards in {args.labels}")
+    shards = {int(z["shard"]): z for z in map(read_shard, complete_shards(args.labels, "--labels"))}
     letter_vs_disc, blob_vs_spread, examples = [], [], {}
     for s, z in shards.items():
         letter_vs_disc.append((z["label"][1::2], z["label"][0::2]))  # scenes 2j + 1 (letter) vs 2j (disc)
@@ -151,8 +147,8 @@ def ranks(x) -> np.ndarray:
 def _labels_by_scene(folder: str) -> dict:
     """{(shard, index): label} of a label run."""
     out = {}
-    for path in sorted(glob.glob(os.path.join(folder, "shard_*.npz"))):
-        z = np.load(path)
+    for path in complete_shards(folder, "--reliability"):
+        z = read_shard(path, ("shard", "label"))
         out.update({(int(z["shard"]), i): int(v) for i, v in enumerate(z["label"])})
     return out
 

@@ -23,9 +23,16 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import os
+
+import numpy as np
 
 from dynres_jax import distributed
-from dynres_jax.learn.train import RECIPES, TrainConfig, train
+from dynres_jax.commands import checks
+from dynres_jax.errors import InputError
+from dynres_jax.learn.data import iter_shards
+from dynres_jax.learn.targets import is_validation
+from dynres_jax.learn.train import RECIPES, SCHEDULE, TrainConfig, train
 from dynres_jax.models.cnn_dynamics import CNNDynamicsConfig
 from dynres_jax.models.dynamics import DynamicsConfig
 from dynres_jax.models.registry import MODEL_CLASSES, model_class
@@ -34,9 +41,9 @@ GNN_ONLY = ("hidden", "propagation_steps", "push_frame", "world_edges", "bin_pos
 CNN_ONLY = ("grid", "channels")
 
 
+@checks.guarded("train_dynamics")
 def main(argv=None):
-    parser = argparse.ArgumentParser(prog="python -m experiments.train_dynamics", description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = checks.parser("train_dynamics", __doc__)
     recipe = argparse.ArgumentParser(add_help=False)
     recipe.add_argument("--recipe", choices=sorted(RECIPES), default=None,
                         help="start from a named config (train.RECIPES); other flags override it")
@@ -46,6 +53,7 @@ def main(argv=None):
                         help="start from a named config (train.RECIPES); other flags override it")
     parser.add_argument("--data", required=True, help="folder of shards from experiments.generate_data")
     parser.add_argument("--out", required=True, help="run folder: ckpt/, metrics.jsonl, curves.png")
+    checks.add_fresh(parser)
     defaults = base
     for f in dataclasses.fields(TrainConfig):
         if f.name not in ("model", "held_out_kinds"):
@@ -54,14 +62,16 @@ def main(argv=None):
             if isinstance(value, bool):
                 parser.add_argument(flag, action=argparse.BooleanOptionalAction, default=value, help=help_)
             else:
-                parser.add_argument(flag, type=int if f.name == "max_points" else type(value), default=value,
+                kind = {int: checks.count(0), float: checks.number()}.get(type(value), type(value))
+                parser.add_argument(flag, type=checks.count(1) if f.name == "max_points" else kind, default=value,
                                     help=help_)
     parser.add_argument("--held-out-kinds", nargs="+", default=base.held_out_kinds, metavar="KIND",
                         help="TrainConfig.held_out_kinds: piece kinds never trained on (eval_dynamics reports them)")
     parser.add_argument("--model", default=model_class(base.model), choices=list(MODEL_CLASSES),
                         help="gnn (PropNet) or cnn (baseline)")
-    parser.add_argument("--hidden", type=int, default=None, help=f"gnn: width (default {DynamicsConfig.hidden})")
-    parser.add_argument("--propagation-steps", type=int, default=None,
+    parser.add_argument("--hidden", type=checks.count(1), default=None,
+                        help=f"gnn: width (default {DynamicsConfig.hidden})")
+    parser.add_argument("--propagation-steps", type=checks.count(1), default=None,
                         help=f"gnn: message-passing rounds (default {DynamicsConfig.propagation_steps})")
     parser.add_argument("--push-frame", action=argparse.BooleanOptionalAction, default=None,
                         help="gnn: DynamicsConfig.push_frame (push-frame inputs; default on)")
@@ -73,11 +83,11 @@ def main(argv=None):
                              "default on)")
     parser.add_argument("--residual", action=argparse.BooleanOptionalAction, default=None,
                         help="correct the sweep heuristic (default on; all four off: the paper's architecture)")
-    parser.add_argument("--grid", type=int, default=None,
+    parser.add_argument("--grid", type=checks.count(2), default=None,
                         help=f"cnn: cells per side (default {CNNDynamicsConfig.grid})")
-    parser.add_argument("--channels", type=int, default=None,
+    parser.add_argument("--channels", type=checks.count(1), default=None,
                         help=f"cnn: convolution width (default {CNNDynamicsConfig.channels})")
-    parser.add_argument("--max-minutes", type=float, default=None,
+    parser.add_argument("--max-minutes", type=checks.positive, default=None,
                         help="stop after this much wall time, with a checkpoint (run again to go on)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     distributed.add_args(parser)
@@ -95,9 +105,27 @@ def main(argv=None):
     try:
         cfg = TrainConfig(**fields, model=MODEL_CLASSES[args.model][0](**options))
         distributed.check_batch(cfg.batch, distributed.batch_mesh())
-    except ValueError as e:
+    except (ValueError, TypeError) as e:
         parser.error(str(e))
+    check_data(args.data, cfg)
+    checks.claim(args.out, "train_dynamics", checks.settings(args, ignore=(*SCHEDULE, "max_minutes")), args.fresh)
     print(json.dumps(train(cfg, args.data, args.out, progress=not args.quiet, max_minutes=args.max_minutes)))
+
+
+def check_data(folder: str, cfg: TrainConfig) -> None:
+    """InputError naming --data unless it is a finished data set (every shard there and readable) whose episodes are
+    long enough for ``cfg.horizon``; reads no images."""
+    if not os.path.isdir(folder):
+        raise InputError(f"--data {folder!r}: no such folder")
+    episodes = []
+    for _, shard in iter_shards(folder, members=("action", "episode")):
+        if shard["action"].shape[1] < cfg.horizon:
+            raise InputError(f"--data {folder}: its episodes have {shard['action'].shape[1]} pushes, fewer than "
+                             f"--horizon {cfg.horizon} (make data with --pushes {cfg.horizon} or more)")
+        episodes.append(shard["episode"])
+    if not is_validation(np.concatenate(episodes)).any():
+        raise InputError(f"--data {folder}: its {sum(map(len, episodes))} episodes leave none for validation (every "
+                         "10th episode is held out): make at least 10")
 
 
 if __name__ == "__main__":

@@ -70,6 +70,15 @@ def _table_xy(camera: Camera) -> np.ndarray:
     return camera.centre[:2] + t[..., None] * d[..., :2]
 
 
+def check_within(mask, camera: Camera, half_width: float) -> None:
+    """ValueError when a goal pixel of mask [H, W] lies outside the table square ±half_width (m) or off the table."""
+    xy = _table_xy(camera)[np.asarray(mask, bool)]
+    outside = ~np.all(np.abs(xy) <= half_width, axis=-1)  # NaN (off the table) is outside too
+    if outside.any():
+        raise ValueError(f"{int(outside.sum())} of the goal's {len(xy)} pixels lie outside the workspace (table "
+                         f"square ±{half_width:g} m); pieces cannot be pushed there")
+
+
 def _project(camera: Camera, xy) -> np.ndarray:
     """Table points xy [..., 2] (m) -> pixel coordinates [..., 2]."""
     xy = np.asarray(xy, np.float64)

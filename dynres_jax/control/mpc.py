@@ -21,6 +21,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from dynres_jax.config import check_fields
 from dynres_jax.control import budget
 from dynres_jax.control.choosers import Chooser
 from dynres_jax.control.decision import DecisionSpec, batch, decide_batch, episode, per_episode
@@ -51,6 +52,7 @@ class MPCConfig:
     real_depth: bool = False
 
     def __post_init__(self):
+        check_fields(self)
         object.__setattr__(self, "buckets", budget.check_buckets(self.buckets))
         if self.mpc_steps < 1:
             raise ValueError(f"mpc_steps must be positive, got {self.mpc_steps}")

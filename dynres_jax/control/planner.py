@@ -38,7 +38,7 @@ import numpy as np
 import optax
 from jax.tree_util import Partial
 
-from dynres_jax.config import PushConfig
+from dynres_jax.config import PushConfig, check_fields
 
 ZERO_LENGTH_DIRECTION = (1.0, 0.0)  # a push of (near) zero length is pointed along +x by ``project``
 _TINY = 1e-12  # m²: squared lengths below this count as zero
@@ -74,6 +74,7 @@ class PlannerConfig:
     seed: int = 0
 
     def __post_init__(self):
+        check_fields(self)
         if self.samples < 1:
             raise ValueError(f"PlannerConfig.samples (M) must be >= 1, got {self.samples}")
         if self.horizon < 1:

@@ -10,28 +10,30 @@ from __future__ import annotations
 
 import numpy as np
 
+from dynres_jax.config import SceneConfig
 from dynres_jax.control.goals import disc_goal, text_goal
+from dynres_jax.errors import InputError
 from dynres_jax.sim.env import PileEnv
+from dynres_jax.sim.scene import footprint
 
 TASKS = ("gather", "redistribute")
 FILL = (1.3, 1.8)  # goal area / the pieces' footprint area
 GOAL_MARGIN = 0.03  # m: a Gather disc stays this far inside the bin's walls
 
 
-def largest_pile(env: PileEnv) -> int:
+def largest_pile(scene: SceneConfig) -> int:
     """The most pieces of this scene's mix (at its mean footprint) whose largest goal disc (FILL[1] times their
-    footprint area) still fits the bin with GOAL_MARGIN to spare."""
-    reach = env.config.scene.bin_half_width - GOAL_MARGIN
-    return int(np.pi * reach**2 / FILL[1] / np.mean(np.pi * env.scene.footprint**2))
+    footprint area) still fits the bin with GOAL_MARGIN to spare; from the config alone, before any scene is built."""
+    reach = scene.bin_half_width - GOAL_MARGIN
+    return int(np.pi * reach**2 / FILL[1] / np.mean(np.pi * footprint(scene) ** 2))
 
 
-def check_pile_fits(env: PileEnv) -> None:
-    """ValueError naming the largest piece count that fits when the scene's pile is too large for its goals."""
-    if env.scene.n_pieces > largest_pile(env):
-        kinds = "/".join(env.config.scene.kinds)
-        raise ValueError(f"{env.scene.n_pieces} {kinds} pieces need a goal disc wider than the bin allows "
-                         f"(half width {env.config.scene.bin_half_width} m, {GOAL_MARGIN} m margin): at most "
-                         f"{largest_pile(env)} fit")
+def check_pile_fits(scene: SceneConfig) -> None:
+    """InputError naming the largest piece count that fits when the scene's pile is too large for its goals."""
+    if sum(scene.pieces) > largest_pile(scene):
+        raise InputError(f"{sum(scene.pieces)} {'/'.join(scene.kinds)} pieces need a goal disc wider than the bin "
+                         f"allows (half width {scene.bin_half_width} m, {GOAL_MARGIN} m margin): at most "
+                         f"{largest_pile(scene)} fit")
 
 
 def _target_area(rng: np.random.Generator, env: PileEnv) -> float:
@@ -41,7 +43,7 @@ def _target_area(rng: np.random.Generator, env: PileEnv) -> float:
 def gather_goal(rng: np.random.Generator, env: PileEnv) -> tuple[np.ndarray, dict]:
     """A random disc holding the pile: (mask [H, W] bool, description). ValueError (``check_pile_fits``) for a pile
     too large for the bin."""
-    check_pile_fits(env)
+    check_pile_fits(env.config.scene)
     radius = float(np.sqrt(_target_area(rng, env) / np.pi))
     lim = env.config.scene.bin_half_width - radius - GOAL_MARGIN
     centre = rng.uniform(-lim, lim, size=2)

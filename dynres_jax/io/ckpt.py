@@ -2,11 +2,12 @@
 
 The rest of the code never touches orbax. Layout: ``DIR/<step>/`` holds one item per saved pytree (``module``,
 ``opt``, ...; a restore reads only those it asks for) and ``meta`` (JSON: the config to rebuild the module, anything
-the caller adds). Orbax writes a step to a temporary name and
-renames it when complete; then ``DIR/<step>/manifest.json`` records every file's SHA-256 (written atomically, last),
-and a step counts as finished only with its manifest. Every read checks the step's bytes against it first, so a
-damaged file (one flipped byte) is named before orbax touches it. ``latest_step`` is where a training run resumes. Every process of a job reads and writes on its own (no orbax barriers): a data-parallel run
-saves host copies from process 0 alone (``dynres_jax.distributed``) and every process restores.
+the caller adds). Orbax writes a step to a temporary name and renames it when complete; then
+``DIR/<step>/manifest.json`` records every file's SHA-256 (written atomically, last), and a step counts as finished
+only with its manifest. Every read checks the step's bytes against it first, so a damaged file (one flipped byte) is
+named before orbax touches it. ``latest_step`` is where a training run resumes. Every process of a job reads and
+writes on its own (no orbax barriers): a data-parallel run saves host copies from process 0 alone
+(``dynres_jax.distributed``) and every process restores.
 """
 
 from __future__ import annotations

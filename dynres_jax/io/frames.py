@@ -9,9 +9,12 @@ import os
 import cv2
 import numpy as np
 
+from dynres_jax.errors import InputError
 from dynres_jax.io import files
 from dynres_jax.sim.camera import Camera, Observation
 from dynres_jax.sim.sensor import NO_READING
+
+MIN_DEPTH, MAX_DEPTH = 0.1, 5.0  # m: a depth camera's median reading over a table top
 
 
 def save_frame(folder: str, obs: Observation, camera: Camera) -> dict[str, str]:
@@ -25,32 +28,56 @@ def save_frame(folder: str, obs: Observation, camera: Camera) -> dict[str, str]:
     return paths
 
 
+class FrameError(InputError):
+    """A recorded frame, camera or goal file that cannot be used; the message names the file."""
+
+
+class MissingFrame(FrameError, FileNotFoundError):
+    """A frame, camera or goal file that does not exist."""
+
+
 def _read(path: str, what: str, flags: int) -> np.ndarray:
     if not os.path.isfile(path):
-        raise FileNotFoundError(f"{what} file {path!r} does not exist")
+        raise MissingFrame(f"{what} file {path!r} does not exist")
     image = cv2.imread(path, flags)
     if image is None:
-        raise ValueError(f"{what} file {path!r} is not a readable image")
+        raise FrameError(f"{what} file {path!r} is not a readable image")
     return image
+
+
+def load_camera(path: str) -> Camera:
+    """``Camera.from_json`` of a file; FrameError naming the file and what is wrong with it."""
+    if not os.path.isfile(path):
+        raise MissingFrame(f"camera file {path!r} does not exist")
+    try:
+        with open(path, encoding="utf-8") as f:
+            return Camera.from_json(f.read())
+    except (OSError, UnicodeDecodeError, ValueError) as e:  # json.JSONDecodeError is a ValueError
+        raise FrameError(f"camera file {path!r}: {e}") from None
 
 
 def load_frame(depth_path: str, rgb_path: str, camera_path: str) -> tuple[Observation, Camera]:
     """Read a recorded frame. Depth must be a single-channel 16-bit PNG in millimetres (0, no reading, becomes
     ``NO_READING`` metres: beyond the table, so never foreground);
     colour an 8-bit image of the same size; the camera's width and height must match. Segmentation is unknown
-    (-1). Raises FileNotFoundError or ValueError naming the file and the problem."""
-    if not os.path.isfile(camera_path):
-        raise FileNotFoundError(f"camera file {camera_path!r} does not exist")
-    with open(camera_path) as f:
-        camera = Camera.from_json(f.read())
+    (-1). Raises FrameError (MissingFrame, a FileNotFoundError, for a missing file) naming the file and the problem,
+    also for depths no table-top camera sees (a median reading outside [MIN_DEPTH, MAX_DEPTH] m: metres saved as
+    millimetres, or the reverse)."""
+    camera = load_camera(camera_path)
     depth = _read(depth_path, "depth", cv2.IMREAD_UNCHANGED)
     if depth.dtype != np.uint16 or depth.ndim != 2:
-        raise ValueError(f"depth file {depth_path!r} must be a single-channel 16-bit PNG in millimetres, got "
+        raise FrameError(f"depth file {depth_path!r} must be a single-channel 16-bit PNG in millimetres, got "
                          f"{depth.dtype} with shape {depth.shape}")
     rgb = cv2.cvtColor(_read(rgb_path, "colour", cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB)
     if depth.shape != (camera.height, camera.width) or rgb.shape[:2] != depth.shape:
-        raise ValueError(f"image sizes differ: depth {depth.shape}, colour {rgb.shape[:2]}, camera "
-                         f"{(camera.height, camera.width)}")
+        raise FrameError(f"image sizes differ: depth {depth_path!r} {depth.shape}, colour {rgb_path!r} "
+                         f"{rgb.shape[:2]}, camera {camera_path!r} {(camera.height, camera.width)}")
+    if not (depth > 0).any():
+        raise FrameError(f"depth file {depth_path!r} has no reading (every pixel 0)")
+    median = float(np.median(depth[depth > 0])) / 1000
+    if not MIN_DEPTH <= median <= MAX_DEPTH:
+        raise FrameError(f"depth file {depth_path!r}: its median reading is {median:g} m; a table-top camera sees "
+                         f"[{MIN_DEPTH}, {MAX_DEPTH}] m (depth must be saved in millimetres)")
     metres = np.where(depth > 0, depth.astype(np.float32) / 1000, NO_READING).astype(np.float32)
     unknown = np.full(depth.shape, -1, np.int32)
     return Observation(metres, unknown, unknown, rgb), camera
@@ -60,6 +87,8 @@ def load_goal(path: str, camera: Camera) -> np.ndarray:
     """A goal mask [H, W] bool from a PNG (white = goal) of the camera's size."""
     image = _read(path, "goal", cv2.IMREAD_GRAYSCALE)
     if image.shape != (camera.height, camera.width):
-        raise ValueError(f"goal file {path!r} is {image.shape}, the camera's images are "
+        raise FrameError(f"goal file {path!r} is {image.shape}, the camera's images are "
                          f"{(camera.height, camera.width)}")
+    if not (image > 127).any():
+        raise FrameError(f"goal file {path!r} has no goal pixel (white, > 127)")
     return image > 127

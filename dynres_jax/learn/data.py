@@ -59,8 +59,10 @@ from dynres_jax.config import (
     KINDS,
     PushConfig,
     SimConfig,
+    check_fields,
     replace,
 )
+from dynres_jax.errors import InputError
 from dynres_jax.io.files import TMP_PREFIX, atomic_write, write_json, write_text
 from dynres_jax.sim import pool as pools
 from dynres_jax.sim.env import PileEnv, random_episode
@@ -121,6 +123,7 @@ class DataConfig:
     sim: SimConfig = field(default_factory=SimConfig)
 
     def __post_init__(self):
+        check_fields(self)
         for name in ("episodes", "pushes", "worlds", "pieces_step"):
             value = getattr(self, name)
             if not isinstance(value, int | np.integer) or value < 1:
@@ -344,10 +347,42 @@ def generate(config: DataConfig, out_dir: str, devices=None, progress: bool = Tr
     return summary
 
 
-def iter_shards(data_dir: str, members=None) -> Iterator[tuple[str, dict]]:
-    """(path, {name: array}) for every shard in ``data_dir`` in shard order, reading only ``members`` (default
-    all): an npz member is read when asked for, so counting episodes never reads images."""
-    paths = sorted(glob.glob(os.path.join(data_dir, SHARD_GLOB)))
-    for path in paths:
+def complete_shards(folder: str, flag: str = "--data") -> list[str]:
+    """The shard paths of a finished set in ``folder`` (generate_data's or label_resolution's), every one its
+    config.json promises (data: ``DataConfig.n_shards``; labels: ceil(scenes / batch)). InputError naming ``flag``, the
+    folder and the first missing shard, or a folder that holds no such set."""
+    config_path = os.path.join(folder, "config.json")
+    try:
+        with open(config_path) as f:
+            config = json.load(f)
+        expected = (math.ceil(config["episodes"] / config["worlds"]) if "worlds" in config
+                    else math.ceil(config["scenes"] / config["batch"]))
+    except FileNotFoundError:
+        raise InputError(f"{flag} {folder}: no config.json, so no data or label set "
+                         "(made by experiments.generate_data or experiments.label_resolution)") from None
+    except (OSError, ValueError, KeyError, TypeError) as e:
+        raise InputError(f"{flag} {folder}: its config.json is damaged ({type(e).__name__}: {e})") from None
+    paths = [shard_path(folder, s) for s in range(expected)]
+    missing = [p for p in paths if not os.path.exists(p)]
+    if missing:
+        raise InputError(f"{flag} {folder}: {len(missing)} of its {expected} shards are missing "
+                         f"({os.path.basename(missing[0])}{', ...' if len(missing) > 1 else ''}): rerun the command "
+                         "that made it with the same --out to finish it")
+    return paths
+
+
+def read_shard(path: str, members=None) -> dict:
+    """{name: array} of one shard, reading only ``members`` (default all); InputError naming a damaged file."""
+    try:
         with np.load(path, allow_pickle=False) as z:
-            yield path, {k: z[k] for k in (members or z.files)}
+            return {k: z[k] for k in (members or z.files)}
+    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as e:
+        raise InputError(f"{path}: damaged shard ({type(e).__name__}: {e})") from None
+
+
+def iter_shards(data_dir: str, members=None, flag: str = "--data") -> Iterator[tuple[str, dict]]:
+    """(path, {name: array}) for every shard of a finished set in ``data_dir`` (``complete_shards``) in shard order,
+    reading only ``members`` (default all): an npz member is read when asked for, so counting episodes never reads
+    images."""
+    for path in complete_shards(data_dir, flag):
+        yield path, read_shard(path, members)

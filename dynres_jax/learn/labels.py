@@ -13,7 +13,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from dynres_jax.config import CameraConfig, PileConfig, PushConfig, SceneConfig, SimConfig
+from dynres_jax.config import CameraConfig, PileConfig, PushConfig, SceneConfig, SimConfig, check_fields
 from dynres_jax.control import budget, mpc, resolution, tasks
 from dynres_jax.control.choosers import FixedOmega
 from dynres_jax.control.goals import make_goal, stack
@@ -51,6 +51,7 @@ class LabelConfig:
     backend: str = "mujoco"
 
     def __post_init__(self):
+        check_fields(self)
         if self.batch % 2 or self.batch < 2:
             raise ValueError(f"batch must be even (scenes come in pairs), got {self.batch}")
         if self.evals <= len(FIRST):

@@ -12,8 +12,6 @@ are images of a square bin seen from above). Data-parallel as ``learn.train``: e
 from __future__ import annotations
 
 import functools
-import glob
-import os
 
 import jax
 import jax.numpy as jnp
@@ -24,18 +22,13 @@ from tqdm import tqdm
 
 from dynres_jax import distributed
 from dynres_jax.control.resolution import OMEGA_MAX, OMEGA_MIN, Regressor
+from dynres_jax.learn.data import complete_shards, read_shard
 
 
 def load_labels(folders: list[str]) -> dict:
     """The label shards of every folder, in order; "shard" numbers them 0, 1, ... across the folders, so a pile is
     named by (shard, pile) even where two folders both have a shard 0."""
-    paths = []
-    for folder in folders:
-        found = sorted(glob.glob(os.path.join(folder, "shard_*.npz")))
-        if not found:
-            raise ValueError(f"no label shards (shard_*.npz) in {folder}; run experiments.label_resolution first")
-        paths += found
-    shards = [dict(np.load(p)) for p in paths]
+    shards = [read_shard(p) for folder in folders for p in complete_shards(folder, "--labels")]
     out = {k: np.concatenate([s[k] for s in shards]) for k in ("inputs", "label", "pile")}
     out["shard"] = np.concatenate([np.full(len(s["label"]), i) for i, s in enumerate(shards)])
     return out

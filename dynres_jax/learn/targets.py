@@ -19,6 +19,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from dynres_jax.config import SimConfig
+from dynres_jax.errors import InputError
 from dynres_jax.learn.data import KIND_NAMES, PER_EPISODE, SHARD_GLOB, check_kind_names, iter_shards
 from dynres_jax.perception import sample_particles
 from dynres_jax.sim.camera import Camera, Observation
@@ -74,7 +75,7 @@ def load_shards(data_dir: str, split: str = "all", val_every: int = 10) -> Datas
         kind = np.array([KIND_NAMES.index(str(name)) for name in s["kind_names"]], np.int16)[s["kind"]]
         parts.append({**{k: s[k][keep] for k in PER_EPISODE}, "kind": kind})
     if not parts:
-        raise ValueError(f"no shards ({SHARD_GLOB}) in {data_dir}")
+        raise InputError(f"no shards ({SHARD_GLOB}) in {data_dir}")
     n_max = max(p["pos"].shape[2] for p in parts)
 
     def pad_poses(pos, mat):  # pieces axis -2 of pos padded to n_max with 0, of mat with the identity
@@ -93,7 +94,7 @@ def load_shards(data_dir: str, split: str = "all", val_every: int = 10) -> Datas
     parts = [pad(p) for p in parts]
     cat = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
     if not len(cat["episode"]):
-        raise ValueError(f"the {split!r} split of {data_dir} is empty: validation takes every {val_every}th episode "
+        raise InputError(f"the {split!r} split of {data_dir} is empty: validation takes every {val_every}th episode "
                          f"(is_validation), so it needs at least {val_every} episodes")
     return Dataset(**cat, camera=camera)
 

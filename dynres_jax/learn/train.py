@@ -39,6 +39,8 @@ from jax.sharding import Mesh
 from tqdm import tqdm
 
 from dynres_jax import distributed
+from dynres_jax.config import check_fields
+from dynres_jax.errors import InputError
 from dynres_jax.io import ckpt, files
 from dynres_jax.learn import data, targets
 from dynres_jax.models.cnn_dynamics import CNNDynamicsConfig
@@ -80,14 +82,19 @@ class TrainConfig:
     model: DynamicsConfig | CNNDynamicsConfig = field(default_factory=DynamicsConfig)
 
     def __post_init__(self):
+        check_fields(self)
         model_class(self.model)  # a ValueError for anything but a model config
         if self.loss not in LOSSES:
             raise ValueError(f"loss must be one of {', '.join(LOSSES)}, got {self.loss!r}")
         if not 1 <= self.omega_min <= self.n_max:
             raise ValueError(f"omega_min={self.omega_min} must lie in [1, n_max={self.n_max}]")
         data.check_kind_names(self.held_out_kinds, "held_out_kinds")
-        if self.steps < 1 or self.batch < 1 or self.horizon < 1:
-            raise ValueError("steps, batch and horizon must be positive")
+        small = {name: getattr(self, name) for name in ("steps", "batch", "horizon", "eval_every", "ckpt_every",
+                                                           "val_batches", "n_max") if getattr(self, name) < 1}
+        if small:
+            raise ValueError(f"TrainConfig: {', '.join(f'{k} = {v}' for k, v in small.items())} must be at least 1")
+        if not self.lr > 0 or not 0 <= self.lr_final <= 1:
+            raise ValueError(f"TrainConfig: lr must be > 0 and lr_final in [0, 1], got {self.lr}, {self.lr_final}")
 
 
 RECIPES = {  # named training configs; the checkpoints' cards name theirs (``experiments.train_dynamics --recipe``)
@@ -230,7 +237,7 @@ def train(cfg: TrainConfig, data_dir: str, out_dir: str, progress: bool = True,
     train_set, val_set = (targets.without_kinds(targets.load_shards(data_dir, split), cfg.held_out_kinds)
                           for split in ("train", "val"))
     if cfg.horizon > train_set.pushes:
-        raise ValueError(f"horizon {cfg.horizon} exceeds the data's {train_set.pushes} pushes per episode")
+        raise InputError(f"horizon {cfg.horizon} exceeds the data's {train_set.pushes} pushes per episode")
     os.makedirs(out_dir, exist_ok=True)
     ckpt_dir, metrics_path = os.path.join(out_dir, "ckpt"), os.path.join(out_dir, "metrics.jsonl")
     graphdef, params = nnx.split(make_model(cfg.model, cfg.seed))

@@ -41,7 +41,7 @@ import jax.numpy as jnp
 from flax import nnx
 from jax.lax import Precision
 
-from dynres_jax.config import SceneConfig
+from dynres_jax.config import SceneConfig, check_fields
 from dynres_jax.models.dynamics import LENGTH_SCALE, rollout
 from dynres_jax.models.graph import sweep_displacement
 
@@ -65,6 +65,7 @@ class CNNDynamicsConfig:
     residual: bool = True
 
     def __post_init__(self):
+        check_fields(self)
         if self.grid < 8 or self.grid % 4:
             raise ValueError(f"grid must be a multiple of 4 and at least 8 (two stride-2 levels), got {self.grid}")
         if self.channels < 1:

@@ -83,7 +83,7 @@ import jax
 import jax.numpy as jnp
 from flax import nnx
 
-from dynres_jax.config import SceneConfig
+from dynres_jax.config import SceneConfig, check_fields
 from dynres_jax.models.graph import K_NEIGHBOURS, R_EDGE, build_edges, push_geometry, sweep_displacement
 
 LENGTH_SCALE = 0.05  # m: displacements and relative positions are divided by this inside the model
@@ -113,6 +113,9 @@ class DynamicsConfig:
     world_edges: bool = True
     bin_position: bool = True
     bin_half_width: float = SceneConfig.bin_half_width
+
+    def __post_init__(self):
+        check_fields(self)
 
     @property
     def node_inputs(self) -> int:

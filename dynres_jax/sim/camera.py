@@ -51,6 +51,25 @@ def check_image_size(width: int, height: int) -> None:
         raise ValueError(f"image size {width} x {height} pixels is outside [{MIN_IMAGE}, {MAX_IMAGE}] per side")
 
 
+def check_geometry(K: np.ndarray, rotation: np.ndarray, centre: np.ndarray, width: int, height: int) -> None:
+    """ValueError naming what no real camera over the table has: a rotation that is not a rotation (orthonormal
+    within 1e-3, determinant +1), non-positive focal lengths, a K whose last row is not (0, 0, 1) or whose principal
+    point lies outside the image, a camera below the table (centre z <= 0) or one that does not look down at it."""
+    if not np.allclose(rotation.T @ rotation, np.eye(3), atol=1e-3) or np.linalg.det(rotation) < 0:
+        raise ValueError(f"camera: rotation must be a rotation matrix (orthonormal, determinant +1), got "
+                         f"{np.round(rotation, 4).tolist()}")
+    if not (K[0, 0] > 0 and K[1, 1] > 0):
+        raise ValueError(f"camera: K's focal lengths must be positive pixels, got fx = {K[0, 0]:g}, fy = {K[1, 1]:g}")
+    if not np.allclose(K[2], [0, 0, 1]) or K[1, 0] != 0:
+        raise ValueError(f"camera: K must be [[fx, s, cx], [0, fy, cy], [0, 0, 1]], got {K.tolist()}")
+    if not (0 <= K[0, 2] <= width and 0 <= K[1, 2] <= height):
+        raise ValueError(f"camera: K's principal point ({K[0, 2]:g}, {K[1, 2]:g}) lies outside the {width} x {height} "
+                         "image")
+    if not centre[2] > 0 or not rotation[2, 2] < 0:
+        raise ValueError(f"camera: it must be above the table (centre z > 0, got {centre[2]:g} m) and look down at it "
+                         f"(its optical axis's world z < 0, got {rotation[2, 2]:g})")
+
+
 @dataclass(frozen=True, eq=False)
 class Camera:
     """Pinhole camera. K: [3, 3] intrinsics (pixels); rotation: [3, 3] camera-to-world (columns are the camera's
@@ -90,7 +109,8 @@ class Camera:
     @classmethod
     def from_json(cls, text: str) -> Camera:
         """A camera from its JSON; ValueError naming a missing field, one of the wrong shape or with a value that is
-        not a finite number, or an image size outside [MIN_IMAGE, MAX_IMAGE]."""
+        not a finite number, an image size outside [MIN_IMAGE, MAX_IMAGE], or geometry no camera has
+        (``check_geometry``)."""
         d = json.loads(text)
         missing = {"K", "rotation", "centre", "width", "height"} - set(d)
         if missing:
@@ -107,6 +127,7 @@ class Camera:
         if arrays["width"] != int(arrays["width"]) or arrays["height"] != int(arrays["height"]):
             raise ValueError(f"camera JSON: width and height must be whole pixels, got {d['width']}, {d['height']}")
         check_image_size(int(arrays["width"]), int(arrays["height"]))
+        check_geometry(arrays["K"], arrays["rotation"], arrays["centre"], int(arrays["width"]), int(arrays["height"]))
         return cls(arrays["K"], arrays["rotation"], arrays["centre"], int(arrays["width"]), int(arrays["height"]))
 
     # --- geometry ---

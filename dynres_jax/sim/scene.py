@@ -48,9 +48,18 @@ class Scene:
     @property
     def footprint(self) -> np.ndarray:
         """[N] radius of the disc that holds each piece seen from above (metres)."""
-        s = self.size
-        return np.select([self.geom_type == 0, self.geom_type == 1], [s[:, 0], s[:, 0] + s[:, 1]],
-                         np.hypot(s[:, 0], s[:, 1]))
+        return _footprint(self.geom_type, self.size)
+
+
+def _footprint(geom_type: np.ndarray, size: np.ndarray) -> np.ndarray:
+    return np.select([geom_type == 0, geom_type == 1], [size[:, 0], size[:, 0] + size[:, 1]],
+                     np.hypot(size[:, 0], size[:, 1]))
+
+
+def footprint(cfg: SceneConfig) -> np.ndarray:
+    """``Scene.footprint`` of the scene ``cfg`` would build, without building it (no MJCF, no compile): [N] m."""
+    _, geom_type, size = _piece_sizes(cfg)
+    return _footprint(geom_type, size)
 
 
 def _piece_sizes(cfg: SceneConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -1,0 +1,200 @@
+"""One path for checking a command's input before its work: argparse types that say what they accept, the guard that
+prints a user's mistake (``errors.InputError``) as one line with exit status 2, and the output folder's record.
+
+Every command's ``--out`` folder holds ``run.json``: the command and the settings that made it. A rerun with the same
+settings resumes (or rewrites the same results); other settings are refused with what differs, unless ``--fresh``
+asks to start the folder afresh; a folder of another command, or a non-empty folder this package did not make, is
+refused.
+"""
+
+from __future__ import annotations
+
+import argparse
+import functools
+import json
+import math
+import os
+import shutil
+import sys
+
+from dynres_jax import distributed
+from dynres_jax.config import OMEGA_MAX, OMEGA_MIN
+from dynres_jax.errors import InputError
+from dynres_jax.io import files
+
+RUN = "run.json"
+
+
+def prog(name: str) -> str:
+    """How the user called command ``name``: ``dynres NAME`` from the installed script, else ``python -m
+    experiments.NAME``."""
+    return f"dynres {name}" if os.path.basename(sys.argv[0]) == "dynres" else f"python -m experiments.{name}"
+
+
+def parser(name: str, doc: str | None) -> argparse.ArgumentParser:
+    """The parser of command ``name`` (its module docstring as the description)."""
+    return argparse.ArgumentParser(prog=prog(name), description=doc,
+                                   formatter_class=argparse.RawDescriptionHelpFormatter)
+
+
+def guarded(name: str):
+    """Decorator of a command's ``main(argv)``: an ``InputError`` raised anywhere in it (a damaged file found while
+    reading, a folder of another run) is printed as one line naming the input, exit status 2, as argparse does."""
+
+    def wrap(main):
+        @functools.wraps(main)
+        def run(argv=None):
+            try:
+                return main(argv)
+            except InputError as e:
+                print(f"{prog(name)}: error: {' '.join(str(e).split())}", file=sys.stderr)
+                raise SystemExit(2) from None
+
+        return run
+
+    return wrap
+
+
+# argparse types: a bad value is reported by argparse as "argument --FLAG: <message>", exit status 2.
+
+def count(low: int = 1, high: int | None = None):
+    """A whole number in [low, high]."""
+
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
+        if value < low or (high is not None and value > high):
+            raise argparse.ArgumentTypeError(f"expected a whole number in [{low}, {'∞' if high is None else high}], "
+                                             f"got {value}")
+        return value
+
+    parse.__name__ = "count"  # argparse names the type in "invalid count value"
+    return parse
+
+
+def number(low: float = -math.inf, high: float = math.inf, *, above: bool = False):
+    """A finite number in [low, high] (``above``: strictly greater than low)."""
+
+    def parse(text: str) -> float:
+        try:
+            value = float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+        if not math.isfinite(value) or value < low or value > high or (above and value == low):
+            bounds = f"{'(' if above else '['}{low:g}, {high:g}]"
+            raise argparse.ArgumentTypeError(f"expected a finite number in {bounds}, got {text}")
+        return value
+
+    parse.__name__ = "number"
+    return parse
+
+
+seed = count(0, 2**32 - 1)  # NumPy's and JAX's seeds are unsigned 32-bit words
+positive = number(0.0, above=True)
+omega = count(OMEGA_MIN, OMEGA_MAX)
+
+
+def text(value: str) -> str:
+    """Characters OpenCV's Hershey fonts draw (printable ASCII), not only spaces."""
+    bad = sorted({c for c in value if not " " <= c <= "~"})
+    if not value.strip() or bad:
+        raise argparse.ArgumentTypeError(f"expected printable ASCII characters (OpenCV's fonts draw no others), got "
+                                         f"{value!r}")
+    return value
+
+
+def existing_file(text: str) -> str:
+    if not os.path.isfile(text):
+        raise argparse.ArgumentTypeError(f"no such file: {text!r}")
+    return text
+
+
+def existing_folder(text: str) -> str:
+    if not os.path.isdir(text):
+        raise argparse.ArgumentTypeError(f"no such folder: {text!r}")
+    return text
+
+
+def out_file(text: str, suffixes: tuple[str, ...]) -> str:
+    """An output file path: its folder writable (created if needed), not a folder itself, one of ``suffixes``."""
+    if os.path.isdir(text) or text.endswith(os.sep):
+        raise InputError(f"--out {text!r} is a folder; give a file name ending in {' or '.join(suffixes)}")
+    if not text.lower().endswith(suffixes):
+        raise InputError(f"--out {text!r}: give a file name ending in {' or '.join(suffixes)}")
+    try:
+        files.check_writable(os.path.dirname(os.path.abspath(text)))
+    except OSError as e:
+        raise InputError(f"--out: {e}") from None
+    return text
+
+
+def quick_sets(parser: argparse.ArgumentParser, args: argparse.Namespace, names) -> None:
+    """parser.error when a flag --quick sets itself (``names``, dest names) was also given another value."""
+    given = [n for n in names if getattr(args, n) != parser.get_default(n)]
+    if args.quick and given:
+        parser.error(f"--quick sets {', '.join('--' + n.replace('_', '-') for n in given)} itself; give them without "
+                     "--quick, or --quick alone")
+
+
+# The output folder's record.
+
+def add_fresh(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--fresh", action="store_true",
+                        help="delete what an earlier run of this command with other settings left in --out, and "
+                             "start afresh (default: a rerun resumes with the same settings, other ones are refused)")
+
+
+def settings(args: argparse.Namespace, ignore=()) -> dict:
+    """The settings of a run worth recording: every argument but where it writes, how many processes it uses, its
+    progress display and ``ignore`` (settings a resumed run may change)."""
+    skip = {"out", "fresh", "workers", "quiet", "no_progress", "coordinator", "num_processes", "process_id",
+            *ignore}
+    return {k: v for k, v in sorted(vars(args).items()) if k not in skip}
+
+
+def claim(out: str, command: str, config: dict, fresh: bool = False) -> bool:
+    """Make ``out`` this run's folder before any work; True when it resumes an earlier run of the same settings.
+    InputError naming --out when it is not writable, holds another command's run, a non-empty folder this package did
+    not make, or a run of other settings (unless ``fresh``: then the earlier run's files are deleted)."""
+    record = os.path.join(out, RUN)
+    if os.path.exists(out) and not os.path.isdir(out):
+        raise InputError(f"--out {out!r} is a file, not a folder")
+    earlier = None
+    if os.path.isfile(record):
+        try:
+            with open(record) as f:
+                earlier = json.load(f)
+            earlier_command, earlier_config = earlier["command"], earlier["config"]
+        except (OSError, ValueError, KeyError, TypeError) as e:
+            raise InputError(f"--out {out!r}: its {RUN} is damaged ({type(e).__name__}); choose another folder") \
+                from None
+        if earlier_command != command:
+            raise InputError(f"--out {out!r} holds a {earlier_command} run; choose another folder for {command}")
+        if earlier_config != json.loads(json.dumps(config)):
+            if not fresh:
+                raise InputError(f"--out {out!r} holds a {command} run of other settings "
+                                 f"({_differences(earlier_config, config)}); rerun with its settings to resume, "
+                                 "choose another --out, or pass --fresh to start it afresh")
+            if distributed.is_writer():
+                shutil.rmtree(out)
+            distributed.barrier(f"fresh {os.path.abspath(out)}")
+            earlier = None
+    elif os.path.isdir(out) and os.listdir(out) and distributed.is_writer():
+        raise InputError(f"--out {out!r} is not empty and holds no {RUN} (it was not made by a dynres command); "
+                         "choose a new or empty folder")
+    try:
+        files.check_writable(out)
+    except OSError as e:
+        raise InputError(f"--out: {e}") from None
+    if distributed.is_writer():
+        files.write_json(record, dict(command=command, config=config))
+    return earlier is not None
+
+
+def _differences(earlier: dict, now: dict) -> str:
+    now = json.loads(json.dumps(now))
+    keys = sorted(set(earlier) | set(now), key=lambda k: (k not in now, k))
+    return "; ".join(f"--{k.replace('_', '-')} {earlier.get(k, 'unset')} there, {now.get(k, 'unset')} here"
+                     for k in keys if earlier.get(k) != now.get(k))
