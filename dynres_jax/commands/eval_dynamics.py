@@ -6,7 +6,6 @@ several resolutions ω, against two baselines measured the same way: "nothing mo
 
 from __future__ import annotations
 
-import argparse
 import functools
 import os
 
@@ -15,6 +14,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import nnx
 
+from dynres_jax.commands import checks
 from dynres_jax.io import ckpt, files
 from dynres_jax.learn import data, targets, train
 from dynres_jax.models.dynamics import resolution_code, rollout
@@ -115,21 +115,28 @@ def plot(result: dict, path: str) -> None:
     plt.close(fig)
 
 
+@checks.guarded("eval_dynamics")
 def main(argv=None):
-    parser = argparse.ArgumentParser(prog="python -m experiments.eval_dynamics", description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = checks.parser("eval_dynamics", __doc__)
     parser.add_argument("--ckpt", required=True, help="checkpoint folder (runs/NAME/ckpt)")
     parser.add_argument("--data", required=True, help="shards; their held-out episodes are used")
     parser.add_argument("--out", required=True)
-    parser.add_argument("--omegas", nargs="+", type=int, default=[10, 25, 50, 100])
-    parser.add_argument("--windows", type=int, default=256, help="held-out windows per ω")
-    parser.add_argument("--seed", type=int, default=0)
+    checks.add_fresh(parser)
+    parser.add_argument("--omegas", nargs="+", type=checks.omega, default=[10, 25, 50, 100])
+    parser.add_argument("--windows", type=checks.count(1), default=256, help="held-out windows per ω")
+    parser.add_argument("--seed", type=checks.seed, default=0)
     args = parser.parse_args(argv)
-    model, meta, _ = ckpt.load_module(args.ckpt, build_model)
+    try:
+        model, meta, _ = ckpt.load_module(args.ckpt, build_model)
+    except ckpt.CheckpointError as e:
+        parser.error(f"--ckpt: {e}")
     tcfg = meta["train"]
     if max(args.omegas) > tcfg["n_max"]:
         parser.error(f"--omegas must be at most the model's n_max = {tcfg['n_max']}")
+    if len(set(args.omegas)) < len(args.omegas):
+        parser.error(f"--omegas names an ω twice: {args.omegas}")
     val = targets.load_shards(args.data, "val")
+    checks.claim(args.out, "eval_dynamics", checks.settings(args), args.fresh)
     graphdef, state = nnx.split(model)
     rng = np.random.default_rng(args.seed)
     windows = targets.random_windows(val, rng, args.windows, tcfg["horizon"])
@@ -141,7 +148,6 @@ def main(argv=None):
               "held_out_kinds": list(tcfg.get("held_out_kinds", ())), "omegas": {}}
     for omega in args.omegas:
         result["omegas"][str(omega)] = errors(graphdef, state, make(windows, omega, keys), hw)
-    os.makedirs(args.out, exist_ok=True)
     files.write_json(os.path.join(args.out, "eval.json"), result)
     plot(result, os.path.join(args.out, "eval.png"))
     text = table(result)

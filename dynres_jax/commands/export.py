@@ -21,15 +21,16 @@ neither the live planner nor the file repeats bit for bit from run to run; dynre
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 
 import jax
 
 from dynres_jax import export
+from dynres_jax.commands import checks
 from dynres_jax.config import CameraConfig, PushConfig
 from dynres_jax.control.planner import PlannerConfig
+from dynres_jax.io import frames
 from dynres_jax.io.ckpt import CheckpointError
 from dynres_jax.models.registry import SHIPPED_DYNAMICS
 from dynres_jax.sim.camera import Camera
@@ -37,24 +38,24 @@ from dynres_jax.sim.camera import Camera
 PLATFORMS = ("cpu", "cuda", "rocm", "tpu")
 
 
+@checks.guarded("export")
 def main(argv=None):
-    parser = argparse.ArgumentParser(prog="python -m experiments.export", description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = checks.parser("export", __doc__)
     defaults = PlannerConfig()
     parser.add_argument("--ckpt", default=SHIPPED_DYNAMICS, help="dynamics checkpoint (default: the shipped one)")
     parser.add_argument("--out", required=True, help="the file to write; its description goes to OUT.json")
-    parser.add_argument("--samples", type=int, default=50, help="action sequences optimised at once (M)")
-    parser.add_argument("--adam-steps", type=int, default=100, help="Adam steps per plan (N)")
-    parser.add_argument("--horizon", type=int, default=defaults.horizon, help="pushes per sequence (T)")
-    parser.add_argument("--bound", type=float, default=defaults.bound,
+    parser.add_argument("--samples", type=checks.count(1), default=50, help="action sequences optimised at once (M)")
+    parser.add_argument("--adam-steps", type=checks.count(1), default=100, help="Adam steps per plan (N)")
+    parser.add_argument("--horizon", type=checks.count(1, 10), default=defaults.horizon, help="pushes per sequence (T)")
+    parser.add_argument("--bound", type=checks.positive, default=defaults.bound,
                         help="pushes stay within ±bound m (default: the coffee bin's PileEnv.action_bound)")
-    parser.add_argument("--min-length", type=float, default=PushConfig.min_length, help="shortest push, m")
-    parser.add_argument("--max-length", type=float, default=PushConfig.max_length, help="longest push, m")
-    parser.add_argument("--lr", type=float, default=defaults.lr, help="Adam learning rate, m")
+    parser.add_argument("--min-length", type=checks.positive, default=PushConfig.min_length, help="shortest push, m")
+    parser.add_argument("--max-length", type=checks.positive, default=PushConfig.max_length, help="longest push, m")
+    parser.add_argument("--lr", type=checks.positive, default=defaults.lr, help="Adam learning rate, m")
     parser.add_argument("--camera", default=None,
                         help="camera JSON (Camera.to_json: K, rotation, centre, width, height) the goals' pixels "
                              "belong to (default: the simulator's top-down 128 x 128 camera)")
-    parser.add_argument("--goal-samples", type=int, default=export.DEFAULT_GOAL_SAMPLES,
+    parser.add_argument("--goal-samples", type=checks.count(1, 100_000), default=export.DEFAULT_GOAL_SAMPLES,
                         help="Q, the goal's FPS samples (goals.make_goal's n_samples)")
     parser.add_argument("--platforms", nargs="+", choices=PLATFORMS, default=None,
                         help=f"platforms to lower for (default: this machine's, now "
@@ -66,17 +67,12 @@ def main(argv=None):
                                min_length=args.min_length, max_length=args.max_length, lr=args.lr)
     except ValueError as e:
         parser.error(str(e))
-    if args.goal_samples < 1:
-        parser.error("--goal-samples must be >= 1")
-    if args.camera is None:
-        camera = Camera.top_down(CameraConfig())
-    else:
-        with open(args.camera) as f:
-            camera = Camera.from_json(f.read())
+    camera = Camera.top_down(CameraConfig()) if args.camera is None else frames.load_camera(args.camera)
+    checks.out_file(args.out, (".jaxexport",))
     try:
         exported, info = export.export_checkpoint(args.ckpt, config, camera, goal_samples=args.goal_samples,
                                                   platforms=args.platforms)
-    except (FileNotFoundError, CheckpointError) as e:
+    except CheckpointError as e:
         parser.error(f"--ckpt: {e}")
     size = export.save(exported, args.out, info)
     summary = dict(out=os.path.abspath(args.out), sidecar=os.path.abspath(args.out) + ".json", bytes=size,

@@ -24,7 +24,12 @@ import dataclasses
 import json
 
 from dynres_jax import distributed
+from dynres_jax.commands import checks
+from dynres_jax.config import SceneConfig
 from dynres_jax.learn import data
+from dynres_jax.sim.scene import check_room
+
+TYPES = {int: checks.count(0), float: checks.number()}  # a field's flag type by its default's type
 
 
 def _add_field_flags(parser: argparse.ArgumentParser) -> list[str]:
@@ -39,20 +44,21 @@ def _add_field_flags(parser: argparse.ArgumentParser) -> list[str]:
         if isinstance(default, bool):
             parser.add_argument(flag, action=argparse.BooleanOptionalAction, default=None, help=help_)
         elif isinstance(default, tuple):
-            parser.add_argument(flag, nargs="+", type=type(default[0]), default=None, help=help_)
+            parser.add_argument(flag, nargs="+", type=TYPES.get(type(default[0]), str), default=None, help=help_)
         else:
-            parser.add_argument(flag, type=type(default), default=None, help=help_)
+            parser.add_argument(flag, type=TYPES.get(type(default), str), default=None, help=help_)
         names.append(f.name)
     return names
 
 
+@checks.guarded("generate_data")
 def main(argv=None) -> dict:
-    parser = argparse.ArgumentParser(prog="python -m experiments.generate_data", description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = checks.parser("generate_data", __doc__)
     parser.add_argument("--out", required=True, help="output folder (shards, config.json, summary.json)")
+    checks.add_fresh(parser)
     parser.add_argument("--quick", action="store_true",
                         help="tiny sizes (6 coffee beans, 48x48, 2 short pushes, 8 episodes of 4 worlds)")
-    parser.add_argument("--workers", type=int, default=None,
+    parser.add_argument("--workers", type=checks.count(1, 1024), default=None,
                         help="C engine processes for --backend mujoco (default: every host core)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     names = _add_field_flags(parser)
@@ -63,8 +69,11 @@ def main(argv=None) -> dict:
     try:
         config = data.quick_config(**overrides) if args.quick else data.DataConfig(**overrides)
         data.check_devices(config)
+        for scene in (SceneConfig(kinds=(kind,), pieces=(config.pieces[1],)) for kind in config.kinds):
+            check_room(scene)
     except (ValueError, TypeError) as e:
         parser.error(str(e))
+    checks.claim(args.out, "generate_data", checks.settings(args), args.fresh)
     summary = data.generate(config, args.out, progress=not args.no_progress, workers=args.workers)
     print(json.dumps(summary, indent=1, sort_keys=True))
     return summary

@@ -5,8 +5,6 @@
 
 from __future__ import annotations
 
-import argparse
-import json
 import os
 
 import cv2
@@ -15,10 +13,12 @@ import jax
 import numpy as np
 from tqdm import tqdm
 
+from dynres_jax.commands import checks
 from dynres_jax.config import KINDS, CameraConfig, PileConfig, SceneConfig, SimConfig
 from dynres_jax.io import files
-from dynres_jax.sim.camera import Observation
+from dynres_jax.sim.camera import MAX_IMAGE, MIN_IMAGE, Observation
 from dynres_jax.sim.env import PileEnv
+from dynres_jax.sim.scene import check_room
 
 
 def depth_image(depth: np.ndarray, near: float, far: float) -> np.ndarray:
@@ -32,28 +32,35 @@ def frame(obs: Observation, scale: int = 2) -> np.ndarray:
     return cv2.resize(rgb, (rgb.shape[1] * scale, rgb.shape[0] * scale), interpolation=cv2.INTER_NEAREST)
 
 
+@checks.guarded("simulate")
 def main(argv=None):
-    parser = argparse.ArgumentParser(prog="python -m experiments.simulate", description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = checks.parser("simulate", __doc__)
     parser.add_argument("--kind", nargs="+", default=["coffee"], choices=sorted(KINDS),
                         help="piece kind(s); two kinds make a Sort scene")
-    parser.add_argument("--pieces", nargs="+", type=int, default=[100], help="pieces of each kind")
-    parser.add_argument("--pushes", type=int, default=5)
+    parser.add_argument("--pieces", nargs="+", type=checks.count(1), default=[100], help="pieces of each kind")
+    parser.add_argument("--pushes", type=checks.count(1, 10_000), default=5)
     parser.add_argument("--layout", default="blob", choices=["blob", "two_blobs", "spread"])
     parser.add_argument("--joints", default="planar", choices=["planar", "free"])
     parser.add_argument("--backend", default="mujoco", choices=["mujoco", "mjx"],
                         help="mujoco (C, one world) draws the plate moving; mjx shows one frame per push")
-    parser.add_argument("--resolution", type=int, default=256, help="image width and height, pixels")
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--resolution", type=checks.count(MIN_IMAGE, MAX_IMAGE), default=256,
+                        help="image width and height, pixels")
+    parser.add_argument("--seed", type=checks.seed, default=0)
     parser.add_argument("--out", default="out/simulate")
+    checks.add_fresh(parser)
     args = parser.parse_args(argv)
     pieces = args.pieces * len(args.kind) if len(args.pieces) == 1 else args.pieces
-    if len(pieces) != len(args.kind):
-        parser.error(f"--pieces needs one count, or one per kind ({len(args.kind)})")
-
-    cfg = SimConfig(scene=SceneConfig(kinds=tuple(args.kind), pieces=tuple(pieces), joints=args.joints),
-                    pile=PileConfig(layout=args.layout),
-                    camera=CameraConfig(width=args.resolution, height=args.resolution))
+    if len(pieces) != len(args.kind) or len(args.kind) > 2:
+        parser.error(f"--kind takes one or two kinds and --pieces one count, or one per kind; got {args.kind}, "
+                     f"{args.pieces}")
+    try:
+        cfg = SimConfig(scene=SceneConfig(kinds=tuple(args.kind), pieces=tuple(pieces), joints=args.joints),
+                        pile=PileConfig(layout=args.layout),
+                        camera=CameraConfig(width=args.resolution, height=args.resolution))
+        check_room(cfg.scene)
+    except ValueError as e:
+        parser.error(str(e))
+    checks.claim(args.out, "simulate", checks.settings(args), args.fresh)
     env = PileEnv(cfg, backend=args.backend)
     key = jax.random.PRNGKey(args.seed)
     state = env.reset(key)
@@ -71,15 +78,15 @@ def main(argv=None):
             tqdm.write(f"push {i}: the world broke (NaN, or a piece left the bin); stopping")
             break
 
-    os.makedirs(args.out, exist_ok=True)
-    iio.imwrite(os.path.join(args.out, "pushes.gif"), np.stack(frames), duration=80, loop=0)
+    files.atomic_write(os.path.join(args.out, "pushes.gif"),
+                       lambda f: iio.imwrite(f, np.stack(frames), extension=".gif", duration=80, loop=0))
     files.write_image(os.path.join(args.out, "final_rgb.png"),
                       cv2.cvtColor(np.asarray(state.obs.rgb), cv2.COLOR_RGB2BGR))
     far = cfg.camera.distance
     depth = depth_image(np.asarray(state.obs.depth), far - 0.03, far)
     files.write_image(os.path.join(args.out, "final_depth.png"), cv2.cvtColor(depth, cv2.COLOR_RGB2BGR))
-    with open(os.path.join(args.out, "actions.json"), "w") as f:
-        json.dump(dict(config=repr(cfg), actions=actions, broken=bool(state.broken)), f, indent=1)
+    files.write_json(os.path.join(args.out, "actions.json"),
+                     dict(config=repr(cfg), actions=actions, broken=bool(state.broken)))
     print(f"wrote {len(frames)} frames to {args.out}/pushes.gif, final_rgb.png, final_depth.png, actions.json")
 
 

@@ -30,13 +30,14 @@ higher, lower or equal, with 95 % Wilson intervals, and ``tradeoff.png`` with th
 
 from __future__ import annotations
 
-import argparse
 import os
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
+from dynres_jax.commands import checks
+from dynres_jax.commands.task import load_model
 from dynres_jax.config import CameraConfig, PileConfig, PushConfig, SceneConfig, SimConfig
 from dynres_jax.control import tasks
 from dynres_jax.control.budget import TimingTable, bucket_for
@@ -46,6 +47,7 @@ from dynres_jax.control.mpc import MPCConfig, measure_timing
 from dynres_jax.control.objective import distribution_distance
 from dynres_jax.control.planner import PlannerConfig
 from dynres_jax.control.resolution import CANDIDATES
+from dynres_jax.errors import InputError
 from dynres_jax.io import files
 from dynres_jax.learn.data import complete_shards, read_shard, save_npz
 from dynres_jax.models.registry import SHIPPED_DYNAMICS, load_dynamics
@@ -66,29 +68,44 @@ def compare(high: np.ndarray, low: np.ndarray) -> dict:
                 higher_ci95=wilson(k, n), mean_first=float(high.mean()), mean_second=float(low.mean()))
 
 
+@checks.guarded("tradeoff")
 def main(argv=None):
-    parser = argparse.ArgumentParser(prog="python -m experiments.tradeoff", description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = checks.parser("tradeoff", __doc__)
     parser.add_argument("--labels", help="label shards of experiments.label_resolution (Fig. 4)")
     parser.add_argument("--out", required=True)
+    checks.add_fresh(parser)
     parser.add_argument("--surface", action="store_true", help="measure the anytime surface instead")
     parser.add_argument("--reliability", nargs=2, metavar="LABELS", help="two label runs of the same scenes")
-    parser.add_argument("--scenes", type=int, default=128, help="surface: scenes of each kind")
-    parser.add_argument("--samples", type=int, default=50, help="surface: pushes optimised at once (M)")
-    parser.add_argument("--pieces", type=int, default=100)
+    parser.add_argument("--scenes", type=checks.count(2), default=128, help="surface: scenes of each kind")
+    parser.add_argument("--samples", type=checks.count(1), default=50, help="surface: pushes optimised at once (M)")
+    parser.add_argument("--pieces", type=checks.count(1), default=100, help="surface: pieces in a pile")
     parser.add_argument("--ckpt", default=None, help="surface: dynamics checkpoint (default: the shipped one)")
-    parser.add_argument("--workers", type=int, default=None, help="surface: C engine processes (default: every core)")
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--workers", type=checks.count(1, 1024), default=None,
+                        help="surface: C engine processes (default: every core)")
+    parser.add_argument("--seed", type=checks.seed, default=0)
     parser.add_argument("--quick", action="store_true", help="surface: tiny sizes for a CPU smoke run")
     args = parser.parse_args(argv)
+    if sum(map(bool, (args.labels, args.surface, args.reliability))) != 1:
+        parser.error("give exactly one of --labels (Fig. 4), --surface or --reliability")
     if args.surface:
-        if args.scenes < 2 or args.samples < 1:
-            parser.error("--scenes must be at least 2 and --samples at least 1")
+        checks.quick_sets(parser, args, ("scenes", "samples", "pieces"))
+        try:
+            tasks.check_pile_fits(SceneConfig(pieces=(args.pieces,)))
+        except InputError as e:
+            parser.error(f"--pieces: {e}")
+        load_model(parser, "auto", args.ckpt, SceneConfig.plate_half_width)
+        checks.claim(args.out, "tradeoff", checks.settings(args), args.fresh)
         return surface(args)
     if args.reliability:
-        return reliability(*args.reliability, args.out)
-    if not args.labels:
-        parser.error("give --labels (Fig. 4), --surface or --reliability")
+        first, second = args.reliability
+        if os.path.abspath(first) == os.path.abspath(second):
+            parser.error(f"--reliability needs two label runs of the same scenes, got {first} twice")
+        for folder in (first, second):
+            complete_shards(folder, "--reliability")
+        checks.claim(args.out, "tradeoff", checks.settings(args), args.fresh)
+        return reliability(first, second, args.out)
+    complete_shards(args.labels, "--labels")
+    checks.claim(args.out, "tradeoff", checks.settings(args), args.fresh)
     shards = {int(z["shard"]): z for z in map(read_shard, complete_shards(args.labels, "--labels"))}
     letter_vs_disc, blob_vs_spread, examples = [], [], {}
     for s, z in shards.items():

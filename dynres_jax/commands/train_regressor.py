@@ -14,26 +14,27 @@ unchanged (all six channels are images of a square bin seen from above). Reports
 
 from __future__ import annotations
 
-import argparse
 import os
 
 from dynres_jax import distributed
+from dynres_jax.commands import checks
 from dynres_jax.control.resolution import OMEGA_MAX, OMEGA_MIN
 from dynres_jax.io import ckpt, files
 from dynres_jax.learn.regressor import load_labels, train_regressor
 
 
+@checks.guarded("train_regressor")
 def main(argv=None):
-    parser = argparse.ArgumentParser(prog="python -m experiments.train_regressor", description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = checks.parser("train_regressor", __doc__)
     parser.add_argument("--labels", nargs="+", required=True, help="label folders, pooled")
     parser.add_argument("--out", required=True)
-    parser.add_argument("--steps", type=int, default=3000)
-    parser.add_argument("--batch", type=int, default=64)
-    parser.add_argument("--lr", type=float, default=1e-3)
-    parser.add_argument("--width", type=int, default=16)
-    parser.add_argument("--val-every", type=int, default=100, help="steps between validation scores")
-    parser.add_argument("--seed", type=int, default=0)
+    checks.add_fresh(parser)
+    parser.add_argument("--steps", type=checks.count(1), default=3000)
+    parser.add_argument("--batch", type=checks.count(1), default=64)
+    parser.add_argument("--lr", type=checks.positive, default=1e-3)
+    parser.add_argument("--width", type=checks.count(1), default=16)
+    parser.add_argument("--val-every", type=checks.count(1), default=100, help="steps between validation scores")
+    parser.add_argument("--seed", type=checks.seed, default=0)
     distributed.add_args(parser)
     args = parser.parse_args(argv)
     distributed.from_args(parser, args)
@@ -41,12 +42,15 @@ def main(argv=None):
         distributed.check_batch(args.batch, distributed.batch_mesh())
     except ValueError as e:
         parser.error(str(e))
-    params, metrics, truth, pred = train_regressor(load_labels(args.labels), steps=args.steps, batch=args.batch,
+    if len({os.path.abspath(folder) for folder in args.labels}) < len(args.labels):
+        parser.error(f"--labels names a folder twice: {' '.join(args.labels)}")
+    labels = load_labels(args.labels)
+    checks.claim(args.out, "train_regressor", checks.settings(args), args.fresh)
+    params, metrics, truth, pred = train_regressor(labels, steps=args.steps, batch=args.batch,
                                                    lr=args.lr, width=args.width, val_every=args.val_every,
                                                    seed=args.seed)
     if not distributed.is_writer():
         return metrics
-    os.makedirs(args.out, exist_ok=True)
     ckpt.save(os.path.join(args.out, "ckpt"), args.steps, {"module": params}, dict(width=args.width, **metrics))
     files.write_json(os.path.join(args.out, "metrics.json"), metrics)
     _scatter(truth, pred, os.path.join(args.out, "heldout.png"))

@@ -15,6 +15,7 @@ import numpy as np
 from dynres_jax.config import GEOMS, KINDS, SceneConfig
 
 GRAVITY = 9.81
+ROOM = 0.5  # the most of the bin's floor the pieces' footprints may cover
 GROUP_TABLE, GROUP_PIECES, GROUP_WALLS, GROUP_PLATE = 0, 1, 2, 3
 
 
@@ -54,6 +55,16 @@ class Scene:
 def _footprint(geom_type: np.ndarray, size: np.ndarray) -> np.ndarray:
     return np.select([geom_type == 0, geom_type == 1], [size[:, 0], size[:, 0] + size[:, 1]],
                      np.hypot(size[:, 0], size[:, 1]))
+
+
+def check_room(cfg: SceneConfig) -> None:
+    """ValueError when the pieces' footprints cover more than ROOM of the bin's floor (no pile of them could settle),
+    from the config alone: checked before any scene is built."""
+    area, floor = float(np.sum(np.pi * footprint(cfg) ** 2)), (2 * cfg.bin_half_width) ** 2
+    if area > ROOM * floor:
+        largest = int(sum(cfg.pieces) * ROOM * floor / area)
+        raise ValueError(f"{sum(cfg.pieces)} {'/'.join(cfg.kinds)} pieces cover {area / floor:.0%} of the bin's floor "
+                         f"(at most {ROOM:.0%}: about {largest} pieces)")
 
 
 def footprint(cfg: SceneConfig) -> np.ndarray:
@@ -149,7 +160,9 @@ def scene_xml(cfg: SceneConfig) -> str:
 
 
 def build_scene(cfg: SceneConfig) -> Scene:
-    """Build the MJCF for ``cfg`` and compile it with MuJoCo. Raises ValueError naming any bad field."""
+    """Build the MJCF for ``cfg`` and compile it with MuJoCo. Raises ValueError naming any bad field, or a pile with
+    no room in the bin (``check_room``)."""
+    check_room(cfg)
     xml = scene_xml(cfg)
     model = mujoco.MjModel.from_xml_string(xml)
     kind, gtype, size = _piece_sizes(cfg)
