@@ -23,5 +23,6 @@ def main(argv=None) -> None:
         return
     name = argv[0].replace("-", "_")
     if name not in COMMANDS:
-        sys.exit(f"dynres: unknown command {argv[0]!r}; the commands: {', '.join(COMMANDS)}")
+        print(f"dynres: error: unknown command {argv[0]!r}; the commands: {', '.join(COMMANDS)}", file=sys.stderr)
+        raise SystemExit(2)
     importlib.import_module(f"dynres_jax.commands.{name}").main(argv[1:])

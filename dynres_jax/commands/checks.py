@@ -118,15 +118,18 @@ def existing_folder(text: str) -> str:
 
 
 def out_file(text: str, suffixes: tuple[str, ...]) -> str:
-    """An output file path: its folder writable (created if needed), not a folder itself, one of ``suffixes``."""
+    """An output file path: not a folder, ending in one of ``suffixes``, in a folder that exists and is writable or can
+    be made (nothing is created here)."""
     if os.path.isdir(text) or text.endswith(os.sep):
         raise InputError(f"--out {text!r} is a folder; give a file name ending in {' or '.join(suffixes)}")
     if not text.lower().endswith(suffixes):
         raise InputError(f"--out {text!r}: give a file name ending in {' or '.join(suffixes)}")
-    try:
-        files.check_writable(os.path.dirname(os.path.abspath(text)))
-    except OSError as e:
-        raise InputError(f"--out: {e}") from None
+    folder = os.path.dirname(os.path.abspath(text))
+    while not os.path.exists(folder):  # the nearest folder that exists must take the new ones (none made here)
+        folder = os.path.dirname(folder)
+    if not os.path.isdir(folder) or not os.access(folder, os.W_OK):
+        why = "a file" if os.path.isfile(folder) else "not writable"
+        raise InputError(f"--out {text!r}: cannot write there ({folder!r} is {why})")
     return text
 
 

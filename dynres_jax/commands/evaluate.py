@@ -41,6 +41,7 @@ from dynres_jax import distributed
 from dynres_jax.commands import checks
 from dynres_jax.commands.task import (
     add_planner_args,
+    check_budget,
     load_model,
     load_timing,
     mpc_config,
@@ -55,6 +56,7 @@ from dynres_jax.control.mpc import SensorView, run
 from dynres_jax.io import ckpt, files
 from dynres_jax.models.registry import SHIPPED_CNN_DYNAMICS, SHIPPED_DYNAMICS, SHIPPED_REGRESSOR, describe
 from dynres_jax.sim.camera import Camera
+from dynres_jax.sim.env import PileEnv
 from dynres_jax.sim.pool import WorldPool, process_pool
 from dynres_jax.sim.sensor import SENSORS
 from dynres_jax.stats import mcnemar, paired_bootstrap, wilson
@@ -279,6 +281,10 @@ def main(argv=None):
             resolution.load_regressor(args.regressor, Camera.top_down(camera))
         except ckpt.CheckpointError as e:
             parser.error(f"--regressor (method adaptive): {e}")
+    table = load_timing(parser, args)
+    if table is not None:  # a given table must afford every method a step, before the first method runs
+        cfg = mpc_config(PileEnv(sim, backend="mujoco", render=False), args, args.mpc_steps)
+        check_budget(cfg, table, method_omegas(args, cfg))
     checks.claim(args.out, "evaluate", checks.settings(args, ignore=("methods",)), args.fresh)
     os.makedirs(os.path.join(args.out, "parts"), exist_ok=True)
     mine = np.arange(rank, args.episodes, size)  # this process's episodes

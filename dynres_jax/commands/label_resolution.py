@@ -118,7 +118,7 @@ def main(argv=None):
             save_npz(shard_path(args.out, s), label_shard(cfg, s, dynamics, planner, processes, timing))
     minutes = (time.perf_counter() - t0) / 60
     distributed.barrier(f"label {os.path.abspath(args.out)}")
-    labels = np.concatenate([read_shard(p, ("label",))["label"] for p in complete_shards(args.out, "--out")])
+    labels = np.concatenate([read_shard(p, ("label",))["label"] for p in complete_shards(args.out, "--out", "labels")])
     summary = dict(scenes=len(labels), shards_written=len(todo), minutes=minutes,
                    labels_per_minute=len(todo) * args.batch / minutes if todo else 0.0,
                    device=jax.devices()[0].device_kind, dynamics=name,

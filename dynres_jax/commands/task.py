@@ -215,7 +215,7 @@ def main(task: str, argv=None):
         else:
             goal_mask, goal_info = tasks.redistribute_goal(rng, env, args.letter)
     except ValueError as e:
-        parser.error(str(e))
+        parser.error(f"--letter {args.letter!r}: {e}")
     checks.claim(args.out, task, checks.settings(args), args.fresh)
     goal = make_goal(goal_mask, env.camera)
     state = env.reset(jax.random.PRNGKey(args.seed))

@@ -101,12 +101,12 @@ def main(argv=None):
         if os.path.abspath(first) == os.path.abspath(second):
             parser.error(f"--reliability needs two label runs of the same scenes, got {first} twice")
         for folder in (first, second):
-            complete_shards(folder, "--reliability")
+            complete_shards(folder, "--reliability", "labels")
         checks.claim(args.out, "tradeoff", checks.settings(args), args.fresh)
         return reliability(first, second, args.out)
-    complete_shards(args.labels, "--labels")
+    complete_shards(args.labels, "--labels", "labels")
     checks.claim(args.out, "tradeoff", checks.settings(args), args.fresh)
-    shards = {int(z["shard"]): z for z in map(read_shard, complete_shards(args.labels, "--labels"))}
+    shards = {int(z["shard"]): z for z in map(read_shard, complete_shards(args.labels, "--labels", "labels"))}
     letter_vs_disc, blob_vs_spread, examples = [], [], {}
     for s, z in shards.items():
         letter_vs_disc.append((z["label"][1::2], z["label"][0::2]))  # scenes 2j + 1 (letter) vs 2j (disc)
@@ -164,7 +164,7 @@ def ranks(x) -> np.ndarray:
 def _labels_by_scene(folder: str) -> dict:
     """{(shard, index): label} of a label run."""
     out = {}
-    for path in complete_shards(folder, "--reliability"):
+    for path in complete_shards(folder, "--reliability", "labels"):
         z = read_shard(path, ("shard", "label"))
         out.update({(int(z["shard"]), i): int(v) for i, v in enumerate(z["label"])})
     return out

@@ -28,6 +28,7 @@ from dynres_jax.control.decision import DecisionSpec, batch, decide_batch, episo
 from dynres_jax.control.goals import Goal, KindGoals
 from dynres_jax.control.objective import distribution_distance, inside_share
 from dynres_jax.control.planner import PlannerConfig
+from dynres_jax.errors import InputError
 from dynres_jax.perception import calibrate, point_cloud
 from dynres_jax.sim.env import PileEnv, State
 from dynres_jax.sim.pool import EnvWorlds, Worlds
@@ -68,7 +69,7 @@ class MPCConfig:
         when the table was measured for another planner batch (samples, horizon)."""
         if self.time_budget is not None and table is not None and (table.samples, table.horizon) != (
                 self.planner.samples, self.planner.horizon):
-            raise ValueError(f"the timing table was measured for {table.samples} samples x horizon {table.horizon}, "
+            raise InputError(f"the timing table was measured for {table.samples} samples x horizon {table.horizon}, "
                              f"the planner has {self.planner.samples} x {self.planner.horizon}: measure it again")
         return budget.adam_steps(bucket, self.planner.adam_steps, self.time_budget, table)
 

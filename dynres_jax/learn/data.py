@@ -347,16 +347,22 @@ def generate(config: DataConfig, out_dir: str, devices=None, progress: bool = Tr
     return summary
 
 
-def complete_shards(folder: str, flag: str = "--data") -> list[str]:
-    """The shard paths of a finished set in ``folder`` (generate_data's or label_resolution's), every one its
-    config.json promises (data: ``DataConfig.n_shards``; labels: ceil(scenes / batch)). InputError naming ``flag``, the
-    folder and the first missing shard, or a folder that holds no such set."""
+def complete_shards(folder: str, flag: str = "--data", kind: str = "data") -> list[str]:
+    """The shard paths of a finished set in ``folder``, every one its config.json promises. kind: "data"
+    (generate_data's: ``DataConfig.n_shards``) or "labels" (label_resolution's: ceil(scenes / batch)). InputError
+    naming ``flag``, the folder and the first missing shard, or a folder that holds no such set."""
     config_path = os.path.join(folder, "config.json")
     try:
         with open(config_path) as f:
             config = json.load(f)
-        expected = (math.ceil(config["episodes"] / config["worlds"]) if "worlds" in config
+        found = "data" if "worlds" in config else "labels" if "scenes" in config else "neither"
+        if found != kind:
+            raise InputError(f"{flag} {folder}: it holds {'no data or label set' if found == 'neither' else found}, "
+                             f"not {kind}")
+        expected = (math.ceil(config["episodes"] / config["worlds"]) if kind == "data"
                     else math.ceil(config["scenes"] / config["batch"]))
+    except InputError:
+        raise
     except FileNotFoundError:
         raise InputError(f"{flag} {folder}: no config.json, so no data or label set "
                          "(made by experiments.generate_data or experiments.label_resolution)") from None

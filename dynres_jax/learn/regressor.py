@@ -28,7 +28,8 @@ from dynres_jax.learn.data import complete_shards, read_shard
 def load_labels(folders: list[str]) -> dict:
     """The label shards of every folder, in order; "shard" numbers them 0, 1, ... across the folders, so a pile is
     named by (shard, pile) even where two folders both have a shard 0."""
-    shards = [read_shard(p) for folder in folders for p in complete_shards(folder, "--labels")]
+    shards = [read_shard(p, ("inputs", "label", "pile")) for folder in folders
+              for p in complete_shards(folder, "--labels", "labels")]
     out = {k: np.concatenate([s[k] for s in shards]) for k in ("inputs", "label", "pile")}
     out["shard"] = np.concatenate([np.full(len(s["label"]), i) for i, s in enumerate(shards)])
     return out
