@@ -39,7 +39,7 @@ def regressor(labels, tmp_path_factory):
                                       "--width", "4"])
 
 
-def test_labels_follow_the_bo_recipe_and_resume(labels):
+def test_labels_follow_the_bo_recipe_and_resume(labels, timing, capsys):
     out, summary = labels
     assert summary["scenes"] == 8 and summary["shards_written"] == 2
     for shard in ("shard_00000.npz", "shard_00001.npz"):
@@ -57,8 +57,11 @@ def test_labels_follow_the_bo_recipe_and_resume(labels):
         assert np.array_equal(z["adam_steps"], expect)  # every ω planned with its bucket's share of the budget
         assert z["repeat_var"].shape == z["omega"].shape and np.all(z["repeat_var"] == 0)  # one repeat: no spread
     assert TimingTable.load(os.path.join(out, "timing.json")).to_json() == TABLE.to_json()  # saved with the labels
-    again = label_resolution.main(["--out", out, *QUICK])
+    again = label_resolution.main(["--out", out, *QUICK, *timing])
     assert again["shards_written"] == 0 and again["scenes"] == 8
+    with pytest.raises(SystemExit):  # other settings are refused, naming what differs, never mixed into the set
+        label_resolution.main(["--out", out, *QUICK, *timing, "--seed", "5"])
+    assert "--seed 0 there, 5 here" in capsys.readouterr().err
 
 
 def test_mid_episode_labels_start_from_pushed_piles(labels, timing, tmp_path):

@@ -134,7 +134,11 @@ def test_training_spans_two_processes_and_resumes_in_both(tmp_path):
     with open(os.path.join(out, "metrics.jsonl")) as f:
         assert [json.loads(line)["step"] for line in f] == [2, 4]  # one writer: no line twice
     shutil.rmtree(os.path.join(out, "ckpt", "4"))
+    kept = os.path.join(out, "ckpt", "2", "manifest.json")
+    stamp = os.stat(kept).st_mtime_ns
     again = job()
+    assert os.stat(kept).st_mtime_ns == stamp  # step 2 was restored, not trained and written again
+    assert sorted(os.listdir(os.path.join(out, "ckpt"))) == ["2", "4"]
     assert again[0] == again[1]
     for key in ("train_rmse_mm", "val_rmse_mm", "val_distance_mm"):
         assert again[0][key] == pytest.approx(first[0][key], rel=1e-5), key

@@ -94,8 +94,8 @@ def verify(directory, step: int) -> None:
         recorded = manifest["files"]
         intact = manifest["sha256"] == _seal_hash(recorded)
     except (OSError, ValueError, KeyError, TypeError) as e:
-        raise CheckpointError(f"{where}: its {MANIFEST} is missing or unreadable ({type(e).__name__}); the save was "
-                              "killed or the folder was damaged") from e
+        raise CheckpointError(f"{where}: {os.path.join(step_dir, MANIFEST)} is damaged or missing "
+                              f"({type(e).__name__}): the folder was damaged, or the save was killed") from e
     if not intact:
         raise CheckpointError(f"{where}: {os.path.join(step_dir, MANIFEST)} is damaged (its own hash differs)")
     found = _hashes(step_dir)
