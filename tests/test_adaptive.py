@@ -135,6 +135,7 @@ def test_label_reliability_by_hand(tmp_path):
     a, b = tmp_path / "a", tmp_path / "b"
     for folder, labels in ((a, [[10, 20], [30, 30]]), (b, [[12, 25], [50, 20]])):
         folder.mkdir()
+        (folder / "config.json").write_text(json.dumps({"scenes": 4, "batch": 2}))
         for shard, label in enumerate(labels):
             np.savez(folder / f"shard_{shard:05d}.npz", shard=np.int64(shard), label=np.array(label))
     result = tradeoff.reliability(str(a), str(b), str(tmp_path / "out"))
@@ -144,8 +145,15 @@ def test_label_reliability_by_hand(tmp_path):
     assert result["mean_abs_difference"] == pytest.approx((2 + 5 + 20 + 10) / 4)
     assert result["regressor_mae_at_least"] == pytest.approx(37 / 8)
     assert result["regressor_correlation_at_most"] == pytest.approx(np.sqrt(result["pearson"]))
+    c = tmp_path / "c"
+    c.mkdir()
+    (c / "config.json").write_text(json.dumps({"scenes": 2, "batch": 2}))
+    np.savez(c / "shard_00000.npz", shard=np.int64(7), label=np.array([10, 20]))
     with pytest.raises(ValueError, match="share 0 scenes"):
-        tradeoff.reliability(str(a), str(tmp_path / "out"), str(tmp_path / "out"))
+        tradeoff.reliability(str(a), str(c), str(tmp_path / "out"))
+    os.remove(b / "shard_00001.npz")
+    with pytest.raises(ValueError, match="1 of its 2 shards are missing"):
+        tradeoff.reliability(str(a), str(b), str(tmp_path / "out"))
 
 
 def test_label_folders_pool_with_distinct_shard_numbers(labels):
@@ -155,5 +163,5 @@ def test_label_folders_pool_with_distinct_shard_numbers(labels):
     n = len(one["label"])
     assert len(both["label"]) == 2 * n and np.array_equal(both["label"][n:], one["label"])
     assert np.array_equal(both["shard"], np.concatenate([one["shard"], one["shard"] + 2]))
-    with pytest.raises(ValueError, match="no label shards"):
+    with pytest.raises(ValueError, match="no config.json, so no data or label set"):
         g_training.load_labels([labels[0], os.path.dirname(labels[0])])
