@@ -48,15 +48,6 @@ def test_the_closed_loop_beats_random_pushes():
     assert d["planned"] < 0.75 * d["random"], d
 
 
-@pytest.mark.parametrize("argv, message", [(["--resolution", "0"], "--resolution must be"),
-                                           (["--resolution", "adaptive", "--regressor", "/nonexistent"],
-                                            "needs a regressor checkpoint")])
-def test_bad_task_flags_are_named_before_any_work(argv, message, tmp_path, capsys):
-    with pytest.raises(SystemExit):
-        gather.main([*argv, "--out", str(tmp_path / "never")])
-    assert message in capsys.readouterr().err and not (tmp_path / "never").exists()
-
-
 @pytest.mark.parametrize("kind", ["almond", "rice", "mnm", "granola", "candy"])
 def test_gather_runs_on_every_kind_at_its_default_count(kind, tmp_path):
     """Every kind at DEFAULT_PIECES (coffee: the tests above): a goal that fits, an episode, its files."""
