@@ -313,6 +313,12 @@ def test_load_pads_shards_with_fewer_pieces(generated, tmp_path):
              piece=np.where(s["piece"] < 4, s["piece"], -1).astype(np.int16), episode=s["episode"] + 100,
              sim_config=np.array(json.dumps(dataclasses.asdict(sim))))
     data.save_npz(os.path.join(out, "shard_00002.npz"), s)
+    with pytest.raises(ValueError, match="shard_00002.npz lies beyond the 2 shards"):
+        targets.load_shards(out)
+    with open(os.path.join(out, "config.json")) as f:
+        config = json.load(f)
+    with open(os.path.join(out, "config.json"), "w") as f:  # the set now promises three shards
+        json.dump(dict(config, episodes=config["episodes"] + config["worlds"]), f)
     d = targets.load_shards(out)
     assert len(d) == 10 and d.pos.shape[2] == 6
     assert d.piece_mask[:7].all() and np.all(d.piece_mask[7:] == (np.arange(6) < 4))
@@ -367,7 +373,7 @@ def test_bad_windows_and_split(generated):
         targets.windows(d, [0], [2], horizon=1)
     with pytest.raises(ValueError, match="split"):
         targets.load_shards(generated[0], "test")
-    with pytest.raises(ValueError, match="no shards"):
+    with pytest.raises(ValueError, match="no config.json, so no data or label set"):
         targets.load_shards(os.path.dirname(generated[0]) + "/nothing")
 
 

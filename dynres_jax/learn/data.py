@@ -331,7 +331,8 @@ def generate(config: DataConfig, out_dir: str, devices=None, progress: bool = Tr
     distributed.barrier(f"generate {os.path.abspath(out_dir)}")
 
     totals = dict(shards=0, episodes=0, frames=0, broken_dropped=0, simulated=0)
-    for _, shard in iter_shards(out_dir, members=("broken", "simulated", "dropped")):
+    for path in sorted(glob.glob(os.path.join(out_dir, SHARD_GLOB))):  # those written so far (a lone part: its own)
+        shard = read_shard(path, ("broken", "simulated", "dropped"))
         totals["shards"] += 1
         totals["episodes"] += len(shard["broken"])
         totals["frames"] += shard["broken"].size
@@ -369,6 +370,10 @@ def complete_shards(folder: str, flag: str = "--data", kind: str = "data") -> li
     except (OSError, ValueError, KeyError, TypeError) as e:
         raise InputError(f"{flag} {folder}: its config.json is damaged ({type(e).__name__}: {e})") from None
     paths = [shard_path(folder, s) for s in range(expected)]
+    extra = sorted(set(glob.glob(os.path.join(folder, SHARD_GLOB))) - set(paths))
+    if extra:
+        raise InputError(f"{flag} {folder}: {os.path.basename(extra[0])} lies beyond the {expected} shards its "
+                         "config.json promises (a shard of another set?)")
     missing = [p for p in paths if not os.path.exists(p)]
     if missing:
         raise InputError(f"{flag} {folder}: {len(missing)} of its {expected} shards are missing "
