@@ -19,7 +19,7 @@ import sys
 
 from dynres_jax import distributed
 from dynres_jax.config import OMEGA_MAX, OMEGA_MIN
-from dynres_jax.errors import InputError
+from dynres_jax.errors import InputError, JobError
 from dynres_jax.io import files
 
 RUN = "run.json"
@@ -39,16 +39,17 @@ def parser(name: str, doc: str | None) -> argparse.ArgumentParser:
 
 def guarded(name: str):
     """Decorator of a command's ``main(argv)``: an ``InputError`` raised anywhere in it (a damaged file found while
-    reading, a folder of another run) is printed as one line naming the input, exit status 2, as argparse does."""
+    reading, a folder of another run) is printed as one line naming the input, exit status 2, as argparse does; a
+    ``JobError`` (a peer that never joined) the same way with status 1."""
 
     def wrap(main):
         @functools.wraps(main)
         def run(argv=None):
             try:
                 return main(argv)
-            except InputError as e:
+            except (InputError, JobError) as e:
                 print(f"{prog(name)}: error: {' '.join(str(e).split())}", file=sys.stderr)
-                raise SystemExit(2) from None
+                raise SystemExit(2 if isinstance(e, InputError) else 1) from None
 
         return run
 
@@ -124,12 +125,7 @@ def out_file(text: str, suffixes: tuple[str, ...]) -> str:
         raise InputError(f"--out {text!r} is a folder; give a file name ending in {' or '.join(suffixes)}")
     if not text.lower().endswith(suffixes):
         raise InputError(f"--out {text!r}: give a file name ending in {' or '.join(suffixes)}")
-    folder = os.path.dirname(os.path.abspath(text))
-    while not os.path.exists(folder):  # the nearest folder that exists must take the new ones (none made here)
-        folder = os.path.dirname(folder)
-    if not os.path.isdir(folder) or not os.access(folder, os.W_OK):
-        why = "a file" if os.path.isfile(folder) else "not writable"
-        raise InputError(f"--out {text!r}: cannot write there ({folder!r} is {why})")
+    _check_can_create(os.path.dirname(os.path.abspath(text)))
     return text
 
 
@@ -159,12 +155,14 @@ def settings(args: argparse.Namespace, ignore=()) -> dict:
 
 def claim(out: str, command: str, config: dict, fresh: bool = False) -> bool:
     """Make ``out`` this run's folder before any work; True when it resumes an earlier run of the same settings.
-    InputError naming --out when it is not writable, holds another command's run, a non-empty folder this package did
-    not make, or a run of other settings (unless ``fresh``: then the earlier run's files are deleted)."""
+    InputError naming --out when it cannot be written, holds another command's run, a non-empty folder this package
+    did not make, or a run of other settings (unless ``fresh``: then the earlier run's files are deleted). In a job,
+    every process checks before process 0 writes anything, so all see the same folder and refuse it together."""
     record = os.path.join(out, RUN)
     if os.path.exists(out) and not os.path.isdir(out):
         raise InputError(f"--out {out!r} is a file, not a folder")
-    earlier = None
+    _check_can_create(out)
+    earlier, afresh = None, False
     if os.path.isfile(record):
         try:
             with open(record) as f:
@@ -180,20 +178,32 @@ def claim(out: str, command: str, config: dict, fresh: bool = False) -> bool:
                 raise InputError(f"--out {out!r} holds a {command} run of other settings "
                                  f"({_differences(earlier_config, config)}); rerun with its settings to resume, "
                                  "choose another --out, or pass --fresh to start it afresh")
-            if distributed.is_writer():
-                shutil.rmtree(out)
-            distributed.barrier(f"fresh {os.path.abspath(out)}")
-            earlier = None
-    elif os.path.isdir(out) and os.listdir(out) and distributed.is_writer():
+            earlier, afresh = None, True
+    elif os.path.isdir(out) and os.listdir(out):
         raise InputError(f"--out {out!r} is not empty and holds no {RUN} (it was not made by a dynres command); "
                          "choose a new or empty folder")
-    try:
-        files.check_writable(out)
-    except OSError as e:
-        raise InputError(f"--out: {e}") from None
+    distributed.barrier(f"claim checked {os.path.abspath(out)}")
     if distributed.is_writer():
+        if afresh:
+            shutil.rmtree(out)
+        try:
+            files.check_writable(out)
+        except OSError as e:
+            raise InputError(f"--out: {e}") from None
         files.write_json(record, dict(command=command, config=config))
+    distributed.barrier(f"claim written {os.path.abspath(out)}")
     return earlier is not None
+
+
+def _check_can_create(path: str) -> None:
+    """InputError naming --out unless ``path`` exists as a writable folder, or the nearest folder above it that exists
+    is writable and no file stands in the way (nothing is created here)."""
+    folder = os.path.abspath(path)
+    while not os.path.exists(folder):
+        folder = os.path.dirname(folder)
+    if not os.path.isdir(folder) or not os.access(folder, os.W_OK):
+        why = "a file" if os.path.isfile(folder) else "not writable"
+        raise InputError(f"--out: cannot write to {path!r} ({folder!r} is {why})")
 
 
 def _differences(earlier: dict, now: dict) -> str:

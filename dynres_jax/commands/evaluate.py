@@ -193,12 +193,13 @@ def method_chooser(method: str, goals, args, camera) -> Chooser:
     return FixedOmega(goals, args.cnn_omega if method == "cnn" else int(method))
 
 
-def method_omegas(args, cfg) -> list[int]:
-    """Every ω the methods of --methods may plan at (a budget must afford them a step)."""
+def method_omegas(args) -> list[int]:
+    """The ω at which each method of --methods must afford an Adam step under a budget: a fixed method's ω, the
+    coarsest for those that choose among ω."""
     omegas = []
     for m in args.methods:
         omegas += ([int(m)] if m.isdigit() else [args.best_omega] if best_of(m) else [args.cnn_omega] if m == "cnn"
-                   else list(ORACLE_OMEGAS) if m == "oracle" else list(cfg.buckets))
+                   else [OMEGA_MIN])  # adaptive and oracle choose among ω: the coarsest must afford a step
     return omegas
 
 
@@ -284,7 +285,7 @@ def main(argv=None):
     table = load_timing(parser, args)
     if table is not None:  # a given table must afford every method a step, before the first method runs
         cfg = mpc_config(PileEnv(sim, backend="mujoco", render=False), args, args.mpc_steps)
-        check_budget(cfg, table, method_omegas(args, cfg))
+        check_budget(cfg, table, method_omegas(args))
     checks.claim(args.out, "evaluate", checks.settings(args, ignore=("methods",)), args.fresh)
     os.makedirs(os.path.join(args.out, "parts"), exist_ok=True)
     mine = np.arange(rank, args.episodes, size)  # this process's episodes
@@ -300,7 +301,7 @@ def main(argv=None):
         timing = None
         if args.time_budget is not None and todo:  # one table for every method: the main model on the first episode
             timing = timing_table(args, args.out, pool.reset(pile_keys[:1]).obs, goals, main_model.dynamics, cfg,
-                                  pool.camera, method_omegas(args, cfg))
+                                  pool.camera, method_omegas(args))
         for method in args.methods:
             path = os.path.join(args.out, f"{method}.json")
             if method not in todo:

@@ -37,7 +37,7 @@ from tqdm import tqdm
 from dynres_jax import distributed
 from dynres_jax.commands import checks
 from dynres_jax.commands.task import add_planner_args, load_model, load_timing, mpc_config, timing_table
-from dynres_jax.config import KINDS, OMEGA_MAX, SceneConfig
+from dynres_jax.config import KINDS, OMEGA_MAX, OMEGA_MIN, SceneConfig
 from dynres_jax.control import tasks
 from dynres_jax.errors import InputError
 from dynres_jax.io import files
@@ -113,7 +113,7 @@ def main(argv=None):
             pool = make_pool(scene_config(cfg, first), args.backend, processes)
             start, _, goals, _ = shard_scenes(cfg, first, pool)
             timing = timing_table(args, args.out, start.obs, goals, dynamics, planner(pool.env), pool.camera,
-                                  planner(pool.env).buckets)
+                                  [OMEGA_MIN])
         for s in tqdm(todo, desc="label shards", unit="shard"):
             save_npz(shard_path(args.out, s), label_shard(cfg, s, dynamics, planner, processes, timing))
     minutes = (time.perf_counter() - t0) / 60

@@ -116,7 +116,8 @@ def resolve_pieces(parser: argparse.ArgumentParser, args) -> None:
 
 
 def check_budget(cfg: MPCConfig, table: budget.TimingTable | None, omegas) -> None:
-    """InputError naming --time-budget when it affords no Adam step at some ω of ``omegas`` by ``table``."""
+    """InputError naming --time-budget when it affords no Adam step at some ω of ``omegas`` by ``table`` (a chooser
+    among ω passes the coarsest: a budget may leave the finest ω without steps, which is what it trades)."""
     if cfg.time_budget is None or table is None:
         return
     for omega in sorted(set(omegas)):
@@ -178,7 +179,7 @@ def build_loop(args, sim: SimConfig, parser: argparse.ArgumentParser) -> Loop:
         cfg = MPCConfig(mpc_steps=args.mpc_steps, planner=planner, time_budget=args.time_budget)
     except ValueError as e:
         parser.error(str(e))
-    check_budget(cfg, timing, cfg.buckets if regressor else [int(omega)])
+    check_budget(cfg, timing, [OMEGA_MIN] if regressor else [int(omega)])
     return Loop(env, model, cfg, timing, None if regressor else int(omega), regressor)
 
 
@@ -227,7 +228,7 @@ def main(task: str, argv=None):
     t0 = time.perf_counter()
     if cfg.time_budget is not None and timing is None:
         timing = measure_timing(state.obs, goal, loop.model.dynamics, cfg, env.camera)
-        check_budget(cfg, timing, cfg.buckets if loop.regressor else [loop.omega])
+        check_budget(cfg, timing, [OMEGA_MIN] if loop.regressor else [loop.omega])
     frames = goal_frames(goal_mask, env.camera)
     state, records = run_episode(env, state, loop.chooser(batch(goal)), loop.model.dynamics, cfg,
                                  jax.random.PRNGKey(args.seed), timing=timing, on_step=[frames])
