@@ -8,6 +8,7 @@ import shutil
 import socket
 import subprocess
 import sys
+import time
 
 import numpy as np
 import pytest
@@ -20,9 +21,57 @@ QUICK = data.quick_config(episodes=7)  # 2 shards: 4 episodes, then 3
 
 
 def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("localhost", 0))
-        return s.getsockname()[1]
+    """A port P with P + 1 free too (the job's coordinator and its rendezvous, ``distributed._rendezvous``)."""
+    while True:
+        with socket.socket() as s, socket.socket() as t:
+            s.bind(("localhost", 0))
+            try:
+                t.bind(("localhost", s.getsockname()[1] + 1))
+            except OSError:
+                continue
+            return s.getsockname()[1]
+
+
+def _job(i: int, port: int, out: str, *flags: str) -> subprocess.Popen:
+    return subprocess.Popen([sys.executable, "-m", "experiments.generate_data", "--quick", "--no-progress", "--out",
+                             out, "--coordinator", f"localhost:{port}", "--num-processes", "2", "--process-id", str(i),
+                             *flags], cwd=REPO, env=dict(os.environ, JAX_PLATFORMS="cpu"), stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+
+
+def test_a_peer_that_never_joins_is_named_within_the_join_timeout(tmp_path):
+    """Process 0 of two, alone: one line naming process 1 after --join-timeout, exit 1, no folder made (JAX alone
+    would wait 300 s and abort, blaming "another task")."""
+    t0 = time.monotonic()
+    proc = _job(0, free_port(), str(tmp_path / "out"), "--join-timeout", "3")
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 1, err[-2000:]
+    lines = [line for line in err.splitlines() if "error:" in line]
+    assert len(lines) == 1 and "process(es) 1 of 2 never joined the job" in lines[0], err[-2000:]
+    assert time.monotonic() - t0 < 60 and not (tmp_path / "out").exists()
+
+
+def test_a_peer_killed_mid_run_is_named_at_once_and_finished_shards_stay(tmp_path):
+    """kill -9 of process 1 once it has written a shard: process 0 names it (id and pid) in one line within seconds
+    (not after JAX's 100 s heartbeat) and exits 1; the shards written so far stay, and a rerun resumes."""
+    port, out = free_port(), str(tmp_path / "out")
+    procs = [_job(i, port, out, "--episodes", "400") for i in range(2)]
+    try:
+        deadline = time.monotonic() + 240
+        while not os.path.exists(data.shard_path(out, 1)) and time.monotonic() < deadline:
+            time.sleep(0.2)
+        assert os.path.exists(data.shard_path(out, 1))
+        procs[1].kill()
+        t0 = time.monotonic()
+        _, err = procs[0].communicate(timeout=60)
+        assert procs[0].returncode == 1 and time.monotonic() - t0 < 30, err[-2000:]
+        lines = [line for line in err.splitlines() if "error:" in line]
+        assert len(lines) == 1 and f"process 1 (pid {procs[1].pid}) of the job was lost mid-run" in lines[0], err
+        assert os.path.exists(data.shard_path(out, 1))
+    finally:
+        for p in procs:
+            if p.poll() is None:
+                p.kill()
 
 
 def launch(module_args: list[str], processes: int = 2, timeout: int = 600) -> list[str]:

@@ -36,6 +36,7 @@ import re
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax._src import xla_bridge  # whether the backends have started: XLA reads XLA_FLAGS when they do
 
 from dynres_jax import distributed
 from dynres_jax.commands import checks
@@ -193,6 +194,14 @@ def method_chooser(method: str, goals, args, camera) -> Chooser:
     return FixedOmega(goals, args.cnn_omega if method == "cnn" else int(method))
 
 
+def deterministic(parser) -> None:
+    """Ask XLA for deterministic GPU kernels (``--xla_gpu_deterministic_ops``) before JAX starts its backends;
+    parser.error when they have started already (the flag would do nothing)."""
+    if xla_bridge.backends_are_initialized():
+        parser.error("--deterministic must be set before JAX starts (run the command in a fresh process)")
+    os.environ["XLA_FLAGS"] = f"{os.environ.get('XLA_FLAGS', '')} --xla_gpu_deterministic_ops=true".strip()
+
+
 def method_omegas(args) -> list[int]:
     """The ω at which each method of --methods must afford an Adam step under a budget: a fixed method's ω, the
     coarsest for those that choose among ω."""
@@ -251,8 +260,13 @@ def main(argv=None):
     parser.add_argument("--out", required=True)
     checks.add_fresh(parser)
     parser.add_argument("--quick", action="store_true", help="tiny sizes for a CPU smoke run")
+    parser.add_argument("--deterministic", action="store_true",
+                        help="GPU: XLA's deterministic kernels (scatters without atomics), so a rerun of the same "
+                             "seeds repeats bit for bit; slower (docs/results.md, 'Repeatable numbers')")
     distributed.add_args(parser)
     args = parser.parse_args(argv)
+    if args.deterministic:
+        deterministic(parser)
     rank, size = distributed.from_args(parser, args)
     load_timing(parser, args)
     for m in args.methods:
@@ -337,6 +351,7 @@ def main(argv=None):
     summary = dict(task=args.task, kind=args.kind, pieces=args.pieces, sensor=args.sensor, dynamics=main_model.name,
                    device=", ".join(devices),
                    time_budget=args.time_budget, samples=args.samples, adam_steps=args.adam_steps,
+                   deterministic=args.deterministic,
                    mpc_steps=args.mpc_steps, **summarise(results))
     if distributed.is_writer():
         files.write_json(os.path.join(args.out, "summary.json"), summary)
