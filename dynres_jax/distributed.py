@@ -90,6 +90,7 @@ def initialize(coordinator: str | None = None, num_processes: int | None = None,
 
 
 _peers: dict[int, tuple[socket.socket, int]] = {}  # process id -> (connection, pid): process 0's peers, or process 0
+_left: list[socket.socket] = []  # connections of peers that said "bye", or to which this process did: kept open
 
 
 def _rendezvous(coordinator: str, num_processes: int, process_id: int, timeout: float) -> None:
@@ -170,7 +171,7 @@ def _watch() -> None:
             except OSError:
                 data = b""
             if data.startswith(b"bye"):
-                _peers.pop(i, None)
+                _left.append(_peers.pop(i, (conn, 0))[0])
                 continue
             if data.startswith(b"lost"):  # process 0 names the peer the job lost
                 who, pid = map(int, data.split()[1:3])
@@ -202,12 +203,14 @@ def _leave_at_exit() -> None:
 
 
 def leave() -> None:
-    """Tell the job's other processes that this one ends on purpose (not lost); nothing when alone."""
+    """Tell the job's other processes that this one ends on purpose (not lost); nothing when alone. The connections
+    stay open until the process ends (closing one early could reset it before the peer has read "bye")."""
     for conn, _ in list(_peers.values()):
         try:
             conn.sendall(b"bye\n")
         except OSError:
             pass
+        _left.append(conn)
     _peers.clear()
 
 

@@ -80,12 +80,10 @@ def launch(module_args: list[str], processes: int = 2, timeout: int = 600) -> li
     procs = [subprocess.Popen([sys.executable, "-m", *module_args, "--coordinator", f"localhost:{port}",
                                "--num-processes", str(processes), "--process-id", str(i)], cwd=REPO, env=env,
                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) for i in range(processes)]
-    outs = []
-    for p in procs:
-        out, err = p.communicate(timeout=timeout)
-        assert p.returncode == 0, err[-3000:]
-        outs.append(out)
-    return outs
+    ends = [p.communicate(timeout=timeout) for p in procs]
+    for i, p in enumerate(procs):
+        assert p.returncode == 0, "\n".join(f"process {j}: {err[-1500:]}" for j, (_, err) in enumerate(ends))
+    return [out for out, _ in ends]
 
 
 @pytest.fixture(scope="module")
