@@ -12,6 +12,7 @@ from flax import nnx
 from dynres_jax.commands import evaluate, gather
 from dynres_jax.config import DEFAULT_PIECES, KINDS, SceneConfig, SimConfig
 from dynres_jax.control import tasks
+from dynres_jax.control.planner import PlannerConfig
 from dynres_jax.io import ckpt
 from dynres_jax.learn.train import TrainConfig, card
 from dynres_jax.models.dynamics import DynamicsConfig
@@ -112,3 +113,15 @@ def test_absurd_image_sizes_are_refused_with_the_limit():
 
     with pytest.raises(ValueError, match=r"100000 x 128 pixels is outside \[8, 4096\]"):
         Camera.top_down(CameraConfig(width=100_000))
+
+
+@pytest.mark.parametrize("make, message", [
+    (lambda: PlannerConfig(samples=2.5), "PlannerConfig.samples must be an int, got 2.5"),
+    (lambda: PlannerConfig(lr=float("nan")), "PlannerConfig.lr must be a finite number"),
+    (lambda: SceneConfig(bin_half_width="0.2"), "SceneConfig.bin_half_width must be a float"),
+    (lambda: DynamicsConfig(push_frame=1), "DynamicsConfig.push_frame must be a bool"),
+    (lambda: TrainConfig(steps=True), "TrainConfig.steps must be an int"),
+])
+def test_the_python_api_names_a_field_of_the_wrong_type(make, message):
+    with pytest.raises((TypeError, ValueError), match=message):
+        make()

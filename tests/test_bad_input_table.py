@@ -113,6 +113,8 @@ def fx(tmp_path_factory):
     open(p["file"], "w").write("x")
     p["other_run"] = _run_json(str(root / "other_run"), "train_regressor", {"steps": 3000})
     p["gather_run"] = _run_json(str(root / "gather_run"), "gather", {"seed": 7})
+    p["train_run"] = _run_json(str(root / "train_run"), "train_dynamics", {"data": "/elsewhere/piles"})
+    p["evaluate_run"] = _run_json(str(root / "evaluate_run"), "evaluate", {"seed": 1, "mpc_steps": 5})
     p["foreign"] = str(root / "foreign")
     os.makedirs(p["foreign"])
     open(os.path.join(p["foreign"], "thesis.tex"), "w").write("x")
@@ -203,8 +205,9 @@ E = [  # evaluate
     (["--time-budget", "0.25", "--timing", "{timing}"], "timing table"), (["--timing", "{timing20}"], "--timing"),
     (["--workers", "0"], "--workers"), (["--seed", "-1"], "--seed"), (["--ckpt", "/nonexistent"], "--ckpt"),
     (["--ckpt", "{flipped_dynamics}"], "damaged"), (["--dynamics", "x"], "--dynamics"), (["--out", "{file}/x"], "--out"),
-    (["--out", "{other_run}"], "--out"), (["--out", "{foreign}"], "--out"),
-    (["--num-processes", "2"], "--coordinator"),
+    (["--out", "{other_run}"], "--out"), (["--out", "{foreign}"], "--out"), (["--out", "{evaluate_run}"], "--seed 1 there"),
+    (["--num-processes", "2"], "--coordinator"), (["--coordinator", "localhost", "--num-processes", "2", "--process-id", "0"], "HOST:PORT"),
+    (["--coordinator", "localhost:1", "--num-processes", "2", "--process-id", "0", "--join-timeout", "0"], "--join-timeout"),
 ]
 L = [  # label_resolution
     (["--scenes", "0"], "--scenes"), (["--batch", "3"], "batch"), (["--batch", "1"], "--batch"), (["--evals", "2"], "evals"),
@@ -238,7 +241,7 @@ T = [  # train_dynamics (the data folder is checked after the flags)
     (["--model", "x"], "--model"), (["--hidden", "0"], "--hidden"), (["--propagation-steps", "0"], "--propagation-steps"),
     (["--grid", "4"], "--grid"), (["--model", "cnn", "--hidden", "8"], "--hidden"), (["--max-minutes", "0"], "--max-minutes"),
     (["--max-minutes", "nan"], "--max-minutes"), (["--recipe", "x"], "--recipe"), (["--seed", "-1"], "--seed"),
-    (["--max-points", "0"], "--max-points"), (["--batch", "x"], "--batch"),
+    (["--max-points", "0"], "--max-points"), (["--batch", "x"], "--batch"), (["--out", "{train_run}"], "--data /elsewhere/piles there"),
 ]
 TR = [  # train_regressor
     (["--labels", "/nonexistent"], "--labels"), (["--labels", "{labels_missing}"], "--labels"),
@@ -304,7 +307,7 @@ def test_bad_input_is_one_line_naming_it_exit_2_and_writes_nothing(command, argv
     argv = [a.format(**fx) for a in argv]
     if "--out" not in argv:
         argv += ["--out", out]
-    before = {f: _snapshot(fx[f]) for f in ("other_run", "gather_run", "foreign")}
+    before = {f: _snapshot(fx[f]) for f in ("other_run", "gather_run", "train_run", "evaluate_run", "foreign")}
     main = importlib.import_module(f"dynres_jax.commands.{command}").main
     with pytest.raises(SystemExit) as exit_:
         main(argv)

@@ -81,7 +81,7 @@ def launch(module_args: list[str], processes: int = 2, timeout: int = 600) -> li
                                "--num-processes", str(processes), "--process-id", str(i)], cwd=REPO, env=env,
                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) for i in range(processes)]
     ends = [p.communicate(timeout=timeout) for p in procs]
-    for i, p in enumerate(procs):
+    for p in procs:
         assert p.returncode == 0, "\n".join(f"process {j}: {err[-1500:]}" for j, (_, err) in enumerate(ends))
     return [out for out, _ in ends]
 
