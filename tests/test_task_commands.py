@@ -50,11 +50,12 @@ def test_the_closed_loop_beats_random_pushes():
 
 @pytest.mark.parametrize("kind", ["almond", "rice", "mnm", "granola", "candy"])
 def test_gather_runs_on_every_kind_at_its_default_count(kind, tmp_path):
-    """Every kind at DEFAULT_PIECES (coffee: the tests above): a goal that fits, an episode, its files."""
+    """Every kind at DEFAULT_PIECES (coffee: the tests above): a goal that fits, an episode, its files (the sweep
+    heuristic plans: the scene is what differs between kinds, and the network's compile would dominate)."""
     from dynres_jax.config import DEFAULT_PIECES
 
-    summary = gather.main(["--kind", kind, "--mpc-steps", "1", "--samples", "4", "--adam-steps", "1", "--out",
-                           str(tmp_path)])
+    summary = gather.main(["--kind", kind, "--mpc-steps", "1", "--samples", "4", "--adam-steps", "1", "--dynamics",
+                           "sweep", "--out", str(tmp_path)])
     assert len(summary["steps"]) == 1 and (tmp_path / "episode.gif").exists()
     metrics = json.loads((tmp_path / "metrics.json").read_text())
     assert metrics["kind"] == kind and metrics["pieces"] == DEFAULT_PIECES[kind]
@@ -63,7 +64,7 @@ def test_gather_runs_on_every_kind_at_its_default_count(kind, tmp_path):
 @pytest.mark.parametrize("pair", [("almond", "mnm"), ("rice", "granola")])
 def test_sort_runs_on_the_issues_pairs(pair, tmp_path):
     sort.main(["--kinds", *pair, "--pieces", "15", "15", "--mpc-steps", "1", "--samples", "4", "--adam-steps", "1",
-               "--out", str(tmp_path)])
+               "--dynamics", "sweep", "--out", str(tmp_path)])
     assert json.loads((tmp_path / "metrics.json").read_text())["kinds"] == list(pair)
 
 
