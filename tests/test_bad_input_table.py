@@ -102,6 +102,7 @@ def fx(tmp_path_factory):
     p["data_damaged"] = _shard_set(str(root / "data_damaged"), data, {0: episodes(4, 6), 1: b"PK\x03\x04 damaged"})
     p["data_short"] = _shard_set(str(root / "data_short"), {"episodes": 20, "worlds": 20}, {0: episodes(20, 2)})
     p["data_few"] = _shard_set(str(root / "data_few"), data, {0: episodes(4, 6), 1: episodes(4, 6)})
+    p["data_ok"] = _shard_set(str(root / "data_ok"), {"episodes": 20, "worlds": 20}, {0: episodes(20, 6)})
     p["no_config"] = str(root / "no_config")
     os.makedirs(p["no_config"])
     labels = {"scenes": 8, "batch": 4}
@@ -241,7 +242,7 @@ T = [  # train_dynamics (the data folder is checked after the flags)
     (["--model", "x"], "--model"), (["--hidden", "0"], "--hidden"), (["--propagation-steps", "0"], "--propagation-steps"),
     (["--grid", "4"], "--grid"), (["--model", "cnn", "--hidden", "8"], "--hidden"), (["--max-minutes", "0"], "--max-minutes"),
     (["--max-minutes", "nan"], "--max-minutes"), (["--recipe", "x"], "--recipe"), (["--seed", "-1"], "--seed"),
-    (["--max-points", "0"], "--max-points"), (["--batch", "x"], "--batch"), (["--out", "{train_run}"], "--data /elsewhere/piles there"),
+    (["--max-points", "0"], "--max-points"), (["--batch", "x"], "--batch"), (["--data", "{data_ok}", "--out", "{train_run}"], "--data /elsewhere/piles there"),
 ]
 TR = [  # train_regressor
     (["--labels", "/nonexistent"], "--labels"), (["--labels", "{labels_missing}"], "--labels"),
