@@ -106,18 +106,6 @@ def text(value: str) -> str:
     return value
 
 
-def existing_file(text: str) -> str:
-    if not os.path.isfile(text):
-        raise argparse.ArgumentTypeError(f"no such file: {text!r}")
-    return text
-
-
-def existing_folder(text: str) -> str:
-    if not os.path.isdir(text):
-        raise argparse.ArgumentTypeError(f"no such folder: {text!r}")
-    return text
-
-
 def out_file(text: str, suffixes: tuple[str, ...]) -> str:
     """An output file path: not a folder, ending in one of ``suffixes``, in a folder that exists and is writable or can
     be made (nothing is created here)."""
