@@ -151,7 +151,11 @@ def _step_or_latest(directory, step: int | None) -> int:
 
 def load_meta(directory, step: int | None = None) -> dict:
     """The JSON card of a step (default: the newest)."""
-    step = _step_or_latest(directory, step)
+    return _read_meta(directory, _step_or_latest(directory, step))
+
+
+def _read_meta(directory, step: int) -> dict:
+    """``load_meta`` of a step already verified."""
     with _manager(directory, read_only=True) as mngr:
         try:
             return dict(mngr.restore(step, args=ocp.args.Composite(meta=ocp.args.JsonRestore()))["meta"])
@@ -164,7 +168,11 @@ def restore(directory, abstract_state: dict[str, Any], step: int | None = None) 
     and the card. ``abstract_state`` may name only some of the saved entries (the model without its optimiser).
     Arrays land on this process's first device, whatever devices wrote them (a GPU checkpoint restores on a CPU).
     Raises FileNotFoundError (nothing there) or CheckpointError (unreadable, or another structure)."""
-    step = _step_or_latest(directory, step)
+    return _read(directory, abstract_state, _step_or_latest(directory, step))
+
+
+def _read(directory, abstract_state: dict[str, Any], step: int) -> tuple[dict[str, Any], dict]:
+    """``restore`` of a step already verified."""
     here = jax.sharding.SingleDeviceSharding(jax.local_devices()[0])
     placed = jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=here)
                           if hasattr(x, "shape") else x, abstract_state)
@@ -187,16 +195,17 @@ def save_module(directory, step: int, module: nnx.Module, meta: dict, extra: dic
 def load_module(directory, build: Callable[[dict], nnx.Module], step: int | None = None,
                 extra: dict[str, Any] | None = None) -> tuple[nnx.Module, dict, dict[str, Any]]:
     """Rebuild a module from its card and restore its state: ``build(meta)`` makes a fresh module (it is only traced,
-    through ``nnx.eval_shape``, so no parameters are initialised; a ValueError from it, a card of another kind of model,
-becomes a CheckpointError naming the folder). ``extra``: abstract pytrees saved beside it.
-    Returns (module, meta, restored extra)."""
-    meta = load_meta(directory, step)
+    through ``nnx.eval_shape``, so no parameters are initialised; a ValueError from it, a card of another kind of
+    model, becomes a CheckpointError naming the folder). ``extra``: abstract pytrees saved beside it. The step's bytes
+    are verified once, before the card is read. Returns (module, meta, restored extra)."""
+    step = _step_or_latest(directory, step)
+    meta = _read_meta(directory, step)
     try:
         abstract = nnx.eval_shape(lambda: build(meta))
     except (KeyError, TypeError, ValueError) as e:  # the card is another model's: before any restore
         raise CheckpointError(f"checkpoint {str(directory)!r}: {e}") from e
     graphdef, abstract_state = nnx.split(abstract)
-    state, meta = restore(directory, {"module": abstract_state, **(extra or {})}, step)
+    state, meta = _read(directory, {"module": abstract_state, **(extra or {})}, step)
     module_state = state.pop("module")
     shapes = jax.tree.map(lambda x: x.shape, module_state)
     if shapes != jax.tree.map(lambda x: x.shape, abstract_state):
