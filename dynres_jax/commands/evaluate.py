@@ -268,7 +268,7 @@ def main(argv=None):
     if args.deterministic:
         deterministic(parser)
     rank, size = distributed.from_args(parser, args)
-    load_timing(parser, args)
+    table = load_timing(parser, args)
     for m in args.methods:
         fixed = m.isdigit() and OMEGA_MIN <= int(m) <= OMEGA_MAX
         if m not in ("adaptive", "oracle", "cnn") and not fixed and not best_of(m):
@@ -296,7 +296,6 @@ def main(argv=None):
             resolution.load_regressor(args.regressor, Camera.top_down(camera))
         except ckpt.CheckpointError as e:
             parser.error(f"--regressor (method adaptive): {e}")
-    table = load_timing(parser, args)
     if table is not None:  # a given table must afford every method a step, before the first method runs
         cfg = mpc_config(PileEnv(sim, backend="mujoco", render=False), args, args.mpc_steps)
         check_budget(cfg, table, method_omegas(args))

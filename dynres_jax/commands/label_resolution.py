@@ -36,10 +36,8 @@ from tqdm import tqdm
 
 from dynres_jax import distributed
 from dynres_jax.commands import checks
-from dynres_jax.commands.task import add_planner_args, load_model, load_timing, mpc_config, timing_table
+from dynres_jax.commands.task import add_planner_args, check_pile, load_model, load_timing, mpc_config, timing_table
 from dynres_jax.config import KINDS, OMEGA_MAX, OMEGA_MIN, SceneConfig
-from dynres_jax.control import tasks
-from dynres_jax.errors import InputError
 from dynres_jax.io import files
 from dynres_jax.learn.data import complete_shards, read_shard, save_npz, shard_path, shards_todo
 from dynres_jax.learn.labels import MID_EPISODE_OMEGA, LabelConfig, label_shard, scene_config, shard_scenes
@@ -83,10 +81,7 @@ def main(argv=None):
         args.scenes, args.batch, args.evals, args.repeats, args.pieces = 8, 4, 6, 1, 60  # 60: points for ω = 100
         args.samples, args.adam_steps = 4, 4
     load_timing(parser, args)
-    try:
-        tasks.check_pile_fits(SceneConfig(kinds=(args.kind,), pieces=(args.pieces,)))
-    except InputError as e:
-        parser.error(f"--pieces: {e}")
+    check_pile(parser, (args.kind,), (args.pieces,))
     try:
         cfg = LabelConfig(kind=args.kind, pieces=args.pieces, batch=args.batch, evals=args.evals, repeats=args.repeats,
                           seed=args.seed, plan_seed=args.plan_seed, mid_episode=args.mid_episode, quick=args.quick,

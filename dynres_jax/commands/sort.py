@@ -22,14 +22,12 @@ import jax
 import numpy as np
 
 from dynres_jax.commands import checks
-from dynres_jax.commands.task import add_loop_args, build_loop, check_budget, write_episode
+from dynres_jax.commands.task import add_loop_args, build_loop, check_budget, check_pile, write_episode
 from dynres_jax.config import KINDS, CameraConfig, PileConfig, SceneConfig, SimConfig
-from dynres_jax.control import tasks
 from dynres_jax.control.decision import batch
 from dynres_jax.control.goals import make_goal
 from dynres_jax.control.mpc import measure_timing, run_episode
 from dynres_jax.control.sort import SortPolicy, sort_goal, sort_scores
-from dynres_jax.errors import InputError
 from dynres_jax.io import files
 from dynres_jax.io.draw import sort_frames
 
@@ -46,10 +44,7 @@ def main(argv=None):
     args = parser.parse_args(argv)
     if args.kinds[0] == args.kinds[1]:
         parser.error(f"--kinds must name two different kinds, got {args.kinds[0]} twice")
-    try:
-        tasks.check_pile_fits(SceneConfig(kinds=tuple(args.kinds), pieces=tuple(args.pieces)))
-    except InputError as e:
-        parser.error(f"--pieces: {e}")
+    check_pile(parser, args.kinds, args.pieces)
 
     sim = SimConfig(scene=SceneConfig(kinds=tuple(args.kinds), pieces=tuple(args.pieces)),
                     pile=PileConfig(layout="two_blobs"), camera=CameraConfig())

@@ -109,8 +109,14 @@ def resolve_pieces(parser: argparse.ArgumentParser, args) -> None:
     """--pieces: the kind's default count (``DEFAULT_PIECES``) when not given; parser.error naming a pile too large for
     the bin, from the scene's config alone (before any scene is built)."""
     args.pieces = DEFAULT_PIECES[args.kind] if args.pieces is None else args.pieces
+    check_pile(parser, (args.kind,), (args.pieces,))
+
+
+def check_pile(parser: argparse.ArgumentParser, kinds, pieces) -> None:
+    """parser.error naming --pieces when the pile of ``kinds`` x ``pieces`` is too large for the bin's goals
+    (``tasks.check_pile_fits``), from the config alone."""
     try:
-        tasks.check_pile_fits(SceneConfig(kinds=(args.kind,), pieces=(args.pieces,)))
+        tasks.check_pile_fits(SceneConfig(kinds=tuple(kinds), pieces=tuple(pieces)))
     except InputError as e:
         parser.error(f"--pieces: {e}")
 

@@ -37,7 +37,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from dynres_jax.commands import checks
-from dynres_jax.commands.task import load_model
+from dynres_jax.commands.task import check_pile, load_model
 from dynres_jax.config import CameraConfig, PileConfig, PushConfig, SceneConfig, SimConfig
 from dynres_jax.control import tasks
 from dynres_jax.control.budget import TimingTable, bucket_for
@@ -47,10 +47,9 @@ from dynres_jax.control.mpc import MPCConfig, measure_timing
 from dynres_jax.control.objective import distribution_distance
 from dynres_jax.control.planner import PlannerConfig
 from dynres_jax.control.resolution import CANDIDATES
-from dynres_jax.errors import InputError
 from dynres_jax.io import files
 from dynres_jax.learn.data import complete_shards, read_shard, save_npz
-from dynres_jax.models.registry import SHIPPED_DYNAMICS, load_dynamics
+from dynres_jax.models.registry import LoadedDynamics
 from dynres_jax.sim.pool import WorldPool, process_pool
 from dynres_jax.stats import wilson
 
@@ -89,13 +88,10 @@ def main(argv=None):
         parser.error("give exactly one of --labels (Fig. 4), --surface or --reliability")
     if args.surface:
         checks.quick_sets(parser, args, ("scenes", "samples", "pieces"))
-        try:
-            tasks.check_pile_fits(SceneConfig(pieces=(args.pieces,)))
-        except InputError as e:
-            parser.error(f"--pieces: {e}")
-        load_model(parser, "auto", args.ckpt, SceneConfig.plate_half_width)
+        check_pile(parser, SceneConfig.kinds, (args.pieces,))
+        model = load_model(parser, "auto", args.ckpt, SceneConfig.plate_half_width)
         checks.claim(args.out, "tradeoff", checks.settings(args), args.fresh)
-        return surface(args)
+        return surface(args, model)
     if args.reliability:
         first, second = args.reliability
         if os.path.abspath(first) == os.path.abspath(second):
@@ -104,9 +100,9 @@ def main(argv=None):
             complete_shards(folder, "--reliability", "labels")
         checks.claim(args.out, "tradeoff", checks.settings(args), args.fresh)
         return reliability(first, second, args.out)
-    complete_shards(args.labels, "--labels", "labels")
+    paths = complete_shards(args.labels, "--labels", "labels")
     checks.claim(args.out, "tradeoff", checks.settings(args), args.fresh)
-    shards = {int(z["shard"]): z for z in map(read_shard, complete_shards(args.labels, "--labels", "labels"))}
+    shards = {int(z["shard"]): z for z in map(read_shard, paths)}
     letter_vs_disc, blob_vs_spread, examples = [], [], {}
     for s, z in shards.items():
         letter_vs_disc.append((z["label"][1::2], z["label"][0::2]))  # scenes 2j + 1 (letter) vs 2j (disc)
@@ -226,14 +222,13 @@ def _surface_scenes(pool, starts, goals, keys, dynamics, cfg, omegas, steps, sce
     return dict(c_star=c_star, predicted=predicted, d0=np.asarray(measure(starts.obs, goals)))
 
 
-def surface(args) -> dict:
-    """The anytime surface (module docstring) -> the summary written to surface.json."""
+def surface(args, model: LoadedDynamics) -> dict:
+    """The anytime surface (module docstring) of ``model`` -> the summary written to surface.json."""
     near_centre_blob = PileConfig(layout="blob", centre_margin=SceneConfig.bin_half_width - LETTER_REACH)
     omegas, steps = SURFACE_OMEGAS, SURFACE_STEPS
     if args.quick:
         args.scenes, args.samples, args.pieces, omegas, steps = 2, 4, 12, (10, 25), (1, 3)
-    os.makedirs(args.out, exist_ok=True)
-    dynamics, _, name = load_dynamics("auto", args.ckpt or SHIPPED_DYNAMICS, SceneConfig.plate_half_width)
+    dynamics, _, name = model
     raw, timing = {}, None
     with process_pool(args.workers) as processes:
         for kind, scene_name in enumerate(SURFACE_SCENES):
