@@ -126,7 +126,7 @@ class DataConfig:
         check_fields(self)
         for name in ("episodes", "pushes", "worlds", "pieces_step"):
             value = getattr(self, name)
-            if not isinstance(value, int | np.integer) or value < 1:
+            if value < 1:  # an int: check_fields
                 raise ValueError(f"DataConfig.{name} must be a positive int, got {value!r}")
         if not self.kinds:
             raise ValueError("DataConfig.kinds must name at least one piece kind")
