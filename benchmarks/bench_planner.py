@@ -295,9 +295,10 @@ def _stage_times(positions: np.ndarray, samples: int, repeats: int) -> dict:
     import jax
     import jax.numpy as jnp
 
-    from dynres_jax.control.planner import _prepared, sample_actions
+    from dynres_jax.control.planner import _prepared
     from dynres_jax.models.graph import build_edges, sweep_displacement
     from dynres_jax.models.registry import learned_dynamics
+    from dynres_jax.sim.pushes import sample_actions
 
     model, cost = _timed_model_and_cost()
     dynamics = learned_dynamics(model)(PARTICLE_RADIUS)

@@ -9,13 +9,20 @@ For every piece kind, random pushes through random piles (MJX, worlds batched), 
   spheres); contacts dropped by a contact cap show here;
 - outside the swept band: pieces that start more than a plate half-width outside the band swept by the plate
   should move less than 5 mm. In a pile, pieces pushed into their neighbours move those too, so the share of
-  out-of-band pieces that moved, and by how much, is reported rather than assumed to be zero.
+  out-of-band pieces that moved, and by how much, is reported rather than assumed to be zero;
+- into the walls: how far a piece's footprint reaches past a wall while the plate presses and after the push.
+
+``--wall``: every push comes from outside a wall (``sim.pushes.wall_pushes`` through pieces near the walls);
+``--layout spread`` spreads the pieces over the bin, walls included. Both count the pieces within 1 cm of a wall
+before a push that end more than 2 cm from every wall. ``--backend mujoco`` runs the C engine, one world after
+another (no GPU needed).
 """
 
 from __future__ import annotations
 
 import argparse
 import dataclasses
+import functools
 import time
 
 import jax
@@ -23,8 +30,9 @@ import jax.numpy as jnp
 import numpy as np
 from tqdm import tqdm
 
-from dynres_jax.config import KINDS, SceneConfig, SimConfig, replace
+from dynres_jax.config import DEFAULT_PIECES, KINDS, PileConfig, SceneConfig, SimConfig, replace
 from dynres_jax.io.files import write_json
+from dynres_jax.sim import pushes
 from dynres_jax.sim.env import PileEnv
 
 
@@ -53,7 +61,13 @@ def push_metrics(env: PileEnv, before, pressing, after, action) -> dict:
     p = pressing.pos[:, :2]
     gap = jnp.linalg.norm(p[:, None] - p[None], axis=-1) - (foot[:, None] + foot[None])
     gap = jnp.where(jnp.eye(len(foot), dtype=bool), jnp.inf, gap)
+    bin_half = env.config.scene.bin_half_width
+    into_wall = lambda s: jnp.max(jnp.abs(s.pos[:, :2]) + foot[:, None] - bin_half)  # noqa: E731
+    wall_gap = lambda s: bin_half - jnp.max(jnp.abs(s.pos[:, :2]), axis=1) - foot  # noqa: E731
     return dict(
+        into_wall=jnp.maximum(0.0, jnp.maximum(into_wall(pressing), into_wall(after))),
+        at_wall=(wall_gap(before) < 0.01).sum(),
+        brought_in=((wall_gap(before) < 0.01) & (wall_gap(after) > 0.02)).sum(),
         overlap=jnp.maximum(0.0, -gap.min()),
         broken=after.broken,
         sink=jnp.max(jnp.asarray(env.scene.rest_height) - jnp.minimum(pressing.pos[:, 2], after.pos[:, 2])),
@@ -63,22 +77,44 @@ def push_metrics(env: PileEnv, before, pressing, after, action) -> dict:
     )
 
 
-def validate_kind(kind: str, pieces: int, worlds: int, rounds: int, scene_overrides: dict, seed: int = 0,
-                  fast: bool = False) -> dict:
-    base = (SceneConfig.fast if fast else SceneConfig)(kinds=(kind,), pieces=(pieces,))
-    cfg = SimConfig(scene=replace(base, **scene_overrides))
-    env = PileEnv(cfg, backend="mjx", render=False)
-    reset, sample = jax.jit(jax.vmap(env.reset)), jax.jit(jax.vmap(env.sample_push))
+def wall_push(env: PileEnv, key, pos):
+    """A random push from outside the wall nearest to a piece near a wall (``sim.pushes``), in the action space."""
+    k_piece, k_push = jax.random.split(key)
+    point = pushes.pile_points(k_piece, pos, jnp.ones(len(pos), bool), (), env.reach)
+    p = env.config.push
+    return pushes.project(pushes.wall_pushes(k_push, point, env.reach, p.min_length, p.max_length),
+                          env.action_bound, p.min_length, p.max_length, env.reach)
 
+
+def validate_kind(kind: str, pieces: int, worlds: int, rounds: int, scene_overrides: dict, seed: int = 0,
+                  fast: bool = False, wall: bool = False, backend: str = "mjx", layout: str = "blob") -> dict:
+    base = (SceneConfig.fast if fast else SceneConfig)(kinds=(kind,), pieces=(pieces,))
+    cfg = SimConfig(scene=replace(base, **scene_overrides), pile=PileConfig(layout=layout))
+    env = PileEnv(cfg, backend=backend, render=False)
+    sample = jax.jit(jax.vmap(functools.partial(wall_push, env) if wall else env.sample_push))
+    metrics = jax.jit(jax.vmap(lambda *a: push_metrics(env, *a)))
     travel = env.n_lower + env.n_move
 
-    @jax.jit
+    def one(state, action):
+        """One push, stopped once at the end of the plate's travel to measure the squeezed pile."""
+        pos, quat = env.plate_trajectory(action)
+        pressing = env.simulate(state, pos[:travel], quat[:travel])
+        return pressing, env.simulate(pressing, pos[travel:], quat[travel:])
+
+    def stacked(states):
+        return jax.tree.map(lambda *x: jnp.stack(x), *states)
+
+    if backend == "mjx":
+        reset, push = jax.jit(jax.vmap(env.reset)), jax.jit(jax.vmap(one))
+    else:  # the C engine: one world after another
+        reset = lambda keys: stacked([env.reset(k) for k in keys])  # noqa: E731
+        def push(states, actions):
+            worlds = [one(jax.tree.map(lambda x, i=i: x[i], states), a) for i, a in enumerate(actions)]
+            return tuple(stacked(s) for s in zip(*worlds, strict=True))
+
     def step(states, actions):
-        """One push in every world, stopped once at the end of the plate's travel to measure the squeezed pile."""
-        pos, quat = jax.vmap(env.plate_trajectory)(actions)
-        pressing = jax.vmap(env.simulate)(states, pos[:, :travel], quat[:, :travel])
-        after = jax.vmap(env.simulate)(pressing, pos[:, travel:], quat[:, travel:])
-        return after, jax.vmap(lambda *a: push_metrics(env, *a))(states, pressing, after, actions)
+        pressing, after = push(states, actions)
+        return after, metrics(states, pressing, after, actions)
 
     key = jax.random.PRNGKey(seed)
     states = reset(jax.random.split(key, worlds))
@@ -97,6 +133,8 @@ def validate_kind(kind: str, pieces: int, worlds: int, rounds: int, scene_overri
         outside_moved_5mm_share=float(m["outside_moved_5mm"].sum() / max(1, m["outside"].sum())),
         outside_max_move_mm=float(m["outside_max_move"].max() * 1000),
         max_overlap_mm=float(m["overlap"].max() * 1000), p99_overlap_mm=float(np.quantile(m["overlap"], 0.99) * 1000),
+        max_into_wall_mm=float(m["into_wall"].max() * 1000), at_wall=int(m["at_wall"].sum()),
+        brought_in=int(m["brought_in"].sum()),
     )
 
 
@@ -105,7 +143,10 @@ def main(argv=None):
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--pushes", type=int, default=1000, help="pushes per kind")
     parser.add_argument("--worlds", type=int, default=250, help="worlds simulated at once")
-    parser.add_argument("--pieces", type=int, default=100)
+    parser.add_argument("--pieces", type=int, help="pieces per pile (default: each kind's config.DEFAULT_PIECES)")
+    parser.add_argument("--wall", action="store_true", help="every push from outside a wall")
+    parser.add_argument("--layout", choices=["blob", "spread"], default="blob", help="initial piles")
+    parser.add_argument("--backend", choices=["mjx", "mujoco"], default="mjx")
     parser.add_argument("--kinds", nargs="*", default=list(KINDS))
     parser.add_argument("--scene", default="default", choices=["default", "fast"],
                         help="SceneConfig() or SceneConfig.fast(); the flags below override either")
@@ -122,11 +163,14 @@ def main(argv=None):
     overrides = {k: v for k, v in dict(joints=args.joints, solver=args.solver, solver_iterations=args.solver_iterations,
                                        ls_iterations=args.ls_iterations, contact_cap=args.contact_cap,
                                        condim=args.condim).items() if v is not None}
-    out = dict(device=jax.devices()[0].device_kind, pieces=args.pieces, scene=dict(preset=args.scene, **overrides),
+    out = dict(device=jax.devices()[0].device_kind, pieces=args.pieces, wall=args.wall, backend=args.backend,
+               layout=args.layout, scene=dict(preset=args.scene, **overrides),
                kinds=[])
     for kind in tqdm(args.kinds, desc="kinds"):
         t0 = time.perf_counter()
-        res = validate_kind(kind, args.pieces, args.worlds, rounds, overrides, fast=args.scene == "fast")
+        res = validate_kind(kind, args.pieces or DEFAULT_PIECES[kind], args.worlds, rounds, overrides,
+                            fast=args.scene == "fast", wall=args.wall, backend=args.backend,
+                            layout=args.layout)
         res["seconds"] = time.perf_counter() - t0
         tqdm.write(str(res))
         out["kinds"].append(res)

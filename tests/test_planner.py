@@ -9,16 +9,11 @@ import pytest
 from flax import nnx
 from jax.tree_util import Partial
 
-from dynres_jax.control.planner import (
-    ZERO_LENGTH_DIRECTION,
-    PlannerConfig,
-    plan,
-    project,
-    sample_actions,
-)
+from dynres_jax.control.planner import PlannerConfig, plan
 from dynres_jax.models.dynamics import Dynamics, DynamicsConfig, resolution_code, rollout
 from dynres_jax.models.graph import sweep_displacement
 from dynres_jax.models.registry import learned_dynamics
+from dynres_jax.sim.pushes import ZERO_LENGTH_DIRECTION, project, sample_actions
 
 BOUND, MIN_LEN, MAX_LEN = 0.181, 0.01, 0.25
 TARGET = jnp.array([0.05, 0.0])

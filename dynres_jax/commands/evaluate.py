@@ -14,7 +14,10 @@ list) plans at every ω of ORACLE_OMEGAS each step, pushes each on a copy of the
 lowest d (``choosers.OracleOmega``); the summary then says how much of the oracle's gain over the best fixed
 ω adaptive recovers (``oracle_gap``); "bestK" (e.g. "best5") is the oracle's control: K plans at ``--best-omega``
 from independent keys each step, the best kept the same way (``choosers.BestOfK``), so the oracle's gain over it is
-what choosing ω adds to choosing among plans; "cnn" (not in the default list) is the
+what choosing ω adds to choosing among plans; "sim" is the ceiling of the action space and the sampling planner:
+each step the planner's M first samples (perceived at ``--best-omega``) are pushed in the simulator on copies of the
+worlds and the best kept, no learned model (``choosers.SimulatorScored``; M pushes a step, so slow); "cnn" (not in
+the default list) is the
 paper's CNN-dynamics baseline: the same planner at ω = ``--cnn-omega`` (50) with the CNN checkpoint ``--cnn-ckpt``
 (``experiments.train_dynamics --model cnn``) as its model. Writes per method ``METHOD.json`` (final d
 and inside share per episode, means per step; resumable: finished methods are skipped), ``summary.json`` (means with
@@ -51,7 +54,15 @@ from dynres_jax.commands.task import (
 )
 from dynres_jax.config import KINDS, OMEGA_MAX, OMEGA_MIN, CameraConfig, PileConfig, SceneConfig, SimConfig
 from dynres_jax.control import resolution, tasks
-from dynres_jax.control.choosers import ORACLE_OMEGAS, AdaptiveOmega, BestOfK, Chooser, FixedOmega, OracleOmega
+from dynres_jax.control.choosers import (
+    ORACLE_OMEGAS,
+    AdaptiveOmega,
+    BestOfK,
+    Chooser,
+    FixedOmega,
+    OracleOmega,
+    SimulatorScored,
+)
 from dynres_jax.control.goals import make_goal, stack
 from dynres_jax.control.mpc import SensorView, run
 from dynres_jax.io import ckpt, files
@@ -150,6 +161,8 @@ def label(method: str, r: dict) -> str:
         return f"ω = {method}"
     if best_of(method):
         return f"best of {best_of(method)}, ω = {round(float(np.mean(r['omega'])))}"
+    if method == "sim":
+        return "simulator as model"
     return f"CNN, ω = {round(float(np.mean(r['omega'])))}" if method == "cnn" else method
 
 
@@ -184,13 +197,16 @@ def plot(results: dict, task: str, out_dir: str) -> None:
 
 def method_chooser(method: str, goals, args, camera) -> Chooser:
     """The chooser of an evaluation method against goals [B]: a fixed ω ("50"; "cnn" at --cnn-omega), the regressor
-    ("adaptive"), the oracle over ORACLE_OMEGAS, or the best of K plans at --best-omega ("bestK", e.g. "best5")."""
+    ("adaptive"), the oracle over ORACLE_OMEGAS, the best of K plans at --best-omega ("bestK", e.g. "best5"), or the
+    simulator scoring the planner's first samples ("sim", perceived at --best-omega)."""
     if method == "adaptive":
         return AdaptiveOmega(goals, resolution.load_regressor(args.regressor, camera))
     if method == "oracle":
         return OracleOmega(goals, ORACLE_OMEGAS)
     if best_of(method):
         return BestOfK(goals, args.best_omega, best_of(method))
+    if method == "sim":
+        return SimulatorScored(goals, args.best_omega)
     return FixedOmega(goals, args.cnn_omega if method == "cnn" else int(method))
 
 
@@ -202,14 +218,20 @@ def deterministic(parser) -> None:
     os.environ["XLA_FLAGS"] = f"{os.environ.get('XLA_FLAGS', '')} --xla_gpu_deterministic_ops=true".strip()
 
 
+def method_omega(method: str, args) -> int | None:
+    """The one ω a method plans at (a fixed ω, bestK's and sim's --best-omega, cnn's --cnn-omega), or None for the
+    methods that choose among ω (adaptive, oracle)."""
+    if method.isdigit():
+        return int(method)
+    if best_of(method) or method == "sim":
+        return args.best_omega
+    return args.cnn_omega if method == "cnn" else None
+
+
 def method_omegas(args) -> list[int]:
     """The ω at which each method of --methods must afford an Adam step under a budget: a fixed method's ω, the
     coarsest for those that choose among ω."""
-    omegas = []
-    for m in args.methods:
-        omegas += ([int(m)] if m.isdigit() else [args.best_omega] if best_of(m) else [args.cnn_omega] if m == "cnn"
-                   else [OMEGA_MIN])  # adaptive and oracle choose among ω: the coarsest must afford a step
-    return omegas
+    return [OMEGA_MIN if (w := method_omega(m, args)) is None else w for m in args.methods]
 
 
 def best_of(method: str) -> int:
@@ -241,8 +263,9 @@ def main(argv=None):
                         help="fixed ω (integers), 'adaptive' (the regressor picks ω), 'oracle' (every step keeps the "
                              "best of ω in ORACLE_OMEGAS by the simulated outcome), 'bestK' (e.g. best5: every step "
                              "keeps the best of K plans at --best-omega by the simulated outcome, the oracle's "
-                             "control) and 'cnn' (the CNN-dynamics baseline at --cnn-omega)")
-    parser.add_argument("--best-omega", type=checks.omega, default=50, help="ω of the bestK methods")
+                             "control), 'sim' (the planner's first samples scored in the simulator: the ceiling of "
+                             "any model) and 'cnn' (the CNN-dynamics baseline at --cnn-omega)")
+    parser.add_argument("--best-omega", type=checks.omega, default=50, help="ω of the bestK and sim methods")
     add_planner_args(parser)
     parser.add_argument("--kind", default="coffee", choices=sorted(KINDS))
     parser.add_argument("--sensor", default="none", choices=sorted(SENSORS),
@@ -271,8 +294,8 @@ def main(argv=None):
     table = load_timing(parser, args)
     for m in args.methods:
         fixed = m.isdigit() and OMEGA_MIN <= int(m) <= OMEGA_MAX
-        if m not in ("adaptive", "oracle", "cnn") and not fixed and not best_of(m):
-            parser.error(f"--methods takes 'adaptive', 'oracle', 'cnn', 'bestK' (K >= 1) or integers in "
+        if m not in ("adaptive", "oracle", "cnn", "sim") and not fixed and not best_of(m):
+            parser.error(f"--methods takes 'adaptive', 'oracle', 'cnn', 'sim', 'bestK' (K >= 1) or integers in "
                          f"[{OMEGA_MIN}, {OMEGA_MAX}], got {m!r}")
     if len(set(args.methods)) < len(args.methods):
         parser.error(f"--methods names a method twice: {' '.join(args.methods)}")
@@ -288,7 +311,7 @@ def main(argv=None):
     cnn_model = load_model(parser, "learned", args.cnn_ckpt, sim.scene.plate_half_width) if "cnn" in args.methods \
         else None
     for m in args.methods:
-        omega = int(m) if m.isdigit() else args.best_omega if best_of(m) else None
+        omega = method_omega(m, args) if m != "cnn" else None
         if omega is not None and omega > main_model.n_max:
             parser.error(f"method {m}: ω = {omega} exceeds the model's n_max = {main_model.n_max}")
     if "adaptive" in args.methods:

@@ -180,8 +180,7 @@ def build_loop(args, sim: SimConfig, parser: argparse.ArgumentParser) -> Loop:
             parser.error(f"--regressor: {e}")
     env = PileEnv(sim, backend=args.backend)
     try:
-        planner = PlannerConfig(samples=args.samples, adam_steps=args.adam_steps, bound=env.action_bound,
-                                max_length=sim.push.max_length, min_length=sim.push.min_length, seed=args.seed)
+        planner = planner_config(env, samples=args.samples, adam_steps=args.adam_steps, seed=args.seed)
         cfg = MPCConfig(mpc_steps=args.mpc_steps, planner=planner, time_budget=args.time_budget)
     except ValueError as e:
         parser.error(str(e))
@@ -262,12 +261,17 @@ def add_planner_args(parser) -> None:
                         help="pushes per planned sequence (paper T = 1)")
 
 
+def planner_config(env, **settings) -> PlannerConfig:
+    """The planner's settings for pushes in ``env``'s bin (its action space: bound, reach, push lengths)."""
+    push = env.config.push
+    return PlannerConfig(bound=env.action_bound, reach=env.reach, min_length=push.min_length,
+                         max_length=push.max_length, **settings)
+
+
 def mpc_config(env, args, mpc_steps: int = 1, real_depth: bool = False) -> MPCConfig:
     """The MPC settings the planner flags ask for (evaluate and label_resolution): mpc_steps per episode (1: a
     single decision, as a label's plan)."""
-    planner = PlannerConfig(samples=args.samples, adam_steps=args.adam_steps, horizon=args.horizon,
-                            bound=env.action_bound, max_length=env.config.push.max_length,
-                            min_length=env.config.push.min_length)
+    planner = planner_config(env, samples=args.samples, adam_steps=args.adam_steps, horizon=args.horizon)
     return MPCConfig(mpc_steps=mpc_steps, planner=planner, max_points=1024 if args.quick else 4096,
                      time_budget=args.time_budget, real_depth=real_depth)
 

@@ -37,7 +37,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from dynres_jax.commands import checks
-from dynres_jax.commands.task import check_pile, load_model
+from dynres_jax.commands.task import check_pile, load_model, planner_config
 from dynres_jax.config import CameraConfig, PileConfig, PushConfig, SceneConfig, SimConfig
 from dynres_jax.control import tasks
 from dynres_jax.control.budget import TimingTable, bucket_for
@@ -45,7 +45,6 @@ from dynres_jax.control.decision import decide_batch, episode
 from dynres_jax.control.goals import make_goal, stack
 from dynres_jax.control.mpc import MPCConfig, measure_timing
 from dynres_jax.control.objective import distribution_distance
-from dynres_jax.control.planner import PlannerConfig
 from dynres_jax.control.resolution import CANDIDATES
 from dynres_jax.io import files
 from dynres_jax.learn.data import complete_shards, read_shard, save_npz
@@ -237,8 +236,7 @@ def surface(args, model: LoadedDynamics) -> dict:
                             pile=PileConfig(layout="spread") if kind == 0 else near_centre_blob,
                             camera=CameraConfig(width=64, height=64) if args.quick else CameraConfig())
             pool = WorldPool(sim, processes)
-            planner = PlannerConfig(samples=args.samples, adam_steps=max(steps), bound=pool.env.action_bound,
-                                    max_length=sim.push.max_length, min_length=sim.push.min_length)
+            planner = planner_config(pool.env, samples=args.samples, adam_steps=max(steps))
             cfg = MPCConfig(mpc_steps=1, max_points=1024 if args.quick else 4096, planner=planner)
             path = os.path.join(args.out, f"surface_{kind}.npz")
             starts, masks = _scenes(kind, args, pool)

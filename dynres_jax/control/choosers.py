@@ -1,9 +1,9 @@
 """Choosers: what the closed loop plans for at each MPC step (``mpc.run``). A chooser is called with the step and
 the frames the planner sees, and answers with ``Orders``: the goals, the resolution ω of every episode (or several
 candidate ω, of which the loop keeps per episode the one whose push left the lowest d), and which piece kinds to
-perceive. Fixed ω, the regressor g (adaptive ω, paper Sec. IV-C), the oracle over ω, the best of K plans at one ω
-and Sort's A* waypoints (``sort.SortPolicy``) are choosers; a new way of choosing is a new chooser, not a new
-parameter of the loop.
+perceive. Fixed ω, the regressor g (adaptive ω, paper Sec. IV-C), the oracle over ω, the best of K plans at one ω,
+the simulator as the model (the ``sim`` ceiling) and Sort's A* waypoints (``sort.SortPolicy``) are choosers; a new
+way of choosing is a new chooser, not a new parameter of the loop.
 """
 
 from __future__ import annotations
@@ -23,13 +23,16 @@ class Orders(NamedTuple):
     decision (a batched Goal or KindGoals; the step's d and inside share are scored against it); omegas: one or more
     candidate ω [B] each; kinds [B]: the piece kind each decision perceives (None: every piece); record: extra
     record fields, arrays [B]; draws: per candidate, which independent plan it is (0: the step's own keys, the same
-    for every ω; d > 0: keys of their own, ``mpc.PLAN_DRAWS``); None: every candidate draw 0."""
+    for every ω; d > 0: keys of their own, ``mpc.PLAN_DRAWS``); None: every candidate draw 0. simulated: no model
+    and no Adam step: the planner's M first samples are each pushed on a copy of the worlds and the one that left
+    the lowest d kept (``mpc.act_simulated``)."""
 
     goals: Goal | KindGoals
     omegas: tuple[np.ndarray, ...]
     kinds: np.ndarray | None = None
     record: dict = {}
     draws: tuple[int, ...] | None = None
+    simulated: bool = False
 
 
 class Chooser:
@@ -89,3 +92,15 @@ class BestOfK(Chooser):
     def __call__(self, t, obs) -> Orders:
         omega = np.full(len(obs.depth), self.omega, np.int32)
         return Orders(self.goals, (omega,) * self.k, draws=tuple(range(self.k)))
+
+
+class SimulatorScored(Chooser):
+    """The ceiling of the action space and the sampling planner: each step the planner's M first samples (drawn as
+    every method draws them from the step's keys) are scored by pushing them in the simulator on copies of the
+    worlds, no learned model and no Adam step; the one that left the lowest d is kept. ω only sets perception."""
+
+    def __init__(self, goals, omega: int):
+        self.goals, self.omega = goals, check_omega(omega)
+
+    def __call__(self, t, obs) -> Orders:
+        return Orders(self.goals, (np.full(len(obs.depth), self.omega, np.int32),), simulated=True)

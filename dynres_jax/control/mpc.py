@@ -162,6 +162,28 @@ def act(worlds: Worlds, now: Situation, omega, *, cfg: MPCConfig, timing: budget
                 states=after, wall=np.full(len(action), wall), **score(after, now.goals))
 
 
+def act_simulated(worlds: Worlds, now: Situation, omega, *, cfg: MPCConfig, timing, dynamics, score) -> dict:
+    """``act`` with the simulator as the model (``choosers.SimulatorScored``): the planner's M first samples at omega
+    [B] (no Adam step), each pushed on a copy of the worlds, per episode the one that left the lowest d kept. Returns
+    ``act``'s arrays [B]; predicted_objective is NaN (nothing predicts), wall the sampling's seconds."""
+    buckets = np.array([budget.bucket_for(int(w), cfg.buckets) for w in np.asarray(omega)])
+    steps = np.zeros(len(buckets), np.int32)
+    t0 = time.perf_counter()
+    particles, c_now, result = decide_batch(now.seen, now.goals, now.keys, now.init, now.warm, omega, steps, now.kinds,
+                                            spec=cfg.spec(int(buckets.max())), dynamics=dynamics, camera=now.camera)
+    samples = np.asarray(jax.block_until_ready(result.actions))  # [B, M, T, 4]
+    common = dict(omega=np.asarray(omega), bucket=buckets, adam_steps=steps, objective=c_now, particles=particles,
+                  predicted_objective=np.full(len(buckets), np.nan, np.float32),
+                  wall=np.full(len(buckets), time.perf_counter() - t0))
+    kept = None
+    for m in range(samples.shape[1]):
+        after = worlds.push(now.states, samples[:, m, 0])
+        outcome = dict(common, best=jnp.asarray(samples[:, m]), action=samples[:, m, 0], states=after,
+                       **score(after, now.goals))
+        kept = outcome if kept is None else _lowest_distance([kept, outcome])
+    return kept
+
+
 class Episodes(NamedTuple):
     """What ``run`` returns: the final states [B] and one record per MPC step (arrays [B]; ``run``)."""
 
@@ -194,8 +216,9 @@ def run(worlds: Worlds, states: State, chooser: Chooser, dynamics, cfg: MPCConfi
         orders = chooser(t, seen)
         now = Situation(states, seen, camera, orders.goals, orders.kinds, step_keys, init, warm)
         draws = orders.draws or (0,) * len(orders.omegas)
-        kept = _lowest_distance([act(worlds, _drawn(now, d), omega, cfg=cfg, timing=timing, dynamics=dynamics,
-                                     score=score) for omega, d in zip(orders.omegas, draws, strict=True)])
+        decide = act_simulated if orders.simulated else act
+        kept = _lowest_distance([decide(worlds, _drawn(now, d), omega, cfg=cfg, timing=timing, dynamics=dynamics,
+                                        score=score) for omega, d in zip(orders.omegas, draws, strict=True)])
         record = dict(step=t, **{k: np.asarray(kept[k]) for k in ("omega", "bucket", "adam_steps", "objective",
                                                                   "predicted_objective", "distance", "inside",
                                                                   "action")})

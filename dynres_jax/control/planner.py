@@ -23,8 +23,8 @@ of a bucket are a mask (one compiled plan for every ω of a bucket). The Adam st
 ``lax.fori_loop`` that runs exactly that many steps, at most ``PlannerConfig.adam_steps``), so any step count, a time
 budget's included, reuses the compiled plan; the config's seed is not part of the compiled function's key.
 
-Units: metres. An action is (x_start, y_start, x_end, y_end); every coordinate lies within ±bound and every push
-length within [min_length, max_length].
+Units: metres. An action is (x_start, y_start, x_end, y_end) of the action space ``sim.pushes`` defines: it ends
+within ±bound, starts there or (with a reach) outside a wall, and its length lies within [min_length, max_length].
 """
 
 from __future__ import annotations
@@ -39,9 +39,7 @@ import optax
 from jax.tree_util import Partial
 
 from dynres_jax.config import PushConfig, check_fields
-
-ZERO_LENGTH_DIRECTION = (1.0, 0.0)  # a push of (near) zero length is pointed along +x by ``project``
-_TINY = 1e-12  # m²: squared lengths below this count as zero
+from dynres_jax.sim.pushes import check_reach, pile_points, project, sample_actions
 
 
 @dataclass(frozen=True)
@@ -52,7 +50,10 @@ class PlannerConfig:
     horizon: T pushes per sequence (paper 1).
     adam_steps: N Adam steps (paper 200); the most a plan may run (its history's length, static).
     lr: Adam learning rate in metres (the reference's 0.05 on its 1-unit bin, scaled to our 0.4 m bin).
-    bound: every action coordinate within ±bound m (PileEnv.action_bound; 0.181 m for coffee).
+    bound: pushes end within ±bound m, and start there unless outside a wall (PileEnv.action_bound; 0.181 m for
+      coffee).
+    reach: m, a push may start at ±reach, outside a wall (PileEnv.reach; ``sim.pushes``), and a share of the first
+      samples does; None: every push starts within ±bound (no walls, or no pushes from beyond them).
     min_length, max_length: push length range in m (PushConfig).
     resamples: R re-samplings of the particles each sequence is scored on (mean cost); positions then carry a
       leading [R] axis when R > 1.
@@ -66,6 +67,7 @@ class PlannerConfig:
     adam_steps: int = 200
     lr: float = 0.02
     bound: float = 0.181
+    reach: float | None = None
     min_length: float = PushConfig.min_length
     max_length: float = PushConfig.max_length
     resamples: int = 1
@@ -88,6 +90,7 @@ class PlannerConfig:
         if not 0 < self.min_length <= self.max_length <= 2 * self.bound:
             raise ValueError(f"PlannerConfig push lengths must satisfy 0 < min_length <= max_length <= 2 * bound, got "
                              f"min_length={self.min_length}, max_length={self.max_length}, bound={self.bound}")
+        check_reach(self.bound, self.reach, self.min_length, self.max_length)
 
 
 class PlanResult(NamedTuple):
@@ -100,57 +103,6 @@ class PlanResult(NamedTuple):
     costs: jax.Array
     history: jax.Array
     actions: jax.Array
-
-
-def _direction(delta):
-    """delta [..., 2] -> (unit direction [..., 2], length [...]); ZERO_LENGTH_DIRECTION where the length is ~0.
-    The gradient stays finite at zero length (the unused branch divides by 1)."""
-    sq = jnp.sum(jnp.square(delta), axis=-1)
-    nonzero = sq > _TINY
-    length = jnp.sqrt(jnp.where(nonzero, sq, 1.0))
-    fixed = jnp.broadcast_to(jnp.asarray(ZERO_LENGTH_DIRECTION, delta.dtype), delta.shape)
-    return jnp.where(nonzero[..., None], delta / length[..., None], fixed), jnp.where(nonzero, length, 0.0)
-
-
-def project(actions, bound, min_length, max_length):
-    """Actions [..., 4] m -> the nearest-in-spirit actions inside the workspace, same shape.
-
-    The start is clipped to ±bound; the length is clipped to [min_length, max_length] keeping the start and the
-    direction (a zero-length push points along ZERO_LENGTH_DIRECTION); if the end then leaves the workspace, the
-    whole push is translated back inside, axis by axis (direction and length kept; it fits because
-    max_length <= 2 bound). Idempotent, pure, jit/vmap-able, finite gradients everywhere.
-    """
-    actions = jnp.asarray(actions, jnp.float32)
-    start = jnp.clip(actions[..., :2], -bound, bound)
-    direction, length = _direction(actions[..., 2:] - actions[..., :2])
-    end = start + direction * jnp.clip(length, min_length, max_length)[..., None]
-    lo, hi = jnp.minimum(start, end), jnp.maximum(start, end)
-    shift = jnp.maximum(-bound - lo, 0.0) - jnp.maximum(hi - bound, 0.0)
-    return jnp.concatenate([start + shift, end + shift], axis=-1)
-
-
-def sample_actions(key, m, t, bound, min_length, max_length, centre_xy=None, spread=0.03):
-    """M random action sequences [m, t, 4] m, inside the workspace (``project``ed).
-
-    Every push has a uniform direction and a length uniform in [min_length, max_length]. It passes through a point
-    drawn uniformly in the workspace or, with centre_xy given ([2], or one point per push [m, t, 2]; the planner
-    passes random particles: pushes through the pile, as the reference's initial pushes), uniformly in the disc of
-    radius ``spread`` around it; the point lies 20-60 % of the way along the push, so the push starts behind it.
-    """
-    k_point, k_angle, k_len, k_frac = jax.random.split(key, 4)
-    shape = (m, t)
-    if centre_xy is None:
-        point = jax.random.uniform(k_point, shape + (2,), minval=-bound, maxval=bound)
-    else:
-        k_r, k_phi = jax.random.split(k_point)
-        radius = spread * jnp.sqrt(jax.random.uniform(k_r, shape))
-        phi = jax.random.uniform(k_phi, shape, minval=-jnp.pi, maxval=jnp.pi)
-        point = jnp.asarray(centre_xy, jnp.float32) + radius[..., None] * jnp.stack([jnp.cos(phi), jnp.sin(phi)], -1)
-    angle = jax.random.uniform(k_angle, shape, minval=-jnp.pi, maxval=jnp.pi)
-    direction = jnp.stack([jnp.cos(angle), jnp.sin(angle)], axis=-1)
-    length = jax.random.uniform(k_len, shape, minval=min_length, maxval=max_length)[..., None]
-    start = point - direction * length * jax.random.uniform(k_frac, shape + (1,), minval=0.2, maxval=0.6)
-    return project(jnp.concatenate([start, start + direction * length], axis=-1), bound, min_length, max_length)
 
 
 def _as_pytree_fn(fn):
@@ -173,23 +125,17 @@ def _batched(positions, mask, resamples):
     return positions, mask
 
 
-def _pile_points(key, points, valid, shape):
-    """(x, y) [*shape, 2] m of valid points [P, 3] (valid [P]) drawn at random, so sampled pushes pass through the
-    pile even when it is spread out and its centroid is empty table; the origin if no point is valid."""
-    count = jnp.sum(valid)
-    k = jnp.minimum(jnp.floor(jax.random.uniform(key, shape) * count), count - 1)  # the k-th valid point ...
-    index = jnp.searchsorted(jnp.cumsum(valid), k + 1)  # ... wherever it sits, so masked padding changes nothing
-    return jnp.where(count > 0, points[jnp.minimum(index, valid.shape[0] - 1), :2], 0.0)
-
-
 def sample_pushes(key, points, valid, config: PlannerConfig):
     """The planner's M starting sequences [M, T, 4] m: ``sample_actions`` through random valid points [P, 3] (valid
     [P]) of the pile when config.near_pile, else anywhere. ``plan`` draws them through the particles; drawn through
     the perception cloud instead (``mpc.decide``), they are the same for every ω: common random numbers."""
     c = config
     k_points, k_actions = jax.random.split(key)
-    centre = _pile_points(k_points, points, valid, (c.samples, c.horizon)) if c.near_pile else None
-    return sample_actions(k_actions, c.samples, c.horizon, c.bound, c.min_length, c.max_length, centre, c.spread)
+    shape = (c.samples, c.horizon)
+    centre = pile_points(k_points, points, valid, shape) if c.near_pile else None
+    wall = None if c.reach is None else pile_points(jax.random.fold_in(k_points, 1), points, valid, shape, c.reach)
+    return sample_actions(k_actions, c.samples, c.horizon, c.bound, c.min_length, c.max_length, centre, c.spread,
+                          c.reach, wall)
 
 
 def _prepared(dynamics_fn, positions, mask):
@@ -210,9 +156,9 @@ def _plan(dynamics_fn, cost_fn, positions, mask, key, init, initial, adam_steps,
     None, adam_steps [] int32 (may be traced, at most config.adam_steps)."""
     c = config
     actions = sample_pushes(key, positions[0], mask[0], c) if initial is None else project(
-        initial, c.bound, c.min_length, c.max_length)
+        initial, c.bound, c.min_length, c.max_length, c.reach)
     if init is not None:
-        actions = actions.at[0].set(project(init, c.bound, c.min_length, c.max_length))
+        actions = actions.at[0].set(project(init, c.bound, c.min_length, c.max_length, c.reach))
 
     dynamics_fn, context = _prepared(dynamics_fn, positions, mask)
 
@@ -233,7 +179,8 @@ def _plan(dynamics_fn, cost_fn, positions, mask, key, init, initial, adam_steps,
         costs, grads = value_and_grad(actions)
         best, best_cost = keep_best(best, best_cost, actions, costs)
         updates, opt_state = optimiser.update(grads, opt_state, actions)
-        actions = project(optax.apply_updates(actions, updates), c.bound, c.min_length, c.max_length)
+        actions = project(optax.apply_updates(actions, updates), c.bound, c.min_length, c.max_length,
+                          c.reach)
         return actions, opt_state, best, best_cost, history.at[i].set(best_cost)
 
     carry = (actions, optimiser.init(actions), actions[0], jnp.asarray(jnp.inf, jnp.float32),
@@ -282,5 +229,4 @@ def plan(dynamics_fn, cost_fn, positions, mask, key, config: PlannerConfig = Pla
                      jnp.asarray(adam_steps, jnp.int32), config=replace(config, seed=0))
 
 
-__all__ = ["PlanResult", "PlannerConfig", "ZERO_LENGTH_DIRECTION", "plan", "project", "sample_actions",
-           "sample_pushes"]
+__all__ = ["PlanResult", "PlannerConfig", "plan", "sample_pushes"]

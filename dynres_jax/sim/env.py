@@ -4,7 +4,8 @@ backend "mjx": MuJoCo XLA; ``reset`` and ``push`` are pure JAX, so ``jax.jit`` a
 backend "mujoco": the C engine, one world, fast on CPU; same MJCF, same State, same plate trajectory.
 
 An action is ``(x_start, y_start, x_end, y_end)`` in metres: the plate (perpendicular to the push) lowers at the
-start, moves to the end at ``PushConfig.speed``, lifts, and is parked out of view while the pile settles.
+start, moves to the end at ``PushConfig.speed``, lifts, and is parked out of view while the pile settles. Pushes end
+within ``action_bound`` and start there or outside a wall, at ±``reach`` (``sim.pushes``: the action space).
 """
 
 from __future__ import annotations
@@ -22,6 +23,7 @@ import numpy as np
 from mujoco import rollout
 
 from dynres_jax.config import SimConfig
+from dynres_jax.sim import pushes
 from dynres_jax.sim.camera import Camera, Observation, Renderer
 from dynres_jax.sim.scene import build_scene
 
@@ -97,9 +99,11 @@ class PileEnv:
         self.n_reset = max(1, round(config.pile.settle_time / dt))
         sc = config.scene
         self.plate_z = p.clearance + (sc.plate_thickness / 2 if sc.plate_geom == "capsule" else sc.plate_half_height)
-        # Action coordinates stay this far inside the walls, so the plate never squeezes a piece against a wall.
-        self.action_bound = (config.scene.bin_half_width - config.scene.plate_thickness / 2
-                             - 2 * float(self.scene.footprint.max()))
+        # Pushes end this far inside the walls, so the plate never squeezes a piece against a wall; they may start
+        # at ±reach, the plate wholly outside a wall (it passes through walls), to sweep pieces off the walls.
+        self.action_bound = sc.bin_half_width - sc.plate_thickness / 2 - 2 * float(self.scene.footprint.max())
+        self.reach = sc.bin_half_width + sc.plate_thickness / 2 + pushes.REACH_GAP
+        pushes.check_reach(self.action_bound, self.reach, p.min_length, p.max_length)
         self._sites = self._layout_sites()
         self._layout = jax.jit(self._initial_qpos)
         model = self.scene.model
@@ -205,18 +209,16 @@ class PileEnv:
         return pos.astype(jnp.float32), quat.astype(jnp.float32)
 
     def sample_push(self, key, pos):
-        """A random push through the pile: it passes a random piece of ``pos`` [N, 3] at a random angle, starting
-        behind it and ending past it, length uniform in [min_length, max_length], kept inside ``action_bound``.
-        Returns action [4]; pure JAX (vmap it over worlds)."""
-        p, b = self.config.push, self.action_bound
-        k_piece, k_angle, k_len, k_before = jax.random.split(key, 4)
-        target = pos[jax.random.randint(k_piece, (), 0, pos.shape[0]), :2]
-        angle = jax.random.uniform(k_angle, (), minval=-jnp.pi, maxval=jnp.pi)
-        direction = jnp.stack([jnp.cos(angle), jnp.sin(angle)])
-        length = jax.random.uniform(k_len, (), minval=max(p.min_length, 0.03), maxval=p.max_length)
-        start = jnp.clip(target - direction * length * jax.random.uniform(k_before, (), minval=0.2, maxval=0.6), -b, b)
-        end = jnp.clip(start + direction * length, -b, b)
-        return jnp.concatenate([start, end])
+        """A random push through the pile (``pushes.sample_actions``): it passes a random piece of ``pos`` [N, 3] at
+        a random angle, or, a share ``pushes.WALL_SHARE`` of the time, comes in from outside the wall nearest to a
+        piece near a wall; length at least 3 cm. Returns action [4]; pure JAX (vmap it over worlds)."""
+        p = self.config.push
+        k_piece, k_wall, k_push = jax.random.split(key, 3)
+        valid = jnp.ones(pos.shape[0], bool)
+        target = pushes.pile_points(k_piece, pos, valid, (1, 1))
+        wall = pushes.pile_points(k_wall, pos, valid, (1, 1), self.reach)
+        return pushes.sample_actions(k_push, 1, 1, self.action_bound, max(p.min_length, 0.03), p.max_length, target,
+                                     0.0, self.reach, wall)[0, 0]
 
     def _parked(self, n):
         return (jnp.broadcast_to(jnp.asarray(PARK, jnp.float32), (n, 3)),
@@ -232,27 +234,27 @@ class PileEnv:
             raise ValueError(f"an action is (x_start, y_start, x_end, y_end), shape (4,); got shape {a.shape}")
         if not np.all(np.isfinite(a)):
             raise ValueError(f"action has NaN or infinite entries: {a}")
-        b = self.action_bound
-        if np.any(np.abs(a) > b + 1e-6):
-            raise ValueError(f"action {a} leaves the workspace: every coordinate must lie within +-{b:.4f} m "
-                             "(the bin less the plate and a piece's width, PileEnv.action_bound)")
+        b, r, p = self.action_bound, self.reach, self.config.push
+        if np.any(np.abs(a[2:]) > b + 1e-6):
+            raise ValueError(f"action {a} ends outside the workspace: the end's coordinates must lie within "
+                             f"+-{b:.4f} m (the bin less the plate and two piece widths, PileEnv.action_bound)")
+        start = np.abs(a[:2])
+        if np.any((start > b + 1e-6) & (np.abs(start - r) > 1e-6)):
+            raise ValueError(f"action {a} starts between the workspace and the walls: a start coordinate lies within "
+                             f"+-{b:.4f} m (PileEnv.action_bound) or at +-{r:.4f} m, outside a wall (PileEnv.reach)")
         length = float(np.hypot(a[2] - a[0], a[3] - a[1]))
-        p = self.config.push
         if not p.min_length - 1e-6 <= length <= p.max_length + 1e-6:  # float32 plans sit on the bounds
             raise ValueError(f"push length {length:.4f} m is outside [{p.min_length}, {p.max_length}] m "
                              "(PushConfig.min_length / max_length)")
         return a.astype(np.float32)
 
     def _sanitise(self, action):
-        """Traced actions cannot raise: NaN makes the push a no-op and flags the world broken; the rest is clipped
-        into the bin and to the maximum length."""
+        """Traced actions cannot raise: NaN makes the push a no-op and flags the world broken; the rest is
+        ``pushes.project``ed into the action space."""
         bad = ~jnp.all(jnp.isfinite(action))
-        b, p = self.action_bound, self.config.push
-        a = jnp.clip(jnp.where(bad, jnp.array([0.0, 0.0, p.min_length, 0.0]), action), -b, b)
-        delta = a[2:] - a[:2]
-        length = jnp.linalg.norm(delta)
-        a = a.at[2:].set(a[:2] + delta * jnp.minimum(1.0, p.max_length / jnp.maximum(length, 1e-9)))
-        return a, bad
+        p = self.config.push
+        a = jnp.where(bad, jnp.array([0.0, 0.0, p.min_length, 0.0]), action)
+        return pushes.project(a, self.action_bound, p.min_length, p.max_length, self.reach), bad
 
     # ----------------------------------------------------------------------------------------------------------
     # Public API
