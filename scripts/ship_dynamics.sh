@@ -9,7 +9,8 @@
 # variant trains exactly this many steps, the box only a safety stop; default: as many as fill the box at the probed
 # speed), BATCH (64), PROBE_STEPS (300), DATA (/tmp/piles), VARIANTS ("NAME:flags;NAME:flags", default
 # "dynamics:$MODEL_FLAGS"), RUNS (run folders, default $OUT):
-# $RUNS/NAME/{ckpt,metrics.jsonl,curves.png,eval/,log.txt,timing.json}.
+# $RUNS/NAME/{ckpt,metrics.jsonl,curves.png,eval/,timing.json} and $RUNS/NAME.log (outside the run folder, which
+# train_dynamics claims: it must be new or its own).
 set -euo pipefail
 OUT=${OUT:-runs/ship}; DATA=${DATA:-/tmp/piles}; RUNS=${RUNS:-$OUT}
 EPISODES=${EPISODES:-2000}; TRAIN_MINUTES=${TRAIN_MINUTES:-4}; BATCH=${BATCH:-64}; PROBE=${PROBE_STEPS:-300}
@@ -60,13 +61,13 @@ export XLA_PYTHON_CLIENT_MEM_FRACTION
 pids=()
 for i in "${!specs[@]}"; do
   spec=${specs[$i]} name=${specs[$i]%%:*}
-  mkdir -p "$RUNS/$name"
+  mkdir -p "$RUNS"
   (set +e; export CUDA_VISIBLE_DEVICES=$((i % gpus))
-   (set -e; variant "$name" "${spec#*:}" > "$RUNS/$name/log.txt" 2>&1); rc=$?
-   tar -czf "$OUT/$name.tar.gz" -C "$RUNS" "$name"; exit $rc) &
+   (set -e; variant "$name" "${spec#*:}" > "$RUNS/$name.log" 2>&1); rc=$?
+   tar -czf "$OUT/$name.tar.gz" -C "$RUNS" "$name" "$name.log"; exit $rc) &
   pids+=($!)
 done
 status=0
 for pid in "${pids[@]}"; do wait "$pid" || status=1; done
-for spec in "${specs[@]}"; do echo "== ${spec%%:*}"; tail -8 "$RUNS/${spec%%:*}/log.txt"; done
+for spec in "${specs[@]}"; do echo "== ${spec%%:*}"; tail -8 "$RUNS/${spec%%:*}.log"; done
 exit $status
