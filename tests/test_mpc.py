@@ -1,14 +1,23 @@
 """Closed loop: a tiny Gather episode with the sweep heuristic as the model (CPU)."""
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
 from dynres_jax.config import CameraConfig, PileConfig, PushConfig, SceneConfig, SimConfig
-from dynres_jax.control.choosers import AdaptiveOmega, BestOfK, Chooser, FixedOmega, OracleOmega, Orders
-from dynres_jax.control.decision import batch, goal_cost
+from dynres_jax.control.choosers import (
+    AdaptiveOmega,
+    BestOfK,
+    Chooser,
+    FixedOmega,
+    OracleOmega,
+    Orders,
+    SimulatorScored,
+)
+from dynres_jax.control.decision import batch, decide_batch, goal_cost
 from dynres_jax.control.goals import disc_goal, make_goal
-from dynres_jax.control.mpc import MPCConfig, run, run_episode
+from dynres_jax.control.mpc import MPCConfig, _scorer, fold, run, run_episode
 from dynres_jax.control.objective import distribution_distance
 from dynres_jax.control.planner import PlannerConfig, _plan_jit, plan
 from dynres_jax.io.draw import goal_frames
@@ -166,6 +175,28 @@ def test_best_of_k_keeps_the_best_of_independent_plans(three):
     np.testing.assert_allclose(best["distance"], np.minimum(one[0]["distance"], one[1]["distance"]), rtol=1e-6)
     with pytest.raises(ValueError, match="K >= 1"):
         BestOfK(goals, 6, 0)
+
+
+def test_simulator_scored_keeps_the_sample_with_the_lowest_true_d(three):
+    """The sim ceiling: the planner's M = 4 first samples of the step (as ``decide_batch`` draws them with no Adam
+    step), each pushed in the pool; every episode keeps the one that left the lowest d. The method pushes all four in
+    one call of 4 x 3 worlds; the reference pushes one candidate a call, in the same shape (four copies), because the
+    renderer's edge pixels move with the batch's shape (float rounding: one pixel of a 48 x 48 frame moved d by 9 %)."""
+    pool, goals, planner, cfg, keys, starts = three
+    record = run(pool, starts, SimulatorScored(goals, 6), sweep_dynamics(0.04), cfg, keys,
+                 log=lambda s: None).records[0]
+    omega, zero = np.full(3, 6, np.int32), np.zeros(3, np.int32)
+    _, _, result = decide_batch(starts.obs, goals, fold(keys, 0), jnp.zeros((3, 1, 4)), False, omega, zero,
+                                spec=cfg.spec(6), dynamics=sweep_dynamics(0.04), camera=pool.camera)
+    samples = np.asarray(result.actions)[:, :, 0]  # [B, M, 4]
+    score = _scorer(pool.camera, tuple(np.asarray(pool.scene.kind).tolist()))
+    four = lambda x: jnp.concatenate([jnp.asarray(x)] * 4)  # noqa: E731
+    d = np.stack([np.asarray(score(pool.push(jax.tree.map(four, starts), four(samples[:, m])),
+                                   jax.tree.map(four, goals))["distance"])[:3] for m in range(4)], 1)
+    np.testing.assert_allclose(record["distance"], d.min(axis=1), rtol=1e-6)
+    np.testing.assert_allclose(record["action"], samples[np.arange(3), d.argmin(axis=1)], atol=1e-7)
+    assert np.all(record["adam_steps"] == 0) and np.all(np.isnan(record["predicted_objective"]))
+    assert len(set(map(tuple, samples[0]))) == 4 and np.all(d.argmin(axis=1) != 0)  # a real choice, not sample 0
 
 
 def test_time_budget_needs_a_table():

@@ -35,6 +35,7 @@ from dynres_jax.sim.pool import EnvWorlds, Worlds
 from dynres_jax.sim.sensor import DepthSensor
 
 PLAN_DRAWS = 1 << 20  # plan draw d > 0 folds PLAN_DRAWS + d into a step's keys (away from the sensor's fold 1)
+SIMULATED_WORLDS = 512  # worlds per push call when the simulator scores candidates (``act_simulated``)
 
 
 @dataclass(frozen=True)
@@ -175,12 +176,20 @@ def act_simulated(worlds: Worlds, now: Situation, omega, *, cfg: MPCConfig, timi
     common = dict(omega=np.asarray(omega), bucket=buckets, adam_steps=steps, objective=c_now, particles=particles,
                   predicted_objective=np.full(len(buckets), np.nan, np.float32),
                   wall=np.full(len(buckets), time.perf_counter() - t0))
+    b, m = samples.shape[:2]
+    per_call = max(1, SIMULATED_WORLDS // b)  # candidates pushed in one call of the worlds, so every core works
     kept = None
-    for m in range(samples.shape[1]):
-        after = worlds.push(now.states, samples[:, m, 0])
-        outcome = dict(common, best=jnp.asarray(samples[:, m]), action=samples[:, m, 0], states=after,
-                       **score(after, now.goals))
-        kept = outcome if kept is None else _lowest_distance([kept, outcome])
+    for first in range(0, m, per_call):
+        k = min(per_call, m - first)
+        tile = lambda x, k=k: jnp.concatenate([jnp.asarray(x)] * k)  # noqa: E731  (candidate-major: [k * B, ...])
+        actions = samples[:, first:first + k, 0].transpose(1, 0, 2).reshape(k * b, 4)
+        after = worlds.push(jax.tree.map(tile, now.states), actions)
+        scores = score(after, jax.tree.map(tile, now.goals))
+        for j in range(k):
+            rows = lambda x, j=j: x[j * b:(j + 1) * b]  # noqa: E731
+            outcome = dict(common, best=jnp.asarray(samples[:, first + j]), action=samples[:, first + j, 0],
+                           states=jax.tree.map(rows, after), **{key: rows(v) for key, v in scores.items()})
+            kept = outcome if kept is None else _lowest_distance([kept, outcome])
     return kept
 
 
