@@ -192,7 +192,8 @@ P = [  # plan: one frame of a real camera
 E = [  # evaluate
     (["--episodes", "0"], "--episodes"), (["--episodes", "x"], "--episodes"), (["--mpc-steps", "0"], "--mpc-steps"),
     (["--methods", "0"], "--methods"), (["--methods", "101"], "--methods"), (["--methods", "foo"], "--methods"),
-    (["--methods", "best0"], "--methods"), (["--methods", "50", "50"], "--methods"),
+    (["--methods", "best0"], "--methods"), (["--methods", "50", "50"], "--methods"), (["--methods", "sim", "sim"], "--methods"),
+    (["--task", "redistribute", "--letters", "A B"], "--letters"), (["--letters", ""], "--letters"),
     (["--methods", "cnn", "--cnn-ckpt", "/nonexistent"], "--cnn-ckpt"),
     (["--methods", "cnn", "--cnn-ckpt", "{dynamics}"], "--cnn-ckpt"), (["--methods", "cnn", "--cnn-omega", "0"], "--cnn-omega"),
     (["--best-omega", "0"], "--best-omega"), (["--best-omega", "101"], "--best-omega"),

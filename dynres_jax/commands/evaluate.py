@@ -82,14 +82,16 @@ def succeeded(inside) -> np.ndarray:
     return np.asarray(inside, np.float64) >= SUCCESS - 1e-6
 
 
-def episode_goals(task: str, episodes: int, seed: int, env) -> list[np.ndarray]:
+def episode_goals(task: str, episodes: int, seed: int, env, letters: str = "JTU") -> list[np.ndarray]:
+    """Episode i's goal mask: Gather's disc, or Redistribute's letter ``letters[i % len(letters)]``, from rng (seed,
+    i)."""
     goals = []
     for i in range(episodes):
         rng = np.random.default_rng((seed, i))
         if task == "gather":
             goals.append(tasks.gather_goal(rng, env)[0])
         else:
-            goals.append(tasks.redistribute_goal(rng, env, "JTU"[i % 3])[0])
+            goals.append(tasks.redistribute_goal(rng, env, letters[i % len(letters)])[0])
     return goals
 
 
@@ -268,6 +270,8 @@ def main(argv=None):
     parser.add_argument("--best-omega", type=checks.omega, default=50, help="ω of the bestK and sim methods")
     add_planner_args(parser)
     parser.add_argument("--kind", default="coffee", choices=sorted(KINDS))
+    parser.add_argument("--letters", type=checks.text, default="JTU",
+                        help="Redistribute: episode i's goal is character i modulo these (default JTU)")
     parser.add_argument("--sensor", default="none", choices=sorted(SENSORS),
                         help="a real depth camera's errors on every observation the planner sees (sim.sensor; "
                              "perception then treats the depth as a real camera's); d and success use the true state")
@@ -299,6 +303,8 @@ def main(argv=None):
                          f"[{OMEGA_MIN}, {OMEGA_MAX}], got {m!r}")
     if len(set(args.methods)) < len(args.methods):
         parser.error(f"--methods names a method twice: {' '.join(args.methods)}")
+    if " " in args.letters:
+        parser.error(f"--letters: a space draws no goal, got {args.letters!r}")
     if "cnn" in args.methods:
         check_cnn(parser, args)
     if args.episodes < size:
@@ -328,7 +334,7 @@ def main(argv=None):
     results = {}
     with process_pool(args.workers) as processes:
         pool = WorldPool(sim, processes)
-        masks = episode_goals(args.task, args.episodes, args.seed, pool.env)
+        masks = episode_goals(args.task, args.episodes, args.seed, pool.env, args.letters)
         goals = stack([make_goal(masks[i], pool.camera) for i in mine])
         keys = jax.random.split(jax.random.PRNGKey(args.seed), args.episodes)[mine]
         pile_keys = jax.vmap(lambda i: jax.random.fold_in(jax.random.PRNGKey(args.seed), i))(jnp.asarray(mine))

@@ -9,7 +9,8 @@ against the wall back in. A start between bound and reach would lower the plate 
 
 Random pushes (the planner's first samples, the training data's pushes) pass through a point of the pile; with a
 reach, a share ``WALL_SHARE`` of them are wall pushes: from outside the wall nearest to a pile point drawn with
-weight ``exp(-distance to that wall / WALL_SCALE)``, inward within ``WALL_SPREAD`` of the wall's normal.
+weight ``exp(-distance to that wall / WALL_SCALE)``, inward within ``WALL_SPREAD`` of the wall's normal (when that
+point lies within half a push's greatest length of the outside).
 """
 
 from __future__ import annotations
@@ -137,7 +138,8 @@ def sample_actions(key, m, t, bound, min_length, max_length, centre_xy=None, spr
     passes random particles: pushes through the pile, as the reference's initial pushes), uniformly in the disc of
     radius ``spread`` around it; the point lies 20-60 % of the way along the push, so the push starts behind it.
     With reach and wall_xy [m, t, 2] (``pile_points`` with reach) given, a share WALL_SHARE of the pushes are
-    ``wall_pushes`` through wall_xy instead.
+    ``wall_pushes`` through wall_xy instead, where wall_xy lies within max_length / 2 of the outside (farther, a push
+    from outside would stop short of the pile).
     """
     k_point, k_angle, k_len, k_frac = jax.random.split(key, 4)
     shape = (m, t)
@@ -155,9 +157,10 @@ def sample_actions(key, m, t, bound, min_length, max_length, centre_xy=None, spr
     actions = jnp.concatenate([start, start + heading * length], axis=-1)
     if reach is not None and wall_xy is not None:
         k_wall, k_share = jax.random.split(jax.random.fold_in(key, 1))
-        wall = jax.random.uniform(k_share, shape) < WALL_SHARE
-        actions = jnp.where(wall[..., None], wall_pushes(k_wall, jnp.asarray(wall_xy, jnp.float32), reach,
-                                                         min_length, max_length), actions)
+        wall_xy = jnp.asarray(wall_xy, jnp.float32)
+        near = reach - jnp.max(jnp.abs(wall_xy), axis=-1) < max_length / 2  # a push from outside gets there and on
+        wall = (jax.random.uniform(k_share, shape) < WALL_SHARE) & near
+        actions = jnp.where(wall[..., None], wall_pushes(k_wall, wall_xy, reach, min_length, max_length), actions)
     return project(actions, bound, min_length, max_length, reach)
 
 
