@@ -17,9 +17,9 @@ from independent keys each step, the best kept the same way (``choosers.BestOfK`
 what choosing ω adds to choosing among plans; "sim" is the ceiling of the action space and the sampling planner:
 each step the planner's M first samples (perceived at ``--best-omega``) are pushed in the simulator on copies of the
 worlds and the best kept, no learned model (``choosers.SimulatorScored``; M pushes a step, so slow); "cnn" (not in
-the default list) is the
-paper's CNN-dynamics baseline: the same planner at ω = ``--cnn-omega`` (50) with the CNN checkpoint ``--cnn-ckpt``
-(``experiments.train_dynamics --model cnn``) as its model. Writes per method ``METHOD.json`` (final d
+the default list) is the paper's CNN-dynamics baseline: the same planner at ω = ``--cnn-omega`` (50) with the CNN
+checkpoint ``--cnn-ckpt`` (``experiments.train_dynamics --model cnn``) as its model. Redistribute's episode i draws
+the letter i modulo ``--letters`` (JTU). Writes per method ``METHOD.json`` (final d
 and inside share per episode, means per step; resumable: finished methods are skipped), ``summary.json`` (means with
 95 % confidence intervals, success rates, and every method paired with adaptive on the same episodes: the mean
 difference of final d with a paired-bootstrap 95 % interval and McNemar's test on success, ``dynres_jax.stats``),
