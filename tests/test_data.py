@@ -98,9 +98,11 @@ def test_generation_writes_shards_and_summary(generated):
                 assert set(np.unique(s["piece"][ep, f])) == set(range(-1, 6))
         fg = s["piece"] >= 0
         assert np.all(s["depth"][~fg] >= 0.959) and np.all((s["depth"][fg] > 0.98) & (s["depth"][fg] < 0.999))
-        # pushes lie in the workspace with lengths within the push config; the pile moved
+        # pushes end in the workspace and start there or outside a wall, lengths within the push config; the pile moved
         a = s["action"]
-        assert np.all(np.abs(a) <= env.action_bound + 1e-6)
+        assert np.all(np.abs(a[..., 2:]) <= env.action_bound + 1e-6)
+        start = np.abs(a[..., :2])
+        assert np.all((start <= env.action_bound + 1e-6) | (np.abs(start - env.reach) < 1e-6))
         length = np.linalg.norm(a[..., 2:] - a[..., :2], axis=-1)
         assert np.all(length <= QUICK.sim.push.max_length + 1e-6)
         assert np.abs(s["pos"][:, -1] - s["pos"][:, 0]).max() > 0.005

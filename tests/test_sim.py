@@ -133,7 +133,7 @@ def test_free_pieces_rest_on_the_table():
 
 @pytest.mark.parametrize("action, message", [
     ([0.0, 0.0, np.nan, 0.0], "NaN"),
-    ([0.0, 0.0, 0.3, 0.0], "leaves the workspace"),
+    ([0.0, 0.0, 0.3, 0.0], "outside the workspace"),
     ([0.0, 0.0, 0.0, 0.0], "push length"),
     ([-0.1, 0.0, 0.1, 0.0], "push length"),
     ([0.0, 0.0, 0.05], "shape"),

@@ -98,7 +98,7 @@ class TrainConfig:
 
 
 RECIPES = {  # named training configs; the checkpoints' cards name theirs (``experiments.train_dynamics --recipe``)
-    "shipped": TrainConfig(steps=17_600, batch=64, loss="distance", model=DynamicsConfig()),  # checkpoints/dynamics
+    "shipped": TrainConfig(steps=8_600, batch=64, loss="distance", model=DynamicsConfig()),  # checkpoints/dynamics
     "cnn": TrainConfig(steps=2_800, batch=64, loss="distance", model=CNNDynamicsConfig()),  # checkpoints/cnn_dynamics
 }
 
