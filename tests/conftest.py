@@ -1,8 +1,22 @@
 """Suite-wide hygiene: each test module starts with JAX's compiled executables released, so a 2-core CI machine does
-not carry hundreds of them (and their code memory) from one module into the next."""
+not carry hundreds of them (and their code memory) from one module into the next; and one persistent compilation
+cache for the whole run (a fresh folder, removed at the end), so what one module, worker process or command
+subprocess compiled the next loads instead of compiling again. On a 2-core CPU compiling is most of a test's time:
+the task commands' tests ran in 74 s with a cold cache and 24 s with a warm one. A loaded executable is the one the
+compiler wrote, so results do not change."""
 
-import jax
-import pytest
+import atexit
+import os
+import shutil
+import tempfile
+
+_CACHE = tempfile.mkdtemp(prefix="dynres-jax-test-cache-")
+atexit.register(shutil.rmtree, _CACHE, ignore_errors=True)
+os.environ.update(JAX_COMPILATION_CACHE_DIR=_CACHE, JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS="0",
+                  JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES="-1")  # inherited by workers and subprocesses
+
+import jax  # noqa: E402  (after the cache settings, which JAX reads when it starts)
+import pytest  # noqa: E402
 
 
 @pytest.fixture(autouse=True, scope="module")

@@ -90,9 +90,11 @@ def project(actions, bound, min_length, max_length, reach=None):
     beyond = jnp.abs(start) > bound
     t_in, t_out = _entry(start, heading, bound)
     enters = (t_in <= t_out) & (t_out > 0) & (t_in <= max_length)
-    normal, _ = direction(-jnp.sign(start) * beyond)
-    heading = jnp.where(enters[..., None], heading, normal)
-    t_in, t_out = _entry(start, heading, bound)
+    # Else the walls' inward normal (a corner's diagonal): it enters at (reach - bound) √k, leaves at (reach + bound) √k
+    root = jnp.sqrt(jnp.sum(beyond, axis=-1).astype(jnp.float32))
+    heading = jnp.where(enters[..., None], heading, -jnp.sign(start) * beyond / jnp.maximum(root, 1.0)[..., None])
+    t_in = jnp.where(enters, t_in, (reach - bound) * root)
+    t_out = jnp.where(enters, t_out, (reach + bound) * root)
     length = jnp.clip(length, jnp.maximum(min_length, t_in), jnp.minimum(max_length, t_out))
     outside = jnp.concatenate([start, start + heading * length[..., None]], axis=-1)
     return jnp.where(jnp.any(beyond, axis=-1)[..., None], outside, inside)
