@@ -34,6 +34,7 @@ from dynres_jax.config import DEFAULT_PIECES, KINDS, PileConfig, SceneConfig, Si
 from dynres_jax.io.files import write_json
 from dynres_jax.sim import pushes
 from dynres_jax.sim.env import PileEnv
+from dynres_jax.sim.pool import per_world
 
 
 def push_frame(action, pos):
@@ -101,16 +102,10 @@ def validate_kind(kind: str, pieces: int, worlds: int, rounds: int, scene_overri
         pressing = env.simulate(state, pos[:travel], quat[:travel])
         return pressing, env.simulate(pressing, pos[travel:], quat[travel:])
 
-    def stacked(states):
-        return jax.tree.map(lambda *x: jnp.stack(x), *states)
-
     if backend == "mjx":
         reset, push = jax.jit(jax.vmap(env.reset)), jax.jit(jax.vmap(one))
     else:  # the C engine: one world after another
-        reset = lambda keys: stacked([env.reset(k) for k in keys])  # noqa: E731
-        def push(states, actions):
-            worlds = [one(jax.tree.map(lambda x, i=i: x[i], states), a) for i, a in enumerate(actions)]
-            return tuple(stacked(s) for s in zip(*worlds, strict=True))
+        reset, push = per_world(env.reset), per_world(one)
 
     def step(states, actions):
         pressing, after = push(states, actions)

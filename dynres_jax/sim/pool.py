@@ -148,6 +148,16 @@ class WorldPool:
         return out
 
 
+def per_world(fn):
+    """``fn`` of one world -> the same over a batch (a leading world axis on every argument and on the result), one
+    world after another in this process: how C MuJoCo worlds batch where ``jax.vmap`` cannot."""
+    def batched(*args):
+        worlds = [fn(*(jax.tree.map(lambda x, b=b: x[b], a) for a in args)) for b in range(len(args[-1]))]
+        return jax.tree.map(lambda *x: jnp.stack([jnp.asarray(v) for v in x]), *worlds)
+
+    return batched
+
+
 class EnvWorlds:
     """One PileEnv's worlds as a batch: ``reset(keys)`` and ``push(states, actions)`` on States with a leading world
     axis. An MJX env's are one jitted, vmapped call each (compiled once per env and batch size); a C MuJoCo env's
@@ -158,15 +168,7 @@ class EnvWorlds:
         if env.backend == "mjx":
             self._reset, self._push = jax.jit(jax.vmap(env.reset)), jax.jit(jax.vmap(env.push))
         else:
-            self._reset, self._push = self._each(env.reset), self._each(env.push)
-
-    @staticmethod
-    def _each(fn):
-        def batched(*args):
-            worlds = [fn(*(jax.tree.map(lambda x, b=b: x[b], a) for a in args)) for b in range(len(args[-1]))]
-            return jax.tree.map(lambda *x: jnp.stack([jnp.asarray(v) for v in x]), *worlds)
-
-        return batched
+            self._reset, self._push = per_world(env.reset), per_world(env.push)
 
     def reset(self, keys) -> State:
         """New settled piles, one per key: keys [B, 2] -> State [B]."""
