@@ -1,25 +1,56 @@
 #!/usr/bin/env bash
-# Issue 35's ladder on one GPU machine (runs in $WORK/KIND and $WORK/KIND-sim, all of them packed into
-# $OUT/results.tar.gz after each run, so a run stopped by a time limit returns what finished): METHODS (default the model planner
-# at ω = 50; add best5, oracle, ...) on EPISODES episodes, then the `sim` ceiling (the planner's 50 first samples
-# scored in the simulator, no model) on the first SIM_EPISODES of the same episodes (episode i has the same pile and
-# goal in both runs: paired). 50 samples x 100 Adam steps, no time budget; kinds in the order given, results written
-# as they come.
-#   OUT=runs/ladder bash scripts/gpu_ladder.sh                                    # Gather, every kind
-#   OUT=runs/ladder-letters TASK=redistribute KINDS=coffee LETTERS=JTULY bash scripts/gpu_ladder.sh
-# Env: TASK (gather), KINDS (all six), SIM_KINDS (the kinds that get the ceiling; default KINDS; "" for none),
-# METHODS ("50"), EPISODES (64), SIM_EPISODES (16), LETTERS (Redistribute's goals, JTU), SEED (5000: seeds the project
-# had not used), FLAGS (more evaluate flags: --ckpt DIR, ...), WORK (/tmp/ladder).
+# Issue 35's ladder on one GPU machine (docs/reach): the jobs of JOBS (a file) on its lanes at once, every lane on GPU
+# (lane modulo the GPUs) with the host's cores shared out. A job line is "LANE TASK KIND METHOD COUNT":
+#   0 gather mnm best5 64                 evaluate's method on episodes 0..63 into LANE/gather-mnm-64/ (methods of one
+#   1 redistribute coffee sim 32          task, kind and count share a folder; Redistribute's letters are LETTERS)
+#   1 sort coffee-candy sim 12            experiments.sort --method on seeds SEED..SEED+11, one process per episode,
+#                                         each kind at half its default count, into LANE/sort-coffee-candy-sim/SEED/
+# Episode i is the same pile, goal and planner keys in every run (evaluate.episode_keys), so a method run on fewer
+# episodes is paired with the others on its first ones. 50 samples x 100 Adam steps, ω = 50, no time budget. After
+# each job a lane packs its folder into $OUT/laneN.tar.gz, so a call stopped by its time limit returns what finished;
+# a job already done in WORK (a warm machine) is skipped.
+#   OUT=runs/ladder JOBS=scripts/ladder/gather.jobs bash scripts/gpu_ladder.sh
+# Env: JOBS, OUT, WORK (/tmp/ladder), SEED (5000: seeds the project had not used), LETTERS (JTULY), STEPS (Sort's MPC
+# steps, 30), FLAGS and SORT_FLAGS (more flags of evaluate and of sort: --ckpt DIR, ...).
 set -uo pipefail
-OUT=${OUT:-runs/ladder}; WORK=${WORK:-/tmp/ladder}; EPISODES=${EPISODES:-64}; SIM_EPISODES=${SIM_EPISODES:-16}; SEED=${SEED:-5000}
-TASK=${TASK:-gather}; METHODS=${METHODS:-50}; LETTERS=${LETTERS:-JTU}
-KINDS=${KINDS:-coffee almond rice mnm granola candy}; SIM_KINDS=${SIM_KINDS-$KINDS}
-run() {  # KIND "METHODS" EPISODES FOLDER
-  # shellcheck disable=SC2086
-  python -m experiments.evaluate --task "$TASK" --kind "$1" --episodes "$3" --methods $2 --samples 50 \
-    --adam-steps 100 --seed "$SEED" --letters "$LETTERS" ${FLAGS:-} --out "$WORK/$4" 2>&1 | grep -v "it/s\]" | tail -4
-  rm -rf "$WORK/$4/parts"
-  mkdir -p "$OUT" && tar -czf "$OUT/results.tmp" -C "$WORK" . && mv "$OUT/results.tmp" "$OUT/results.tar.gz"
+OUT=${OUT:-runs/ladder}; WORK=${WORK:-/tmp/ladder}; SEED=${SEED:-5000}; LETTERS=${LETTERS:-JTULY}; STEPS=${STEPS:-30}
+JOBS=${JOBS:?JOBS names a file of job lines}
+lanes=$(awk 'NF && $1 !~ /^#/ {print $1}' "$JOBS" | sort -u)
+gpus=$(nvidia-smi -L 2>/dev/null | wc -l); gpus=$((gpus > 0 ? gpus : 1))
+cores=$(nproc); share=$((cores / $(echo "$lanes" | wc -w)))
+mkdir -p "$OUT" "$WORK"
+
+half() { python -c "from dynres_jax.config import DEFAULT_PIECES as P; print(P['$1'] // 2)"; }
+
+sort_job() {  # FOLDER PAIR METHOD SEEDS: one process per episode, $share at once
+  local folder=$1 a=${2%-*} b=${2#*-} method=$3 n=$4 na nb
+  na=$(half "$a"); nb=$(half "$b")
+  seq "$SEED" $((SEED + n - 1)) | XLA_PYTHON_CLIENT_PREALLOCATE=false xargs -P "$share" -I{} sh -c \
+    "[ -f '$folder/{}/metrics.json' ] || python -m experiments.sort --kinds $a $b --pieces $na $nb --seed {} \
+     --mpc-steps $STEPS --method $method ${SORT_FLAGS:-} --out '$folder/{}' > '$folder.{}.log' 2>&1 \
+     || echo 'sort $a-$b $method seed {} failed'; rm -f '$folder/{}/episode.gif'"
 }
-for kind in $KINDS; do run "$kind" "$METHODS" "$EPISODES" "$kind"; done
-for kind in $SIM_KINDS; do run "$kind" sim "$SIM_EPISODES" "$kind-sim"; done
+
+lane() {  # LANE: its jobs in order
+  local n=$1 task kind method count folder
+  export CUDA_VISIBLE_DEVICES=$((n % gpus))
+  awk -v n="$n" 'NF && $1 !~ /^#/ && $1 == n {print $2, $3, $4, $5}' "$JOBS" | while read -r task kind method count; do
+    local t0=$SECONDS
+    if [ "$task" = sort ]; then
+      folder="$WORK/lane$n/sort-$kind-$method"; mkdir -p "$folder"
+      sort_job "$folder" "$kind" "$method" "$count"
+    else
+      folder="$WORK/lane$n/$task-$kind-$count"
+      # shellcheck disable=SC2086
+      python -m experiments.evaluate --task "$task" --kind "$kind" --episodes "$count" --methods "$method" \
+        --samples 50 --adam-steps 100 --seed "$SEED" --letters "$LETTERS" --workers "$share" ${FLAGS:-} \
+        --out "$folder" 2>&1 | grep -v "it/s\]" | tail -3
+      rm -rf "$folder/parts"
+    fi
+    echo "lane $n: $task $kind $method $count done in $((SECONDS - t0)) s"
+    tar -czf "$OUT/lane$n.tmp" -C "$WORK" "lane$n" && mv "$OUT/lane$n.tmp" "$OUT/lane$n.tar.gz"
+  done
+}
+
+for n in $lanes; do lane "$n" & done
+wait

@@ -9,6 +9,7 @@ import pytest
 from dynres_jax.commands import evaluate, label_resolution, tradeoff, train_regressor
 from dynres_jax.control import resolution
 from dynres_jax.control.budget import TimingTable, bucket_for
+from dynres_jax.control.choosers import best_of
 from dynres_jax.learn import labels as labels_lib
 from dynres_jax.learn import regressor as g_training
 
@@ -108,7 +109,7 @@ def test_evaluation_fixed_and_adaptive(regressor, timing, tmp_path):
     for bad in (["--methods", "7000"], ["--methods", "best0"], ["--methods", "best5", "--best-omega", "1"]):
         with pytest.raises(SystemExit):
             evaluate.main([*bad, "--out", str(tmp_path)])
-    assert evaluate.best_of("best5") == 5 and evaluate.best_of("best") == evaluate.best_of("50") == 0
+    assert best_of("best5") == 5 and best_of("best") == best_of("50") == 0
 
 
 def test_tradeoff_pairs(labels, tmp_path):

@@ -163,7 +163,7 @@ S = [
     (["--resolution", "adaptive"], "--resolution"), (["--resolution", "0"], "--resolution"),
     (["--resolution", "101"], "--resolution"), (["--mpc-steps", "0"], "--mpc-steps"), (["--samples", "0"], "--samples"),
     (["--time-budget", "0"], "--time-budget"), (["--ckpt", "/nonexistent"], "--ckpt"), (["--out", "{file}"], "--out"),
-    (["--out", "{gather_run}"], "--out"),
+    (["--out", "{gather_run}"], "--out"), (["--method", "best0"], "--method"), (["--method", "oracle"], "--method"),
 ]
 FRAME = ["--depth", "{depth}", "--rgb", "{rgb}", "--camera", "{camera}", "--goal", "{goal}"]
 P = [  # plan: one frame of a real camera

@@ -1,5 +1,7 @@
 """Closed loop: a tiny Gather episode with the sweep heuristic as the model (CPU)."""
 
+import json
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -171,10 +173,15 @@ def test_best_of_k_keeps_the_best_of_independent_plans(three):
     fixed = run(pool, starts, FixedOmega(goals, 6), sweep_dynamics(0.04), cfg, keys, log=lambda s: None).records[0]
     np.testing.assert_array_equal(one[0]["action"], fixed["action"])
     assert not np.allclose(one[0]["action"], one[1]["action"])  # independent keys: other pushes
-    best = run(pool, starts, BestOfK(goals, 6, 2), sweep_dynamics(0.04), cfg, keys, log=lambda s: None).records[0]
+    best = run(pool, starts, BestOfK(FixedOmega(goals, 6), 2), sweep_dynamics(0.04), cfg, keys,
+               log=lambda s: None).records[0]
     np.testing.assert_allclose(best["distance"], np.minimum(one[0]["distance"], one[1]["distance"]), rtol=1e-6)
     with pytest.raises(ValueError, match="K >= 1"):
-        BestOfK(goals, 6, 0)
+        BestOfK(FixedOmega(goals, 6), 0)
+    with pytest.raises(ValueError, match="one plan per step, got 5 candidate"):  # the oracle already chooses
+        BestOfK(OracleOmega(goals), 2)(0, starts.obs)
+    with pytest.raises(ValueError, match="one plan per step, got 2 candidate ω, drawn"):
+        SimulatorScored(BestOfK(FixedOmega(goals, 6), 2))(0, starts.obs)
 
 
 def test_simulator_scored_keeps_the_sample_with_the_lowest_true_d(three):
@@ -183,7 +190,7 @@ def test_simulator_scored_keeps_the_sample_with_the_lowest_true_d(three):
     one call of 4 x 3 worlds; the reference pushes one candidate a call, in the same shape (four copies), because the
     renderer's edge pixels move with the batch's shape (float rounding: one pixel of a 48 x 48 frame moved d by 9 %)."""
     pool, goals, planner, cfg, keys, starts = three
-    record = run(pool, starts, SimulatorScored(goals, 6), sweep_dynamics(0.04), cfg, keys,
+    record = run(pool, starts, SimulatorScored(FixedOmega(goals, 6)), sweep_dynamics(0.04), cfg, keys,
                  log=lambda s: None).records[0]
     omega, zero = np.full(3, 6, np.int32), np.zeros(3, np.int32)
     _, _, result = decide_batch(starts.obs, goals, fold(keys, 0), jnp.zeros((3, 1, 4)), False, omega, zero,
@@ -239,3 +246,22 @@ def test_a_chooser_that_repeats_the_goals_changes_nothing(episode):
         np.testing.assert_array_equal(p["action"], r["action"])
         assert p["distance"] == r["distance"] and p["order"] == r["step"]
     assert np.isfinite(repeated[-1]["pieces_x"])
+
+
+def test_evaluate_climbs_the_ladder_on_episodes_that_do_not_depend_on_the_count(tmp_path):
+    """``evaluate --methods 50 best2 sim``, one MPC step: best-of-2 (draw 0 is ω = 50's plan) leaves no episode worse
+    than ω = 50; sim runs no Adam step. A run of one episode repeats episode 0 of the run of two (keys from (seed, i)
+    alone), so the ceiling on a subset is paired with the full run."""
+    from dynres_jax.commands import evaluate
+
+    tiny = ["--quick", "--dynamics", "sweep", "--workers", "2", "--mpc-steps", "1", "--samples", "4",
+            "--adam-steps", "2", "--pieces", "20", "--seed", "3"]
+    evaluate.main([*tiny, "--episodes", "2", "--methods", "50", "best2", "sim", "--out", str(tmp_path / "two")])
+    evaluate.main([*tiny, "--episodes", "1", "--methods", "sim", "--out", str(tmp_path / "one")])
+    runs = {m: json.loads((tmp_path / "two" / f"{m}.json").read_text()) for m in ("50", "best2", "sim")}
+    one = json.loads((tmp_path / "one" / "sim.json").read_text())
+    assert np.all(np.array(runs["best2"]["final_distance"]) <= np.array(runs["50"]["final_distance"]) + 1e-6)
+    assert np.all(np.array(runs["sim"]["adam_steps"]) == 0) and np.all(np.array(runs["50"]["adam_steps"]) == 2)
+    assert one["final_distance"][0] == pytest.approx(runs["sim"]["final_distance"][0], rel=1e-6)
+    np.testing.assert_allclose(one["final_pieces"][0], runs["sim"]["final_pieces"][0], atol=1e-4)
+    assert not np.allclose(runs["sim"]["final_pieces"][0], runs["sim"]["start_pieces"][0], atol=1e-3)  # it pushed

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from dynres_jax.config import CameraConfig, PileConfig, PushConfig, SceneConfig, SimConfig
-from dynres_jax.control.choosers import Chooser, Orders
+from dynres_jax.control.choosers import BestOfK, Chooser, Orders, SimulatorScored
 from dynres_jax.control.decision import batch, goal_cost
 from dynres_jax.control.goals import BIN_HALF_WIDTH, make_goal, stack_goals
 from dynres_jax.control.mpc import MPCConfig, run_episode
@@ -142,6 +142,28 @@ def test_tiny_sort_episode_runs_and_records_every_step(env):
         assert all(0.0 <= s <= 1.0 for s in r["kind_inside"]) and 0.0 <= r["mixing"] <= 1.0
         assert np.isfinite(r["objective"]) and np.isfinite(r["predicted_objective"])
         assert np.all(np.abs(r["action"]) <= env.action_bound + 1e-5)
+
+
+def test_sort_climbs_the_ladder(env):
+    """Sort's waypoints under the ladder's wrappers: one plan of K = 1 is the policy's own push; the best of two plans
+    (draw 0 the policy's) leaves d no higher than the policy's; the simulator-scored samples run no Adam step and
+    predict nothing. Sort's record fields and scores come through each wrapper."""
+    goals, radius, _ = sort_goal(np.random.default_rng(0), env)
+    planner = PlannerConfig(samples=6, adam_steps=5, bound=env.action_bound, max_length=0.1)
+    cfg = MPCConfig(mpc_steps=1, buckets=(32,), max_points=512, planner=planner)
+    start, key = env.reset(jax.random.PRNGKey(2)), jax.random.PRNGKey(3)
+
+    def step(wrap):
+        policy = SortPolicy(env, cfg, 20, key, goals, radius, lambda s: None)
+        return run_episode(env, start, wrap(policy), sweep_dynamics(0.04), cfg, key, log=lambda s: None)[1][0]
+
+    own, one, two, sim = (step(w) for w in (lambda p: p, lambda p: BestOfK(p, 1), lambda p: BestOfK(p, 2),
+                                             SimulatorScored))
+    np.testing.assert_allclose(one["action"], own["action"], atol=1e-7)
+    assert two["distance"] <= own["distance"] + 1e-6 and own["adam_steps"] == two["adam_steps"] == 5
+    assert sim["adam_steps"] == 0 and np.isnan(sim["predicted_objective"]) and sim["action"] != own["action"]
+    for r in (one, two, sim):
+        assert r["phase"] == own["phase"] and r["kind"] == own["kind"] and len(r["kind_inside"]) == 2
 
 
 def test_particle_kinds_match_the_nearest_piece(env):

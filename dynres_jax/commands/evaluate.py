@@ -4,11 +4,11 @@ Redistribute, many episodes at once.
     python -m experiments.evaluate --task gather --episodes 64 --out runs/eval
     python -m experiments.evaluate --task gather --methods 50 --adam-steps 100 --out runs/gather50
 
-Episode i of a task has the same pile and goal for every method (seeded by i). Each method runs all episodes
-together: perception and planning vmapped on the JAX device, pushes in C worker processes (``WorldPool``). With
-``--time-budget S`` every method plans under the same budget of S seconds per decision, spent by one timing table
-(``timing.json``, measured once per resolution bucket on this device or given by ``--timing``): a coarse ω affords
-more Adam steps. Without it every decision runs ``--adam-steps``.
+Episode i of a task has the same pile, goal and planner keys for every method and any --episodes (seeded by (--seed,
+i)). Each method runs all episodes together: perception and planning vmapped on the JAX device, pushes in C worker
+processes (``WorldPool``). With ``--time-budget S`` every method plans under the same budget of S seconds per
+decision, spent by one timing table (``timing.json``, measured once per resolution bucket on this device or given by
+``--timing``): a coarse ω affords more Adam steps. Without it every decision runs ``--adam-steps``.
 "adaptive" picks ω at every step with the regressor g (``--regressor``); "oracle" (an upper bound, not in the default
 list) plans at every ω of ORACLE_OMEGAS each step, pushes each on a copy of the worlds and keeps the one that left the
 lowest d (``choosers.OracleOmega``); the summary then says how much of the oracle's gain over the best fixed
@@ -34,7 +34,6 @@ from __future__ import annotations
 
 import json
 import os
-import re
 
 import jax
 import jax.numpy as jnp
@@ -62,9 +61,10 @@ from dynres_jax.control.choosers import (
     FixedOmega,
     OracleOmega,
     SimulatorScored,
+    best_of,
 )
 from dynres_jax.control.goals import make_goal, stack
-from dynres_jax.control.mpc import SensorView, run
+from dynres_jax.control.mpc import SensorView, fold, run
 from dynres_jax.io import ckpt, files
 from dynres_jax.models.registry import SHIPPED_CNN_DYNAMICS, SHIPPED_DYNAMICS, SHIPPED_REGRESSOR, describe
 from dynres_jax.sim.camera import Camera
@@ -93,6 +93,14 @@ def episode_goals(task: str, episodes: int, seed: int, env, letters: str = "JTU"
         else:
             goals.append(tasks.redistribute_goal(rng, env, letters[i % len(letters)])[0])
     return goals
+
+
+def episode_keys(seed: int, episodes) -> tuple[jax.Array, jax.Array]:
+    """Episode i's keys, from (seed, i) alone, so the first E of a run's episodes are a run of E episodes (the `sim`
+    ceiling on a subset is paired with its full run): the pile's key (``PileEnv.reset``) and the planner's. episodes
+    [E] indices -> ([E] pile keys, [E] planner keys)."""
+    piles = jax.vmap(lambda i: jax.random.fold_in(jax.random.PRNGKey(seed), i))(jnp.asarray(episodes))
+    return piles, fold(piles, 1)
 
 
 def episode_results(records: list[dict], episodes, name: str, starts, finals) -> dict:
@@ -206,9 +214,9 @@ def method_chooser(method: str, goals, args, camera) -> Chooser:
     if method == "oracle":
         return OracleOmega(goals, ORACLE_OMEGAS)
     if best_of(method):
-        return BestOfK(goals, args.best_omega, best_of(method))
+        return BestOfK(FixedOmega(goals, args.best_omega), best_of(method))
     if method == "sim":
-        return SimulatorScored(goals, args.best_omega)
+        return SimulatorScored(FixedOmega(goals, args.best_omega))
     return FixedOmega(goals, args.cnn_omega if method == "cnn" else int(method))
 
 
@@ -234,12 +242,6 @@ def method_omegas(args) -> list[int]:
     """The ω at which each method of --methods must afford an Adam step under a budget: a fixed method's ω, the
     coarsest for those that choose among ω."""
     return [OMEGA_MIN if (w := method_omega(m, args)) is None else w for m in args.methods]
-
-
-def best_of(method: str) -> int:
-    """K of a best-of-K method name ("best5" -> 5), else 0."""
-    match = re.fullmatch(r"best([1-9][0-9]*)", method)
-    return int(match.group(1)) if match else 0
 
 
 def check_cnn(parser, args) -> None:
@@ -336,8 +338,7 @@ def main(argv=None):
         pool = WorldPool(sim, processes)
         masks = episode_goals(args.task, args.episodes, args.seed, pool.env, args.letters)
         goals = stack([make_goal(masks[i], pool.camera) for i in mine])
-        keys = jax.random.split(jax.random.PRNGKey(args.seed), args.episodes)[mine]
-        pile_keys = jax.vmap(lambda i: jax.random.fold_in(jax.random.PRNGKey(args.seed), i))(jnp.asarray(mine))
+        pile_keys, keys = episode_keys(args.seed, mine)
         todo = [m for m in args.methods if not os.path.exists(os.path.join(args.out, f"{m}.json"))]
         cfg = mpc_config(pool.env, args, mpc_steps=args.mpc_steps, real_depth=args.sensor != "none")
         timing = None

@@ -9,7 +9,9 @@ moved kind's particles red), ``final.png`` and ``metrics.json`` (a record per MP
 of each kind inside its own goal, and the mixing: the share of pieces inside the other kind's goal; each step's
 ``inside`` is the share of all pieces inside their own kind's goal, ``kind_inside`` the share per kind). Dynamics: the
 trained checkpoint given by ``--ckpt`` (default: the shipped one); ``--dynamics sweep`` plans with the sweep heuristic
-instead.
+instead. ``--method`` climbs the ladder of ``experiments.evaluate`` on the same A* waypoints: ``bestK`` keeps the best
+of K plans from independent keys by their pushes on copies of the world, ``sim`` scores the planner's first samples
+by pushing each in the simulator (no model; M pushes a step, slow).
 """
 
 from __future__ import annotations
@@ -24,6 +26,7 @@ import numpy as np
 from dynres_jax.commands import checks
 from dynres_jax.commands.task import add_loop_args, build_loop, check_budget, check_pile, write_episode
 from dynres_jax.config import KINDS, CameraConfig, PileConfig, SceneConfig, SimConfig
+from dynres_jax.control.choosers import BestOfK, SimulatorScored, best_of
 from dynres_jax.control.decision import batch
 from dynres_jax.control.goals import make_goal
 from dynres_jax.control.mpc import measure_timing, run_episode
@@ -41,7 +44,13 @@ def main(argv=None):
     parser.add_argument("--pieces", nargs=2, type=checks.count(1), default=[40, 20], metavar="N",
                         help="pieces of each kind")
     parser.add_argument("--grid-step", type=checks.number(0.002, 0.1), default=0.02, help="A*'s grid spacing (m)")
+    parser.add_argument("--method", default="model",
+                        help="model: the planner with the dynamics model (default); bestK (e.g. best5): the best of "
+                             "K plans by their simulated pushes; sim: the planner's first samples scored in the "
+                             "simulator")
     args = parser.parse_args(argv)
+    if args.method not in ("model", "sim") and not best_of(args.method):
+        parser.error(f"--method takes 'model', 'sim' or 'bestK' (K >= 1), got {args.method!r}")
     if args.kinds[0] == args.kinds[1]:
         parser.error(f"--kinds must name two different kinds, got {args.kinds[0]} twice")
     check_pile(parser, args.kinds, args.pieces)
@@ -69,11 +78,14 @@ def main(argv=None):
     key = jax.random.PRNGKey(args.seed)
     policy = SortPolicy(env, cfg, loop.omega, key, goals_xy, radius, grid_step=args.grid_step)
     frames = sort_frames(masks, lambda: policy.target_mask, env.camera)
-    state, records = run_episode(env, state, policy, loop.model.dynamics, cfg, key, timing=timing, on_step=[frames])
+    chooser = {"model": policy, "sim": SimulatorScored(policy)}.get(args.method) or BestOfK(policy,
+                                                                                             best_of(args.method))
+    state, records = run_episode(env, state, chooser, loop.model.dynamics, cfg, key, timing=timing, on_step=[frames])
     if timing is not None:
         timing.save(os.path.join(args.out, "timing.json"))
     write_episode(args.out, frames.finish(batch(state)))
-    summary = dict(task="sort", seed=args.seed, dynamics=loop.model.name, kinds=args.kinds, pieces=args.pieces,
+    summary = dict(task="sort", seed=args.seed, method=args.method, dynamics=loop.model.name, kinds=args.kinds,
+                   pieces=args.pieces,
                    goals=goals_xy.tolist(), radius=radius, resolution=args.resolution, start_inside=start_inside,
                    start_mixing=start_mixing, final_inside=records[-1]["kind_inside"],
                    final_mixing=records[-1]["mixing"], seconds=time.perf_counter() - t0, mpc=dataclasses.asdict(cfg),

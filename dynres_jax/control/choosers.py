@@ -8,6 +8,7 @@ way of choosing is a new chooser, not a new parameter of the loop.
 
 from __future__ import annotations
 
+import re
 from typing import NamedTuple
 
 import numpy as np
@@ -81,26 +82,49 @@ class OracleOmega(Chooser):
 
 
 class BestOfK(Chooser):
-    """K plans at one fixed ω from independent keys (draw 0 is ``FixedOmega``'s plan), pushed on copies of the worlds,
-    the one that left the lowest d kept: what choosing among K plans gains without choosing ω (the oracle's control)."""
+    """K plans of another chooser's orders (one candidate ω each step) from independent keys (draw 0 is that chooser's
+    own plan), pushed on copies of the worlds, the one that left the lowest d kept: what choosing among K plans gains
+    without choosing ω (the oracle's control). ``BestOfK(FixedOmega(goals, 50), 5)``; Sort's ``SortPolicy`` too."""
 
-    def __init__(self, goals, omega: int, k: int):
+    def __init__(self, chooser: Chooser, k: int):
         if isinstance(k, bool) or int(k) != k or k < 1:
             raise ValueError(f"best-of-K needs K >= 1 plans, got {k!r}")
-        self.goals, self.omega, self.k = goals, check_omega(omega), int(k)
+        self.chooser, self.k = chooser, int(k)
 
     def __call__(self, t, obs) -> Orders:
-        omega = np.full(len(obs.depth), self.omega, np.int32)
-        return Orders(self.goals, (omega,) * self.k, draws=tuple(range(self.k)))
+        orders = _one_plan(self.chooser(t, obs), "best-of-K")
+        return orders._replace(omegas=orders.omegas * self.k, draws=tuple(range(self.k)))
+
+    def score(self, states) -> dict:
+        return self.chooser.score(states)
 
 
 class SimulatorScored(Chooser):
-    """The ceiling of the action space and the sampling planner: each step the planner's M first samples (drawn as
-    every method draws them from the step's keys) are scored by pushing them in the simulator on copies of the
-    worlds, no learned model and no Adam step; the one that left the lowest d is kept. ω only sets perception."""
+    """The ceiling of the action space and the sampling planner: another chooser's orders (one candidate ω each step,
+    which only sets perception), but the planner's M first samples (drawn as every method draws them from the step's
+    keys) are scored by pushing them in the simulator on copies of the worlds, no learned model and no Adam step; the
+    one that left the lowest d is kept. ``SimulatorScored(FixedOmega(goals, 50))``; Sort's ``SortPolicy`` too."""
 
-    def __init__(self, goals, omega: int):
-        self.goals, self.omega = goals, check_omega(omega)
+    def __init__(self, chooser: Chooser):
+        self.chooser = chooser
 
     def __call__(self, t, obs) -> Orders:
-        return Orders(self.goals, (np.full(len(obs.depth), self.omega, np.int32),), simulated=True)
+        return _one_plan(self.chooser(t, obs), "the simulator as model")._replace(simulated=True)
+
+    def score(self, states) -> dict:
+        return self.chooser.score(states)
+
+
+def _one_plan(orders: Orders, what: str) -> Orders:
+    """orders, checked to hold one plain candidate (one ω, draw 0, a model's plan): what ``what`` builds on."""
+    if len(orders.omegas) != 1 or orders.draws not in (None, (0,)) or orders.simulated:
+        raise ValueError(f"{what} builds on a chooser of one plan per step, got {len(orders.omegas)} candidate ω"
+                         f"{', drawn' if orders.draws not in (None, (0,)) else ''}"
+                         f"{', simulated' if orders.simulated else ''}")
+    return orders
+
+
+def best_of(method: str) -> int:
+    """K of a best-of-K method name ("best5" -> 5), else 0."""
+    match = re.fullmatch(r"best([1-9][0-9]*)", method)
+    return int(match.group(1)) if match else 0
