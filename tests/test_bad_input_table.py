@@ -193,6 +193,7 @@ E = [  # evaluate
     (["--episodes", "0"], "--episodes"), (["--episodes", "x"], "--episodes"), (["--mpc-steps", "0"], "--mpc-steps"),
     (["--methods", "0"], "--methods"), (["--methods", "101"], "--methods"), (["--methods", "foo"], "--methods"),
     (["--methods", "best0"], "--methods"), (["--methods", "50", "50"], "--methods"), (["--methods", "sim", "sim"], "--methods"),
+    (["--methods", "reranked"], "--methods"),
     (["--task", "redistribute", "--letters", "A B"], "--letters"), (["--letters", ""], "--letters"),
     (["--methods", "cnn", "--cnn-ckpt", "/nonexistent"], "--cnn-ckpt"),
     (["--methods", "cnn", "--cnn-ckpt", "{dynamics}"], "--cnn-ckpt"), (["--methods", "cnn", "--cnn-omega", "0"], "--cnn-omega"),

@@ -249,19 +249,23 @@ def test_a_chooser_that_repeats_the_goals_changes_nothing(episode):
 
 
 def test_evaluate_climbs_the_ladder_on_episodes_that_do_not_depend_on_the_count(tmp_path):
-    """``evaluate --methods 50 best2 sim``, one MPC step: best-of-2 (draw 0 is ω = 50's plan) leaves no episode worse
-    than ω = 50; sim runs no Adam step. A run of one episode repeats episode 0 of the run of two (keys from (seed, i)
+    """``evaluate --methods 50 best2 sim rerank``, one MPC step: best-of-2 (draw 0 is ω = 50's plan) and rerank (the
+    model's plans, its own best among them, chosen by the simulator) leave no episode worse than ω = 50; sim runs no
+    Adam step, rerank the model's. A run of one episode repeats episode 0 of the run of two (keys from (seed, i)
     alone), so the ceiling on a subset is paired with the full run."""
     from dynres_jax.commands import evaluate
 
     tiny = ["--quick", "--dynamics", "sweep", "--workers", "2", "--mpc-steps", "1", "--samples", "4",
             "--adam-steps", "2", "--pieces", "20", "--seed", "3"]
-    evaluate.main([*tiny, "--episodes", "2", "--methods", "50", "best2", "sim", "--out", str(tmp_path / "two")])
+    evaluate.main([*tiny, "--episodes", "2", "--methods", "50", "best2", "sim", "rerank", "--out",
+                   str(tmp_path / "two")])
     evaluate.main([*tiny, "--episodes", "1", "--methods", "sim", "--out", str(tmp_path / "one")])
-    runs = {m: json.loads((tmp_path / "two" / f"{m}.json").read_text()) for m in ("50", "best2", "sim")}
+    runs = {m: json.loads((tmp_path / "two" / f"{m}.json").read_text()) for m in ("50", "best2", "sim", "rerank")}
     one = json.loads((tmp_path / "one" / "sim.json").read_text())
-    assert np.all(np.array(runs["best2"]["final_distance"]) <= np.array(runs["50"]["final_distance"]) + 1e-6)
-    assert np.all(np.array(runs["sim"]["adam_steps"]) == 0) and np.all(np.array(runs["50"]["adam_steps"]) == 2)
+    for method in ("best2", "rerank"):
+        assert np.all(np.array(runs[method]["final_distance"]) <= np.array(runs["50"]["final_distance"]) + 1e-6)
+    assert np.all(np.array(runs["sim"]["adam_steps"]) == 0)
+    assert np.all(np.array(runs["50"]["adam_steps"]) == 2) and np.all(np.array(runs["rerank"]["adam_steps"]) == 2)
     assert one["final_distance"][0] == pytest.approx(runs["sim"]["final_distance"][0], rel=1e-6)
     np.testing.assert_allclose(one["final_pieces"][0], runs["sim"]["final_pieces"][0], atol=1e-4)
     assert not np.allclose(runs["sim"]["final_pieces"][0], runs["sim"]["start_pieces"][0], atol=1e-3)  # it pushed

@@ -145,9 +145,10 @@ def test_tiny_sort_episode_runs_and_records_every_step(env):
 
 
 def test_sort_climbs_the_ladder(env):
-    """Sort's waypoints under the ladder's wrappers: one plan of K = 1 is the policy's own push; the best of two plans
-    (draw 0 the policy's) leaves d no higher than the policy's; the simulator-scored samples run no Adam step and
-    predict nothing. Sort's record fields and scores come through each wrapper."""
+    """Sort's waypoints under the ladder's wrappers: one plan of K = 1 is the policy's own push; the best of two
+    plans (draw 0 the policy's) and the simulator's pick among the model's plans leave d no higher than the
+    policy's; the simulator's pick among the first samples runs no Adam step and predicts nothing. Sort's record
+    fields and scores come through each wrapper."""
     goals, radius, _ = sort_goal(np.random.default_rng(0), env)
     planner = PlannerConfig(samples=6, adam_steps=5, bound=env.action_bound, max_length=0.1)
     cfg = MPCConfig(mpc_steps=1, buckets=(32,), max_points=512, planner=planner)
@@ -157,12 +158,13 @@ def test_sort_climbs_the_ladder(env):
         policy = SortPolicy(env, cfg, 20, key, goals, radius, lambda s: None)
         return run_episode(env, start, wrap(policy), sweep_dynamics(0.04), cfg, key, log=lambda s: None)[1][0]
 
-    own, one, two, sim = (step(w) for w in (lambda p: p, lambda p: BestOfK(p, 1), lambda p: BestOfK(p, 2),
-                                             SimulatorScored))
+    own, one, two, sim, rerank = (step(w) for w in (lambda p: p, lambda p: BestOfK(p, 1), lambda p: BestOfK(p, 2),
+                                                     SimulatorScored, lambda p: SimulatorScored(p, refine=True)))
     np.testing.assert_allclose(one["action"], own["action"], atol=1e-7)
-    assert two["distance"] <= own["distance"] + 1e-6 and own["adam_steps"] == two["adam_steps"] == 5
+    for r in (two, rerank):  # the policy's own push is among their candidates
+        assert r["distance"] <= own["distance"] + 1e-6 and r["adam_steps"] == own["adam_steps"] == 5
     assert sim["adam_steps"] == 0 and np.isnan(sim["predicted_objective"]) and sim["action"] != own["action"]
-    for r in (one, two, sim):
+    for r in (one, two, sim, rerank):
         assert r["phase"] == own["phase"] and r["kind"] == own["kind"] and len(r["kind_inside"]) == 2
 
 

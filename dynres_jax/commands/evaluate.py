@@ -14,9 +14,11 @@ list) plans at every ω of ORACLE_OMEGAS each step, pushes each on a copy of the
 lowest d (``choosers.OracleOmega``); the summary then says how much of the oracle's gain over the best fixed
 ω adaptive recovers (``oracle_gap``); "bestK" (e.g. "best5") is the oracle's control: K plans at ``--best-omega``
 from independent keys each step, the best kept the same way (``choosers.BestOfK``), so the oracle's gain over it is
-what choosing ω adds to choosing among plans; "sim" is the ceiling of the action space and the sampling planner:
-each step the planner's M first samples (perceived at ``--best-omega``) are pushed in the simulator on copies of the
-worlds and the best kept, no learned model (``choosers.SimulatorScored``; M pushes a step, so slow); "cnn" (not in
+what choosing ω adds to choosing among plans; "sim" lets the simulator choose among the sampling planner's pushes
+with no model: each step the planner's M first samples (perceived at ``--best-omega``) are pushed in the simulator on
+copies of the worlds and the best kept (``choosers.SimulatorScored``; M pushes a step, so slow); "rerank" does the same
+with the M plans after the model's Adam steps (and the model's own best): what a perfect ranking of the model's plans
+would gain; "cnn" (not in
 the default list) is the paper's CNN-dynamics baseline: the same planner at ω = ``--cnn-omega`` (50) with the CNN
 checkpoint ``--cnn-ckpt`` (``experiments.train_dynamics --model cnn``) as its model. Redistribute's episode i draws
 the letter i modulo ``--letters`` (JTU). Writes per method ``METHOD.json`` (final d
@@ -73,6 +75,7 @@ from dynres_jax.sim.pool import WorldPool, process_pool
 from dynres_jax.sim.sensor import SENSORS
 from dynres_jax.stats import mcnemar, paired_bootstrap, wilson
 
+SIMULATED = ("sim", "rerank")  # the methods whose push the simulator chooses among the planner's candidates
 SUCCESS = 0.9  # an episode succeeds when this share of the pieces ends inside the goal
 
 
@@ -171,8 +174,8 @@ def label(method: str, r: dict) -> str:
         return f"ω = {method}"
     if best_of(method):
         return f"best of {best_of(method)}, ω = {round(float(np.mean(r['omega'])))}"
-    if method == "sim":
-        return "simulator as model"
+    if method in SIMULATED:
+        return "simulator chooses among samples" if method == "sim" else "simulator ranks the model's plans"
     return f"CNN, ω = {round(float(np.mean(r['omega'])))}" if method == "cnn" else method
 
 
@@ -208,15 +211,16 @@ def plot(results: dict, task: str, out_dir: str) -> None:
 def method_chooser(method: str, goals, args, camera) -> Chooser:
     """The chooser of an evaluation method against goals [B]: a fixed ω ("50"; "cnn" at --cnn-omega), the regressor
     ("adaptive"), the oracle over ORACLE_OMEGAS, the best of K plans at --best-omega ("bestK", e.g. "best5"), or the
-    simulator scoring the planner's first samples ("sim", perceived at --best-omega)."""
+    simulator choosing among the planner's first samples ("sim") or among its plans after the model's Adam steps
+    ("rerank"), both at --best-omega."""
     if method == "adaptive":
         return AdaptiveOmega(goals, resolution.load_regressor(args.regressor, camera))
     if method == "oracle":
         return OracleOmega(goals, ORACLE_OMEGAS)
     if best_of(method):
         return BestOfK(FixedOmega(goals, args.best_omega), best_of(method))
-    if method == "sim":
-        return SimulatorScored(FixedOmega(goals, args.best_omega))
+    if method in SIMULATED:
+        return SimulatorScored(FixedOmega(goals, args.best_omega), refine=method == "rerank")
     return FixedOmega(goals, args.cnn_omega if method == "cnn" else int(method))
 
 
@@ -229,11 +233,11 @@ def deterministic(parser) -> None:
 
 
 def method_omega(method: str, args) -> int | None:
-    """The one ω a method plans at (a fixed ω, bestK's and sim's --best-omega, cnn's --cnn-omega), or None for the
-    methods that choose among ω (adaptive, oracle)."""
+    """The one ω a method plans at (a fixed ω, --best-omega of bestK, sim and rerank, cnn's --cnn-omega), or None for
+    the methods that choose among ω (adaptive, oracle)."""
     if method.isdigit():
         return int(method)
-    if best_of(method) or method == "sim":
+    if best_of(method) or method in SIMULATED:
         return args.best_omega
     return args.cnn_omega if method == "cnn" else None
 
@@ -267,9 +271,10 @@ def main(argv=None):
                         help="fixed ω (integers), 'adaptive' (the regressor picks ω), 'oracle' (every step keeps the "
                              "best of ω in ORACLE_OMEGAS by the simulated outcome), 'bestK' (e.g. best5: every step "
                              "keeps the best of K plans at --best-omega by the simulated outcome, the oracle's "
-                             "control), 'sim' (the planner's first samples scored in the simulator: the ceiling of "
-                             "any model) and 'cnn' (the CNN-dynamics baseline at --cnn-omega)")
-    parser.add_argument("--best-omega", type=checks.omega, default=50, help="ω of the bestK and sim methods")
+                             "control), 'sim' (the simulator chooses among the planner's first samples, no model), "
+                             "'rerank' (the simulator chooses among the planner's plans after the model's Adam steps) "
+                             "and 'cnn' (the CNN-dynamics baseline at --cnn-omega)")
+    parser.add_argument("--best-omega", type=checks.omega, default=50, help="ω of the bestK, sim and rerank methods")
     add_planner_args(parser)
     parser.add_argument("--kind", default="coffee", choices=sorted(KINDS))
     parser.add_argument("--letters", type=checks.text, default="JTU",
@@ -300,9 +305,9 @@ def main(argv=None):
     table = load_timing(parser, args)
     for m in args.methods:
         fixed = m.isdigit() and OMEGA_MIN <= int(m) <= OMEGA_MAX
-        if m not in ("adaptive", "oracle", "cnn", "sim") and not fixed and not best_of(m):
-            parser.error(f"--methods takes 'adaptive', 'oracle', 'cnn', 'sim', 'bestK' (K >= 1) or integers in "
-                         f"[{OMEGA_MIN}, {OMEGA_MAX}], got {m!r}")
+        if m not in ("adaptive", "oracle", "cnn", *SIMULATED) and not fixed and not best_of(m):
+            parser.error(f"--methods takes 'adaptive', 'oracle', 'cnn', 'sim', 'rerank', 'bestK' (K >= 1) or integers "
+                         f"in [{OMEGA_MIN}, {OMEGA_MAX}], got {m!r}")
     if len(set(args.methods)) < len(args.methods):
         parser.error(f"--methods names a method twice: {' '.join(args.methods)}")
     if " " in args.letters:

@@ -10,8 +10,9 @@ of each kind inside its own goal, and the mixing: the share of pieces inside the
 ``inside`` is the share of all pieces inside their own kind's goal, ``kind_inside`` the share per kind). Dynamics: the
 trained checkpoint given by ``--ckpt`` (default: the shipped one); ``--dynamics sweep`` plans with the sweep heuristic
 instead. ``--method`` climbs the ladder of ``experiments.evaluate`` on the same A* waypoints: ``bestK`` keeps the best
-of K plans from independent keys by their pushes on copies of the world, ``sim`` scores the planner's first samples
-by pushing each in the simulator (no model; M pushes a step, slow).
+of K plans from independent keys by their pushes on copies of the world, ``sim`` lets the simulator choose among the
+planner's first samples (no model; M pushes a step, slow) and ``rerank`` among its plans after the model's Adam
+steps.
 """
 
 from __future__ import annotations
@@ -46,11 +47,11 @@ def main(argv=None):
     parser.add_argument("--grid-step", type=checks.number(0.002, 0.1), default=0.02, help="A*'s grid spacing (m)")
     parser.add_argument("--method", default="model",
                         help="model: the planner with the dynamics model (default); bestK (e.g. best5): the best of "
-                             "K plans by their simulated pushes; sim: the planner's first samples scored in the "
-                             "simulator")
+                             "K plans by their simulated pushes; sim: the simulator chooses among the planner's first "
+                             "samples; rerank: among its plans after the model's Adam steps")
     args = parser.parse_args(argv)
-    if args.method not in ("model", "sim") and not best_of(args.method):
-        parser.error(f"--method takes 'model', 'sim' or 'bestK' (K >= 1), got {args.method!r}")
+    if args.method not in ("model", "sim", "rerank") and not best_of(args.method):
+        parser.error(f"--method takes 'model', 'sim', 'rerank' or 'bestK' (K >= 1), got {args.method!r}")
     if args.kinds[0] == args.kinds[1]:
         parser.error(f"--kinds must name two different kinds, got {args.kinds[0]} twice")
     check_pile(parser, args.kinds, args.pieces)
@@ -78,8 +79,8 @@ def main(argv=None):
     key = jax.random.PRNGKey(args.seed)
     policy = SortPolicy(env, cfg, loop.omega, key, goals_xy, radius, grid_step=args.grid_step)
     frames = sort_frames(masks, lambda: policy.target_mask, env.camera)
-    chooser = {"model": policy, "sim": SimulatorScored(policy)}.get(args.method) or BestOfK(policy,
-                                                                                             best_of(args.method))
+    chooser = {"model": policy, "sim": SimulatorScored(policy), "rerank": SimulatorScored(policy, refine=True)}.get(
+        args.method) or BestOfK(policy, best_of(args.method))
     state, records = run_episode(env, state, chooser, loop.model.dynamics, cfg, key, timing=timing, on_step=[frames])
     if timing is not None:
         timing.save(os.path.join(args.out, "timing.json"))

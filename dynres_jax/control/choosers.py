@@ -24,16 +24,17 @@ class Orders(NamedTuple):
     decision (a batched Goal or KindGoals; the step's d and inside share are scored against it); omegas: one or more
     candidate ω [B] each; kinds [B]: the piece kind each decision perceives (None: every piece); record: extra
     record fields, arrays [B]; draws: per candidate, which independent plan it is (0: the step's own keys, the same
-    for every ω; d > 0: keys of their own, ``mpc.PLAN_DRAWS``); None: every candidate draw 0. simulated: no model
-    and no Adam step: the planner's M first samples are each pushed on a copy of the worlds and the one that left
-    the lowest d kept (``mpc.act_simulated``)."""
+    for every ω; d > 0: keys of their own, ``mpc.PLAN_DRAWS``); None: every candidate draw 0. simulated: None (the
+    model's best plan is pushed), "samples" (no model, no Adam step: the planner's M first samples are each pushed on
+    a copy of the worlds and the one that left the lowest d kept) or "plans" (the planner's M candidates after its
+    Adam steps with the model, chosen among the same way) (``mpc.act_simulated``)."""
 
     goals: Goal | KindGoals
     omegas: tuple[np.ndarray, ...]
     kinds: np.ndarray | None = None
     record: dict = {}
     draws: tuple[int, ...] | None = None
-    simulated: bool = False
+    simulated: str | None = None
 
 
 class Chooser:
@@ -100,16 +101,19 @@ class BestOfK(Chooser):
 
 
 class SimulatorScored(Chooser):
-    """The ceiling of the action space and the sampling planner: another chooser's orders (one candidate ω each step,
-    which only sets perception), but the planner's M first samples (drawn as every method draws them from the step's
-    keys) are scored by pushing them in the simulator on copies of the worlds, no learned model and no Adam step; the
-    one that left the lowest d is kept. ``SimulatorScored(FixedOmega(goals, 50))``; Sort's ``SortPolicy`` too."""
+    """Another chooser's orders (one candidate ω each step), the push chosen by the simulator among the planner's M
+    candidates: each pushed on a copy of the worlds, the one that left the lowest d kept. refine False (the `sim`
+    rung): the M first samples (drawn as every method draws them from the step's keys), no learned model and no Adam
+    step: the ceiling of the action space and the sampling alone. refine True (the `rerank` rung): the M candidates
+    after the model's Adam steps: how much a perfect ranking of the model's own plans would gain.
+    ``SimulatorScored(FixedOmega(goals, 50))``; Sort's ``SortPolicy`` too."""
 
-    def __init__(self, chooser: Chooser):
-        self.chooser = chooser
+    def __init__(self, chooser: Chooser, refine: bool = False):
+        self.chooser, self.refine = chooser, refine
 
     def __call__(self, t, obs) -> Orders:
-        return _one_plan(self.chooser(t, obs), "the simulator as model")._replace(simulated=True)
+        orders = _one_plan(self.chooser(t, obs), "the simulator's choice")
+        return orders._replace(simulated="plans" if self.refine else "samples")
 
     def score(self, states) -> dict:
         return self.chooser.score(states)
@@ -117,10 +121,10 @@ class SimulatorScored(Chooser):
 
 def _one_plan(orders: Orders, what: str) -> Orders:
     """orders, checked to hold one plain candidate (one ω, draw 0, a model's plan): what ``what`` builds on."""
-    if len(orders.omegas) != 1 or orders.draws not in (None, (0,)) or orders.simulated:
+    if len(orders.omegas) != 1 or orders.draws not in (None, (0,)) or orders.simulated is not None:
         raise ValueError(f"{what} builds on a chooser of one plan per step, got {len(orders.omegas)} candidate ω"
                          f"{', drawn' if orders.draws not in (None, (0,)) else ''}"
-                         f"{', simulated' if orders.simulated else ''}")
+                         f"{', simulated' if orders.simulated is not None else ''}")
     return orders
 
 

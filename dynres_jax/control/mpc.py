@@ -163,16 +163,23 @@ def act(worlds: Worlds, now: Situation, omega, *, cfg: MPCConfig, timing: budget
                 states=after, wall=np.full(len(action), wall), **score(after, now.goals))
 
 
-def act_simulated(worlds: Worlds, now: Situation, omega, *, cfg: MPCConfig, timing, dynamics, score) -> dict:
-    """``act`` with the simulator as the model (``choosers.SimulatorScored``): the planner's M first samples at omega
-    [B] (no Adam step), each pushed on a copy of the worlds, per episode the one that left the lowest d kept. Returns
-    ``act``'s arrays [B]; predicted_objective is NaN (nothing predicts), wall the sampling's seconds."""
-    buckets = np.array([budget.bucket_for(int(w), cfg.buckets) for w in np.asarray(omega)])
-    steps = np.zeros(len(buckets), np.int32)
+def act_simulated(worlds: Worlds, now: Situation, omega, *, cfg: MPCConfig, timing, dynamics, score,
+                  refine: bool = False) -> dict:
+    """``act`` with the simulator choosing (``choosers.SimulatorScored``): the planner's M candidates at omega [B]
+    (its first samples, no Adam step; refine: after the Adam steps ``act`` would run, and the model's best plan,
+    ``act``'s push), each pushed on a copy of the worlds, per episode the one that left the lowest d kept. Returns
+    ``act``'s arrays [B]; predicted_objective is NaN (no model predicted the kept push), wall the planning's
+    seconds."""
+    buckets, steps = cfg.allot(omega, timing)
+    if not refine:
+        steps = np.zeros(len(buckets), np.int32)
     t0 = time.perf_counter()
     particles, c_now, result = decide_batch(now.seen, now.goals, now.keys, now.init, now.warm, omega, steps, now.kinds,
                                             spec=cfg.spec(int(buckets.max())), dynamics=dynamics, camera=now.camera)
-    samples = np.asarray(jax.block_until_ready(result.actions))  # [B, M, T, 4]
+    samples = result.actions  # [B, M, T, 4]; refined: with the model's best (kept from any step) as candidate M + 1
+    if refine:
+        samples = jnp.concatenate([samples, result.best[:, None]], axis=1)
+    samples = np.asarray(jax.block_until_ready(samples))
     common = dict(omega=np.asarray(omega), bucket=buckets, adam_steps=steps, objective=c_now, particles=particles,
                   predicted_objective=np.full(len(buckets), np.nan, np.float32),
                   wall=np.full(len(buckets), time.perf_counter() - t0))
@@ -225,7 +232,8 @@ def run(worlds: Worlds, states: State, chooser: Chooser, dynamics, cfg: MPCConfi
         orders = chooser(t, seen)
         now = Situation(states, seen, camera, orders.goals, orders.kinds, step_keys, init, warm)
         draws = orders.draws or (0,) * len(orders.omegas)
-        decide = act_simulated if orders.simulated else act
+        decide = act if orders.simulated is None else functools.partial(act_simulated,
+                                                                         refine=orders.simulated == "plans")
         kept = _lowest_distance([decide(worlds, _drawn(now, d), omega, cfg=cfg, timing=timing, dynamics=dynamics,
                                         score=score) for omega, d in zip(orders.omegas, draws, strict=True)])
         record = dict(step=t, **{k: np.asarray(kept[k]) for k in ("omega", "bucket", "adam_steps", "objective",
