@@ -226,3 +226,18 @@ def test_four_devices_train_as_one(shards, run, tmp_path):
     a, b = ckpt.restore(f"{one_dir}/ckpt", abstract)[0], ckpt.restore(f"{out}/ckpt", abstract)[0]
     assert max_gap(a, b) < 1e-5
     assert max_gap(ckpt.restore(f"{one_dir}/ckpt", abstract, step=2)[0], a) > 1e-4  # training moved them
+
+
+def test_quick_data_trains_with_the_quick_recipe(tmp_path, capsys):
+    """``generate_data --quick``'s data train as they are with ``--recipe quick``; the default recipe's horizon is
+    refused in one line that names the quick recipe."""
+    from dynres_jax.commands import train_dynamics
+
+    data.generate(data.quick_config(), str(tmp_path / "data"), progress=False)
+    with pytest.raises(SystemExit):
+        train_dynamics.main(["--data", str(tmp_path / "data"), "--out", str(tmp_path / "default")])
+    assert "--recipe quick" in capsys.readouterr().err
+    train_dynamics.main(["--data", str(tmp_path / "data"), "--out", str(tmp_path / "quick"), "--recipe", "quick",
+                         "--steps", "2", "--quiet"])
+    metrics = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert metrics["step"] == 2 and np.isfinite(metrics["val_rmse_mm"])  # the 10th episode held out

@@ -9,7 +9,7 @@ Data-parallel: each batch is split over every device of every process (jax.distr
 more is needed; by hand --coordinator, --num-processes, --process-id); --batch must divide by the device count.
 
 --recipe NAME starts from a named config (``train.RECIPES``: "shipped", the shipped model's; "cnn", the CNN
-baseline's); flags given beside it override its values.
+baseline's; "quick", seconds on a CPU for ``generate_data --quick``'s data); flags given beside it override its values.
 
 --model gnn (default): the PropNet GNN (``dynres_jax.models.dynamics``; --hidden, --propagation-steps, --push-frame,
 --world-edges, --bin-position, --residual). --model cnn: the
@@ -121,7 +121,8 @@ def check_data(folder: str, cfg: TrainConfig) -> None:
     for _, shard in iter_shards(folder, members=("action", "episode")):
         if shard["action"].shape[1] < cfg.horizon:
             raise InputError(f"--data {folder}: its episodes have {shard['action'].shape[1]} pushes, fewer than "
-                             f"--horizon {cfg.horizon} (make data with --pushes {cfg.horizon} or more)")
+                             f"--horizon {cfg.horizon} (make data with --pushes {cfg.horizon} or more; for "
+                             "generate_data --quick's data: --recipe quick)")
         episodes.append(shard["episode"])
     if not is_validation(np.concatenate(episodes)).any():
         raise InputError(f"--data {folder}: its {sum(map(len, episodes))} episodes leave none for validation (every "

@@ -100,6 +100,8 @@ class TrainConfig:
 RECIPES = {  # named training configs; the checkpoints' cards name theirs (``experiments.train_dynamics --recipe``)
     "shipped": TrainConfig(steps=8_600, batch=64, loss="distance", model=DynamicsConfig()),  # checkpoints/dynamics
     "cnn": TrainConfig(steps=2_800, batch=64, loss="distance", model=CNNDynamicsConfig()),  # checkpoints/cnn_dynamics
+    "quick": TrainConfig(steps=20, batch=4, horizon=2, n_max=8, max_points=256, eval_every=10, ckpt_every=10,
+                         val_batches=1, loss="distance", model=DynamicsConfig(hidden=16)),  # --quick data
 }
 
 
