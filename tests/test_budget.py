@@ -120,8 +120,10 @@ def test_time_budgeted_decisions_return_within_budget_plus_one_step(scene):
     planner = PlannerConfig(samples=6, adam_steps=400, bound=env.action_bound, max_length=0.1)
     dyn = sweep_dynamics(env.config.scene.plate_half_width)
     cfg = MPCConfig(mpc_steps=3, buckets=(16, 32), max_points=512, planner=planner)
-    table = measure_timing(state.obs, goal, dyn, cfg, env.camera)
+    lines = []
+    table = measure_timing(state.obs, goal, dyn, cfg, env.camera, log=lines.append)
     assert set(table.step_s) == {16, 32} and all(s > 0 for s in table.step_s.values())
+    assert [line.split(":")[1] for line in lines] == [" bucket 16 (1 of 2)", " bucket 32 (2 of 2)"]  # progress
     seconds = table.fixed_s[16] + 40 * table.step_s[16]  # a budget of about 40 steps: it binds below 400
     cfg = MPCConfig(mpc_steps=5, buckets=(16, 32), max_points=512, planner=planner, time_budget=seconds)
     _, records = run_episode(env, state, FixedOmega(batch(goal), 12), dyn, cfg, jax.random.PRNGKey(1),

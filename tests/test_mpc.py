@@ -46,11 +46,27 @@ def episode():
 
 def test_episode_records_every_step(episode):
     env, _, _, _, records, frames, lines = episode
-    assert [r["step"] for r in records] == [0, 1, 2] and len(lines) == 3 and len(frames) == 4
+    assert [r["step"] for r in records] == [0, 1, 2] and len(frames) == 4
+    assert sum(line.startswith("step") for line in lines) == 3 and sum("compiling" in line for line in lines) <= 1
     for r in records:
         assert r["omega"] == 6 and 0.0 <= r["inside"] <= 1.0 and np.isfinite(r["distance"])
         assert r["bucket"] == 8 and r["adam_steps"] == 20 and r["planning_s"] > 0
         assert np.all(np.abs(r["action"]) <= env.action_bound + 1e-5)
+
+
+def test_the_first_decision_of_a_bucket_says_it_compiles(episode):
+    """One line before a bucket and batch size's first decision (it compiles); none when they come again."""
+    env, start, goal, _, _, _, _ = episode
+    planner = PlannerConfig(samples=3, adam_steps=2, bound=env.action_bound, max_length=0.1)  # a spec of its own
+    cfg = MPCConfig(mpc_steps=2, buckets=(4, 8), max_points=512, planner=planner)
+    runs = []
+    for _ in range(2):
+        lines = []
+        run_episode(env, start, FixedOmega(batch(goal), 6), sweep_dynamics(0.04), cfg, jax.random.PRNGKey(1),
+                    log=lines.append)
+        runs.append([line for line in lines if "compiling" in line])
+    assert runs[0] == ["compiling the decision at bucket 8 for 1 episode(s) (once per bucket; tens of seconds on a "
+                       "CPU)"] and runs[1] == []
 
 
 def test_episode_brings_the_pile_nearer_the_goal(episode):

@@ -139,11 +139,12 @@ def adam_steps(bucket: int, max_steps: int, seconds: float | None = None, table:
 
 
 def measure(decide: Callable[[int, int], object], buckets: Sequence[int], *, samples: int, horizon: int,
-            max_steps: int, repeats: int = 3) -> TimingTable:
+            max_steps: int, repeats: int = 3, log: Callable[[str], None] = print) -> TimingTable:
     """Fill a timing table on this device. decide(bucket, steps) runs one whole decision (perception and plan) and
     returns its result; it is compiled first (untimed), then timed ``repeats`` times (medians) at 0 steps (fixed_s)
     and at a probe of 10 steps, then 4 times as many, until the steps take at least as long as the fixed part (or
-    the probe reaches max_steps): step_s from the difference. samples, horizon: the planner batch."""
+    the probe reaches max_steps): step_s from the difference. samples, horizon: the planner batch; log: one line per
+    bucket as it starts (a CPU takes tens of seconds a bucket)."""
     fixed, step = {}, {}
 
     def wall(bucket, steps):
@@ -154,7 +155,9 @@ def measure(decide: Callable[[int, int], object], buckets: Sequence[int], *, sam
             times.append(time.perf_counter() - t0)
         return statistics.median(times)
 
-    for b in check_buckets(buckets):
+    buckets = check_buckets(buckets)
+    for i, b in enumerate(buckets):
+        log(f"timing table: bucket {b} ({i + 1} of {len(buckets)}): compiling its decision, then timing it")
         jax.block_until_ready(decide(b, 0))  # compile (the step count is traced: one compile serves every count)
         short = wall(b, 0)
         probe = min(10, max_steps)

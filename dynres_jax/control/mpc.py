@@ -80,10 +80,11 @@ class MPCConfig:
         return buckets, np.array([self.adam_steps(int(b), table) for b in buckets], np.int32)
 
 
-def measure_timing(obs, goal: Goal, dynamics, cfg: MPCConfig, camera, repeats: int = 3) -> budget.TimingTable:
+def measure_timing(obs, goal: Goal, dynamics, cfg: MPCConfig, camera, repeats: int = 3,
+                   log=print) -> budget.TimingTable:
     """A timing table of this device for decisions like ``cfg``'s on ``obs`` and ``goal`` (one decision per call, the
     planner's batch), for every bucket of cfg.buckets, each at its largest ω that ``obs`` has the points for
-    (``budget.measure``)."""
+    (``budget.measure``; log: its progress lines)."""
     if cfg.planner.adam_steps < 1:
         raise ValueError("measuring a timing table needs PlannerConfig.adam_steps >= 1")
     points = int(np.sum(np.asarray(point_cloud(obs, camera, max_points=cfg.max_points)[1])))
@@ -96,7 +97,7 @@ def measure_timing(obs, goal: Goal, dynamics, cfg: MPCConfig, camera, repeats: i
         return result.best[0, 0]
 
     return budget.measure(run, cfg.buckets, samples=cfg.planner.samples, horizon=cfg.planner.horizon,
-                          max_steps=cfg.planner.adam_steps, repeats=repeats)
+                          max_steps=cfg.planner.adam_steps, repeats=repeats, log=log)
 
 
 class ExactView:
@@ -231,6 +232,8 @@ def run(worlds: Worlds, states: State, chooser: Chooser, dynamics, cfg: MPCConfi
         seen, camera = view(t, states, step_keys)
         orders = chooser(t, seen)
         now = Situation(states, seen, camera, orders.goals, orders.kinds, step_keys, init, warm)
+        for omega in orders.omegas:
+            _announce(cfg, omega, log)
         draws = orders.draws or (0,) * len(orders.omegas)
         decide = act if orders.simulated is None else functools.partial(act_simulated,
                                                                          refine=orders.simulated == "plans")
@@ -264,6 +267,18 @@ def run_episode(env: PileEnv, state: State, chooser: Chooser, dynamics, cfg: MPC
 def episode_record(record: dict, b: int) -> dict:
     """Episode b's share of a ``run`` record, as Python numbers (JSON-ready)."""
     return {k: (v if k in ("step", "seconds") else np.asarray(v)[b].tolist()) for k, v in record.items()}
+
+
+_planned: set = set()  # (DecisionSpec, batch size) of the decisions this process has run: the first compiles
+
+
+def _announce(cfg: MPCConfig, omega, log) -> None:
+    """One line before the first decision of a bucket and batch size, which compiles (tens of seconds on a CPU)."""
+    spec = cfg.spec(max(budget.bucket_for(int(w), cfg.buckets) for w in np.asarray(omega)))
+    if (spec, len(omega)) not in _planned:
+        _planned.add((spec, len(omega)))
+        log(f"compiling the decision at bucket {spec.capacity} for {len(omega)} episode(s) (once per bucket; "
+            "tens of seconds on a CPU)")
 
 
 def _drawn(now: Situation, draw: int) -> Situation:
