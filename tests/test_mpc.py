@@ -285,3 +285,15 @@ def test_evaluate_climbs_the_ladder_on_episodes_that_do_not_depend_on_the_count(
     assert one["final_distance"][0] == pytest.approx(runs["sim"]["final_distance"][0], rel=1e-6)
     np.testing.assert_allclose(one["final_pieces"][0], runs["sim"]["final_pieces"][0], atol=1e-4)
     assert not np.allclose(runs["sim"]["final_pieces"][0], runs["sim"]["start_pieces"][0], atol=1e-3)  # it pushed
+
+
+def test_evaluate_quick_is_quick(tmp_path):
+    """``evaluate --quick`` alone runs 4 episodes of 3 MPC steps of 8 samples x 10 Adam steps; a flag given beside it
+    wins."""
+    from dynres_jax.commands import evaluate
+
+    summary = evaluate.main(["--quick", "--methods", "50", "--dynamics", "sweep", "--workers", "2", "--pieces", "20",
+                             "--samples", "4", "--out", str(tmp_path)])
+    run = json.loads((tmp_path / "50.json").read_text())
+    assert summary["methods"]["50"]["episodes"] == 4 and len(run["mean_distance"]) == 3
+    assert summary["mpc_steps"] == 3 and summary["samples"] == 4 and np.all(np.array(run["adam_steps"]) == 10)

@@ -76,6 +76,7 @@ from dynres_jax.sim.sensor import SENSORS
 from dynres_jax.stats import mcnemar, paired_bootstrap, wilson
 
 SIMULATED = ("sim", "rerank")  # the methods whose push the simulator chooses among the planner's candidates
+QUICK = dict(episodes=4, mpc_steps=3, samples=8, adam_steps=10)  # --quick's sizes, where a flag does not set them
 SUCCESS = 0.9  # an episode succeeds when this share of the pieces ends inside the goal
 
 
@@ -293,12 +294,17 @@ def main(argv=None):
     parser.add_argument("--seed", type=checks.seed, default=0)
     parser.add_argument("--out", required=True)
     checks.add_fresh(parser)
-    parser.add_argument("--quick", action="store_true", help="tiny sizes for a CPU smoke run")
+    parser.add_argument("--quick", action="store_true",
+                        help="a CPU smoke run: 64 x 64 images; unless given, " + ", ".join(
+                            f"--{k.replace('_', '-')} {v}" for k, v in QUICK.items()))
     parser.add_argument("--deterministic", action="store_true",
                         help="GPU: XLA's deterministic kernels (scatters without atomics), so a rerun of the same "
                              "seeds repeats bit for bit; slower (docs/results.md, 'Repeatable numbers')")
     distributed.add_args(parser)
     args = parser.parse_args(argv)
+    for name, value in QUICK.items() if args.quick else ():
+        if getattr(args, name) == parser.get_default(name):
+            setattr(args, name, value)
     if args.deterministic:
         deterministic(parser)
     rank, size = distributed.from_args(parser, args)
