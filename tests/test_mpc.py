@@ -22,7 +22,7 @@ from dynres_jax.control.goals import disc_goal, make_goal
 from dynres_jax.control.mpc import MPCConfig, _scorer, fold, run, run_episode
 from dynres_jax.control.objective import distribution_distance
 from dynres_jax.control.planner import PlannerConfig, _plan_jit, plan
-from dynres_jax.io.draw import goal_frames
+from dynres_jax.io.draw import PUSH_COLOUR, goal_frames, overlay
 from dynres_jax.models.registry import sweep_dynamics
 from dynres_jax.sim.env import PileEnv
 from dynres_jax.sim.pool import EnvWorlds, WorldPool
@@ -67,6 +67,21 @@ def test_the_first_decision_of_a_bucket_says_it_compiles(episode):
         runs.append([line for line in lines if "compiling" in line])
     assert runs[0] == ["compiling the decision at bucket 8 for 1 episode(s) (once per bucket; tens of seconds on a "
                        "CPU)"] and runs[1] == []
+
+
+def test_the_gif_draws_each_push_and_captions_the_end(episode):
+    """Each step's frame draws its push as an arrow (the midpoint of the push is the arrow's colour); the final frame
+    draws none and is captioned with the final d (it differs from the uncaptioned frame only in the caption's rows)."""
+    env, _, goal, final, records, frames, _ = episode
+    mask = disc_goal(env.camera, np.array([0.0, 0.0]), 0.06)  # the fixture's goal
+    for frame, record in zip(frames[:-1], records, strict=True):
+        push = np.asarray(record["action"], np.float64)
+        middle = np.array([[(push[0] + push[2]) / 2, (push[1] + push[3]) / 2, 0.0]])
+        u, v = (np.asarray(env.camera.world_to_pixel(middle)[0][0]) * frame.shape[0] / env.camera.height).astype(int)
+        assert np.any(np.all(frame[v - 2:v + 3, u - 2:u + 3] == PUSH_COLOUR, axis=-1)), record["step"]
+    assert not np.any(np.all(frames[-1] == PUSH_COLOUR, axis=-1))
+    bare = overlay(np.asarray(final.obs.rgb), mask, None, env.camera)
+    assert np.array_equal(frames[-1][24:], bare[24:]) and not np.array_equal(frames[-1][:24], bare[:24])
 
 
 def test_episode_brings_the_pile_nearer_the_goal(episode):

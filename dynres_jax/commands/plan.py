@@ -92,11 +92,7 @@ def main(argv=None):
                   key_plan, config)
     action = np.asarray(result.best[0], np.float64)
     image = overlay(np.asarray(obs.rgb), goal_mask, np.asarray(particles.positions)[np.asarray(particles.mask)],
-                    camera)
-    scale = image.shape[0] / camera.height
-    ends = np.array([[*action[:2], 0.0], [*action[2:], 0.0]])
-    (u0, v0), (u1, v1) = np.asarray(camera.world_to_pixel(ends)[0]) * scale
-    cv2.arrowedLine(image, (int(u0), int(v0)), (int(u1), int(v1)), (30, 30, 220), max(2, int(scale)), tipLength=0.15)
+                    camera, push=action)
     files.write_image(args.out, cv2.cvtColor(image, cv2.COLOR_RGB2BGR))
     out = dict(push=action.tolist(), predicted_objective=float(result.best_cost), dynamics=name,
                omega=args.resolution, image=args.out)

@@ -11,12 +11,14 @@ import numpy as np
 
 GOAL_TINT = np.array([60.0, 200.0, 60.0])  # RGB tint of the goal (green)
 GOAL_TINTS = np.array([[60.0, 110.0, 235.0], [240.0, 150.0, 40.0]])  # Sort: goal 0 blue, goal 1 orange
+PUSH_COLOUR = (30, 30, 220)  # RGB of the push's arrow (blue)
 
 
 def overlay(rgb: np.ndarray, goal_mask: np.ndarray, particles: np.ndarray | None, camera, scale: int = 3,
-            label: str = ""):
-    """An RGB frame [H, W, 3] uint8 with the goal tinted green, particles [n, 3] (world, m) as red dots and an
-    optional text label in the top-left corner."""
+            label: str = "", push=None):
+    """An RGB frame [H, W, 3] uint8 with the goal tinted green, particles [n, 3] (world, m) as red dots, the push
+    (x0, y0, x1, y1) m as a blue arrow from its start to its end, and an optional text label in the top-left
+    corner."""
     img = rgb.astype(np.float32)
     img[goal_mask] = 0.6 * img[goal_mask] + 0.4 * GOAL_TINT
     img = cv2.resize(img.astype(np.uint8), (rgb.shape[1] * scale, rgb.shape[0] * scale),
@@ -25,6 +27,11 @@ def overlay(rgb: np.ndarray, goal_mask: np.ndarray, particles: np.ndarray | None
         uv, _ = camera.world_to_pixel(np.asarray(particles, np.float64))
         for u, v in np.asarray(uv) * scale:
             cv2.circle(img, (int(u), int(v)), max(2, scale), (220, 30, 30), -1)
+    if push is not None:
+        push = np.asarray(push, np.float64)
+        ends = np.array([[*push[:2], 0.0], [*push[2:4], 0.0]])
+        (u0, v0), (u1, v1) = np.asarray(camera.world_to_pixel(ends)[0]) * scale
+        cv2.arrowedLine(img, (int(u0), int(v0)), (int(u1), int(v1)), PUSH_COLOUR, max(2, scale), tipLength=0.15)
     if label:
         cv2.putText(img, label.replace("ω", "w"), (6, 18), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (20, 20, 20), 1, cv2.LINE_AA)
     return img
@@ -40,37 +47,54 @@ def tint(rgb, goal_masks, tints=GOAL_TINTS) -> np.ndarray:
 
 class Frames:
     """GIF frames of episode 0, as an ``on_step`` callback of ``control.mpc.run``: ``draw(rgb [H, W, 3], particles
-    [n, 3] m or None, record or None) -> frame`` draws each step's frame before its push with the particles the
-    planner saw (and the step's record), and ``finish(states)`` the final one (particles and record None)."""
+    [n, 3] m or None, record) -> frame`` draws each step's frame before its push with the particles the planner saw
+    and the step's record (its push: ``record["action"]``), and ``finish(states)`` the final one (particles None, the
+    last step's record, whose d and inside share are the final state's)."""
 
     def __init__(self, draw: Callable):
-        self.draw, self.frames = draw, []
+        self.draw, self.frames, self.last = draw, [], None
 
     def __call__(self, t: int, states, particles, record: dict) -> None:
         seen = np.asarray(particles.positions[0])[np.asarray(particles.mask[0])]
         self.frames.append(self.draw(np.asarray(states.obs.rgb[0]), seen, record))
+        self.last = record
 
     def finish(self, states) -> list[np.ndarray]:
         """Add the final frame; returns every frame."""
-        self.frames.append(self.draw(np.asarray(states.obs.rgb[0]), None, None))
+        self.frames.append(self.draw(np.asarray(states.obs.rgb[0]), None, self.last))
         return self.frames
 
 
+def caption(particles, record) -> str:
+    """A frame's caption: the step and its ω before a push; d and the share inside after the last."""
+    if record is None:
+        return ""
+    if particles is None:
+        return f"end  d = {float(record['distance'][0]):.2f}  inside {float(record['inside'][0]):.0%}"
+    return f"step {record['step'] + 1}  ω = {int(record['omega'][0])}"
+
+
+def _push(particles, record):
+    """The push a step frame draws (record's action of episode 0), none on the final frame."""
+    return None if particles is None or record is None else np.asarray(record["action"])[0]
+
+
 def goal_frames(goal_mask: np.ndarray, camera) -> Frames:
-    """Frames of a task with one goal (Gather, Redistribute): the goal tinted green, the particles red, the step and
-    its ω as the caption."""
+    """Frames of a task with one goal (Gather, Redistribute): the goal tinted green, the particles red, the push
+    blue, the step and its ω as the caption (the final frame: d and the share inside)."""
     def draw(rgb, particles, record):
-        label = "" if record is None else f"step {record['step'] + 1}  ω = {int(record['omega'][0])}"
-        return overlay(rgb, goal_mask, particles, camera, label=label)
+        return overlay(rgb, goal_mask, particles, camera, label=caption(particles, record),
+                       push=_push(particles, record))
 
     return Frames(draw)
 
 
 def sort_frames(goal_masks, target_mask: Callable[[], np.ndarray], camera) -> Frames:
     """Frames of Sort: kind 0's goal blue, kind 1's orange (``tint``), the current waypoint disc ``target_mask()``
-    green (none on the final frame), the particles red."""
+    green (none on the final frame), the particles red, the push blue, captions as ``goal_frames``'."""
     def draw(rgb, particles, record):
         target = np.zeros_like(goal_masks[0]) if particles is None else target_mask()
-        return overlay(tint(rgb, goal_masks), target, particles, camera)
+        return overlay(tint(rgb, goal_masks), target, particles, camera, label=caption(particles, record),
+                       push=_push(particles, record))
 
     return Frames(draw)
