@@ -65,7 +65,7 @@ def fx(tmp_path_factory):
     for name, image in {"goal": goal, "empty_goal": np.zeros_like(goal), "small_goal": goal[:64, :64],
                         "corner_goal": np.pad(np.full((6, 6), 255, np.uint8), ((0, h - 6), (0, w - 6))),
                         "depth_metres": np.ones((h, w), np.uint16), "zero_depth": np.zeros((h, w), np.uint16),
-                        "small_rgb": np.zeros((64, 64, 3), np.uint8)}.items():
+                        "small_rgb": np.zeros((64, 64, 3), np.uint8), "wide_goal": np.pad(goal, ((0, 0), (0, w)))}.items():
         p[name] = str(root / f"{name}.png")
         cv2.imwrite(p[name], image)
     p["text"] = str(root / "notes.txt")
@@ -285,6 +285,14 @@ X = [  # export
     (["--ckpt", "/nonexistent"], "--ckpt"), (["--ckpt", "{flipped_dynamics}"], "damaged"), (["--ckpt", "{regressor}"], "--ckpt"),
     (["--out", "{foreign}"], "--out"), (["--out", "planner.txt"], "--out"), (["--out", "{file}/x.jaxexport"], "--out"),
 ]
+GO = [  # goal
+    ([], "--disc"), (["--disc", "0", "0"], "--disc"), (["--disc", "0", "0", "0"], "radius"),
+    (["--disc", "0", "0", "0.5"], "outside the bin"), (["--disc", "0", "0", "0.1", "--letter", "T"], "not allowed"),
+    (["--letter", " "], "--letter"), (["--letter", "T", "--height", "0.9"], "outside"),
+    (["--mask", "/nonexistent"], "--mask"), (["--mask", "{wide_goal}"], "aspect ratio"), (["--mask", "{empty_goal}"], "no goal"),
+    (["--disc", "0", "0", "0.05", "--camera", "{cam_negative_f}"], "camera file"),
+    (["--disc", "0", "0", "0.05", "--out", "goal.txt"], "--out"), (["--disc", "0", "0", "0.05", "--out", "{file}/g.png"], "--out"),
+]
 CASES = ([("gather", a, n) for a, n in G] + [("redistribute", a, n) for a, n in R] + [("sort", a, n) for a, n in S]
          + [("plan", FRAME + a, n) for a, n in P] + [("evaluate", a, n) for a, n in E]
          + [("label_resolution", a, n) for a, n in L] + [("generate_data", a, n) for a, n in D]
@@ -292,8 +300,8 @@ CASES = ([("gather", a, n) for a, n in G] + [("redistribute", a, n) for a, n in 
          + [("train_regressor", ["--labels", "{labels}", *a], n) for a, n in TR] + [("tradeoff", a, n) for a, n in TO]
          + [("simulate", a, n) for a, n in SI] + [("eval_dynamics", ["--ckpt", "{dynamics}", "--data", "{data_few}", *a], n)
                                                   for a, n in ED]
-         + [("export", a, n) for a, n in X])
-OUT_FILE = {"plan": "push.png", "export": "planner.jaxexport"}
+         + [("export", a, n) for a, n in X] + [("goal", a, n) for a, n in GO])
+OUT_FILE = {"plan": "push.png", "export": "planner.jaxexport", "goal": "goal.png"}
 
 
 def test_the_table_is_large():

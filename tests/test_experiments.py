@@ -1,9 +1,11 @@
 """Command-line entry points: each one's --help, and the simulator demo end to end on a tiny scene."""
 
 import json
+import os
 import re
 import runpy
 import shlex
+import subprocess
 import sys
 from pathlib import Path
 
@@ -84,3 +86,14 @@ def test_the_dynres_command_runs_every_command(capsys):
     with pytest.raises(SystemExit) as exit_:
         main(["gahter"])
     assert exit_.value.code == 2 and re.search("unknown command 'gahter'.*gather", capsys.readouterr().err)
+
+
+def test_usage_and_errors_name_the_command_as_it_was_run():
+    """Run as the installed ``dynres`` script, usage and errors say ``dynres NAME``; as a module, ``python -m
+    experiments.NAME``."""
+    script = "import sys; sys.argv[0] = {!r}; from dynres_jax.commands import main; main(['goal', '--disc', '0'])"
+    for argv0, named in (("/venv/bin/dynres", "dynres goal"), ("-m", "python -m experiments.goal")):
+        result = subprocess.run([sys.executable, "-c", script.format(argv0)], capture_output=True, text=True,
+                                env=dict(os.environ, JAX_PLATFORMS="cpu"))
+        assert result.returncode == 2 and result.stderr.startswith(f"usage: {named} "), result.stderr
+        assert f"\n{named}: error: argument --disc" in result.stderr

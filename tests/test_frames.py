@@ -60,3 +60,28 @@ def test_bad_files_are_named(saved, tmp_path):
     with pytest.raises(ValueError, match="goal file"):
         frames.load_goal(str(tmp_path / "small.png"), frames.load_frame(
             paths["depth.png"], paths["rgb.png"], paths["camera.json"])[1])
+
+
+def test_goal_command_writes_what_load_goal_reads(saved, tmp_path, capsys):
+    """``dynres goal``: a disc and a letter drawn through a saved camera equal the library's masks as ``load_goal``
+    reads them back; a mask drawn at twice the camera's size comes back at its size; the default camera is the
+    simulator's."""
+    from dynres_jax.commands import goal
+    from dynres_jax.control.goals import text_goal
+    from dynres_jax.sim.camera import Camera
+
+    env, _, paths = saved
+    disc, letter, mask = (str(tmp_path / f"{n}.png") for n in ("disc", "letter", "mask"))
+    goal.main(["--disc", "0.02", "-0.03", "0.06", "--camera", paths["camera.json"], "--out", disc])
+    np.testing.assert_array_equal(frames.load_goal(disc, env.camera), disc_goal(env.camera, [0.02, -0.03], 0.06))
+    goal.main(["--letter", "U", "--height", "0.12", "--centre", "0.01", "0", "--camera", paths["camera.json"],
+               "--out", letter])
+    want = text_goal(env.camera, "U", [0.01, 0.0], 0.12)
+    np.testing.assert_array_equal(frames.load_goal(letter, env.camera), want)
+    big = str(tmp_path / "big.png")
+    cv2.imwrite(big, cv2.resize(want.astype(np.uint8) * 255, (128, 128), interpolation=cv2.INTER_NEAREST))
+    goal.main(["--mask", big, "--camera", paths["camera.json"], "--out", mask])
+    np.testing.assert_array_equal(frames.load_goal(mask, env.camera), want)
+    default = goal.main(["--disc", "0", "0", "0.08", "--out", str(tmp_path / "default.png")])
+    assert (default["width"], default["height"]) == (Camera.top_down(CameraConfig()).width, CameraConfig().height)
+    assert json.loads(capsys.readouterr().out.strip().splitlines()[-1])["pixels"] == default["pixels"] > 0

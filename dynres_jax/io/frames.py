@@ -83,6 +83,12 @@ def load_frame(depth_path: str, rgb_path: str, camera_path: str) -> tuple[Observ
     return Observation(metres, unknown, unknown, rgb), camera
 
 
+def save_goal(path: str, mask) -> str:
+    """Write a goal mask [H, W] bool as a black-and-white PNG (white = goal), atomically; ``load_goal`` reads it."""
+    files.write_image(path, np.where(np.asarray(mask, bool), 255, 0).astype(np.uint8))
+    return path
+
+
 def load_goal(path: str, camera: Camera) -> np.ndarray:
     """A goal mask [H, W] bool from a PNG (white = goal) of the camera's size."""
     image = _read(path, "goal", cv2.IMREAD_GRAYSCALE)
