@@ -85,3 +85,17 @@ def test_goal_command_writes_what_load_goal_reads(saved, tmp_path, capsys):
     default = goal.main(["--disc", "0", "0", "0.08", "--out", str(tmp_path / "default.png")])
     assert (default["width"], default["height"]) == (Camera.top_down(CameraConfig()).width, CameraConfig().height)
     assert json.loads(capsys.readouterr().out.strip().splitlines()[-1])["pixels"] == default["pixels"] > 0
+
+
+def test_a_missing_reading_round_trips_as_missing(saved, tmp_path):
+    """A depth camera's missing readings (``NO_READING`` m) are saved as 0 mm and read back as missing, not as the
+    65.535 m a clipped uint16 would say."""
+    from dynres_jax.sim.sensor import NO_READING
+
+    env, state, _ = saved
+    depth = np.asarray(state.obs.depth).copy()
+    depth[:5, :5] = NO_READING
+    paths = frames.save_frame(str(tmp_path), state.obs._replace(depth=depth), env.camera)
+    back, _ = frames.load_frame(paths["depth.png"], paths["rgb.png"], paths["camera.json"])
+    assert np.all(np.asarray(back.depth)[:5, :5] == NO_READING)
+    np.testing.assert_allclose(np.asarray(back.depth)[5:], depth[5:], atol=6e-4)

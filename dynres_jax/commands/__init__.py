@@ -1,6 +1,6 @@
 """The command line: ``dynres COMMAND [options]`` (or ``python -m experiments.COMMAND`` from a checkout).
 
-Task commands: gather, redistribute, sort, plan, goal. Evaluation: evaluate, eval_dynamics, tradeoff. Learning:
+Task commands: gather, redistribute, sort, plan, goal, robot. Evaluation: evaluate, eval_dynamics, tradeoff. Learning:
 generate_data, train_dynamics, label_resolution, train_regressor. Other: simulate, export. ``dynres COMMAND --help``
 for each; ``-`` and ``_`` are the same in a command's name.
 """
@@ -10,8 +10,8 @@ from __future__ import annotations
 import importlib
 import sys
 
-COMMANDS = ("gather", "redistribute", "sort", "plan", "goal", "evaluate", "eval_dynamics", "tradeoff", "generate_data",
-            "train_dynamics", "label_resolution", "train_regressor", "simulate", "export")
+COMMANDS = ("gather", "redistribute", "sort", "plan", "goal", "robot", "evaluate", "eval_dynamics", "tradeoff",
+            "generate_data", "train_dynamics", "label_resolution", "train_regressor", "simulate", "export")
 
 
 def main(argv=None) -> None:

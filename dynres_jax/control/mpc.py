@@ -233,7 +233,7 @@ def run(worlds: Worlds, states: State, chooser: Chooser, dynamics, cfg: MPCConfi
         orders = chooser(t, seen)
         now = Situation(states, seen, camera, orders.goals, orders.kinds, step_keys, init, warm)
         for omega in orders.omegas:
-            _announce(cfg, omega, log)
+            announce(cfg, omega, log)
         draws = orders.draws or (0,) * len(orders.omegas)
         decide = act if orders.simulated is None else functools.partial(act_simulated,
                                                                          refine=orders.simulated == "plans")
@@ -247,7 +247,7 @@ def run(worlds: Worlds, states: State, chooser: Chooser, dynamics, cfg: MPCConfi
                       **{k: np.asarray(v) for k, v in chooser.score(kept["states"]).items()})
         for callback in on_step:
             callback(t, states, kept["particles"], record)
-        states, init, warm = kept["states"], _shift(kept["best"]), True
+        states, init, warm = kept["states"], shift(kept["best"]), True
         records.append(dict(record, seconds=time.perf_counter() - t0))
         _log_step(log, records[-1], cfg.mpc_steps)
         if record["broken"].all():
@@ -272,7 +272,7 @@ def episode_record(record: dict, b: int) -> dict:
 _planned: set = set()  # (DecisionSpec, batch size) of the decisions this process has run: the first compiles
 
 
-def _announce(cfg: MPCConfig, omega, log) -> None:
+def announce(cfg: MPCConfig, omega, log) -> None:
     """One line before the first decision of a bucket and batch size, which compiles (tens of seconds on a CPU)."""
     spec = cfg.spec(max(budget.bucket_for(int(w), cfg.buckets) for w in np.asarray(omega)))
     if (spec, len(omega)) not in _planned:
@@ -293,7 +293,7 @@ def fold(keys, n: int):
     return jax.vmap(jax.random.fold_in, in_axes=(0, None))(keys, n)
 
 
-def _shift(best):
+def shift(best):
     """The plan of the next step: the remaining pushes, the last one repeated (warm start)."""
     return jnp.concatenate([best[..., 1:, :], best[..., -1:, :]], axis=-2)
 

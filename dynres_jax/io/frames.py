@@ -18,10 +18,13 @@ MIN_DEPTH, MAX_DEPTH = 0.1, 5.0  # m: a depth camera's median reading over a tab
 
 
 def save_frame(folder: str, obs: Observation, camera: Camera) -> dict[str, str]:
-    """Write depth.png (uint16 mm), rgb.png and camera.json into ``folder``; returns their paths."""
+    """Write depth.png (uint16 mm; a missing reading, ``NO_READING`` or beyond 65.535 m, as 0, the way cameras save
+    it), rgb.png and camera.json into ``folder``; returns their paths."""
     os.makedirs(folder, exist_ok=True)
     paths = {name: os.path.join(folder, name) for name in ("depth.png", "rgb.png", "camera.json")}
-    depth_mm = np.clip(np.round(np.asarray(obs.depth, np.float64) * 1000), 0, 65535).astype(np.uint16)
+    depth_mm = np.round(np.asarray(obs.depth, np.float64) * 1000)
+    missing = ~np.isfinite(depth_mm) | (depth_mm > 65535) | (np.asarray(obs.depth) >= NO_READING)
+    depth_mm = np.where(missing, 0, np.clip(depth_mm, 0, 65535)).astype(np.uint16)
     files.write_image(paths["depth.png"], depth_mm)
     files.write_image(paths["rgb.png"], cv2.cvtColor(np.asarray(obs.rgb, np.uint8), cv2.COLOR_RGB2BGR))
     files.write_text(paths["camera.json"], camera.to_json())

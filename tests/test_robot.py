@@ -1,0 +1,75 @@
+"""The robot loop (control.robot, experiments.robot): a whole tiny Gather episode on the simulator as camera and arm,
+its recorded frames replayed as a dry run, the workspace check before any push, a stop at the goal (CPU)."""
+
+import json
+import os
+
+import jax
+import numpy as np
+import pytest
+
+from dynres_jax.commands import robot
+from dynres_jax.config import CameraConfig, PileConfig, SceneConfig, SimConfig
+from dynres_jax.control.goals import disc_goal
+from dynres_jax.control.mpc import MPCConfig
+from dynres_jax.control.planner import PlannerConfig
+from dynres_jax.control.robot import DryRun, SimulatedRobot, UnsafePush, Workspace, run_robot
+from dynres_jax.models.registry import sweep_dynamics
+from dynres_jax.sim.env import PileEnv
+
+TINY = ["--steps", "2", "--samples", "4", "--adam-steps", "3", "--dynamics", "sweep", "--pieces", "30"]
+
+
+@pytest.fixture(scope="module")
+def episode(tmp_path_factory):
+    out = str(tmp_path_factory.mktemp("robot"))
+    return out, robot.main([*TINY, "--sensor", "realsense", "--calibrate", "--out", out])
+
+
+def test_a_simulated_episode_pushes_and_records_every_frame(episode):
+    out, summary = episode
+    steps = summary["steps"]
+    assert summary["pushes"] == 2 and not summary["dry_run"] and [s["step"] for s in steps] == [0, 1, 2]
+    assert all(len(s["action"]) == 4 for s in steps[:2]) and "action" not in steps[2]
+    assert sorted(os.listdir(os.path.join(out, "frames"))) == ["000", "001", "002"]
+    assert set(os.listdir(os.path.join(out, "frames", "000"))) == {"depth.png", "rgb.png", "camera.json"}
+    assert open(os.path.join(out, "episode.gif"), "rb").read(3) == b"GIF"
+    assert steps[2]["distance"] != steps[0]["distance"] and 0 <= summary["true_inside"] <= 1  # the pushes moved it
+    with open(os.path.join(out, "metrics.json")) as f:
+        assert json.load(f)["steps"] == steps
+
+
+def test_the_recorded_frames_replay_as_a_dry_run(episode, tmp_path):
+    """The frames the simulator's episode saved, read back: the robot plans a push for each but sends none, and
+    each frame's d is what the episode saw (depth kept to a millimetre)."""
+    out, summary = episode
+    replay = robot.main([*TINY, "--replay", os.path.join(out, "frames"), "--calibrate", "--out", str(tmp_path)])
+    assert replay["dry_run"] and replay["pushes"] == 2 and "true_inside" not in replay
+    for seen, live in zip(replay["steps"], summary["steps"], strict=True):
+        assert seen["distance"] == pytest.approx(live["distance"], rel=0.05)
+
+
+def test_the_workspace_check_refuses_pushes_outside_and_a_dry_run_moves_nothing():
+    sim = SimConfig(scene=SceneConfig(pieces=(12,)), pile=PileConfig(layout="spread"),
+                    camera=CameraConfig(width=64, height=64))
+    env = PileEnv(sim, backend="mujoco")
+    workspace = Workspace.of(env)
+    with pytest.raises(UnsafePush, match="leaves the workspace"):
+        workspace.check([0.0, 0.0, env.action_bound + 0.01, 0.0])  # ends beyond the bound
+    with pytest.raises(UnsafePush, match="finite"):
+        workspace.check([0.0, np.nan, 0.05, 0.0])
+    inside = np.array([0.0, 0.0, 0.05, 0.0], np.float32)
+    np.testing.assert_array_equal(workspace.check(inside), inside)
+    world, pusher = SimulatedRobot(env, jax.random.PRNGKey(1)), DryRun()
+    start = np.asarray(world.state.pos).copy()
+    planner = PlannerConfig(samples=4, adam_steps=3, bound=env.action_bound, reach=env.reach,
+                            max_length=sim.push.max_length)
+    cfg = MPCConfig(mpc_steps=2, buckets=(16,), max_points=1024, planner=planner)
+    steps = run_robot(world, pusher, disc_goal(env.camera, np.zeros(2), 0.08), sweep_dynamics(0.04), cfg, 12,
+                      jax.random.PRNGKey(2), workspace=workspace, log=lambda s: None)
+    assert len(pusher.pushes) == 2 and np.array_equal(np.asarray(world.state.pos), start)
+    assert steps[0]["distance"] == steps[2]["distance"]  # nothing moved: the same frame every time
+    done = run_robot(SimulatedRobot(env, jax.random.PRNGKey(1)), DryRun(), np.ones((64, 64), bool) & ~np.eye(
+        64, dtype=bool), sweep_dynamics(0.04), cfg, 12, jax.random.PRNGKey(2), workspace=workspace, success=0.5,
+        log=lambda s: None)
+    assert len(done) == 1 and "action" not in done[0]  # already at the goal: stops before any push
