@@ -9,23 +9,17 @@ i)). Each method runs all episodes together: perception and planning vmapped on 
 processes (``WorldPool``). With ``--time-budget S`` every method plans under the same budget of S seconds per
 decision, spent by one timing table (``timing.json``, measured once per resolution bucket on this device or given by
 ``--timing``): a coarse ω affords more Adam steps. Without it every decision runs ``--adam-steps``.
-"adaptive" picks ω at every step with the regressor g (``--regressor``); "oracle" (an upper bound, not in the default
-list) plans at every ω of ORACLE_OMEGAS each step, pushes each on a copy of the worlds and keeps the one that left the
-lowest d (``choosers.OracleOmega``); the summary then says how much of the oracle's gain over the best fixed
-ω adaptive recovers (``oracle_gap``); "bestK" (e.g. "best5") is the oracle's control: K plans at ``--best-omega``
-from independent keys each step, the best kept the same way (``choosers.BestOfK``), so the oracle's gain over it is
-what choosing ω adds to choosing among plans; "sim" lets the simulator choose among the sampling planner's pushes
-with no model: each step the planner's M first samples (perceived at ``--best-omega``) are pushed in the simulator on
-copies of the worlds and the best kept (``choosers.SimulatorScored``; M pushes a step, so slow); "rerank" does the same
-with the M plans after the model's Adam steps (and the model's own best): what a perfect ranking of the model's plans
-would gain; "cnn" (not in
-the default list) is the paper's CNN-dynamics baseline: the same planner at ω = ``--cnn-omega`` (50) with the CNN
-checkpoint ``--cnn-ckpt`` (``experiments.train_dynamics --model cnn``) as its model. Redistribute's episode i draws
-the letter i modulo ``--letters`` (JTU). Writes per method ``METHOD.json`` (final d
-and inside share per episode, means per step; resumable: finished methods are skipped), ``summary.json`` (means with
-95 % confidence intervals, success rates, and every method paired with adaptive on the same episodes: the mean
-difference of final d with a paired-bootstrap 95 % interval and McNemar's test on success, ``dynres_jax.stats``),
-``score.png`` (share of episodes with final d below τ, against τ) and ``steps.png`` (mean d over the MPC steps).
+Methods (``--methods``): fixed ω; "adaptive", the regressor g picks ω every step; "oracle" (an upper bound) plans at
+each ω of ORACLE_OMEGAS and keeps the push that left the lowest d on copies of the worlds (the summary says how much
+of its gain over the best fixed ω adaptive recovers, ``oracle_gap``); "cnn", the paper's CNN-dynamics baseline at
+``--cnn-omega``. The ladder of docs/ladder, where the simulator picks among the planner's candidates at
+``--best-omega`` (``choosers.BestOfK``, ``SimulatorScored``): "bestK" (e.g. best5) among K plans from independent
+keys, the oracle's control; "sim" among the M first samples, no model; "rerank" among the M plans after the model's
+Adam steps. Redistribute's episode i draws the letter i modulo ``--letters``. Writes per method ``METHOD.json`` (final
+d and inside share per episode, means per step; finished methods are skipped on a rerun), ``summary.json`` (means with
+95 % intervals, success rates, every method paired with adaptive or the first method: Δ final d with a
+paired-bootstrap interval, McNemar's test on success), ``score.png`` (share of episodes with final d below τ) and
+``steps.png`` (mean d over the MPC steps).
 
 Several processes share the episodes through jax.distributed (a launcher, or --coordinator, --num-processes,
 --process-id): process I runs episodes I, I + K, ... of every method and writes ``parts/METHOD.I-of-K.json``;
@@ -68,6 +62,7 @@ from dynres_jax.control.choosers import (
 from dynres_jax.control.goals import make_goal, stack
 from dynres_jax.control.mpc import SensorView, fold, run
 from dynres_jax.io import ckpt, files
+from dynres_jax.io.draw import evaluation_plots
 from dynres_jax.models.registry import SHIPPED_CNN_DYNAMICS, SHIPPED_DYNAMICS, SHIPPED_REGRESSOR, describe
 from dynres_jax.sim.camera import Camera
 from dynres_jax.sim.env import PileEnv
@@ -178,35 +173,6 @@ def label(method: str, r: dict) -> str:
     if method in SIMULATED:
         return "simulator chooses among samples" if method == "sim" else "simulator ranks the model's plans"
     return f"CNN, ω = {round(float(np.mean(r['omega'])))}" if method == "cnn" else method
-
-
-def plot(results: dict, task: str, out_dir: str) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    finals = np.concatenate([r["final_distance"] for r in results.values()])  # d >= 0
-    taus = np.linspace(0.0, 1.02 * finals.max(), 200)
-    fig, ax = plt.subplots(figsize=(5, 3.5))
-    for method, r in results.items():
-        d = np.array(r["final_distance"])
-        ax.plot(taus, [(d < t).mean() for t in taus], label=label(method, r), lw=2.5 if method == "adaptive" else 1.2,
-                ls="--" if method == "cnn" else "-")
-    ax.set(xlabel="threshold τ on final d (pixels)", ylabel="task score (share of episodes with d < τ)",
-           title=f"{task}, {len(d)} episodes")
-    ax.legend(fontsize=8)
-    fig.tight_layout()
-    fig.savefig(os.path.join(out_dir, "score.png"), dpi=120)
-    plt.close(fig)
-    fig, ax = plt.subplots(figsize=(5, 3.5))
-    for method, r in results.items():
-        ax.plot(np.arange(1, len(r["mean_distance"]) + 1), r["mean_distance"], label=label(method, r))
-    ax.set(xlabel="MPC step", ylabel="mean d", title=task)
-    ax.legend(fontsize=8)
-    fig.tight_layout()
-    fig.savefig(os.path.join(out_dir, "steps.png"), dpi=120)
-    plt.close(fig)
 
 
 def method_chooser(method: str, goals, args, camera) -> Chooser:
@@ -395,7 +361,7 @@ def main(argv=None):
                    mpc_steps=args.mpc_steps, **summarise(results))
     if distributed.is_writer():
         files.write_json(os.path.join(args.out, "summary.json"), summary)
-        plot(results, args.task, args.out)
+        evaluation_plots(results, args.task, args.out, {m: label(m, r) for m, r in results.items()})
     for method, s in summary["methods"].items():
         print(f"{method:>8}: final d {s['final_distance']:8.2f} ± {s['final_distance_ci95']:.2f}  inside "
               f"{s['final_inside']:.1%}  ≥{SUCCESS:.0%} inside in {s['success_share']:.0%} of episodes  "

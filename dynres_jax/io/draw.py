@@ -1,9 +1,11 @@
 """Pictures of an episode: a frame with its goal tinted and the planner's particles drawn (``overlay``), Sort's two
-goals tinted (``tint``), and ``Frames``, the closed loop's ``on_step`` callback that collects GIF frames of episode 0.
+goals tinted (``tint``), and ``Frames``, the closed loop's ``on_step`` callback that collects GIF frames of episode 0;
+and of an evaluation: its score and step curves (``evaluation_plots``).
 """
 
 from __future__ import annotations
 
+import os
 from collections.abc import Callable
 
 import cv2
@@ -98,3 +100,35 @@ def sort_frames(goal_masks, target_mask: Callable[[], np.ndarray], camera) -> Fr
                        push=_push(particles, record))
 
     return Frames(draw)
+
+
+def evaluation_plots(results: dict, task: str, out_dir: str, names: dict[str, str]) -> None:
+    """An evaluation's ``score.png`` (per method, the share of episodes with final d below τ, against τ) and
+    ``steps.png`` (mean d over the MPC steps) in out_dir. results: {method: {final_distance [E], mean_distance [T]}};
+    names: each method's name in the legends."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    finals = np.concatenate([r["final_distance"] for r in results.values()])  # d >= 0
+    taus = np.linspace(0.0, 1.02 * finals.max(), 200)
+    fig, ax = plt.subplots(figsize=(5, 3.5))
+    for method, r in results.items():
+        d = np.array(r["final_distance"])
+        ax.plot(taus, [(d < t).mean() for t in taus], label=names[method], lw=2.5 if method == "adaptive" else 1.2,
+                ls="--" if method == "cnn" else "-")
+    ax.set(xlabel="threshold τ on final d (pixels)", ylabel="task score (share of episodes with d < τ)",
+           title=f"{task}, {len(d)} episodes")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(os.path.join(out_dir, "score.png"), dpi=120)
+    plt.close(fig)
+    fig, ax = plt.subplots(figsize=(5, 3.5))
+    for method, r in results.items():
+        ax.plot(np.arange(1, len(r["mean_distance"]) + 1), r["mean_distance"], label=names[method])
+    ax.set(xlabel="MPC step", ylabel="mean d", title=task)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(os.path.join(out_dir, "steps.png"), dpi=120)
+    plt.close(fig)
