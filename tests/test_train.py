@@ -233,7 +233,7 @@ def test_quick_data_trains_with_the_quick_recipe(tmp_path, capsys):
     refused in one line that names the quick recipe."""
     from dynres_jax.commands import train_dynamics
 
-    data.generate(data.quick_config(), str(tmp_path / "data"), progress=False)
+    data.generate(data.quick_config(backend="mujoco"), str(tmp_path / "data"), progress=False)  # quick sizes, C engine
     with pytest.raises(SystemExit):
         train_dynamics.main(["--data", str(tmp_path / "data"), "--out", str(tmp_path / "default")])
     assert "--recipe quick" in capsys.readouterr().err

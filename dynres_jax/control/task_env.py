@@ -26,7 +26,6 @@ from dynres_jax.control.goals import Goal, disc_goal, make_goal
 from dynres_jax.control.objective import distribution_distance, inside_share
 from dynres_jax.sim import env as sim_env
 from dynres_jax.sim.camera import Observation
-from dynres_jax.sim.env import PileEnv
 
 
 @struct.dataclass
@@ -52,7 +51,7 @@ class TaskEnv:
                  episode_length: int = 20, success: float = 0.9):
         if episode_length < 1 or not 0 < success <= 1:
             raise ValueError(f"episode_length must be >= 1 and success in (0, 1], got {episode_length}, {success}")
-        self.pile = PileEnv(sim or SimConfig(), backend=backend)
+        self.pile = sim_env.PileEnv(sim or SimConfig(), backend=backend)
         camera = self.pile.camera
         mask = disc_goal(camera, np.zeros(2), 0.08) if goal_mask is None else np.asarray(goal_mask, bool)
         if mask.shape != (camera.height, camera.width):
@@ -67,6 +66,7 @@ class TaskEnv:
 
     @property
     def observation_size(self) -> dict[str, tuple[int, ...]]:
+        """The shapes of an observation's images (the Observation's rgb, depth and kind)."""
         c = self.pile.camera
         return {"rgb": (c.height, c.width, 3), "depth": (c.height, c.width), "kind": (c.height, c.width)}
 
