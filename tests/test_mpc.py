@@ -16,6 +16,8 @@ from dynres_jax.control.choosers import (
     OracleOmega,
     Orders,
     SimulatorScored,
+    climb,
+    on_ladder,
 )
 from dynres_jax.control.decision import batch, decide_batch, goal_cost
 from dynres_jax.control.goals import disc_goal, make_goal
@@ -213,6 +215,11 @@ def test_best_of_k_keeps_the_best_of_independent_plans(three):
         BestOfK(OracleOmega(goals), 2)(0, starts.obs)
     with pytest.raises(ValueError, match="one plan per step, got 2 candidate ω, drawn"):
         SimulatorScored(BestOfK(FixedOmega(goals, 6), 2))(0, starts.obs)
+    assert isinstance(climb(FixedOmega(goals, 6), "best3"), BestOfK) and climb(FixedOmega(goals, 6), "best3").k == 3
+    assert climb(FixedOmega(goals, 6), "rerank").refine and not climb(FixedOmega(goals, 6), "sim").refine
+    assert not on_ladder("oracle") and not on_ladder("best0") and on_ladder("best12")
+    with pytest.raises(ValueError, match="not a rung of the ladder: 'oracle'"):
+        climb(FixedOmega(goals, 6), "oracle")
 
 
 def test_simulator_scored_keeps_the_sample_with_the_lowest_true_d(three):

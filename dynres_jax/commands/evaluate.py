@@ -52,12 +52,12 @@ from dynres_jax.control import resolution, tasks
 from dynres_jax.control.choosers import (
     ORACLE_OMEGAS,
     AdaptiveOmega,
-    BestOfK,
     Chooser,
     FixedOmega,
     OracleOmega,
-    SimulatorScored,
     best_of,
+    climb,
+    on_ladder,
 )
 from dynres_jax.control.goals import make_goal, stack
 from dynres_jax.control.mpc import SensorView, fold, run
@@ -70,7 +70,6 @@ from dynres_jax.sim.pool import WorldPool, process_pool
 from dynres_jax.sim.sensor import SENSORS
 from dynres_jax.stats import mcnemar, paired_bootstrap, wilson
 
-SIMULATED = ("sim", "rerank")  # the methods whose push the simulator chooses among the planner's candidates
 QUICK = dict(episodes=4, mpc_steps=3, samples=8, adam_steps=10)  # --quick's sizes, where a flag does not set them
 SUCCESS = 0.9  # an episode succeeds when this share of the pieces ends inside the goal
 
@@ -170,8 +169,10 @@ def label(method: str, r: dict) -> str:
         return f"ω = {method}"
     if best_of(method):
         return f"best of {best_of(method)}, ω = {round(float(np.mean(r['omega'])))}"
-    if method in SIMULATED:
-        return "simulator chooses among samples" if method == "sim" else "simulator ranks the model's plans"
+    if method == "sim":
+        return "simulator chooses among samples"
+    if method == "rerank":
+        return "simulator ranks the model's plans"
     return f"CNN, ω = {round(float(np.mean(r['omega'])))}" if method == "cnn" else method
 
 
@@ -184,10 +185,8 @@ def method_chooser(method: str, goals, args, camera) -> Chooser:
         return AdaptiveOmega(goals, resolution.load_regressor(args.regressor, camera))
     if method == "oracle":
         return OracleOmega(goals, ORACLE_OMEGAS)
-    if best_of(method):
-        return BestOfK(FixedOmega(goals, args.best_omega), best_of(method))
-    if method in SIMULATED:
-        return SimulatorScored(FixedOmega(goals, args.best_omega), refine=method == "rerank")
+    if on_ladder(method):
+        return climb(FixedOmega(goals, args.best_omega), method)
     return FixedOmega(goals, args.cnn_omega if method == "cnn" else int(method))
 
 
@@ -204,7 +203,7 @@ def method_omega(method: str, args) -> int | None:
     the methods that choose among ω (adaptive, oracle)."""
     if method.isdigit():
         return int(method)
-    if best_of(method) or method in SIMULATED:
+    if on_ladder(method):
         return args.best_omega
     return args.cnn_omega if method == "cnn" else None
 
@@ -277,7 +276,7 @@ def main(argv=None):
     table = load_timing(parser, args)
     for m in args.methods:
         fixed = m.isdigit() and OMEGA_MIN <= int(m) <= OMEGA_MAX
-        if m not in ("adaptive", "oracle", "cnn", *SIMULATED) and not fixed and not best_of(m):
+        if m not in ("adaptive", "oracle", "cnn") and not fixed and not on_ladder(m):
             parser.error(f"--methods takes 'adaptive', 'oracle', 'cnn', 'sim', 'rerank', 'bestK' (K >= 1) or integers "
                          f"in [{OMEGA_MIN}, {OMEGA_MAX}], got {m!r}")
     if len(set(args.methods)) < len(args.methods):

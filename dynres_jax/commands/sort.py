@@ -27,7 +27,7 @@ import numpy as np
 from dynres_jax.commands import checks
 from dynres_jax.commands.task import add_loop_args, build_loop, check_budget, check_pile, write_episode
 from dynres_jax.config import KINDS, CameraConfig, PileConfig, SceneConfig, SimConfig
-from dynres_jax.control.choosers import BestOfK, SimulatorScored, best_of
+from dynres_jax.control.choosers import climb, on_ladder
 from dynres_jax.control.decision import batch
 from dynres_jax.control.goals import make_goal
 from dynres_jax.control.mpc import measure_timing, run_episode
@@ -50,7 +50,7 @@ def main(argv=None):
                              "K plans by their simulated pushes; sim: the simulator chooses among the planner's first "
                              "samples; rerank: among its plans after the model's Adam steps")
     args = parser.parse_args(argv)
-    if args.method not in ("model", "sim", "rerank") and not best_of(args.method):
+    if args.method != "model" and not on_ladder(args.method):
         parser.error(f"--method takes 'model', 'sim', 'rerank' or 'bestK' (K >= 1), got {args.method!r}")
     if args.kinds[0] == args.kinds[1]:
         parser.error(f"--kinds must name two different kinds, got {args.kinds[0]} twice")
@@ -79,8 +79,7 @@ def main(argv=None):
     key = jax.random.PRNGKey(args.seed)
     policy = SortPolicy(env, cfg, loop.omega, key, goals_xy, radius, grid_step=args.grid_step)
     frames = sort_frames(masks, lambda: policy.target_mask, env.camera)
-    chooser = {"model": policy, "sim": SimulatorScored(policy), "rerank": SimulatorScored(policy, refine=True)}.get(
-        args.method) or BestOfK(policy, best_of(args.method))
+    chooser = policy if args.method == "model" else climb(policy, args.method)
     state, records = run_episode(env, state, chooser, loop.model.dynamics, cfg, key, timing=timing, on_step=[frames])
     if timing is not None:
         timing.save(os.path.join(args.out, "timing.json"))

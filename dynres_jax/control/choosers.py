@@ -132,3 +132,18 @@ def best_of(method: str) -> int:
     """K of a best-of-K method name ("best5" -> 5), else 0."""
     match = re.fullmatch(r"best([1-9][0-9]*)", method)
     return int(match.group(1)) if match else 0
+
+
+def on_ladder(method: str) -> bool:
+    """Whether ``method`` names a rung of the ladder (docs/ladder): "bestK", "sim" or "rerank"."""
+    return bool(best_of(method)) or method in ("sim", "rerank")
+
+
+def climb(chooser: Chooser, method: str) -> Chooser:
+    """``chooser`` (one plan a step) on the ladder's rung ``method``: "bestK" (``BestOfK``), "sim" (the simulator
+    chooses among the first samples) or "rerank" (among the plans after the model's Adam steps; ``SimulatorScored``)."""
+    if best_of(method):
+        return BestOfK(chooser, best_of(method))
+    if method in ("sim", "rerank"):
+        return SimulatorScored(chooser, refine=method == "rerank")
+    raise ValueError(f"not a rung of the ladder: {method!r} (bestK, sim or rerank)")

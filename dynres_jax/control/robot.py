@@ -150,11 +150,13 @@ class SimulatedRobot:
         self.state = self.env.push(self.state, np.asarray(action, np.float32))
 
 
-def seen_inside(obs: Observation, goal: Goal, camera: Camera, real_depth: bool) -> float:
-    """The share of the frame's foreground pixels that lie on goal pixels (what a camera can tell of "inside")."""
+def seen_scores(obs: Observation, goal: Goal, camera: Camera, real_depth: bool) -> tuple[float, float]:
+    """What a camera can tell of the goal, from the frame's foreground (computed once): d (px) and the share of
+    foreground pixels that lie on goal pixels."""
     _, valid = foreground(obs, camera, real_depth=real_depth)
-    valid = np.asarray(valid).reshape(camera.height, camera.width)
-    return float(np.sum(valid & np.asarray(goal.mask)) / max(int(valid.sum()), 1))
+    valid = jnp.reshape(valid, (camera.height, camera.width))
+    inside = float(jnp.sum(valid & goal.mask) / jnp.maximum(jnp.sum(valid), 1))
+    return float(distribution_distance(valid, goal, camera)), inside
 
 
 def run_robot(source: FrameSource, pusher: Pusher, goal_mask, dynamics, cfg: MPCConfig, omega: int, key, *,
@@ -176,8 +178,8 @@ def run_robot(source: FrameSource, pusher: Pusher, goal_mask, dynamics, cfg: MPC
     spec = cfg.spec(bucket_for(omega, cfg.buckets))
     init, warm, records = jnp.zeros((1, cfg.planner.horizon, 4), jnp.float32), False, []
     for t in range(cfg.mpc_steps + 1):
-        record = dict(step=t, distance=float(distribution_distance(obs, goal, camera, real_depth=cfg.real_depth)),
-                      inside=seen_inside(obs, goal, camera, cfg.real_depth))
+        distance, inside = seen_scores(obs, goal, camera, cfg.real_depth)
+        record = dict(step=t, distance=distance, inside=inside)
         if record["inside"] >= success or t == cfg.mpc_steps:
             records.append(record)
             if on_step:
