@@ -16,7 +16,7 @@ import pytest
 from dynres_jax.config import SceneConfig, SimConfig
 from dynres_jax.control.budget import BUCKETS, TimingTable
 from dynres_jax.io import frames
-from dynres_jax.learn.data import save_npz
+from dynres_jax.io.shards import save_npz
 from dynres_jax.models.registry import SHIPPED_DYNAMICS, SHIPPED_REGRESSOR
 from dynres_jax.sim.env import PileEnv
 

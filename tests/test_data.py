@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 
 from dynres_jax.config import CameraConfig, SceneConfig, SimConfig
-from dynres_jax.io import files
+from dynres_jax.io import files, shards
 from dynres_jax.learn import data, targets
 from dynres_jax.perception import sample_particles
 from dynres_jax.sim.camera import Observation
@@ -79,7 +79,7 @@ def test_generation_writes_shards_and_summary(generated):
     assert summary["broken_dropped"] == 0 and summary["shards_written"] == 2 and summary["samples_per_s"] > 0
     env = PileEnv(data.shard_sim_config(QUICK, 0), backend="mujoco", render=False)
     for i, e in enumerate((4, 3)):
-        s = read(data.shard_path(out, i))
+        s = read(shards.shard_path(out, i))
         expect = dict(depth=((e, 3, 48, 48), np.float16), piece=((e, 3, 48, 48), np.int16),
                       pos=((e, 3, 6, 3), np.float32), mat=((e, 3, 6, 3, 3), np.float32),
                       action=((e, 2, 4), np.float32), broken=((e, 3), np.bool_), episode=((e,), np.int64),
@@ -126,7 +126,7 @@ def test_resume_rewrites_missing_shard_identically(generated, tmp_path):
     original, _ = generated
     out = str(tmp_path / "run")
     shutil.copytree(original, out)  # copy2: mtimes kept
-    first, second = data.shard_path(out, 0), data.shard_path(out, 1)
+    first, second = shards.shard_path(out, 0), shards.shard_path(out, 1)
     with open(second, "rb") as f:
         second_bytes = f.read()
     os.unlink(second)  # the run was killed before shard 1 ...
@@ -140,7 +140,7 @@ def test_resume_rewrites_missing_shard_identically(generated, tmp_path):
     with open(second, "rb") as f:
         assert f.read() == second_bytes  # byte-identical: same arrays, fixed zip timestamps
     for name, value in read(second).items():
-        np.testing.assert_array_equal(value, read(data.shard_path(original, 1))[name], err_msg=name)
+        np.testing.assert_array_equal(value, read(shards.shard_path(original, 1))[name], err_msg=name)
     assert data.generate(QUICK, out, progress=False)["shards_written"] == 0  # complete: nothing to do
     with pytest.raises(ValueError, match="another DataConfig"):
         data.generate(data.replace(QUICK, seed=1), out, progress=False)
@@ -158,7 +158,7 @@ def test_a_part_makes_only_its_shards_bit_for_bit(generated, tmp_path):
     assert sorted(os.listdir(out)) == sorted(["config.json", "shard_00001.npz", "summary.json",
                                               os.path.basename(other)])
     assert summary["shards_written"] == 1 and summary["shards_skipped"] == 0
-    with open(data.shard_path(out, 1), "rb") as a, open(data.shard_path(original, 1), "rb") as b:
+    with open(shards.shard_path(out, 1), "rb") as a, open(shards.shard_path(original, 1), "rb") as b:
         assert a.read() == b.read()
 
 
@@ -169,7 +169,7 @@ def test_multi_device_run_matches_single_device(generated, multi_device):
     assert "BAD-WORLDS: DataConfig.worlds=6 must be a multiple of the device count 4" in stdout
     summary = json.loads(stdout[stdout.index("{"):])
     assert summary["devices"] == 4 and summary["episodes"] == 4
-    many, one = read(data.shard_path(str(out / "run"), 0)), read(data.shard_path(generated[0], 0))
+    many, one = read(shards.shard_path(str(out / "run"), 0)), read(shards.shard_path(generated[0], 0))
     assert many.keys() == one.keys()
     for name in ("episode", "kind", "kind_names", "sim_config", "broken", "simulated", "dropped"):
         np.testing.assert_array_equal(many[name], one[name], err_msg=name)
@@ -308,13 +308,13 @@ def test_load_pads_shards_with_fewer_pieces(generated, tmp_path):
     """A shard of 4 almonds beside shards of 6 coffee beans: pieces padded, masked, kinds mapped to KIND_NAMES."""
     out = str(tmp_path / "mixed")
     shutil.copytree(generated[0], out)
-    s = read(data.shard_path(out, 1))
+    s = read(shards.shard_path(out, 1))
     sim = SimConfig.from_json(str(s["sim_config"]))
     sim = data.replace(sim, scene=data.replace(sim.scene, kinds=("almond",), pieces=(4,)))
     s.update(pos=s["pos"][:, :, :4], mat=s["mat"][:, :, :4], kind=s["kind"][:4], kind_names=np.array(["almond"]),
              piece=np.where(s["piece"] < 4, s["piece"], -1).astype(np.int16), episode=s["episode"] + 100,
              sim_config=np.array(json.dumps(dataclasses.asdict(sim))))
-    data.save_npz(os.path.join(out, "shard_00002.npz"), s)
+    shards.save_npz(os.path.join(out, "shard_00002.npz"), s)
     with pytest.raises(ValueError, match="shard_00002.npz lies beyond the 2 shards"):
         targets.load_shards(out)
     with open(os.path.join(out, "config.json")) as f:

@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 
 from dynres_jax import distributed
+from dynres_jax.io import shards
 from dynres_jax.learn import data
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -113,7 +114,7 @@ def test_two_processes_write_the_shards_of_one_byte_for_byte(two_process_data, t
     assert [(s["process"], s["processes"], s["shards_written"]) for s in summaries] == [(0, 2, 1), (1, 2, 1)]
     assert sorted(f for f in os.listdir(out) if f.endswith(".npz")) == ["shard_00000.npz", "shard_00001.npz"]
     for shard in (0, 1):
-        with open(data.shard_path(out, shard), "rb") as a, open(data.shard_path(one, shard), "rb") as b:
+        with open(shards.shard_path(out, shard), "rb") as a, open(shards.shard_path(one, shard), "rb") as b:
             assert a.read() == b.read(), f"shard {shard} differs"
     with open(os.path.join(out, "summary.json")) as f:  # written once, after both, over both shards
         summary = json.load(f)

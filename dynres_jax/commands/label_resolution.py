@@ -39,7 +39,8 @@ from dynres_jax.commands import checks
 from dynres_jax.commands.task import add_planner_args, check_pile, load_model, load_timing, mpc_config, timing_table
 from dynres_jax.config import KINDS, OMEGA_MAX, OMEGA_MIN, SceneConfig
 from dynres_jax.io import files
-from dynres_jax.learn.data import complete_shards, read_shard, save_npz, shard_path, shards_todo
+from dynres_jax.io.shards import complete_shards, read_shard, save_npz, shard_path
+from dynres_jax.learn.data import shards_todo
 from dynres_jax.learn.labels import MID_EPISODE_OMEGA, LabelConfig, label_shard, scene_config, shard_scenes
 from dynres_jax.models.registry import SHIPPED_DYNAMICS
 from dynres_jax.sim.pool import BACKENDS, make_pool, process_pool, resolve_backend

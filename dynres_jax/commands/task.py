@@ -41,7 +41,7 @@ from dynres_jax.control.decision import batch, episode
 from dynres_jax.control.goals import make_goal
 from dynres_jax.control.mpc import MPCConfig, measure_timing, run_episode
 from dynres_jax.control.objective import inside_share
-from dynres_jax.control.planner import PlannerConfig
+from dynres_jax.control.planner import planner_config
 from dynres_jax.control.resolution import load_regressor
 from dynres_jax.errors import InputError
 from dynres_jax.io import files
@@ -259,13 +259,6 @@ def add_planner_args(parser) -> None:
                         help="Adam steps per plan (the most, under a budget)")
     parser.add_argument("--horizon", type=checks.count(1, 10), default=1,
                         help="pushes per planned sequence (paper T = 1)")
-
-
-def planner_config(env, **settings) -> PlannerConfig:
-    """The planner's settings for pushes in ``env``'s bin (its action space: bound, reach, push lengths)."""
-    push = env.config.push
-    return PlannerConfig(bound=env.action_bound, reach=env.reach, min_length=push.min_length,
-                         max_length=push.max_length, **settings)
 
 
 def mpc_config(env, args, mpc_steps: int = 1, real_depth: bool = False) -> MPCConfig:

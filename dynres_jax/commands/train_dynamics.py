@@ -30,7 +30,7 @@ import numpy as np
 from dynres_jax import distributed
 from dynres_jax.commands import checks
 from dynres_jax.errors import InputError
-from dynres_jax.learn.data import iter_shards
+from dynres_jax.io.shards import iter_shards
 from dynres_jax.learn.targets import is_validation
 from dynres_jax.learn.train import RECIPES, SCHEDULE, TrainConfig, train
 from dynres_jax.models.cnn_dynamics import CNNDynamicsConfig

@@ -93,6 +93,13 @@ class PlannerConfig:
         check_reach(self.bound, self.reach, self.min_length, self.max_length)
 
 
+def planner_config(env, **settings) -> PlannerConfig:
+    """The planner's settings for pushes in ``env``'s bin (its action space: bound, reach, push lengths)."""
+    push = env.config.push
+    return PlannerConfig(bound=env.action_bound, reach=env.reach, min_length=push.min_length,
+                         max_length=push.max_length, **settings)
+
+
 class PlanResult(NamedTuple):
     """best [T, 4]: the lowest-cost sequence seen (projected); best_cost []: its cost; costs [M] and actions
     [M, T, 4]: every sequence after the final step; history [PlannerConfig.adam_steps]: the best cost seen up to each

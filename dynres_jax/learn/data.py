@@ -8,8 +8,9 @@ worlds) comes from ``(seed, i)`` alone, so shards can be made in any order, and 
 shard files that exist: the result is the one an uninterrupted run writes. Several processes of one job
 (``dynres_jax.distributed``: a launcher, or ``--coordinator``) share a run: process I makes shards I, I + K, ... into
 the same folder. An episode is ``pushes`` random pushes through the pile (``PileEnv.sample_push``) from a freshly
-reset pile; frame 0 is the settled pile, frame ``t + 1`` the pile after action ``t``. The worlds of an MJX batch are
-sharded over the process's devices (a 1-D ``Mesh`` named ``"worlds"``), so more GPUs go faster. Results are
+reset pile (with ``DataConfig.planned`` > 0, a share of them chosen by the closed loop's planner instead:
+``learn.on_policy``); frame 0 is the settled pile, frame ``t + 1`` the pile after action ``t``. The worlds of an MJX
+batch are sharded over the process's devices (a 1-D ``Mesh`` named ``"worlds"``), so more GPUs go faster. Results are
 bit-identical for the same seed, machine and device count; with another device count XLA compiles a different
 per-device batch and values agree to float32 rounding (then drift apart, as chaotic piles do).
 
@@ -43,8 +44,6 @@ import json
 import math
 import os
 import time
-import zipfile
-from collections.abc import Iterator
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
@@ -62,16 +61,15 @@ from dynres_jax.config import (
     check_fields,
     replace,
 )
-from dynres_jax.errors import InputError
-from dynres_jax.io.files import TMP_PREFIX, atomic_write, write_json, write_text
+from dynres_jax.io.files import TMP_PREFIX, write_json, write_text
+from dynres_jax.io.shards import SHARD_GLOB, read_shard, save_npz, shard_path
+from dynres_jax.learn import on_policy
 from dynres_jax.sim import pool as pools
 from dynres_jax.sim.env import PileEnv, random_episode
-from dynres_jax.sim.pool import WorldPool, process_pool
+from dynres_jax.sim.pool import MJXPool, WorldPool, process_pool
 
 KIND_NAMES = tuple(KINDS)  # global kind index used by Dataset.kind and Sample.kind
 LAYOUTS = ("blob", "two_blobs", "spread")
-SHARD_GLOB = "shard_*.npz"
-ZIP_DATE = (1980, 1, 1, 0, 0, 0)
 PER_EPISODE = ("depth", "piece", "pos", "mat", "action", "broken", "episode")  # shard members with an episode axis
 
 
@@ -104,6 +102,9 @@ class DataConfig:
       records the engine it used). Why C is the default: on one H200 "mjx-fast" made the same data set 2.8x faster,
       but the model trained on it gathered coffee in the C scene in 48 % of episodes against 75 % for the model
       trained on C data (docs/performance.md, "Data from MJX").
+    planned: the share of pushes the closed loop's planner chooses (on-policy data, ``learn.on_policy``; shard i
+      plans at ω = ``on_policy.OMEGAS[i % 3]``); 0: every push random. policy: the checkpoint folder of the model it
+      plans with ("shipped": checkpoints/dynamics).
     sim: the rest of the simulator (physics, push, camera distance); kinds, pieces, layout and image size above
       override its fields per shard.
     """
@@ -120,6 +121,8 @@ class DataConfig:
     seed: int = 0
     drop_broken: bool = True
     backend: str = "mujoco"
+    planned: float = 0.0
+    policy: str = "shipped"
     sim: SimConfig = field(default_factory=SimConfig)
 
     def __post_init__(self):
@@ -140,6 +143,8 @@ class DataConfig:
                              f"got {self.two_kinds} with kinds {self.kinds}")
         if self.backend not in pools.BACKENDS:
             raise ValueError(f"DataConfig.backend must be one of {', '.join(pools.BACKENDS)}, got {self.backend!r}")
+        if not 0.0 <= self.planned <= 1.0:
+            raise ValueError(f"DataConfig.planned must be a share in [0, 1], got {self.planned}")
         if self.image_size < 8:
             raise ValueError(f"DataConfig.image_size must be at least 8 pixels, got {self.image_size}")
 
@@ -187,23 +192,6 @@ def shard_sim_config(config: DataConfig, shard: int) -> SimConfig:
 
 
 # ---------------------------------------------------------------------------------------------------------------
-# Atomic files
-# ---------------------------------------------------------------------------------------------------------------
-def save_npz(path: str, arrays: dict) -> None:
-    """Atomic ``np.savez_compressed`` with fixed member timestamps: equal arrays give byte-equal files."""
-
-    def write(f):
-        with zipfile.ZipFile(f, "w", zipfile.ZIP_DEFLATED, compresslevel=1) as z:
-            for name, value in arrays.items():
-                info = zipfile.ZipInfo(name + ".npy", ZIP_DATE)
-                info.compress_type = zipfile.ZIP_DEFLATED
-                with z.open(info, "w", force_zip64=True) as member:
-                    np.lib.format.write_array(member, np.asarray(value), allow_pickle=False)
-
-    atomic_write(path, write)
-
-
-# ---------------------------------------------------------------------------------------------------------------
 # Generation
 # ---------------------------------------------------------------------------------------------------------------
 def check_devices(config: DataConfig, devices=None) -> list:
@@ -243,7 +231,12 @@ def simulate_shard(config: DataConfig, shard: int, devices=None, pool=None) -> d
     devices = check_devices(config, devices)
     sim = shard_sim_config(config, shard)
     keys = jax.random.split(jax.random.fold_in(jax.random.PRNGKey(config.seed), shard), config.worlds)
-    if config.backend == "mujoco":
+    if config.planned > 0:
+        worlds = WorldPool(sim, pool) if config.backend == "mujoco" else MJXPool(sim)
+        env = worlds.env
+        out = on_policy.planned_episodes(worlds, keys, config.pushes, config.planned, on_policy.policy_dynamics(
+            config.policy, sim.scene.plate_half_width), on_policy.OMEGAS[shard % len(on_policy.OMEGAS)])
+    elif config.backend == "mujoco":
         worlds = WorldPool(sim, pool)
         env, out = worlds.env, worlds.random_episodes(keys, config.pushes)
     else:
@@ -268,10 +261,6 @@ def finish_shard(arrays: dict, n_keep: int, drop_broken: bool) -> dict:
     out["simulated"] = np.int64(n_keep)
     out["dropped"] = np.int64(broken.sum() if drop_broken else 0)
     return out
-
-
-def shard_path(out_dir: str, shard: int) -> str:
-    return os.path.join(out_dir, f"shard_{shard:05d}.npz")
 
 
 def shards_todo(out_dir: str, n_shards: int, part: tuple[int, int] | None = None) -> list[int]:
@@ -347,54 +336,3 @@ def generate(config: DataConfig, out_dir: str, devices=None, progress: bool = Tr
     if distributed.is_writer():
         write_json(os.path.join(out_dir, "summary.json"), summary)
     return summary
-
-
-def complete_shards(folder: str, flag: str = "--data", kind: str = "data") -> list[str]:
-    """The shard paths of a finished set in ``folder``, every one its config.json promises. kind: "data"
-    (generate_data's: ``DataConfig.n_shards``) or "labels" (label_resolution's: ceil(scenes / batch)). InputError
-    naming ``flag``, the folder and the first missing shard, or a folder that holds no such set."""
-    config_path = os.path.join(folder, "config.json")
-    try:
-        with open(config_path) as f:
-            config = json.load(f)
-        found = "data" if "worlds" in config else "labels" if "scenes" in config else "neither"
-        if found != kind:
-            raise InputError(f"{flag} {folder}: it holds {'no data or label set' if found == 'neither' else found}, "
-                             f"not {kind}")
-        expected = (math.ceil(config["episodes"] / config["worlds"]) if kind == "data"
-                    else math.ceil(config["scenes"] / config["batch"]))
-    except InputError:
-        raise
-    except FileNotFoundError:
-        raise InputError(f"{flag} {folder}: no config.json, so no data or label set "
-                         "(made by experiments.generate_data or experiments.label_resolution)") from None
-    except (OSError, ValueError, KeyError, TypeError) as e:
-        raise InputError(f"{flag} {folder}: its config.json is damaged ({type(e).__name__}: {e})") from None
-    paths = [shard_path(folder, s) for s in range(expected)]
-    extra = sorted(set(glob.glob(os.path.join(folder, SHARD_GLOB))) - set(paths))
-    if extra:
-        raise InputError(f"{flag} {folder}: {os.path.basename(extra[0])} lies beyond the {expected} shards its "
-                         "config.json promises (a shard of another set?)")
-    missing = [p for p in paths if not os.path.exists(p)]
-    if missing:
-        raise InputError(f"{flag} {folder}: {len(missing)} of its {expected} shards are missing "
-                         f"({os.path.basename(missing[0])}{', ...' if len(missing) > 1 else ''}): rerun the command "
-                         "that made it with the same --out to finish it")
-    return paths
-
-
-def read_shard(path: str, members=None) -> dict:
-    """{name: array} of one shard, reading only ``members`` (default all); InputError naming a damaged file."""
-    try:
-        with np.load(path, allow_pickle=False) as z:
-            return {k: z[k] for k in (members or z.files)}
-    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as e:
-        raise InputError(f"{path}: damaged shard ({type(e).__name__}: {e})") from None
-
-
-def iter_shards(data_dir: str, members=None, flag: str = "--data") -> Iterator[tuple[str, dict]]:
-    """(path, {name: array}) for every shard of a finished set in ``data_dir`` (``complete_shards``) in shard order,
-    reading only ``members`` (default all): an npz member is read when asked for, so counting episodes never reads
-    images."""
-    for path in complete_shards(data_dir, flag):
-        yield path, read_shard(path, members)

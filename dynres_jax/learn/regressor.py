@@ -22,7 +22,7 @@ from tqdm import tqdm
 
 from dynres_jax import distributed
 from dynres_jax.control.resolution import OMEGA_MAX, OMEGA_MIN, Regressor
-from dynres_jax.learn.data import complete_shards, read_shard
+from dynres_jax.io.shards import complete_shards, read_shard
 
 
 def load_labels(folders: list[str]) -> dict:

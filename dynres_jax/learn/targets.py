@@ -20,7 +20,8 @@ import numpy as np
 
 from dynres_jax.config import SimConfig
 from dynres_jax.errors import InputError
-from dynres_jax.learn.data import KIND_NAMES, PER_EPISODE, SHARD_GLOB, check_kind_names, iter_shards
+from dynres_jax.io.shards import SHARD_GLOB, iter_shards
+from dynres_jax.learn.data import KIND_NAMES, PER_EPISODE, check_kind_names
 from dynres_jax.perception import sample_particles
 from dynres_jax.sim.camera import Camera, Observation
 

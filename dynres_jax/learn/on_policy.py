@@ -1,0 +1,93 @@
+"""On-policy training data for f: episodes whose pushes the closed loop's own planner chooses.
+
+Random pushes (``PileEnv.sample_push``) cover where a pile can go, not where the closed loop takes it: the planner
+refines its pushes by gradient descent through f, so it seeks out the pushes f is most optimistic about, and a model
+trained on random pushes alone ranks those wrongly (docs/ladder: the simulator ranking the model's own refined plans
+rescues most failures). An on-policy episode (``planned_episodes``) draws a task goal from its key (a Gather disc
+where the pile fits one, else a Redistribute letter) and, at every push, plans for every world with the closed
+loop's planner (``PLANNER``, at one ω per shard) on the policy model; each world executes the planned push with
+probability ``planned`` and a random push otherwise, so the data holds the states the planner visits and both kinds
+of push from them. Frames and actions are recorded as ``learn.data`` records random episodes.
+"""
+
+from __future__ import annotations
+
+import functools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from dynres_jax.control import budget, tasks
+from dynres_jax.control.decision import decide_batch
+from dynres_jax.control.goals import make_goal, stack
+from dynres_jax.control.mpc import MPCConfig, fold, shift
+from dynres_jax.control.planner import planner_config
+from dynres_jax.models.registry import SHIPPED_DYNAMICS, load_dynamics
+from dynres_jax.perception import point_cloud
+from dynres_jax.sim.env import State
+
+OMEGAS = (25, 50, 100)  # the resolution of shard i's plans: OMEGAS[i % 3]
+LETTERS = "JTUCLSYO"  # Redistribute goals an episode may draw
+PLANNER = dict(samples=50, adam_steps=100)  # the closed loop's planner (docs/ladder's settings)
+
+
+def policy_dynamics(policy: str, plate_half_width: float):
+    """The policy model's planner dynamics (radius -> model): the checkpoint folder ``policy``, "shipped" for
+    ``checkpoints/dynamics``. Loaded once per process."""
+    return _load(SHIPPED_DYNAMICS if policy == "shipped" else policy, float(plate_half_width))
+
+
+@functools.lru_cache(maxsize=2)
+def _load(ckpt_dir: str, plate_half_width: float):
+    return load_dynamics("learned", ckpt_dir, plate_half_width).dynamics
+
+
+def episode_goal(key, env) -> np.ndarray:
+    """An episode's goal mask [H, W] bool from its key (raw uint32 [2]): a Gather disc or a letter of LETTERS, each
+    half the time; a letter whenever the pile is too large for a disc (``tasks.largest_pile``)."""
+    rng = np.random.default_rng(np.asarray(key, np.uint32).tolist())
+    scene = env.config.scene
+    if rng.uniform() < 0.5 and sum(scene.pieces) <= tasks.largest_pile(scene):
+        return tasks.gather_goal(rng, env)[0]
+    return tasks.redistribute_goal(rng, env, str(rng.choice(list(LETTERS))))[0]
+
+
+def _record(states: State) -> dict:
+    return dict(depth=np.asarray(states.obs.depth.astype(jnp.float16)), piece=np.asarray(states.obs.piece.astype(
+        jnp.int16)), pos=np.asarray(states.pos), mat=np.asarray(states.mat), broken=np.asarray(states.broken))
+
+
+def planned_episodes(worlds, keys, pushes: int, planned: float, dynamics, omega: int) -> dict:
+    """One episode per key [B, 2] in ``worlds`` (``sim.pool.Worlds`` whose states carry observations): a reset, then
+    ``pushes`` pushes, each world's the planner's (at ``omega``, or the frame's foreground points where fewer; on
+    ``dynamics``: radius -> model) with probability ``planned``, else random. Returns ``WorldPool.random_episodes``'
+    arrays with a leading world axis: depth, piece, pos, mat, broken [B, F, ...] (F = pushes + 1) and action
+    [B, F - 1, 4]."""
+    if not 0.0 <= planned <= 1.0:
+        raise ValueError(f"planned must be a share in [0, 1], got {planned}")
+    env, camera = worlds.env, worlds.camera
+    keys = jnp.asarray(keys)
+    b = len(keys)
+    goals = stack([make_goal(episode_goal(k, env), camera) for k in fold(keys, 0)])
+    cfg = MPCConfig(planner=planner_config(env, **PLANNER))
+    spec = cfg.spec(budget.bucket_for(omega, cfg.buckets))
+    states = worlds.reset(fold(keys, 1))
+    frames, actions = [_record(states)], []
+    init, warm = jnp.zeros((b, cfg.planner.horizon, 4), jnp.float32), False
+    steps = np.full(b, cfg.planner.adam_steps, np.int32)
+    for t in range(pushes):
+        step_keys = fold(fold(keys, 2), t)
+        points = jax.vmap(lambda o: jnp.sum(point_cloud(o, camera, max_points=cfg.max_points)[1]))(states.obs)
+        result = decide_batch(states.obs, goals, step_keys, init, warm, np.minimum(omega, np.asarray(points)), steps,
+                              spec=spec, dynamics=dynamics, camera=camera)[2]
+        random = jax.vmap(env.sample_push)(fold(step_keys, 1), states.pos)
+        chosen = jax.vmap(lambda k: jax.random.uniform(k) < planned)(fold(step_keys, 2))
+        action = np.asarray(jnp.where(chosen[:, None], result.best[:, 0], random), np.float32)
+        states = worlds.push(states, action)
+        init, warm = shift(result.best), True
+        frames.append(_record(states))
+        actions.append(action)
+    out = {name: np.stack([f[name] for f in frames], axis=1) for name in frames[0]}
+    out["broken"] = np.logical_or.accumulate(out["broken"], axis=1)  # sticky, as a random episode's
+    return dict(out, action=np.stack(actions, axis=1))

@@ -1,0 +1,74 @@
+"""On-policy data (``learn.on_policy``): the planner's pushes take piles towards each episode's goal where random
+pushes do not, the piles start the same whatever the policy, and a planned shard is written like a random one."""
+
+import jax
+import numpy as np
+import pytest
+
+from dynres_jax.control.goals import make_goal
+from dynres_jax.control.objective import inside_share
+from dynres_jax.learn import data, on_policy
+from dynres_jax.models.registry import sweep_dynamics
+from dynres_jax.sim.env import PileEnv
+from dynres_jax.sim.pool import EnvWorlds
+
+CONFIG = data.quick_config(pushes=3, worlds=6, episodes=6, backend="mujoco")
+WORLDS = 6
+
+
+@pytest.fixture(scope="module")
+def episodes():
+    """Six quick piles, three pushes each, every push random (planned 0) and every push planned (planned 1), on
+    the sweep heuristic with a small planner."""
+    sim = data.shard_sim_config(CONFIG, 0)
+    worlds = EnvWorlds(PileEnv(sim, backend="mujoco"))
+    keys = jax.random.split(jax.random.PRNGKey(3), WORLDS)
+    dynamics = sweep_dynamics(sim.scene.plate_half_width)
+    small = dict(samples=16, adam_steps=10)
+    saved = dict(on_policy.PLANNER)
+    on_policy.PLANNER.update(small)
+    try:
+        runs = {p: on_policy.planned_episodes(worlds, keys, 3, p, dynamics, omega=8) for p in (0.0, 1.0)}
+    finally:
+        on_policy.PLANNER.update(saved)
+    return worlds, keys, runs
+
+
+def test_planned_pushes_move_piles_into_their_goals(episodes):
+    worlds, keys, runs = episodes
+    goals = [make_goal(on_policy.episode_goal(k, worlds.env), worlds.camera) for k in on_policy.fold(keys, 0)]
+    mask = np.ones(runs[0.0]["pos"].shape[2], bool)
+
+    def inside(run, frame):
+        return np.array([float(inside_share(run["pos"][b, frame], mask, g, worlds.camera))
+                         for b, g in enumerate(goals)])
+
+    start = inside(runs[0.0], 0)
+    np.testing.assert_array_equal(start, inside(runs[1.0], 0))  # the same piles, whatever the policy
+    random_gain, planned_gain = inside(runs[0.0], -1) - start, inside(runs[1.0], -1) - start
+    assert planned_gain.mean() > random_gain.mean() + 0.1, (planned_gain, random_gain)
+    assert not np.allclose(runs[0.0]["action"], runs[1.0]["action"])
+
+
+def test_random_share_follows_the_piles_sampler(episodes):
+    """planned = 0: every push is ``PileEnv.sample_push`` of the frame it starts from, under the step's key."""
+    worlds, keys, runs = episodes
+    run = runs[0.0]
+    for t in range(3):
+        step_keys = on_policy.fold(on_policy.fold(on_policy.fold(keys, 2), t), 1)
+        expected = jax.vmap(worlds.env.sample_push)(step_keys, run["pos"][:, t])
+        np.testing.assert_allclose(run["action"][:, t], np.asarray(expected), atol=1e-6)
+
+
+def test_episode_arrays_have_the_random_episodes_layout(episodes):
+    _, _, runs = episodes
+    run = runs[1.0]
+    assert run["depth"].shape[:2] == run["pos"].shape[:2] == (WORLDS, 4)
+    assert run["action"].shape == (WORLDS, 3, 4)
+    assert run["depth"].dtype == np.float16 and run["piece"].dtype == np.int16
+    assert not run["broken"].any()
+
+
+def test_planned_share_is_checked():
+    with pytest.raises(ValueError, match="planned must be a share"):
+        data.DataConfig(planned=1.5)
