@@ -82,13 +82,15 @@ def trajectories(index, local, pos, mat):
     return targets.particle_trajectory(index, local, pos[None], mat[None])[0]
 
 
-def measure_scene(config: data.DataConfig, scene: int, args, model, pool) -> dict:
-    """One scene's sums: {ω: {quantity: metres summed over particles, "particles": count}}."""
+def measure_scene(config: data.DataConfig, scene: int, args, models: dict, pool) -> dict:
+    """One scene's sums: {ω: {quantity: metres summed over particles, "particles": count}}; models: {name: (graphdef,
+    params)}, each scored as "model NAME" on the same pushes and particles."""
     sim = data.shard_sim_config(config, scene)
     worlds = WorldPool(sim, pool)
-    graphdef, params, n_max, max_points, plate_half_width = model
+    n_max, max_points, plate_half_width = args.model_settings
     tracks = _tracks(worlds, n_max, max_points)
-    step = jax.jit(jax.vmap(lambda x, m, a, c: predict(graphdef, params, x, m, a, c)))
+    step = jax.jit(jax.vmap(lambda g, p, x, m, a, c: predict(g, p, x, m, a, c), in_axes=(None, None, 0, 0, 0, 0)),
+                   static_argnums=0)
     sweep = jax.jit(jax.vmap(lambda x, m, a: sweep_rollout(x, m, a[None], plate_half_width)[0]))
     key = jax.random.fold_in(jax.random.PRNGKey(args.seed), scene)
     k_reset, key = jax.random.split(key)
@@ -116,8 +118,9 @@ def measure_scene(config: data.DataConfig, scene: int, args, model, pool) -> dic
                                                    jax.random.split(k_h, args.worlds))
             valid = np.asarray(mask) & ok[:, None]
             truth = trajectories(index, local, outcome.pos, outcome.mat)
-            pairs = [("sweep heuristic", sweep(x, mask, actions), truth),
-                     ("model", step(x, mask, actions, resolution_code(radius)), truth)]
+            pairs = [("sweep heuristic", sweep(x, mask, actions), truth)]
+            pairs += [(f"model {name}", step(g, p, x, mask, actions, resolution_code(radius)), truth)
+                      for name, (g, p) in models.items()]
             pairs += [(f"twins {sigma:g} mm", trajectories(index, local, t1.pos, t1.mat),
                        trajectories(index, local, t2.pos, t2.mat)) for sigma, (t1, t2) in twins.items()]
             row = sums[str(omega)]
@@ -141,19 +144,19 @@ def summarise(results: list[dict], omegas, sigmas) -> dict:
     return out
 
 
-def table(summary: dict, sigmas) -> str:
-    """Markdown: per ω the heuristic, the model, and per σ the twins' distance and the floor (mm), with ratios."""
-    head = ["sweep heuristic", "model"] + [f"{q} {s:g} mm" for s in sigmas for q in ("twins", "floor")]
-    lines = [f"| ω | {' | '.join(head)} | model / heuristic | floor / heuristic (σ = {sigmas[0]:g} mm) |",
-             "|---:|" + "---:|" * (len(head) + 2)]
+def table(summary: dict, sigmas, names) -> str:
+    """Markdown: per ω the heuristic, each model, and per σ the twins' distance and the floor (mm), with ratios."""
+    models = [f"model {n}" for n in names]
+    head = ["sweep heuristic", *models] + [f"{q} {s:g} mm" for s in sigmas for q in ("twins", "floor")]
+    ratios = [f"{m} / heuristic" for m in models] + [f"floor / heuristic (σ = {sigmas[0]:g} mm)"]
+    lines = [f"| ω | {' | '.join(head + ratios)} |", "|---:|" + "---:|" * (len(head) + len(ratios))]
     for omega, m in summary.items():
-        lines.append(f"| {omega} | " + " | ".join(f"{m[k]:.2f}" for k in head) +
-                     f" | {m['model'] / m['sweep heuristic']:.2f} |"
-                     f" {m[f'floor {sigmas[0]:g} mm'] / m['sweep heuristic']:.2f} |")
+        values = [m[k] for k in head] + [m[k] / m["sweep heuristic"] for k in models + [f"floor {sigmas[0]:g} mm"]]
+        lines.append(f"| {omega} | " + " | ".join(f"{v:.2f}" for v in values) + " |")
     return "\n".join(lines)
 
 
-def plot(summary: dict, sigmas, path: str) -> None:
+def plot(summary: dict, sigmas, names, path: str) -> None:
     """Floor against σ (log axis) per ω, beside the heuristic, the model and the issue's target (half the
     heuristic), all as a share of the heuristic's error."""
     from matplotlib.figure import Figure
@@ -164,7 +167,8 @@ def plot(summary: dict, sigmas, path: str) -> None:
         colour = f"C{i}"
         ax.plot(sigmas, [m[f"floor {s:g} mm"] / m["sweep heuristic"] for s in sigmas], "o-", color=colour,
                 label=f"floor, ω = {omega}")
-        ax.axhline(m["model"] / m["sweep heuristic"], color=colour, ls=":", lw=1)
+        for name in names:
+            ax.axhline(m[f"model {name}"] / m["sweep heuristic"], color=colour, ls=":", lw=1)
     ax.axhline(0.5, color="k", ls="--", lw=1, label="target: half the heuristic")
     ax.plot([], [], "k:", lw=1, label="model (dotted, per ω)")
     ax.set(xscale="log", xlabel="σ of the twins' piece moves (mm)", ylabel="one-step error / sweep heuristic's",
@@ -174,11 +178,21 @@ def plot(summary: dict, sigmas, path: str) -> None:
     fig.savefig(path, dpi=120)
 
 
+def model_name(path: str) -> str:
+    """A checkpoint's name in the table: "shipped", or the run folder's (runs/NAME/ckpt: NAME)."""
+    path = os.path.abspath(path)
+    if path == os.path.abspath(SHIPPED_DYNAMICS):
+        return "shipped"
+    return os.path.basename(os.path.dirname(path) if os.path.basename(path) == "ckpt" else path)
+
+
 def main(argv=None) -> dict:
     parser = argparse.ArgumentParser(prog="python -m studies.noise_floor", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--out", required=True)
-    parser.add_argument("--ckpt", default=SHIPPED_DYNAMICS, help="dynamics checkpoint (default: the shipped one)")
+    parser.add_argument("--ckpt", nargs="+", default=[SHIPPED_DYNAMICS],
+                        help="dynamics checkpoint(s), each scored on the same pushes (default: the shipped one); "
+                             "named by the folder above ckpt/ (runs/NAME/ckpt: NAME), or 'shipped'")
     parser.add_argument("--scenes", type=int, default=48, help="scenes, drawn as the training data's shards")
     parser.add_argument("--worlds", type=int, default=8, help="worlds per scene")
     parser.add_argument("--pushes", type=int, default=2, help="pushes per world")
@@ -194,11 +208,17 @@ def main(argv=None) -> dict:
             parser.error(f"--{name} must be at least 1")
     if any(s < 0 for s in args.sigmas):
         parser.error(f"--sigmas must be non-negative, got {args.sigmas}")
-    module, meta, _ = ckpt.load_module(args.ckpt, build_model)
-    n_max = meta["train"]["n_max"]
+    models, settings_of = {}, set()
+    for path in args.ckpt:
+        module, meta, _ = ckpt.load_module(path, build_model)
+        models[model_name(path)] = nnx.split(module)
+        settings_of.add((meta["train"]["n_max"], meta["train"]["max_points"], meta["dynamics"]["plate_half_width"]))
+    if len(models) < len(args.ckpt) or len(settings_of) > 1:
+        parser.error("--ckpt: the models need distinct names and the same n_max, max_points and plate width")
+    args.model_settings = n_max = settings_of.pop()
+    n_max = n_max[0]
     if max(args.omegas) > n_max or min(args.omegas) < 1:
         parser.error(f"--omegas must lie in [1, the model's n_max = {n_max}]")
-    model = (*nnx.split(module), n_max, meta["train"]["max_points"], meta["dynamics"]["plate_half_width"])
     config = data.DataConfig(seed=args.seed, backend="mujoco")
     folder = os.path.join(args.out, "scenes")
     os.makedirs(folder, exist_ok=True)
@@ -211,13 +231,13 @@ def main(argv=None) -> dict:
         for scene in tqdm(range(args.scenes), desc="scenes", disable=args.no_progress):
             path = os.path.join(folder, f"scene_{scene:05d}.json")
             if not os.path.exists(path):
-                files.write_json(path, measure_scene(config, scene, args, model, pool))
+                files.write_json(path, measure_scene(config, scene, args, models, pool))
     results = [json.load(open(p)) for p in sorted(glob.glob(os.path.join(folder, "scene_*.json")))[:args.scenes]]
     summary = {"scenes": len(results), "settings": settings,
                "omegas": summarise(results, args.omegas, args.sigmas)}
     files.write_json(os.path.join(args.out, "floor.json"), summary)
-    plot(summary["omegas"], args.sigmas, os.path.join(args.out, "floor.png"))
-    text = table(summary["omegas"], args.sigmas)
+    plot(summary["omegas"], args.sigmas, list(models), os.path.join(args.out, "floor.png"))
+    text = table(summary["omegas"], args.sigmas, list(models))
     files.write_text(os.path.join(args.out, "floor.md"), text)
     print(text)
     return summary

@@ -17,19 +17,17 @@ CONFIG = data.quick_config(backend="mujoco")
 
 
 def _args(**kw):
-    base = dict(worlds=2, pushes=2, sigmas=[0.0, 1.0], omegas=[3, 6], seed=0)
+    base = dict(worlds=2, pushes=2, sigmas=[0.0, 1.0], omegas=[3, 6], seed=0,
+                model_settings=(8, 256, DynamicsConfig().plate_half_width))
     return argparse.Namespace(**{**base, **kw})
 
 
 @pytest.fixture(scope="module")
-def model():
-    module = Dynamics(DynamicsConfig(hidden=8, residual=True), rngs=nnx.Rngs(0))
-    return (*nnx.split(module), 8, 256, module.config.plate_half_width)
-
-
-@pytest.fixture(scope="module")
-def scene(model):
-    return noise_floor.measure_scene(CONFIG, 0, _args(), model, pool=None)
+def scene():
+    """Three models on the same pushes: a, its copy a2, and b (other weights; not residual, which starts as the
+    sweep heuristic whatever the weights)."""
+    a, b = (nnx.split(Dynamics(DynamicsConfig(hidden=8, residual=False), rngs=nnx.Rngs(s))) for s in (0, 1))
+    return noise_floor.measure_scene(CONFIG, 0, _args(), {"a": a, "a2": a, "b": b}, pool=None)
 
 
 def test_perturb_moves_only_piece_centres_in_the_plane():
@@ -57,19 +55,31 @@ def test_unperturbed_twins_agree_and_perturbed_ones_do_not(scene):
     for omega in ("3", "6"):
         s = scene["sums"][omega]
         assert s["particles"] > 0 and s["twins 0 mm"] == 0.0 and s["twins 1 mm"] > 0.0
-        assert s["sweep heuristic"] > 0.0 and s["model"] > 0.0
+        assert s["sweep heuristic"] > 0.0 and s["model a"] > 0.0
+
+
+def test_every_model_is_scored_on_the_same_particles(scene):
+    """A model under two names scores the same; another model's weights score differently."""
+    for omega in ("3", "6"):
+        s = scene["sums"][omega]
+        assert s["model a"] == s["model a2"] and s["model a"] != s["model b"]
 
 
 def test_summary_is_sums_over_particles_and_the_floor_half_the_twins():
-    scenes = [{"sums": {"5": {"model": 0.2, "sweep heuristic": 0.4, "twins 1 mm": 0.1, "particles": 10}}},
-              {"sums": {"5": {"model": 0.1, "sweep heuristic": 0.2, "twins 1 mm": 0.3, "particles": 30}}}]
+    scenes = [{"sums": {"5": {"model m": 0.2, "sweep heuristic": 0.4, "twins 1 mm": 0.1, "particles": 10}}},
+              {"sums": {"5": {"model m": 0.1, "sweep heuristic": 0.2, "twins 1 mm": 0.3, "particles": 30}}}]
     got = noise_floor.summarise(scenes, [5], [1.0])["5"]
-    assert got["model"] == pytest.approx(0.3 / 40 * 1000) and got["sweep heuristic"] == pytest.approx(0.6 / 40 * 1000)
+    assert got["model m"] == pytest.approx(0.3 / 40 * 1000) and got["sweep heuristic"] == pytest.approx(0.6 / 40 * 1000)
     assert got["floor 1 mm"] == pytest.approx(0.4 / 40 * 1000 / 2) and got["particles"] == 40
-    assert "| 5 |" in noise_floor.table({"5": got}, [1.0])
+    assert "| 5 | 15.00 | 7.50 |" in noise_floor.table({"5": got}, [1.0], ["m"])
 
 
 def test_plot_writes_a_png(tmp_path):
-    summary = {"5": {"model": 3.0, "sweep heuristic": 4.0, "floor 0.1 mm": 0.5, "floor 1 mm": 1.0}}
-    noise_floor.plot(summary, [0.1, 1.0], str(tmp_path / "floor.png"))
+    summary = {"5": {"model m": 3.0, "sweep heuristic": 4.0, "floor 0.1 mm": 0.5, "floor 1 mm": 1.0}}
+    noise_floor.plot(summary, [0.1, 1.0], ["m"], str(tmp_path / "floor.png"))
     assert (tmp_path / "floor.png").read_bytes()[:4] == b"\x89PNG"
+
+
+def test_models_are_named_by_their_run_folder():
+    assert noise_floor.model_name("runs/big/ckpt") == "big" and noise_floor.model_name("runs/x") == "x"
+    assert noise_floor.model_name(noise_floor.SHIPPED_DYNAMICS) == "shipped"

@@ -51,7 +51,8 @@ def main(argv=None):
     base = RECIPES[start] if start else TrainConfig()
     parser.add_argument("--recipe", choices=sorted(RECIPES), default=None,
                         help="start from a named config (train.RECIPES); other flags override it")
-    parser.add_argument("--data", required=True, help="folder of shards from experiments.generate_data")
+    parser.add_argument("--data", required=True, nargs="+",
+                        help="folder(s) of shards from experiments.generate_data (several: one data set)")
     parser.add_argument("--out", required=True, help="run folder: ckpt/, metrics.jsonl, curves.png")
     checks.add_fresh(parser)
     defaults = base
@@ -107,7 +108,8 @@ def main(argv=None):
         distributed.check_batch(cfg.batch, distributed.batch_mesh())
     except (ValueError, TypeError) as e:
         parser.error(str(e))
-    check_data(args.data, cfg)
+    for folder in args.data:
+        check_data(folder, cfg)
     checks.claim(args.out, "train_dynamics", checks.settings(args, ignore=(*SCHEDULE, "max_minutes")), args.fresh)
     print(json.dumps(train(cfg, args.data, args.out, progress=not args.quiet, max_minutes=args.max_minutes)))
 

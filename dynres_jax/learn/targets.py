@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
+from collections.abc import Sequence
 from typing import NamedTuple
 
 import jax
@@ -60,12 +61,14 @@ def is_validation(episode, val_every: int = 10):
     return np.asarray(episode) % val_every == val_every - 1
 
 
-def load_shards(data_dir: str, split: str = "all", val_every: int = 10) -> Dataset:
-    """Read every shard of ``data_dir`` into a Dataset. split: "all", "train" or "val" (``is_validation``)."""
+def load_shards(data_dir: str | Sequence[str], split: str = "all", val_every: int = 10) -> Dataset:
+    """Read every shard of ``data_dir`` (a folder, or several: one data set of all their episodes, which must share
+    camera and pushes per episode) into a Dataset. split: "all", "train" or "val" (``is_validation``)."""
     if split not in ("all", "train", "val"):
         raise ValueError(f"split must be 'all', 'train' or 'val', got {split!r}")
+    folders = [data_dir] if isinstance(data_dir, str) else list(data_dir)
     parts, camera, pushes = [], None, None
-    for path, s in iter_shards(data_dir):
+    for path, s in (shard for folder in folders for shard in iter_shards(folder)):
         sim = SimConfig.from_json(str(s["sim_config"]))
         cam = Camera.top_down(sim.camera)
         if camera is not None and (cam != camera or s["action"].shape[1] != pushes):
@@ -76,7 +79,7 @@ def load_shards(data_dir: str, split: str = "all", val_every: int = 10) -> Datas
         kind = np.array([KIND_NAMES.index(str(name)) for name in s["kind_names"]], np.int16)[s["kind"]]
         parts.append({**{k: s[k][keep] for k in PER_EPISODE}, "kind": kind})
     if not parts:
-        raise InputError(f"no shards ({SHARD_GLOB}) in {data_dir}")
+        raise InputError(f"no shards ({SHARD_GLOB}) in {', '.join(folders)}")
     n_max = max(p["pos"].shape[2] for p in parts)
 
     def pad_poses(pos, mat):  # pieces axis -2 of pos padded to n_max with 0, of mat with the identity
@@ -95,7 +98,7 @@ def load_shards(data_dir: str, split: str = "all", val_every: int = 10) -> Datas
     parts = [pad(p) for p in parts]
     cat = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
     if not len(cat["episode"]):
-        raise InputError(f"the {split!r} split of {data_dir} is empty: validation takes every {val_every}th episode "
+        raise InputError(f"the {split!r} split of {', '.join(folders)} is empty: validation takes every {val_every}th episode "
                          f"(is_validation), so it needs at least {val_every} episodes")
     return Dataset(**cat, camera=camera)
 
