@@ -74,6 +74,11 @@ def _tracks(worlds: WorldPool, n_max: int, max_points):
     return jax.jit(jax.vmap(one, in_axes=(0, 0, 0, None, 0)))
 
 
+# One push predicted per world, compiled once per model structure (not per scene: shapes are [B, n_max]).
+_step = jax.jit(jax.vmap(predict, in_axes=(None, None, 0, 0, 0, 0)), static_argnums=0)
+_sweep = jax.jit(jax.vmap(lambda x, m, a, w: sweep_rollout(x, m, a[None], w)[0], in_axes=(0, 0, 0, None)))
+
+
 @jax.jit
 @jax.vmap
 def trajectories(index, local, pos, mat):
@@ -89,9 +94,6 @@ def measure_scene(config: data.DataConfig, scene: int, args, models: dict, pool)
     worlds = WorldPool(sim, pool)
     n_max, max_points, plate_half_width = args.model_settings
     tracks = _tracks(worlds, n_max, max_points)
-    step = jax.jit(jax.vmap(lambda g, p, x, m, a, c: predict(g, p, x, m, a, c), in_axes=(None, None, 0, 0, 0, 0)),
-                   static_argnums=0)
-    sweep = jax.jit(jax.vmap(lambda x, m, a: sweep_rollout(x, m, a[None], plate_half_width)[0]))
     key = jax.random.fold_in(jax.random.PRNGKey(args.seed), scene)
     k_reset, key = jax.random.split(key)
     states = worlds.reset(jax.random.split(k_reset, args.worlds))
@@ -118,8 +120,8 @@ def measure_scene(config: data.DataConfig, scene: int, args, models: dict, pool)
                                                    jax.random.split(k_h, args.worlds))
             valid = np.asarray(mask) & ok[:, None]
             truth = trajectories(index, local, outcome.pos, outcome.mat)
-            pairs = [("sweep heuristic", sweep(x, mask, actions), truth)]
-            pairs += [(f"model {name}", step(g, p, x, mask, actions, resolution_code(radius)), truth)
+            pairs = [("sweep heuristic", _sweep(x, mask, actions, plate_half_width), truth)]
+            pairs += [(f"model {name}", _step(g, p, x, mask, actions, resolution_code(radius)), truth)
                       for name, (g, p) in models.items()]
             pairs += [(f"twins {sigma:g} mm", trajectories(index, local, t1.pos, t1.mat),
                        trajectories(index, local, t2.pos, t2.mat)) for sigma, (t1, t2) in twins.items()]
