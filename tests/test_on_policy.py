@@ -72,3 +72,15 @@ def test_episode_arrays_have_the_random_episodes_layout(episodes):
 def test_planned_share_is_checked():
     with pytest.raises(ValueError, match="planned must be a share"):
         data.DataConfig(planned=1.5)
+
+
+def test_every_key_draws_a_goal_inside_the_bin_even_for_a_large_pile():
+    """The largest piles of the data (100 M&Ms) fit no disc and not every letter: a goal is still drawn, inside the
+    bin, for every key (the first on-policy run on a GPU stopped at a letter S wider than the bin)."""
+    from dynres_jax.config import CameraConfig, SceneConfig, SimConfig
+
+    env = PileEnv(SimConfig(scene=SceneConfig(kinds=("mnm",), pieces=(100,)), camera=CameraConfig(width=64, height=64)),
+                  backend="mujoco", render=False)
+    masks = [on_policy.episode_goal(k, env) for k in jax.random.split(jax.random.PRNGKey(0), 24)]
+    assert all(m.shape == (64, 64) and m.any() and not m.all() for m in masks)
+    assert len({m.tobytes() for m in masks}) > 3

@@ -20,7 +20,7 @@ import numpy as np
 
 from dynres_jax.control import budget, tasks
 from dynres_jax.control.decision import decide_batch
-from dynres_jax.control.goals import make_goal, stack
+from dynres_jax.control.goals import disc_goal, make_goal, stack
 from dynres_jax.control.mpc import MPCConfig, fold, shift
 from dynres_jax.control.planner import planner_config
 from dynres_jax.models.registry import SHIPPED_DYNAMICS, load_dynamics
@@ -50,7 +50,12 @@ def episode_goal(key, env) -> np.ndarray:
     scene = env.config.scene
     if rng.uniform() < 0.5 and sum(scene.pieces) <= tasks.largest_pile(scene):
         return tasks.gather_goal(rng, env)[0]
-    return tasks.redistribute_goal(rng, env, str(rng.choice(list(LETTERS))))[0]
+    for letter in rng.permutation(list(LETTERS)):
+        try:
+            return tasks.redistribute_goal(rng, env, str(letter))[0]
+        except ValueError:  # this letter at the pile's area reaches outside the bin
+            continue
+    return disc_goal(env.camera, (0.0, 0.0), scene.bin_half_width - tasks.GOAL_MARGIN)
 
 
 def _record(states: State) -> dict:

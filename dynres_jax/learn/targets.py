@@ -11,8 +11,8 @@ rigid-body tracks, never re-matched by nearest neighbours.
 from __future__ import annotations
 
 import dataclasses
-from dataclasses import dataclass
 from collections.abc import Sequence
+from dataclasses import dataclass
 from typing import NamedTuple
 
 import jax
@@ -98,8 +98,8 @@ def load_shards(data_dir: str | Sequence[str], split: str = "all", val_every: in
     parts = [pad(p) for p in parts]
     cat = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
     if not len(cat["episode"]):
-        raise InputError(f"the {split!r} split of {', '.join(folders)} is empty: validation takes every {val_every}th episode "
-                         f"(is_validation), so it needs at least {val_every} episodes")
+        raise InputError(f"the {split!r} split of {', '.join(folders)} is empty: validation takes every "
+                         f"{val_every}th episode (is_validation), so it needs at least {val_every} episodes")
     return Dataset(**cat, camera=camera)
 
 

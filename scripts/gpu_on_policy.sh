@@ -1,0 +1,51 @@
+#!/usr/bin/env bash
+# Issue 36's on-policy question on one GPU machine: does a model trained on half random, half on-policy data
+# (learn.on_policy) do better in closed loop than one trained on the same amount of random data?
+#   CKPTS=".ckpt/r2/ckpt .ckpt/r4/ckpt" WORK=/tmp/op bash scripts/gpu_on_policy.sh
+# 1. Data, two processes at once: R1 (random, seed 11, as gpu_model_at_scale.sh makes it) and P (on-policy: half the
+#    pushes the closed loop's planner chooses on the shipped model, seed 15), EPISODES each.
+# 2. r1p: --recipe shipped on R1 + P, STEPS steps (gpu_model_at_scale.sh's r2 is the same size on R1 + R2).
+# 3. Closed loop (scripts/gpu_ladder.sh, ω = 50, 50 x 100, seeds from 5000): Gather M&M and Redistribute (JTULY),
+#    COUNT episodes each, for every checkpoint of CKPTS while the data is made, then for r1p.
+# Results: $WORK/out/lane*.tar.gz (closed loop), $WORK/results.tar.gz (logs, r1p's run folder); $WORK/done at the end.
+# Env: WORK (/tmp/op), EPISODES (1536), STEPS (14000), COUNT (64), CKPTS (checkpoints compared with r1p), WORLDS
+# (R1's and P's shard sizes: "128 64"), DATA_FLAGS (more generate_data flags), FLAGS (more evaluate flags). A CPU dry
+# run: EPISODES=10 WORLDS="5 5" STEPS=20 COUNT=1 DATA_FLAGS="--kinds coffee --pieces 20 20 --two-kinds 0
+# --image-size 64" FLAGS="--quick --samples 4 --adam-steps 2 --mpc-steps 1".
+set -uo pipefail
+WORK=${WORK:-/tmp/op}; EPISODES=${EPISODES:-1536}; STEPS=${STEPS:-14000}; COUNT=${COUNT:-64}; CKPTS=${CKPTS:-}
+read -r R_WORLDS P_WORLDS <<< "${WORLDS:-128 64}"
+mkdir -p "$WORK/logs" "$WORK/runs" "$WORK/out"
+export XLA_PYTHON_CLIENT_PREALLOCATE=false  # data, training and two closed-loop lanes share the GPU
+log() { echo "$(date +%T) $*" | tee -a "$WORK/logs/stages.log"; }
+
+ladder() {  # NAME LANE_A LANE_B CKPT...: Gather M&M on lane A, Redistribute on lane B, per checkpoint
+  local name=$1 a=$2 b=$3 jobs=$WORK/$1.jobs; shift 3
+  : > "$jobs"
+  for c in "$@"; do echo "$a gather mnm 50 $COUNT $c" >> "$jobs"; echo "$b redistribute coffee 50 $COUNT $c" >> "$jobs"; done
+  OUT=$WORK/out WORK=$WORK/ladder JOBS=$jobs bash scripts/gpu_ladder.sh > "$WORK/logs/ladder_$name.log" 2>&1
+  log "closed loop $name: $(grep -c done "$WORK/logs/ladder_$name.log") jobs done"
+}
+
+log "start"
+# shellcheck disable=SC2086
+[ -n "$CKPTS" ] && ladder before 0 1 $CKPTS &
+# shellcheck disable=SC2086
+python -m experiments.generate_data --out "$WORK/data/R1" --episodes "$EPISODES" --pushes 10 --worlds "$R_WORLDS" \
+  --seed 11 --workers 6 --no-progress ${DATA_FLAGS:-} > "$WORK/logs/data_R1.log" 2>&1 &
+random=$!
+# shellcheck disable=SC2086
+python -m experiments.generate_data --out "$WORK/data/P" --episodes "$EPISODES" --pushes 10 --worlds "$P_WORLDS" \
+  --seed 15 --planned 0.5 --workers 10 --no-progress ${DATA_FLAGS:-} > "$WORK/logs/data_P.log" 2>&1
+log "data P: $(grep -o '"frames": [0-9]*' "$WORK/logs/data_P.log")"
+wait "$random"
+log "data R1: $(grep -o '"frames": [0-9]*' "$WORK/logs/data_R1.log")"
+python -m experiments.train_dynamics --recipe shipped --data "$WORK/data/R1" "$WORK/data/P" --out "$WORK/runs/r1p" \
+  --steps "$STEPS" --eval-every 2000 --quiet > "$WORK/logs/train_r1p.log" 2>&1
+log "train r1p: $(tail -1 "$WORK/runs/r1p/metrics.jsonl")"
+tar -czf "$WORK/results.tar.gz" -C "$WORK" logs runs
+ladder after 2 3 "$WORK/runs/r1p/ckpt"
+wait
+tar -czf "$WORK/results.tar.gz" -C "$WORK" logs runs
+log "done"
+touch "$WORK/done"
