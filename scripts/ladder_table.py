@@ -27,17 +27,24 @@ ORDER = ("50", "sim", "rerank", "best5", "oracle")  # the rungs, cheapest first
 SORT_INSIDE, SORT_MIXING = 0.8, 0.05  # Sort's target: each kind >= 80 % inside its goal, mixing below 5 %
 
 
+def _method(method: str, model: str | None) -> str:
+    """A run's name: its method, with "@MODEL" where gpu_ladder.sh's job named a checkpoint (folder suffix -MODEL;
+    the shipped one's folder, dynres_jax/checkpoints/dynamics, gives "checkpoints": "shipped")."""
+    return method if model is None else f"{method}@{'shipped' if model == 'checkpoints' else model}"
+
+
 def evaluate_runs(root: str) -> dict:
-    """{(task, kind): {method: {episode [E] (indices), success [E], distance [E], inside [E], seconds, device}}}."""
+    """{(task, kind): {method: {episode [E] (indices), success [E], distance [E], inside [E], seconds, device}}};
+    a job that named a checkpoint gives method "METHOD@MODEL" (``_method``)."""
     runs = {}
     for path in sorted(glob.glob(os.path.join(root, "**", "*.json"), recursive=True)):
         folder, method = os.path.basename(os.path.dirname(path)), os.path.basename(path)[:-5]
-        match = re.fullmatch(r"(gather|redistribute)-([a-z]+)-(\d+)", folder)
+        match = re.fullmatch(r"(gather|redistribute)-([a-z]+)-(\d+)(?:-([a-z0-9]+))?", folder)
         if not match or method in ("run", "summary"):
             continue
         with open(path) as f:
             r = json.load(f)
-        runs.setdefault(match.group(1, 2), {})[method] = dict(
+        runs.setdefault(match.group(1, 2), {})[_method(method, match.group(4))] = dict(
             episode=list(range(len(r["final_inside"]))), success=succeeded(r["final_inside"]).tolist(),
             distance=r["final_distance"], inside=r["final_inside"],
             seconds=r["seconds"], device=r["device"])
@@ -50,9 +57,10 @@ def sort_runs(root: str) -> dict:
     found = {}
     for path in glob.glob(os.path.join(root, "**", "metrics.json"), recursive=True):
         folder = os.path.basename(os.path.dirname(os.path.dirname(path)))
-        match = re.fullmatch(r"sort-([a-z]+-[a-z]+)-([a-z0-9]+)", folder)
+        match = re.fullmatch(r"sort-([a-z]+-[a-z]+)-([a-z0-9]+)(?:-([a-z0-9]+))?", folder)
         if match:
-            method = "50" if match.group(2) == "model" else match.group(2)  # sort's model planner plans at ω = 50
+            method = _method("50" if match.group(2) == "model" else match.group(2),  # sort's model plans at ω = 50
+                             match.group(3))
             found.setdefault((match.group(1), method), {})[int(os.path.basename(os.path.dirname(path)))] = path
     runs = {}
     for (pair, method), paths in sorted(found.items()):

@@ -98,7 +98,8 @@ class TrainConfig:
 
 
 RECIPES = {  # named training configs; the checkpoints' cards name theirs (``experiments.train_dynamics --recipe``)
-    "shipped": TrainConfig(steps=8_600, batch=64, loss="distance", model=DynamicsConfig()),  # checkpoints/dynamics
+    # checkpoints/dynamics (its CARD.md: random and on-policy data, scripts/gpu_on_policy.sh)
+    "shipped": TrainConfig(steps=14_000, batch=64, eval_every=2_000, loss="distance", model=DynamicsConfig()),
     "cnn": TrainConfig(steps=2_800, batch=64, loss="distance", model=CNNDynamicsConfig()),  # checkpoints/cnn_dynamics
     "quick": TrainConfig(steps=20, batch=4, horizon=2, n_max=8, max_points=256, eval_every=10, ckpt_every=10,
                          val_batches=1, loss="distance", model=DynamicsConfig(hidden=16)),  # --quick data
