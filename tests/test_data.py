@@ -261,6 +261,22 @@ def test_attach_is_vmappable_and_masked_entries_are_inert(placed):
     assert np.all(index[0, 10:] == -1) and np.all(index[0, :10] >= 0)
 
 
+def test_several_folders_load_as_one_data_set(generated, tmp_path):
+    """load_shards of [A, B] is A's episodes then B's (here B is a copy of A with its second shard missing)."""
+    out, _ = generated
+    other = tmp_path / "other"
+    shutil.copytree(out, other)
+    os.unlink(other / "shard_00001.npz")
+    config = json.loads((other / "config.json").read_text())
+    (other / "config.json").write_text(json.dumps(dict(config, episodes=config["worlds"])))  # one shard promised
+    one, both = targets.load_shards(out), targets.load_shards([out, str(other)])
+    assert len(both) == len(one) + 4
+    np.testing.assert_array_equal(both.episode, np.concatenate([one.episode, one.episode[:4]]))
+    np.testing.assert_array_equal(both.pos, np.concatenate([one.pos, one.pos[:4]]))
+    val = targets.load_shards([out, str(other)], "val", val_every=3)
+    np.testing.assert_array_equal(val.episode, [2, 5, 2])
+
+
 def test_load_split_and_samples(generated):
     out, _ = generated
     everything = targets.load_shards(out)
