@@ -45,7 +45,8 @@ def _load(ckpt_dir: str, plate_half_width: float):
 
 def episode_goal(key, env) -> np.ndarray:
     """An episode's goal mask [H, W] bool from its key (raw uint32 [2]): a Gather disc or a letter of LETTERS, each
-    half the time; a letter whenever the pile is too large for a disc (``tasks.largest_pile``)."""
+    half the time; a letter whenever the pile is too large for a disc (``tasks.largest_pile``): the letters in a
+    random order until one at the pile's area fits the bin, else a disc at the centre as wide as the bin allows."""
     rng = np.random.default_rng(np.asarray(key, np.uint32).tolist())
     scene = env.config.scene
     if rng.uniform() < 0.5 and sum(scene.pieces) <= tasks.largest_pile(scene):
@@ -81,14 +82,15 @@ def planned_episodes(worlds, keys, pushes: int, planned: float, dynamics, omega:
     frames, actions = [_record(states)], []
     init, warm = jnp.zeros((b, cfg.planner.horizon, 4), jnp.float32), False
     steps = np.full(b, cfg.planner.adam_steps, np.int32)
+    points = jax.jit(jax.vmap(lambda o: jnp.sum(point_cloud(o, camera, max_points=cfg.max_points)[1])))
+    random = jax.jit(jax.vmap(env.sample_push))
     for t in range(pushes):
         step_keys = fold(fold(keys, 2), t)
-        points = jax.vmap(lambda o: jnp.sum(point_cloud(o, camera, max_points=cfg.max_points)[1]))(states.obs)
-        result = decide_batch(states.obs, goals, step_keys, init, warm, np.minimum(omega, np.asarray(points)), steps,
-                              spec=spec, dynamics=dynamics, camera=camera)[2]
-        random = jax.vmap(env.sample_push)(fold(step_keys, 1), states.pos)
-        chosen = jax.vmap(lambda k: jax.random.uniform(k) < planned)(fold(step_keys, 2))
-        action = np.asarray(jnp.where(chosen[:, None], result.best[:, 0], random), np.float32)
+        result = decide_batch(states.obs, goals, step_keys, init, warm, np.minimum(omega, np.asarray(points(
+            states.obs))), steps, spec=spec, dynamics=dynamics, camera=camera)[2]
+        chosen = jax.vmap(jax.random.uniform)(fold(step_keys, 2)) < planned
+        action = np.asarray(jnp.where(chosen[:, None], result.best[:, 0], random(fold(step_keys, 1), states.pos)),
+                            np.float32)
         states = worlds.push(states, action)
         init, warm = shift(result.best), True
         frames.append(_record(states))
