@@ -116,6 +116,7 @@ def test_cli_writes_the_file_and_its_sidecar(tiny_ckpt, tmp_path, capsys):
     assert shapes["init"] == ([2, 4], "float32") and shapes["warm"] == ([], "bool")
     assert [o["name"] for o in info["outputs"]] == list(ex.OUTPUT_NAMES)
     assert info["planner"]["samples"] == 4 and info["planner"]["adam_steps"] == 3 and info["planner"]["horizon"] == 2
+    assert info["planner"]["reach"] == pytest.approx(0.2 + 0.005 + 0.002)  # pushes may start outside a wall
     assert info["checkpoint"]["step"] == STEP and info["platforms"] == ["cpu"] and info["n_max"] == N_MAX
     exported = ex.load(str(out))
     assert [list(a.shape) for a in exported.in_avals] == [i["shape"] for i in info["inputs"]]

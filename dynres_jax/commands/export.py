@@ -21,6 +21,7 @@ neither the live planner nor the file repeats bit for bit from run to run; dynre
 
 from __future__ import annotations
 
+import argparse
 import json
 import os
 
@@ -28,12 +29,13 @@ import jax
 
 from dynres_jax import export
 from dynres_jax.commands import checks
-from dynres_jax.config import CameraConfig, PushConfig
+from dynres_jax.config import CameraConfig, PushConfig, SceneConfig
 from dynres_jax.control.planner import PlannerConfig
 from dynres_jax.io import frames
 from dynres_jax.io.ckpt import CheckpointError
 from dynres_jax.models.registry import SHIPPED_DYNAMICS
 from dynres_jax.sim.camera import Camera
+from dynres_jax.sim.pushes import wall_reach
 
 PLATFORMS = ("cpu", "cuda", "rocm", "tpu")
 
@@ -52,6 +54,9 @@ def main(argv=None):
     parser.add_argument("--min-length", type=checks.positive, default=PushConfig.min_length, help="shortest push, m")
     parser.add_argument("--max-length", type=checks.positive, default=PushConfig.max_length, help="longest push, m")
     parser.add_argument("--lr", type=checks.positive, default=defaults.lr, help="Adam learning rate, m")
+    parser.add_argument("--wall-pushes", action=argparse.BooleanOptionalAction, default=True,
+                        help="pushes may start outside a wall of the default bin, as the closed loop's do "
+                             "(PileEnv.reach), to sweep pieces off the walls")
     parser.add_argument("--camera", default=None,
                         help="camera JSON (Camera.to_json: K, rotation, centre, width, height) the goals' pixels "
                              "belong to (default: the simulator's top-down 128 x 128 camera)")
@@ -63,8 +68,11 @@ def main(argv=None):
     args = parser.parse_args(argv)
 
     try:
+        scene = SceneConfig()
         config = PlannerConfig(samples=args.samples, adam_steps=args.adam_steps, horizon=args.horizon, bound=args.bound,
-                               min_length=args.min_length, max_length=args.max_length, lr=args.lr)
+                               min_length=args.min_length, max_length=args.max_length, lr=args.lr,
+                               reach=wall_reach(scene.bin_half_width, scene.plate_thickness) if args.wall_pushes
+                               else None)
     except ValueError as e:
         parser.error(str(e))
     camera = Camera.top_down(CameraConfig()) if args.camera is None else frames.load_camera(args.camera)

@@ -27,6 +27,7 @@ from dynres_jax.io import files, frames
 from dynres_jax.io.draw import overlay
 from dynres_jax.models.registry import SHIPPED_DYNAMICS
 from dynres_jax.perception import WORKSPACE_HALF_WIDTH, calibrate, sample_particles
+from dynres_jax.sim.pushes import wall_reach
 from dynres_jax.sim.sensor import SENSORS
 
 
@@ -60,6 +61,9 @@ def main(argv=None):
                              " the table plane and the walls of a bin of --bin-half-width and --wall-height)")
     parser.add_argument("--bin-half-width", type=checks.number(0.02, 2.0), default=SceneConfig().bin_half_width,
                         help="m")
+    parser.add_argument("--wall-pushes", action=argparse.BooleanOptionalAction, default=True,
+                        help="pushes may start outside a wall of a bin of --bin-half-width, as the closed loop's do "
+                             "(PileEnv.reach), to sweep pieces off the walls")
     parser.add_argument("--wall-height", type=checks.number(0.005, 1.0), default=SceneConfig().wall_height, help="m")
     args = parser.parse_args(argv)
 
@@ -87,7 +91,12 @@ def main(argv=None):
     bucket = bucket_for(args.resolution)
     particles = sample_particles(obs, camera, args.resolution, key_h, bucket, workspace=args.workspace,
                                  real_depth=args.real_depth)
-    config = PlannerConfig(samples=args.samples, adam_steps=args.adam_steps, bound=args.bound, seed=args.seed)
+    reach = wall_reach(args.bin_half_width, SceneConfig().plate_thickness) if args.wall_pushes else None
+    try:
+        config = PlannerConfig(samples=args.samples, adam_steps=args.adam_steps, bound=args.bound, seed=args.seed,
+                               reach=reach)
+    except ValueError as e:
+        parser.error(f"--bound {args.bound} with pushes from outside the walls (--no-wall-pushes to plan without): {e}")
     result = plan(dynamics(particles.radius), goal_cost(goal, camera, bucket), particles.positions, particles.mask,
                   key_plan, config)
     action = np.asarray(result.best[0], np.float64)

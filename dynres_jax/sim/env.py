@@ -102,7 +102,7 @@ class PileEnv:
         # Pushes end this far inside the walls, so the plate never squeezes a piece against a wall; they may start
         # at ±reach, the plate wholly outside a wall (it passes through walls), to sweep pieces off the walls.
         self.action_bound = sc.bin_half_width - sc.plate_thickness / 2 - 2 * float(self.scene.footprint.max())
-        self.reach = sc.bin_half_width + sc.plate_thickness / 2 + pushes.REACH_GAP
+        self.reach = pushes.wall_reach(sc.bin_half_width, sc.plate_thickness)
         pushes.check_reach(self.action_bound, self.reach, p.min_length, p.max_length)
         self._sites = self._layout_sites()
         self._layout = jax.jit(self._initial_qpos)

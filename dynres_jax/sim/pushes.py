@@ -26,6 +26,11 @@ REACH_GAP = 0.002  # m: a push from outside a wall starts with the plate's surfa
 _TINY = 1e-12  # m²: squared lengths below this count as zero
 
 
+def wall_reach(bin_half_width: float, plate_thickness: float) -> float:
+    """m: where a push from outside a wall starts, the plate's surface REACH_GAP beyond the wall (``PileEnv.reach``)."""
+    return bin_half_width + plate_thickness / 2 + REACH_GAP
+
+
 def check_reach(bound: float, reach: float | None, min_length: float, max_length: float) -> None:
     """ValueError unless a reach leaves room for pushes from outside: reach - bound in [min_length,
     max_length / √2] (a push from outside a corner must get in)."""
@@ -167,4 +172,4 @@ def sample_actions(key, m, t, bound, min_length, max_length, centre_xy=None, spr
 
 
 __all__ = ["REACH_GAP", "WALL_SHARE", "ZERO_LENGTH_DIRECTION", "check_reach", "direction", "pile_points", "project",
-           "sample_actions", "wall_pushes"]
+           "sample_actions", "wall_pushes", "wall_reach"]
