@@ -8,7 +8,8 @@
 # 3. Closed loop (scripts/gpu_ladder.sh, ω = 50, 50 x 100, seeds from 5000): Gather M&M and Redistribute (JTULY),
 #    COUNT episodes each, for every checkpoint of CKPTS while the data is made, then for r1p.
 # Results: $WORK/out/lane*.tar.gz (closed loop), $WORK/results.tar.gz (logs, r1p's run folder); $WORK/done at the end.
-# Env: WORK (/tmp/op), EPISODES (1536), STEPS (14000), COUNT (64), CKPTS (checkpoints compared with r1p), WORLDS
+# Env: WORK (/tmp/op), EPISODES (1536), STEPS (14000), COUNT (64), CKPTS (checkpoints compared with r1p), POLICY (the
+# checkpoint P's pushes are planned with; default the shipped one), WORLDS
 # (R1's and P's shard sizes: "128 64"), DATA_FLAGS (more generate_data flags), FLAGS (more evaluate flags). A CPU dry
 # run: EPISODES=10 WORLDS="5 5" STEPS=20 COUNT=1 DATA_FLAGS="--kinds coffee --pieces 20 20 --two-kinds 0
 # --image-size 64" FLAGS="--quick --samples 4 --adam-steps 2 --mpc-steps 1".
@@ -36,7 +37,8 @@ python -m experiments.generate_data --out "$WORK/data/R1" --episodes "$EPISODES"
 random=$!
 # shellcheck disable=SC2086
 python -m experiments.generate_data --out "$WORK/data/P" --episodes "$EPISODES" --pushes 10 --worlds "$P_WORLDS" \
-  --seed 15 --planned 0.5 --workers 10 --no-progress ${DATA_FLAGS:-} > "$WORK/logs/data_P.log" 2>&1
+  --seed 15 --planned 0.5 --policy "${POLICY:-shipped}" --workers 10 --no-progress ${DATA_FLAGS:-} \
+  > "$WORK/logs/data_P.log" 2>&1
 log "data P: $(grep -o '"frames": [0-9]*' "$WORK/logs/data_P.log")"
 wait "$random"
 log "data R1: $(grep -o '"frames": [0-9]*' "$WORK/logs/data_R1.log")"

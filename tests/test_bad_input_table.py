@@ -231,10 +231,12 @@ D = [  # generate_data
     (["--two-kinds", "nan"], "--two-kinds"), (["--two-kinds", "0.5", "--kinds", "coffee"], "two_kinds"),
     (["--image-size", "4"], "image_size"), (["--backend", "x"], "backend"), (["--seed", "-1"], "--seed"),
     (["--pieces-step", "0"], "pieces_step"), (["--workers", "0"], "--workers"), (["--out", "{file}"], "--out"),
-    (["--out", "{other_run}"], "--out"), (["--out", "{foreign}"], "--out"),
+    (["--out", "{other_run}"], "--out"), (["--out", "{foreign}"], "--out"), (["--planned", "1.5"], "planned"),
+    (["--planned", "0.5", "--policy", "/nonexistent"], "--policy"),
 ]
 T = [  # train_dynamics (the data folder is checked after the flags)
-    (["--data", "/nonexistent"], "--data"), (["--data", "{data_missing}"], "--data"), (["--data", "{data_damaged}"], "shard"),
+    (["--data", "/nonexistent"], "--data"), (["--data", "{data_missing}"], "--data"),
+    (["--data", "{data_ok}", "/nonexistent"], "/nonexistent"), (["--data", "{data_damaged}"], "shard"),
     (["--data", "{labels}"], "--data"), (["--data", "{no_config}"], "--data"), (["--data", "{data_short}"], "--data"),
     (["--data", "{data_few}"], "--data"), (["--steps", "0"], "steps"), (["--batch", "0"], "batch"),
     (["--horizon", "0"], "horizon"), (["--lr", "nan"], "--lr"), (["--lr", "0"], "lr"), (["--lr", "-1"], "lr"),

@@ -26,6 +26,7 @@ import json
 from dynres_jax import distributed
 from dynres_jax.commands import checks
 from dynres_jax.config import SceneConfig
+from dynres_jax.io import ckpt
 from dynres_jax.learn import data
 from dynres_jax.sim.scene import check_room
 
@@ -73,6 +74,8 @@ def main(argv=None) -> dict:
             check_room(scene)
     except (ValueError, TypeError) as e:
         parser.error(str(e))
+    if config.planned > 0 and config.policy != "shipped" and ckpt.latest_step(config.policy) is None:
+        parser.error(f"--policy {config.policy}: no checkpoint there (a folder with a finished step, RUN/ckpt)")
     checks.claim(args.out, "generate_data", checks.settings(args), args.fresh)
     summary = data.generate(config, args.out, progress=not args.no_progress, workers=args.workers)
     print(json.dumps(summary, indent=1, sort_keys=True))
