@@ -217,8 +217,8 @@ def main(argv=None) -> dict:
         settings_of.add((meta["train"]["n_max"], meta["train"]["max_points"], meta["dynamics"]["plate_half_width"]))
     if len(models) < len(args.ckpt) or len(settings_of) > 1:
         parser.error("--ckpt: the models need distinct names and the same n_max, max_points and plate width")
-    args.model_settings = n_max = settings_of.pop()
-    n_max = n_max[0]
+    args.model_settings = settings_of.pop()
+    n_max = args.model_settings[0]
     if max(args.omegas) > n_max or min(args.omegas) < 1:
         parser.error(f"--omegas must lie in [1, the model's n_max = {n_max}]")
     config = data.DataConfig(seed=args.seed, backend="mujoco")

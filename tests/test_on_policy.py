@@ -28,7 +28,8 @@ def episodes():
     saved = dict(on_policy.PLANNER)
     on_policy.PLANNER.update(small)
     try:
-        runs = {p: on_policy.planned_episodes(worlds, keys, 3, p, dynamics, omega=8) for p in (0.0, 1.0)}
+        runs = {p: on_policy.planned_episodes(worlds, keys, 3, p, dynamics, 8, data.frame_record)
+                for p in (0.0, 1.0)}
     finally:
         on_policy.PLANNER.update(saved)
     return worlds, keys, runs

@@ -27,7 +27,7 @@ from dynres_jax import distributed
 from dynres_jax.commands import checks
 from dynres_jax.config import SceneConfig
 from dynres_jax.io import ckpt
-from dynres_jax.learn import data
+from dynres_jax.learn import data, on_policy
 from dynres_jax.sim.scene import check_room
 
 TYPES = {int: checks.count(0), float: checks.number()}  # a field's flag type by its default's type
@@ -74,7 +74,7 @@ def main(argv=None) -> dict:
             check_room(scene)
     except (ValueError, TypeError) as e:
         parser.error(str(e))
-    if config.planned > 0 and config.policy != "shipped" and ckpt.latest_step(config.policy) is None:
+    if config.planned > 0 and ckpt.latest_step(on_policy.policy_dir(config.policy)) is None:
         parser.error(f"--policy {config.policy}: no checkpoint there (a folder with a finished step, RUN/ckpt)")
     checks.claim(args.out, "generate_data", checks.settings(args), args.fresh)
     summary = data.generate(config, args.out, progress=not args.no_progress, workers=args.workers)

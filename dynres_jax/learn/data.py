@@ -66,7 +66,7 @@ from dynres_jax.io.shards import SHARD_GLOB, read_shard, save_npz, shard_path
 from dynres_jax.learn import on_policy
 from dynres_jax.sim import pool as pools
 from dynres_jax.sim.env import PileEnv, random_episode
-from dynres_jax.sim.pool import MJXPool, WorldPool, process_pool
+from dynres_jax.sim.pool import WorldPool, process_pool
 
 KIND_NAMES = tuple(KINDS)  # global kind index used by Dataset.kind and Sample.kind
 LAYOUTS = ("blob", "two_blobs", "spread")
@@ -205,18 +205,21 @@ def check_devices(config: DataConfig, devices=None) -> list:
     return devices
 
 
+def frame_record(s) -> dict:
+    """The arrays a shard keeps of one frame (State, or States with a leading world axis): depth (float16), piece
+    (int16), pos, mat, broken."""
+    return dict(depth=s.obs.depth.astype(jnp.float16), piece=s.obs.piece.astype(jnp.int16), pos=s.pos, mat=s.mat,
+                broken=s.broken)
+
+
 @functools.lru_cache(maxsize=4)
 def _episode_fn(sim: SimConfig, pushes: int, devices: tuple):
     """(env, fn, sharding): jitted fn keys [W, 2] -> per-world episode arrays (leading axis W), the worlds axis
     sharded over ``devices``. Cached, so shards of one scene compile once."""
     env = PileEnv(sim, backend="mjx")
 
-    def frame(s):
-        return dict(depth=s.obs.depth.astype(jnp.float16), piece=s.obs.piece.astype(jnp.int16), pos=s.pos,
-                    mat=s.mat, broken=s.broken)
-
     def episode(key):
-        frames, actions = random_episode(env, key, pushes, frame)
+        frames, actions = random_episode(env, key, pushes, frame_record)
         return dict(frames, action=actions)
 
     sharding = NamedSharding(Mesh(np.array(devices), ("worlds",)), PartitionSpec("worlds"))
@@ -232,10 +235,11 @@ def simulate_shard(config: DataConfig, shard: int, devices=None, pool=None) -> d
     sim = shard_sim_config(config, shard)
     keys = jax.random.split(jax.random.fold_in(jax.random.PRNGKey(config.seed), shard), config.worlds)
     if config.planned > 0:
-        worlds = WorldPool(sim, pool) if config.backend == "mujoco" else MJXPool(sim)
+        worlds = pools.make_pool(sim, config.backend, pool)
         env = worlds.env
         out = on_policy.planned_episodes(worlds, keys, config.pushes, config.planned, on_policy.policy_dynamics(
-            config.policy, sim.scene.plate_half_width), on_policy.OMEGAS[shard % len(on_policy.OMEGAS)])
+            config.policy, sim.scene.plate_half_width), on_policy.OMEGAS[shard % len(on_policy.OMEGAS)],
+                                         frame_record)
     elif config.backend == "mujoco":
         worlds = WorldPool(sim, pool)
         env, out = worlds.env, worlds.random_episodes(keys, config.pushes)

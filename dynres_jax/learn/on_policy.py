@@ -25,17 +25,21 @@ from dynres_jax.control.mpc import MPCConfig, fold, shift
 from dynres_jax.control.planner import planner_config
 from dynres_jax.models.registry import SHIPPED_DYNAMICS, load_dynamics
 from dynres_jax.perception import point_cloud
-from dynres_jax.sim.env import State
 
 OMEGAS = (25, 50, 100)  # the resolution of shard i's plans: OMEGAS[i % 3]
 LETTERS = "JTUCLSYO"  # Redistribute goals an episode may draw
 PLANNER = dict(samples=50, adam_steps=100)  # the closed loop's planner (docs/ladder's settings)
 
 
+def policy_dir(policy: str) -> str:
+    """The checkpoint folder of ``DataConfig.policy``: itself, or ``checkpoints/dynamics`` for "shipped"."""
+    return SHIPPED_DYNAMICS if policy == "shipped" else policy
+
+
 def policy_dynamics(policy: str, plate_half_width: float):
-    """The policy model's planner dynamics (radius -> model): the checkpoint folder ``policy``, "shipped" for
-    ``checkpoints/dynamics``. Loaded once per process."""
-    return _load(SHIPPED_DYNAMICS if policy == "shipped" else policy, float(plate_half_width))
+    """The policy model's planner dynamics (radius -> model) from ``policy_dir(policy)``. Loaded once per
+    process."""
+    return _load(policy_dir(policy), float(plate_half_width))
 
 
 @functools.lru_cache(maxsize=2)
@@ -59,17 +63,12 @@ def episode_goal(key, env) -> np.ndarray:
     return disc_goal(env.camera, (0.0, 0.0), scene.bin_half_width - tasks.GOAL_MARGIN)
 
 
-def _record(states: State) -> dict:
-    return dict(depth=np.asarray(states.obs.depth.astype(jnp.float16)), piece=np.asarray(states.obs.piece.astype(
-        jnp.int16)), pos=np.asarray(states.pos), mat=np.asarray(states.mat), broken=np.asarray(states.broken))
-
-
-def planned_episodes(worlds, keys, pushes: int, planned: float, dynamics, omega: int) -> dict:
+def planned_episodes(worlds, keys, pushes: int, planned: float, dynamics, omega: int, record) -> dict:
     """One episode per key [B, 2] in ``worlds`` (``sim.pool.Worlds`` whose states carry observations): a reset, then
     ``pushes`` pushes, each world's the planner's (at ``omega``, or the frame's foreground points where fewer; on
-    ``dynamics``: radius -> model) with probability ``planned``, else random. Returns ``WorldPool.random_episodes``'
-    arrays with a leading world axis: depth, piece, pos, mat, broken [B, F, ...] (F = pushes + 1) and action
-    [B, F - 1, 4]."""
+    ``dynamics``: radius -> model) with probability ``planned``, else random. record: States [B] -> the arrays kept of
+    a frame (``data.frame_record``). Returns record's arrays stacked [B, F, ...] (F = pushes + 1; broken is sticky,
+    as every State's) and action [B, F - 1, 4]."""
     if not 0.0 <= planned <= 1.0:
         raise ValueError(f"planned must be a share in [0, 1], got {planned}")
     env, camera = worlds.env, worlds.camera
@@ -79,7 +78,7 @@ def planned_episodes(worlds, keys, pushes: int, planned: float, dynamics, omega:
     cfg = MPCConfig(planner=planner_config(env, **PLANNER))
     spec = cfg.spec(budget.bucket_for(omega, cfg.buckets))
     states = worlds.reset(fold(keys, 1))
-    frames, actions = [_record(states)], []
+    frames, actions = [jax.device_get(record(states))], []
     init, warm = jnp.zeros((b, cfg.planner.horizon, 4), jnp.float32), False
     steps = np.full(b, cfg.planner.adam_steps, np.int32)
     points = jax.jit(jax.vmap(lambda o: jnp.sum(point_cloud(o, camera, max_points=cfg.max_points)[1])))
@@ -93,8 +92,7 @@ def planned_episodes(worlds, keys, pushes: int, planned: float, dynamics, omega:
                             np.float32)
         states = worlds.push(states, action)
         init, warm = shift(result.best), True
-        frames.append(_record(states))
+        frames.append(jax.device_get(record(states)))
         actions.append(action)
     out = {name: np.stack([f[name] for f in frames], axis=1) for name in frames[0]}
-    out["broken"] = np.logical_or.accumulate(out["broken"], axis=1)  # sticky, as a random episode's
     return dict(out, action=np.stack(actions, axis=1))
