@@ -1,4 +1,4 @@
-"""Benchmarks: ``python -m experiments.benchmark {sim,perception,planner,resolution,all} --json FILE [--quick]``.
+"""Benchmarks: ``python -m experiments.benchmark {sim,warp,perception,planner,resolution,all} --json FILE [--quick]``.
 
 Every figure is taken on whatever device JAX sees (named in the output) against a peer measured in the same run.
 ``all`` runs the three in turn and writes one Markdown table (printed, and beside the JSON as ``FILE.md``) with a
@@ -82,11 +82,13 @@ def report_table(results: dict) -> str:
 
 def main(argv=None):
     parser = argparse.ArgumentParser(prog="python -m experiments.benchmark", description=__doc__)
-    parser.add_argument("what", choices=["sim", "perception", "planner", "resolution", "all"])
+    parser.add_argument("what", choices=["sim", "warp", "perception", "planner", "resolution", "all"])
     parser.add_argument("--json", help="write the results here (atomically)")
     parser.add_argument("--quick", action="store_true", help="tiny sizes: checks the benchmark runs, in seconds")
     parser.add_argument("--variants", nargs="*", help="sim: scene variants (default: all)")
-    parser.add_argument("--worlds", nargs="*", type=int, help="sim: world counts (default 1 16 256 1024 4096)")
+    parser.add_argument("--worlds", nargs="*", type=int, help="sim: world counts (default 1 16 256 1024 4096); warp: "
+                        "batch sizes (default 1024 2048 4096 8192)")
+    parser.add_argument("--graph-modes", nargs="*", choices=["WARP", "JAX", "NONE"], help="warp: CUDA graph modes")
     parser.add_argument("--full-sweep", nargs="*", help="sim: variants timed at every world count")
     parser.add_argument("--pieces", type=int, default=100)
     parser.add_argument("--batch", choices=["benchmark", "task"], help="resolution: 1,500 candidates (benchmark) or "
@@ -107,6 +109,11 @@ def main(argv=None):
 
         result = bench_sim.run(args.quick, args.pieces, args.variants, args.worlds, args.full_sweep)
         print(sim_table(result))
+    elif args.what == "warp":
+        from benchmarks import bench_warp
+
+        result = bench_warp.run(args.quick, pieces=args.pieces, worlds=args.worlds, graph_modes=args.graph_modes)
+        print(bench_warp.table(result))
     elif args.what == "resolution":
         from benchmarks import bench_resolution
 

@@ -25,35 +25,9 @@ RANDOM_WORLDS=${RANDOM_WORLDS:-128}; PLANNED_WORLDS=${PLANNED_WORLDS:-64}
 WINDOWS=${WINDOWS:-512}; FLOOR_FLAGS=${FLOOR_FLAGS:-"--scenes 32 --worlds 8 --pushes 2"}
 cores=$(nproc)
 SHIPPED=dynres_jax/checkpoints/dynamics
-mkdir -p "$WORK/runs" "$WORK/logs"
 export XLA_PYTHON_CLIENT_PREALLOCATE=false  # a dozen processes share the GPU: each takes what it uses
-log() { echo "$(date +%T) $*" | tee -a "$WORK/logs/stages.log"; }
-pack() {
-  tar -czf "$WORK/results.tmp" -C "$WORK" logs runs 2>/dev/null
-  mv "$WORK/results.tmp" "$WORK/results.tar.gz"
-}
-
-gen() {  # NAME SEED WORLDS WORKERS [FLAGS...]
-  local name=$1 seed=$2 worlds=$3 workers=$4; shift 4
-  # shellcheck disable=SC2086
-  python -m experiments.generate_data --out "$WORK/data/$name" \
-    --episodes "$EPISODES" --pushes 10 --worlds "$worlds" --seed "$seed" --workers "$workers" --no-progress \
-    ${DATA_FLAGS:-} "$@" \
-    > "$WORK/logs/data_$name.log" 2>&1 && log "data $name: $(grep -o '"frames": [0-9]*' "$WORK/logs/data_$name.log")"
-}
-
-train() {  # NAME DATA... [-- FLAGS...]
-  local name=$1; shift
-  local folders=() flags=()
-  while [ $# -gt 0 ] && [ "$1" != -- ]; do folders+=("$WORK/data/$1"); shift; done
-  [ $# -gt 0 ] && shift && flags=("$@")
-  [ -f "$WORK/runs/$name/done" ] && return
-  log "train $name on ${folders[*]##*/} ${flags[*]}"
-  python -m experiments.train_dynamics --recipe shipped --data "${folders[@]}" \
-    --out "$WORK/runs/$name" --steps "$STEPS" --eval-every 2000 --max-minutes "$BOX" --quiet "${flags[@]}" \
-    > "$WORK/logs/train_$name.log" 2>&1 && touch "$WORK/runs/$name/done"
-  log "train $name: $(tail -1 "$WORK/runs/$name/metrics.jsonl")"
-}
+# shellcheck source=scripts/gpu_lib.sh
+source "$(dirname "$0")/gpu_lib.sh"
 
 log "start: $EPISODES episodes per data set, $STEPS steps per model, $cores cores"
 gen R1 11 "$RANDOM_WORLDS" "$RANDOM_WORKERS"

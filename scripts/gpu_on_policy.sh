@@ -14,11 +14,12 @@
 # run: EPISODES=10 WORLDS="5 5" STEPS=20 COUNT=1 DATA_FLAGS="--kinds coffee --pieces 20 20 --two-kinds 0
 # --image-size 64" FLAGS="--quick --samples 4 --adam-steps 2 --mpc-steps 1".
 set -uo pipefail
-WORK=${WORK:-/tmp/op}; EPISODES=${EPISODES:-1536}; STEPS=${STEPS:-14000}; COUNT=${COUNT:-64}; CKPTS=${CKPTS:-}
+WORK=${WORK:-/tmp/op}; EPISODES=${EPISODES:-1536}; STEPS=${STEPS:-14000}; BOX=${BOX:-11}; COUNT=${COUNT:-64}; CKPTS=${CKPTS:-}
 read -r R_WORLDS P_WORLDS <<< "${WORLDS:-128 64}"
-mkdir -p "$WORK/logs" "$WORK/runs" "$WORK/out"
+mkdir -p "$WORK/out"
 export XLA_PYTHON_CLIENT_PREALLOCATE=false  # data, training and two closed-loop lanes share the GPU
-log() { echo "$(date +%T) $*" | tee -a "$WORK/logs/stages.log"; }
+# shellcheck source=scripts/gpu_lib.sh
+source "$(dirname "$0")/gpu_lib.sh"
 
 ladder() {  # NAME LANE_A LANE_B CKPT...: Gather M&M on lane A, Redistribute on lane B, per checkpoint
   local name=$1 a=$2 b=$3 jobs=$WORK/$1.jobs; shift 3
@@ -31,23 +32,14 @@ ladder() {  # NAME LANE_A LANE_B CKPT...: Gather M&M on lane A, Redistribute on 
 log "start"
 # shellcheck disable=SC2086
 [ -n "$CKPTS" ] && ladder before 0 1 $CKPTS &
-# shellcheck disable=SC2086
-python -m experiments.generate_data --out "$WORK/data/R1" --episodes "$EPISODES" --pushes 10 --worlds "$R_WORLDS" \
-  --seed 11 --workers 6 --no-progress ${DATA_FLAGS:-} > "$WORK/logs/data_R1.log" 2>&1 &
+gen R1 11 "$R_WORLDS" 6 &
 random=$!
-# shellcheck disable=SC2086
-python -m experiments.generate_data --out "$WORK/data/P" --episodes "$EPISODES" --pushes 10 --worlds "$P_WORLDS" \
-  --seed 15 --planned 0.5 --policy "${POLICY:-shipped}" --workers 10 --no-progress ${DATA_FLAGS:-} \
-  > "$WORK/logs/data_P.log" 2>&1
-log "data P: $(grep -o '"frames": [0-9]*' "$WORK/logs/data_P.log")"
+gen P 15 "$P_WORLDS" 10 --planned 0.5 --policy "${POLICY:-shipped}"
 wait "$random"
-log "data R1: $(grep -o '"frames": [0-9]*' "$WORK/logs/data_R1.log")"
-python -m experiments.train_dynamics --recipe shipped --data "$WORK/data/R1" "$WORK/data/P" --out "$WORK/runs/r1p" \
-  --steps "$STEPS" --eval-every 2000 --quiet > "$WORK/logs/train_r1p.log" 2>&1
-log "train r1p: $(tail -1 "$WORK/runs/r1p/metrics.jsonl")"
-tar -czf "$WORK/results.tar.gz" -C "$WORK" logs runs
+train r1p R1 P
+pack
 ladder after 2 3 "$WORK/runs/r1p/ckpt"
 wait
-tar -czf "$WORK/results.tar.gz" -C "$WORK" logs runs
+pack
 log "done"
 touch "$WORK/done"

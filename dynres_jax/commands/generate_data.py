@@ -4,7 +4,8 @@
     python -m experiments.generate_data --out data/piles --backend mujoco   # C engine on every host core
     python -m experiments.generate_data --out /tmp/quick --quick          # seconds-scale smoke run
 
-The engine (--backend): "mujoco" (default) runs C MuJoCo worker processes on every host core; "mjx-fast" is MJX on the
+The engine (--backend): "mujoco" (default) runs C MuJoCo worker processes on every host core; "warp" is MuJoCo Warp on
+one GPU (the C engine's algorithms: ``pip install "dynres-jax[warp]"``, docs/warp); "mjx-fast" is MJX on the
 fast scene (2.8x faster on one H200 than the C workers on its 16 cores, but a model trained on its data does worse in
 the C scene: docs/performance.md, "Data from MJX"); "mjx" is MJX on the default scene; "auto" is "mjx-fast" where JAX
 has a GPU, "mujoco" elsewhere. Several processes share a run through

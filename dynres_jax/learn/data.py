@@ -1,18 +1,18 @@
 """Training data for the dynamics model f: batched episodes of random pushes, written as resumable shards.
 
-Generation (``generate``). The run is cut into shards; shard ``i`` holds ``DataConfig.worlds`` episodes simulated
-as one batch of worlds, on one ``SimConfig`` drawn for that shard (piece kind(s), piece count, pile layout) from the
-ranges in ``DataConfig``. The engine (``DataConfig.backend``): C MuJoCo worker processes (default), or MJX on the
-device, on the fast scene (``SceneConfig.fast``) or the given one. Everything random in a shard (its scene and its
-worlds) comes from ``(seed, i)`` alone, so shards can be made in any order, and a killed run resumes by skipping the
+Generation (``generate``). The run is cut into shards; shard ``i`` holds ``DataConfig.worlds`` episodes simulated as one
+batch of worlds, on one ``SimConfig`` drawn for that shard (piece kind(s), piece count, pile layout) from the ranges in
+``DataConfig``. The engine (``DataConfig.backend``): C MuJoCo worker processes (default), MuJoCo Warp on one GPU, or MJX
+on the device, on the fast scene (``SceneConfig.fast``) or the given one. Everything random in a shard (its scene and
+its worlds) comes from ``(seed, i)`` alone, so shards can be made in any order, and a killed run resumes by skipping the
 shard files that exist: the result is the one an uninterrupted run writes. Several processes of one job
 (``dynres_jax.distributed``: a launcher, or ``--coordinator``) share a run: process I makes shards I, I + K, ... into
-the same folder. An episode is ``pushes`` random pushes through the pile (``PileEnv.sample_push``) from a freshly
-reset pile (with ``DataConfig.planned`` > 0, a share of them chosen by the closed loop's planner instead:
+the same folder. An episode is ``pushes`` random pushes through the pile (``PileEnv.sample_push``) from a freshly reset
+pile (with ``DataConfig.planned`` > 0, a share of them chosen by the closed loop's planner instead:
 ``learn.on_policy``); frame 0 is the settled pile, frame ``t + 1`` the pile after action ``t``. The worlds of an MJX
 batch are sharded over the process's devices (a 1-D ``Mesh`` named ``"worlds"``), so more GPUs go faster. Results are
-bit-identical for the same seed, machine and device count; with another device count XLA compiles a different
-per-device batch and values agree to float32 rounding (then drift apart, as chaotic piles do).
+bit-identical for the same seed, machine and device count; with another device count XLA compiles a different per-device
+batch and values agree to float32 rounding (then drift apart, as chaotic piles do).
 
 On-disk format: ``DIR/shard_00000.npz`` ... (one zip of ``.npy`` members, deflated, fixed timestamps, so equal
 content gives equal bytes), ``DIR/config.json`` (the DataConfig, checked on resume), ``DIR/summary.json``. Shard
@@ -65,8 +65,9 @@ from dynres_jax.io.files import TMP_PREFIX, write_json, write_text
 from dynres_jax.io.shards import SHARD_GLOB, read_shard, save_npz, shard_path
 from dynres_jax.learn import on_policy
 from dynres_jax.sim import pool as pools
-from dynres_jax.sim.env import PileEnv, random_episode
-from dynres_jax.sim.pool import WorldPool, process_pool
+from dynres_jax.sim import warp
+from dynres_jax.sim.env import PileEnv
+from dynres_jax.sim.pool import WorldPool, process_pool, random_episode
 
 KIND_NAMES = tuple(KINDS)  # global kind index used by Dataset.kind and Sample.kind
 LAYOUTS = ("blob", "two_blobs", "spread")
@@ -94,14 +95,15 @@ class DataConfig:
     layouts: pile layouts to draw from. two_kinds: probability that a shard mixes two kinds (half the pieces each),
       for Sort. image_size: square image side (pixels). seed: everything random derives from (seed, shard index).
     drop_broken: drop episodes whose world broke (else keep them with their ``broken`` flags).
-    backend: "mjx" simulates a shard's worlds as one batch sharded over the JAX devices, "mjx-fast" the same on the
-      fast scene (``SceneConfig.fast`` physics for the shard's kinds: about 3.5x C MuJoCo on all 16 cores of an H200
-      host, where the default scene runs at 0.2x; docs/performance.md, "Speed"); "mujoco" runs them in the C engine,
-      one world per host process (``generate``'s ``workers``), and renders the frames on the JAX device (default);
-      "auto" is "mjx-fast" where JAX has a GPU and "mujoco" elsewhere (``concrete``: a run's config.json
-      records the engine it used). Why C is the default: on one H200 "mjx-fast" made the same data set 2.8x faster,
-      but the model trained on it gathered coffee in the C scene in 48 % of episodes against 75 % for the model
-      trained on C data (docs/performance.md, "Data from MJX").
+    backend: "mjx" simulates a shard's worlds as one batch sharded over the JAX devices, "warp" as one batch in MuJoCo
+      Warp (the C engine's algorithms on one GPU: docs/warp; ``pip install "dynres-jax[warp]"``), "mjx-fast" as "mjx" on
+      the fast scene (``SceneConfig.fast`` physics for the shard's kinds: about 3.5x C MuJoCo on all 16 cores of an H200
+      host, where the default scene runs at 0.2x; docs/performance.md, "Speed"); "mujoco" runs them in the C engine, one
+      world per host process (``generate``'s ``workers``), and renders the frames on the JAX device (default); "auto" is
+      "mjx-fast" where JAX has a GPU and "mujoco" elsewhere (``concrete``: a run's config.json records the engine it
+      used). Why C is the default: on one H200 "mjx-fast" made the same data set 2.8x faster, but the model trained on
+      it gathered coffee in the C scene in 48 % of episodes against 75 % for the model trained on C data
+      (docs/performance.md, "Data from MJX").
     planned: the share of pushes the closed loop's planner chooses (on-policy data, ``learn.on_policy``; shard i
       plans at ω = ``on_policy.OMEGAS[i % 3]``); 0: every push random. policy: the checkpoint folder of the model it
       plans with ("shipped": checkpoints/dynamics).
@@ -198,6 +200,9 @@ def check_devices(config: DataConfig, devices=None) -> list:
     """The devices a run shards its worlds over (default this process's); ValueError unless worlds divides (MJX;
     "mujoco" simulates on host processes and renders on the first device)."""
     devices = list(devices or jax.local_devices())
+    if concrete(config).backend == "warp" and len(devices) > 1:
+        raise ValueError(f"backend 'warp' simulates a shard on one device, but {len(devices)} are visible; pick one "
+                         "(CUDA_VISIBLE_DEVICES=0) or run one process per GPU (--coordinator)")
     if concrete(config).backend != "mujoco" and config.worlds % len(devices):
         raise ValueError(f"DataConfig.worlds={config.worlds} must be a multiple of the device count "
                          f"{len(devices)} (worlds are split evenly over devices); use e.g. worlds="
@@ -213,13 +218,15 @@ def frame_record(s) -> dict:
 
 
 @functools.lru_cache(maxsize=4)
-def _episode_fn(sim: SimConfig, pushes: int, devices: tuple):
+def _episode_fn(sim: SimConfig, pushes: int, devices: tuple, backend: str, worlds: int):
     """(env, fn, sharding): jitted fn keys [W, 2] -> per-world episode arrays (leading axis W), the worlds axis
-    sharded over ``devices``. Cached, so shards of one scene compile once."""
-    env = PileEnv(sim, backend="mjx")
+    sharded over ``devices``; MuJoCo Warp's adds ``overflow`` [W, F]. Cached, so shards of one scene compile once."""
+    engine = "warp" if backend == "warp" else "mjx"
+    env = PileEnv(sim, backend=engine, worlds=worlds)
+    record = (lambda s: dict(frame_record(s), overflow=s.overflow)) if engine == "warp" else frame_record
 
     def episode(key):
-        frames, actions = random_episode(env, key, pushes, frame_record)
+        frames, actions = random_episode(env, key, pushes, record)
         return dict(frames, action=actions)
 
     sharding = NamedSharding(Mesh(np.array(devices), ("worlds",)), PartitionSpec("worlds"))
@@ -244,8 +251,11 @@ def simulate_shard(config: DataConfig, shard: int, devices=None, pool=None) -> d
         worlds = WorldPool(sim, pool)
         env, out = worlds.env, worlds.random_episodes(keys, config.pushes)
     else:
-        env, fn, sharding = _episode_fn(sim, config.pushes, tuple(devices))
+        env, fn, sharding = _episode_fn(sim, config.pushes, tuple(devices), config.backend, config.worlds)
         out = jax.device_get(fn(jax.device_put(keys, sharding)))
+        flags = out.pop("overflow", np.zeros(1, np.int32))[:, -1]
+        if flags.any():
+            raise warp.CapacityError(warp.describe(flags, config.worlds, env.scene.n_pieces))
     out["episode"] = shard * config.worlds + np.arange(config.worlds, dtype=np.int64)
     out["kind"] = env.scene.kind.astype(np.int16)
     out["kind_names"] = np.array(sim.scene.kinds)

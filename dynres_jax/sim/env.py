@@ -1,6 +1,7 @@
-"""PileEnv: pure ``reset(key) -> State`` and ``push(state, action) -> State`` over one MJCF, two engines.
+"""PileEnv: pure ``reset(key) -> State`` and ``push(state, action) -> State`` over one MJCF, three engines.
 
 backend "mjx": MuJoCo XLA; ``reset`` and ``push`` are pure JAX, so ``jax.jit`` and ``jax.vmap`` over worlds work.
+backend "warp": MuJoCo Warp through MJX (``sim.warp``): the C engine's algorithms on the GPU, jit and vmap as "mjx".
 backend "mujoco": the C engine, one world, fast on CPU; same MJCF, same State, same plate trajectory.
 
 An action is ``(x_start, y_start, x_end, y_end)`` in metres: the plate (perpendicular to the push) lowers at the
@@ -30,7 +31,7 @@ from dynres_jax.sim.scene import build_scene
 with contextlib.redirect_stdout(io.StringIO()):  # mujoco.mjx prints a notice when the optional Warp is missing
     from mujoco import mjx
 
-    from dynres_jax.sim import mjx_step
+    from dynres_jax.sim import mjx_step, warp
 
 PARK = (0.0, 0.0, 3.0)  # plate parking spot, above the camera (out of view, touches nothing)
 SINK_LIMIT = 0.005  # a piece whose centre is this far below its rest height went through the table
@@ -54,7 +55,8 @@ def c_rollout(model, data, plate, nthread_data=None):
 class State(NamedTuple):
     """One world. qpos [nq], qvel [nv]: MuJoCo state; pos [N, 3], mat [N, 3, 3]: piece geom poses (world, metres);
     obs: the top-down Observation (None when the env renders nothing); broken []: True once a step produced NaN,
-    a piece went through the table, or a piece left the bin. Sticky: it stays True."""
+    a piece went through the table, or a piece left the bin, or the engine ran out of capacity. Sticky: it stays
+    True. overflow [] (int32; backend "warp" only, else None): ``sim.warp``'s capacity bits, sticky."""
 
     qpos: jax.Array
     qvel: jax.Array
@@ -62,6 +64,7 @@ class State(NamedTuple):
     mat: jax.Array
     obs: Observation | None
     broken: jax.Array
+    overflow: jax.Array | None = None
 
 
 def _yaw_quat(yaw):
@@ -69,7 +72,8 @@ def _yaw_quat(yaw):
 
 
 class PileEnv:
-    """Object piles pushed by a flat plate. ``PileEnv(SimConfig(), backend="mjx" | "mujoco", render=True)``.
+    """Object piles pushed by a flat plate. ``PileEnv(SimConfig(), backend="mjx" | "warp" | "mujoco", render=True)``.
+    worlds (backend "warp"): how many worlds a batch (``jax.vmap``) steps at once; capacities are sized for it.
 
     contact_jacobian (MJX only): "sparse" steps with ``sim.mjx_step.step`` (contact Jacobians built on the few dofs
     a contact can move; MJX's results to float rounding; it reaches into MJX's internals, so it runs only on the
@@ -79,9 +83,9 @@ class PileEnv:
     """
 
     def __init__(self, config: SimConfig | None = None, backend: str = "mjx", render: bool = True,
-                 contact_jacobian: str = "auto"):
-        if backend not in ("mjx", "mujoco"):
-            raise ValueError(f"backend must be 'mjx' or 'mujoco', got {backend!r}")
+                 contact_jacobian: str = "auto", worlds: int = 1):
+        if backend not in ("mjx", "warp", "mujoco"):
+            raise ValueError(f"backend must be 'mjx', 'warp' or 'mujoco', got {backend!r}")
         if contact_jacobian not in ("auto", "sparse", "dense"):
             raise ValueError(f"contact_jacobian must be 'auto', 'sparse' or 'dense', got {contact_jacobian!r}")
         if contact_jacobian == "auto":
@@ -117,6 +121,10 @@ class PileEnv:
             else:
                 self._step = mjx.step
             self._simulate = jax.jit(self._simulate_mjx)
+        elif backend == "warp":
+            self.mx, self._data0 = warp.put(model, self.scene.n_pieces, worlds)
+            warp.warm_up(model, self.scene.n_pieces)
+            self._step, self._simulate = mjx.step, jax.jit(self._simulate_mjx)
         else:
             self._data = mujoco.MjData(model)
             self._simulate = self._simulate_c
@@ -323,13 +331,14 @@ class PileEnv:
         d, _ = jax.lax.scan(step, d, (plate_pos, plate_quat))
         return mjx.kinematics(self.mx, d)
 
-    def _state_mjx(self, d, broken) -> State:
-        gid = self.scene.geom_id
-        return self._finish(d.qpos, d.qvel, d.geom_xpos[gid], d.geom_xmat[gid], broken)
-
     def _simulate_mjx(self, state: State, plate_pos, plate_quat) -> State:
-        d = self._data0.replace(qpos=state.qpos, qvel=state.qvel)
-        return self._state_mjx(self._run_mjx(d, plate_pos, plate_quat), state.broken)
+        d = self._run_mjx(self._data0.replace(qpos=state.qpos, qvel=state.qvel), plate_pos, plate_quat)
+        gid = self.scene.geom_id
+        out = self._finish(d.qpos, d.qvel, d.geom_xpos[gid], d.geom_xmat[gid], state.broken)
+        if self.backend != "warp":
+            return out
+        flags = warp.overflow(d) | (0 if state.overflow is None else state.overflow)
+        return out._replace(broken=out.broken | (flags != 0), overflow=flags)
 
     # --- C MuJoCo ---
     def _run_c(self, qpos, qvel, plate_pos, plate_quat, frames_at=()):
@@ -373,28 +382,3 @@ class PileEnv:
                   for p, r, pp, pq in frames]
         return self._finish_jit(*arrays, state.broken), frames
 
-
-def python_scan(step, carry, xs):
-    """``jax.lax.scan``'s contract as a Python loop over the leading axis of xs (concrete values: the C engine)."""
-    ys = []
-    for x in xs:
-        carry, y = step(carry, x)
-        ys.append(y)
-    return carry, jax.tree.map(lambda *v: jnp.stack(v), *ys)
-
-
-def random_episode(env: PileEnv, key, pushes: int, record, scan=jax.lax.scan):
-    """Data generation's episode (``learn.data``): a reset and ``pushes`` random pushes through the pile
-    (``PileEnv.sample_push``: always in bounds), the broken flag sticky. record: State -> the arrays kept of a frame;
-    scan: ``jax.lax.scan`` where the episode is traced (MJX, vmapped over worlds), ``python_scan`` for the C engine.
-    Returns (every frame's record stacked [F = pushes + 1], actions [pushes, 4] m)."""
-    k_reset, k_push = jax.random.split(key)
-    s0 = env.reset(k_reset)
-
-    def step(s, k):
-        action = env.sample_push(k, s.pos)
-        s1 = env.simulate(s, *env.plate_trajectory(action))
-        return s1._replace(obs=None), (record(s1), action)
-
-    _, (frames, actions) = scan(step, s0._replace(obs=None), jax.random.split(k_push, pushes))
-    return jax.tree.map(lambda a, b: jnp.concatenate([a[None], b]), record(s0), frames), actions

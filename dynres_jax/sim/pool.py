@@ -1,7 +1,7 @@
 """Many worlds at once, with ``PileEnv``'s batched State: ``WorldPool`` steps C MuJoCo worlds in host worker
 processes, one world per core, and renders their observations on the JAX device; ``MJXPool`` steps them as one batch
-in MJX on the device. Both have ``reset(keys)``, ``push(states, actions)``, ``env``, ``camera`` and ``scene``;
-``make_pool`` picks one by engine name (``BACKENDS``).
+in MJX on the device, ``WarpPool`` in MuJoCo Warp on the GPU. All have ``reset(keys)``, ``push(states, actions)``,
+``env``, ``camera`` and ``scene``; ``make_pool`` picks one by engine name (``BACKENDS``).
 
 Why: with the default Newton solver, C MuJoCo on every host core outruns MJX on one GPU several times over
 (docs/performance.md, "Speed"), so data generation and evaluation at scale push through this pool while perception and
@@ -22,13 +22,41 @@ import jax.numpy as jnp
 import numpy as np
 
 from dynres_jax.config import CameraConfig, SceneConfig, SimConfig, fast_fields
+from dynres_jax.sim import warp
 from dynres_jax.sim.camera import Camera, Renderer
-from dynres_jax.sim.env import PileEnv, State, python_scan, random_episode
+from dynres_jax.sim.env import PileEnv, State
 from dynres_jax.sim.scene import build_scene
 
-# Engines of batched worlds: MJX on the fast scene (SceneConfig.fast's physics), MJX on the scene as given, the C
-# engine in worker processes, and "auto" (the first on a GPU, the last elsewhere).
-BACKENDS = ("auto", "mjx-fast", "mjx", "mujoco")
+# Engines of batched worlds: MJX on the fast scene (SceneConfig.fast's physics), MJX on the scene as given, MuJoCo
+# Warp on the scene as given (the extra "warp"), the C engine in worker processes, and "auto" (the first on a GPU, the
+# last elsewhere).
+BACKENDS = ("auto", "mjx-fast", "mjx", "warp", "mujoco")
+
+
+def python_scan(step, carry, xs):
+    """``jax.lax.scan``'s contract as a Python loop over the leading axis of xs (concrete values: the C engine)."""
+    ys = []
+    for x in xs:
+        carry, y = step(carry, x)
+        ys.append(y)
+    return carry, jax.tree.map(lambda *v: jnp.stack(v), *ys)
+
+
+def random_episode(env: PileEnv, key, pushes: int, record, scan=jax.lax.scan):
+    """Data generation's episode (``learn.data``): a reset and ``pushes`` random pushes through the pile
+    (``PileEnv.sample_push``: always in bounds), the broken flag sticky. record: State -> the arrays kept of a frame;
+    scan: ``jax.lax.scan`` where the episode is traced (MJX, vmapped over worlds), ``python_scan`` for the C engine.
+    Returns (every frame's record stacked [F = pushes + 1], actions [pushes, 4] m)."""
+    k_reset, k_push = jax.random.split(key)
+    s0 = env.reset(k_reset)
+
+    def step(s, k):
+        action = env.sample_push(k, s.pos)
+        s1 = env.simulate(s, *env.plate_trajectory(action))
+        return s1._replace(obs=None), (record(s1), action)
+
+    _, (frames, actions) = scan(step, s0._replace(obs=None), jax.random.split(k_push, pushes))
+    return jax.tree.map(lambda a, b: jnp.concatenate([a[None], b]), record(s0), frames), actions
 
 
 def _checked(env: PileEnv, actions) -> np.ndarray:
@@ -165,7 +193,7 @@ class EnvWorlds:
 
     def __init__(self, env: PileEnv):
         self.env, self.config, self.camera, self.scene = env, env.config, env.camera, env.scene
-        if env.backend == "mjx":
+        if env.backend in ("mjx", "warp"):
             self._reset, self._push = jax.jit(jax.vmap(env.reset)), jax.jit(jax.vmap(env.push))
         else:
             self._reset, self._push = per_world(env.reset), per_world(env.push)
@@ -186,8 +214,39 @@ class MJXPool(EnvWorlds):
         super().__init__(PileEnv(config, backend="mjx"))
 
 
+class WarpPool:
+    """Worlds of one SimConfig stepped together by MuJoCo Warp on the GPU (``sim.warp``). Contact capacities are
+    sized per batch, so each batch size in use gets its own engine (and compile). A batch in which a world ran out of
+    capacity raises ``warp.CapacityError``; ``env`` is the one-world engine (scene, camera, action checks)."""
+
+    def __init__(self, config: SimConfig):
+        warp.check_installed()
+        self.config, self._sizes = config, {}
+        self.env = self._worlds(1).env
+        self.camera, self.scene = self.env.camera, self.env.scene
+
+    def _worlds(self, n: int) -> EnvWorlds:
+        if n not in self._sizes:
+            self._sizes[n] = EnvWorlds(PileEnv(self.config, backend="warp", worlds=n))
+        return self._sizes[n]
+
+    def _checked(self, states: State) -> State:
+        flags = np.asarray(states.overflow)
+        if flags.any():
+            raise warp.CapacityError(warp.describe(flags, flags.size, self.scene.n_pieces))
+        return states
+
+    def reset(self, keys) -> State:
+        """New settled piles, one per key: keys [B, 2] -> State [B]."""
+        return self._checked(self._worlds(len(keys)).reset(keys))
+
+    def push(self, states: State, actions) -> State:
+        """One push per world: actions [B, 4] (checked like ``PileEnv.push``; a bad one raises ValueError)."""
+        return self._checked(self._worlds(len(actions)).push(states, actions))
+
+
 class Worlds(Protocol):
-    """What the closed loop pushes (``control.mpc.run``): ``EnvWorlds``, ``MJXPool``, ``WorldPool``."""
+    """What the closed loop pushes (``control.mpc.run``): ``EnvWorlds``, ``MJXPool``, ``WarpPool``, ``WorldPool``."""
 
     camera: Camera
     scene: object
@@ -199,9 +258,12 @@ class Worlds(Protocol):
 
 def resolve_backend(backend: str) -> str:
     """An engine name of ``BACKENDS`` made concrete: "auto" is "mjx-fast" where JAX's default backend is a GPU,
-    else "mujoco" (C worker processes). ValueError for a name not in BACKENDS."""
+    else "mujoco" (C worker processes). ValueError for a name not in BACKENDS; InputError naming the extra for
+    "warp" without MuJoCo Warp installed."""
     if backend not in BACKENDS:
         raise ValueError(f"backend must be one of {', '.join(BACKENDS)}, got {backend!r}")
+    if backend == "warp":
+        warp.check_installed()
     if backend == "auto":
         return "mjx-fast" if jax.default_backend() == "gpu" else "mujoco"
     return backend
@@ -215,9 +277,12 @@ def engine_config(config: SimConfig, backend: str) -> SimConfig:
     return dataclasses.replace(config, scene=dataclasses.replace(config.scene, **fast_fields(config.scene.kinds)))
 
 
-def make_pool(config: SimConfig, backend: str, processes=None) -> WorldPool | MJXPool:
+def make_pool(config: SimConfig, backend: str, processes=None) -> WorldPool | MJXPool | WarpPool:
     """Worlds of ``config`` in the engine ``backend`` (``BACKENDS``): "mujoco" (``WorldPool`` on ``processes``),
-    "mjx" (``MJXPool``) or "mjx-fast" (``MJXPool`` on ``engine_config``'s fast physics)."""
-    if resolve_backend(backend) == "mujoco":
+    "warp" (``WarpPool``), "mjx" (``MJXPool``) or "mjx-fast" (``MJXPool`` on ``engine_config``'s fast physics)."""
+    backend = resolve_backend(backend)
+    if backend == "mujoco":
         return WorldPool(config, processes)
+    if backend == "warp":
+        return WarpPool(config)
     return MJXPool(engine_config(config, backend))

@@ -1,0 +1,117 @@
+"""MuJoCo Warp benchmark: whole pushes per second of the default (C) scene on one GPU, against C MuJoCo on every host
+core measured in the same run (``bench_sim.c_reference``), and both engines at once (Warp on the GPU while C workers
+use the other cores: what a data run gets from one machine).
+
+Warp is timed at each batch size in ``worlds`` and each CUDA graph mode in ``graph_modes`` (Warp captures a graph
+per call and replays it: "WARP", MJX's default; JAX captures: "JAX"; no capture: "NONE"); a batch in which a world ran
+out of capacity is reported, never timed.
+"""
+
+from __future__ import annotations
+
+import multiprocessing
+import os
+import time
+
+import jax
+import numpy as np
+
+from benchmarks.bench_sim import _batch, _c_worker, _timed, c_reference
+from dynres_jax.config import SceneConfig, SimConfig, replace
+from dynres_jax.sim import warp
+from dynres_jax.sim.env import PileEnv
+
+
+def warp_engine(cfg: SimConfig, worlds: int, graph_mode: str) -> PileEnv:
+    """A warp PileEnv for ``worlds`` worlds whose model captures CUDA graphs the ``graph_mode`` way."""
+    from warp import JaxCallableGraphMode
+
+    env = PileEnv(cfg, backend="warp", render=False, worlds=worlds)
+    if graph_mode != "WARP":  # MJX's default; replace the model before the first call traces it
+        env.mx = warp.put(env.scene.model, env.scene.n_pieces, worlds,
+                          graph_mode=JaxCallableGraphMode[graph_mode])[0]
+    return env
+
+
+def warp_rates(cfg: SimConfig, worlds: list[int], graph_modes: list[str]) -> list[dict]:
+    rows = []
+    for mode in graph_modes:
+        for w in worlds:
+            env = warp_engine(cfg, w, mode)
+            states, actions = _batch(env, w)
+            push = jax.jit(jax.vmap(env.push))
+            first, t = _timed(push, states, actions, repeats=1)
+            flags = np.asarray(push(states, actions).overflow)
+            row = dict(graph_mode=mode, worlds=w, pushes_per_s=w / t, seconds=t, compile_s=first - t,
+                       overflowed_worlds=int((flags != 0).sum()))
+            rows.append(row)
+            print(f"  Warp {mode:5s} {w:5d} worlds: {w / t:8.1f} pushes/s (first call {first:.1f} s, overflowed "
+                  f"{row['overflowed_worlds']})", flush=True)
+    return rows
+
+
+def together(cfg: SimConfig, worlds: int, graph_mode: str, seconds: float, cores: int) -> dict:
+    """Warp batches on the GPU for ``seconds`` while ``cores`` C worker processes push in the same scene."""
+    from benchmarks.bench_sim import FULL_STATE, mujoco
+
+    env = warp_engine(cfg, worlds, graph_mode)
+    states, actions = _batch(env, worlds)
+    push = jax.jit(jax.vmap(env.push))
+    jax.block_until_ready(push(states, actions).pos)  # compiled
+    m, d = env.scene.model, mujoco.MjData(env.scene.model)
+    d.qpos[:], d.qvel[:] = np.asarray(states.qpos[0], np.float64), np.asarray(states.qvel[0], np.float64)
+    state0 = np.empty(mujoco.mj_stateSize(m, FULL_STATE))
+    mujoco.mj_getState(m, d, state0, FULL_STATE)
+    pp, pq = jax.vmap(env.plate_trajectory)(actions[:cores])
+    plate = np.concatenate([np.asarray(pp), np.asarray(pq)], axis=2).astype(np.float64)
+    with multiprocessing.get_context("spawn").Pool(cores) as pool:
+        c_jobs = pool.map_async(_c_worker, [(env.scene.xml, state0, np.roll(plate, i, 0), seconds)
+                                            for i in range(cores)])
+        n, t0 = 0, time.perf_counter()
+        while time.perf_counter() - t0 < seconds:
+            jax.block_until_ready(push(states, actions).pos)
+            n += worlds
+        w_rate = n / (time.perf_counter() - t0)
+        c_rate = sum(k / t for k, t in c_jobs.get())
+    print(f"  together: Warp {w_rate:.1f} + C ({cores} cores) {c_rate:.1f} = {w_rate + c_rate:.1f} pushes/s",
+          flush=True)
+    return dict(worlds=worlds, graph_mode=graph_mode, c_cores=cores, warp_pushes_per_s=w_rate,
+                c_pushes_per_s=c_rate, pushes_per_s=w_rate + c_rate)
+
+
+def run(quick: bool = False, kind: str = "coffee", pieces: int = 100, worlds: list[int] | None = None,
+        graph_modes: list[str] | None = None, c_seconds: float = 10.0) -> dict:
+    """Warp's rows, C's peer, and both at once at Warp's best (batch, graph mode)."""
+    warp.check_installed()
+    if quick:
+        pieces, worlds, c_seconds = 6, [2], 0.5
+    worlds = worlds or [1024, 2048, 4096, 8192]
+    graph_modes = graph_modes or ["WARP", "JAX", "NONE"]
+    cfg = SimConfig(scene=replace(SceneConfig(), kinds=(kind,), pieces=(pieces,)))
+    print(f"MuJoCo Warp, {kind} x {pieces}: {cfg.scene}", flush=True)
+    rows = warp_rates(cfg, worlds, graph_modes)
+    c = c_reference(cfg, c_seconds)
+    best = max((r for r in rows if not r["overflowed_worlds"]), key=lambda r: r["pushes_per_s"])
+    both = together(cfg, best["worlds"], best["graph_mode"], c_seconds, max(1, (os.cpu_count() or 2) - 1))
+    out = dict(device=jax.devices()[0].device_kind, host_cores=os.cpu_count(), kind=kind, pieces=pieces,
+               warp=rows, c_mujoco=c, best=best, together=both, warp_over_c=best["pushes_per_s"] / c["pushes_per_s"],
+               together_over_c=both["pushes_per_s"] / c["pushes_per_s"])
+    print(f"  Warp / C MuJoCo: {out['warp_over_c']:.2f}x; both at once / C: {out['together_over_c']:.2f}x", flush=True)
+    return out
+
+
+def table(result: dict) -> str:
+    c = result["c_mujoco"]["pushes_per_s"]
+    lines = [f"Device: {result['device']}; host: {result['host_cores']} cores; {result['kind']} x {result['pieces']}, "
+             "the default scene, whole pushes.", "",
+             "| engine | graph mode | worlds | pushes/s | / C MuJoCo |", "|---|---|---:|---:|---:|"]
+    for r in result["warp"]:
+        flag = f" ({r['overflowed_worlds']} overflowed)" if r["overflowed_worlds"] else ""
+        lines.append(f"| MuJoCo Warp | {r['graph_mode']} | {r['worlds']} | {r['pushes_per_s']:,.1f}{flag} | "
+                     f"{r['pushes_per_s'] / c:.2f}x |")
+    lines.append(f"| C MuJoCo, {result['c_mujoco']['cores']} cores | - | - | {c:,.1f} | 1.00x |")
+    b = result["together"]
+    lines.append(f"| Warp + C on {b['c_cores']} cores at once | {b['graph_mode']} | {b['worlds']} | "
+                 f"{b['pushes_per_s']:,.1f} ({b['warp_pushes_per_s']:,.1f} + {b['c_pushes_per_s']:,.1f}) | "
+                 f"{b['pushes_per_s'] / c:.2f}x |")
+    return "\n".join(lines)

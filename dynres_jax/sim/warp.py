@@ -1,0 +1,109 @@
+"""MuJoCo Warp, the engine behind ``PileEnv(backend="warp")``: MJX's ``impl="warp"`` runs the C engine's own
+algorithms (collision, Newton solver) as Warp kernels on the GPU, under ``jax.jit`` and ``jax.vmap``.
+
+What this module adds to MJX's two calls (``mjx.put_model(m, impl="warp")``, ``mjx.make_data(m, impl="warp")``):
+- capacities: MuJoCo Warp holds every contact of a batch in one buffer of ``naconmax`` rows and every world's
+  constraint rows in ``njmax``; ``capacities`` sizes both from the scene's piece count and the batch's world count;
+- overflow as an error: a world whose contacts or constraints did not fit was simulated wrongly. The engine keeps
+  MuJoCo Warp's per-world overflow bits (``CAPACITY_FLAGS``) and the pool raises ``CapacityError`` naming the
+  capacity; the solver's own iteration limits (which C MuJoCo also stops at, silently) are not errors, so the
+  kernels' per-step overflow prints are switched off;
+- the first call: a CUDA graph cannot be captured while Warp compiles and loads its kernels, which made the first
+  call of every fresh process fail (Warp CUDA error 901). ``warm_up`` runs one step uncaptured first.
+
+Install: ``pip install "dynres-jax[warp]"`` (warp-lang, the version mujoco-mjx's own ``warp`` extra pins).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import functools
+import io
+
+import jax
+import jax.numpy as jnp
+import mujoco
+
+from dynres_jax.errors import InputError
+
+with contextlib.redirect_stdout(io.StringIO()):  # mujoco.mjx prints a notice when the optional Warp is missing
+    from mujoco import mjx
+    from mujoco.mjx import warp as mjx_warp
+
+EXTRA = 'pip install "dynres-jax[warp]"'
+
+# Contacts a piece can hold at once (table, neighbours, walls, plate; a box-box pair has up to 8 points), and rows a
+# contact adds to the constraint system (pyramidal condim 3: 4). Measured maxima are in docs/warp (a 2x margin).
+CONTACTS_PER_PIECE = 16
+ROWS_PER_CONTACT = 4
+
+# MuJoCo Warp's OverflowType bits that mean a capacity was too small (NEFC, NJMAX_NNZ, BROADPHASE, NARROWPHASE, CCD,
+# NVMAX, EPA_HORIZON); ITERATIONS and LS_ITERATIONS (solver limits) are left out.
+CAPACITY_FLAGS = (1 << 0) | (1 << 1) | (1 << 2) | (1 << 3) | (1 << 4) | (1 << 7) | (1 << 8)
+_FLAG_NAMES = {1 << 0: "constraint rows (njmax)", 1 << 1: "constraint Jacobian entries (njmax)",
+               1 << 2: "broadphase pairs (naconmax)", 1 << 3: "contacts (naconmax)", 1 << 4: "convex collision",
+               1 << 7: "island dofs", 1 << 8: "EPA horizon"}
+
+
+class CapacityError(RuntimeError):
+    """MuJoCo Warp ran out of a capacity (contacts or constraint rows) in some worlds of a batch."""
+
+
+def check_installed() -> None:
+    """Raise InputError naming the extra unless MuJoCo Warp (warp-lang) can be imported."""
+    if not mjx_warp.WARP_INSTALLED:
+        raise InputError(f"the 'warp' engine needs MuJoCo Warp, which needs warp-lang: {EXTRA}")
+
+
+def capacities(n_pieces: int, worlds: int) -> tuple[int, int]:
+    """(naconmax: contacts over the whole batch, njmax: constraint rows per world) for ``worlds`` worlds of
+    ``n_pieces`` pieces."""
+    if worlds < 1:
+        raise ValueError(f"worlds must be at least 1, got {worlds}")
+    per_world = CONTACTS_PER_PIECE * max(n_pieces, 1)
+    return per_world * worlds, per_world * ROWS_PER_CONTACT + 64
+
+
+def put(model: mujoco.MjModel, n_pieces: int, worlds: int, device=None, graph_mode=None):
+    """(mx, data0): ``model`` on ``device`` as MuJoCo Warp runs it, overflow prints off, and a Data template sized
+    by ``capacities`` for ``worlds`` worlds. graph_mode: a ``warp.JaxCallableGraphMode`` (default MJX's: Warp
+    captures CUDA graphs on a GPU)."""
+    check_installed()
+    device = device or jax.local_devices()[0]
+    naconmax, njmax = capacities(n_pieces, worlds)
+    mx = mjx.put_model(model, device=device, impl="warp", graph_mode=graph_mode)
+    mx = mx.replace(opt=mx.opt.replace(_impl=mx.opt._impl.replace(warn_overflow=0)))
+    return mx, mjx.make_data(model, device=device, impl="warp", naconmax=naconmax, njmax=njmax)
+
+
+def overflow(d) -> jax.Array:
+    """A Data's capacity overflow bits (int32 per world; MuJoCo Warp ORs them step by step until a reset)."""
+    return d._impl.overflow.reshape(()) & CAPACITY_FLAGS
+
+
+def describe(flags, worlds: int, n_pieces: int) -> str:
+    """The message of a CapacityError: which capacities overflowed, in how many of ``worlds`` worlds."""
+    flags = jnp.asarray(flags).reshape(-1)
+    hit = [f"{name}: {int(jnp.sum((flags & bit) != 0))} worlds" for bit, name in _FLAG_NAMES.items()
+           if bool(jnp.any(flags & bit))]
+    naconmax, njmax = capacities(n_pieces, worlds)
+    return (f"MuJoCo Warp ran out of capacity in a batch of {worlds} worlds of {n_pieces} pieces ({'; '.join(hit)}; "
+            f"naconmax {naconmax}, njmax {njmax}): those worlds were simulated wrongly. Raise "
+            f"dynres_jax.sim.warp.CONTACTS_PER_PIECE (now {CONTACTS_PER_PIECE})")
+
+
+@functools.lru_cache(maxsize=8)
+def _warmed(key) -> bool:
+    model, n_pieces = key
+    from warp import JaxCallableGraphMode  # only once installed (check_installed)
+
+    mx, d = put(model, n_pieces, 1, graph_mode=JaxCallableGraphMode.NONE)
+    jax.block_until_ready(jax.jit(mjx.step)(mx, d).qpos)
+    return True
+
+
+def warm_up(model: mujoco.MjModel, n_pieces: int) -> None:
+    """Compile and load MuJoCo Warp's kernels for ``model`` with one step outside CUDA graph capture (once per
+    model and process): a graph captured while kernels load fails."""
+    if jax.default_backend() == "gpu":
+        _warmed((model, n_pieces))

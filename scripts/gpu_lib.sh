@@ -1,0 +1,32 @@
+# Shared by the GPU run scripts (source it): stage log, results tarball, data sets and models under $WORK.
+# Env: WORK, EPISODES (episodes a data set), STEPS (Adam steps a model), BOX (minutes, each training's safety stop),
+# DATA_FLAGS (more generate_data flags).
+mkdir -p "$WORK/runs" "$WORK/logs"
+log() { echo "$(date +%T) $*" | tee -a "$WORK/logs/stages.log"; }
+
+pack() {  # logs and runs (no data) into $WORK/results.tar.gz, atomically
+  tar -czf "$WORK/results.tmp" -C "$WORK" logs runs 2>/dev/null
+  mv "$WORK/results.tmp" "$WORK/results.tar.gz"
+}
+
+gen() {  # NAME SEED WORLDS WORKERS [FLAGS...]: EPISODES episodes of 10 pushes into $WORK/data/NAME
+  local name=$1 seed=$2 worlds=$3 workers=$4; shift 4
+  # shellcheck disable=SC2086
+  python -m experiments.generate_data --out "$WORK/data/$name" \
+    --episodes "$EPISODES" --pushes 10 --worlds "$worlds" --seed "$seed" --workers "$workers" --no-progress \
+    ${DATA_FLAGS:-} "$@" \
+    > "$WORK/logs/data_$name.log" 2>&1 && log "data $name: $(grep -o '"frames": [0-9]*' "$WORK/logs/data_$name.log")"
+}
+
+train() {  # NAME DATA... [-- FLAGS...]: --recipe shipped on $WORK/data/DATA..., STEPS steps, into $WORK/runs/NAME
+  local name=$1; shift
+  local folders=() flags=()
+  while [ $# -gt 0 ] && [ "$1" != -- ]; do folders+=("$WORK/data/$1"); shift; done
+  [ $# -gt 0 ] && shift && flags=("$@")
+  [ -f "$WORK/runs/$name/done" ] && return
+  log "train $name on ${folders[*]##*/} ${flags[*]}"
+  python -m experiments.train_dynamics --recipe shipped --data "${folders[@]}" \
+    --out "$WORK/runs/$name" --steps "$STEPS" --eval-every 2000 --max-minutes "${BOX:-11}" --quiet "${flags[@]}" \
+    > "$WORK/logs/train_$name.log" 2>&1 && touch "$WORK/runs/$name/done"
+  log "train $name: $(tail -1 "$WORK/runs/$name/metrics.jsonl")"
+}

@@ -1,0 +1,62 @@
+#!/usr/bin/env bash
+# Issue 36's MuJoCo Warp engine on one GPU machine (docs/warp), about 25 minutes on one H100 and 16 host cores:
+#   WORK=/root/warp bash scripts/gpu_warp.sh
+# 1. studies.warp_engine --first-call: each kind's first call in a fresh process; the first of them is the machine's
+#    first Warp call (kernels compiled from nothing, as on a fresh machine). Then, while the data is made, its
+#    agreement check (256 worlds a kind, one push from C-settled piles, Warp against C).
+# 2. Transfer: data sets W (--backend warp) and C (--backend mujoco, C_WORKERS processes), the same DataConfig
+#    (seed 11, EPISODES episodes of 10 pushes, shards of 128 worlds) but the engine; models w and c on them
+#    (--recipe shipped, STEPS steps each, both at once).
+# 3. experiments.benchmark warp alone on the machine: whole pushes/s against C MuJoCo on every host core.
+# 4. Closed-loop Gather in the C scene with w and with c (scripts/gpu_ladder.sh: ω = 50, 50 x 100, seeds from 5000):
+#    M&M COUNT episodes and almond 64, paired (episode i is the same pile and goal for both models).
+# $WORK/results.tar.gz (logs, runs: the study, the benchmark, the models, closed-loop folders) after every stage;
+# $WORK/done at the end; a stage whose output exists is skipped. Env: WORK, EPISODES (1024), STEPS (14000), COUNT
+# (256), C_WORKERS (6), BENCH_FLAGS (--worlds 2048 8192 --graph-modes WARP JAX), DATA_FLAGS, STAGES (engine data
+# train bench loop). A CPU dry run with warp-lang installed: EPISODES=8 STEPS=20 COUNT=1 C_WORKERS=1 DATA_FLAGS="--kinds
+# coffee --pieces 20 20 --two-kinds 0 --image-size 64 --worlds 4" ENGINE_FLAGS="--kinds candy --worlds 2"
+# BENCH_FLAGS=--quick FLAGS="--quick --samples 4 --adam-steps 2 --mpc-steps 1".
+set -uo pipefail
+WORK=${WORK:-/root/warp}; EPISODES=${EPISODES:-1024}; STEPS=${STEPS:-14000}; COUNT=${COUNT:-256}
+C_WORKERS=${C_WORKERS:-6}; STAGES=${STAGES:-"engine data train bench loop"}
+BENCH_FLAGS=${BENCH_FLAGS:-"--worlds 2048 8192 --graph-modes WARP JAX"}
+export XLA_PYTHON_CLIENT_PREALLOCATE=false  # the study, two data runs and two trainings share the GPU
+# shellcheck source=scripts/gpu_lib.sh
+source "$(dirname "$0")/gpu_lib.sh"
+stage() { [[ " $STAGES " == *" $1 "* ]]; }
+
+log "start: $(nvidia-smi -L 2>/dev/null | head -1), $(nproc) cores"
+if stage engine && [ ! -f "$WORK/runs/engine/warp_engine.md" ]; then
+  # shellcheck disable=SC2086
+  python -m studies.warp_engine --out "$WORK/runs/engine" --first-call --workers 8 ${ENGINE_FLAGS:-} \
+    > "$WORK/logs/engine.log" 2>&1 &
+  engine=$!
+  # the first calls run alone (a fresh kernel cache), then the agreement check shares the machine with the data
+  while kill -0 "$engine" 2>/dev/null && ! grep -q "^first call candy" "$WORK/logs/engine.log"; do sleep 5; done
+  log "first calls: $(grep -c 'ok=True' "$WORK/logs/engine.log") of 6 ok"
+fi
+if stage data; then
+  [ -f "$WORK/data/W/summary.json" ] || gen W 11 128 1 --backend warp &
+  [ -f "$WORK/data/C/summary.json" ] || gen C 11 128 "$C_WORKERS" --backend mujoco
+  wait
+  pack
+fi
+stage train && { train w W & train c C & wait; pack; }
+if stage bench && [ ! -f "$WORK/runs/bench_warp.json" ]; then
+  log "benchmark"
+  # shellcheck disable=SC2086
+  python -m experiments.benchmark warp $BENCH_FLAGS --json "$WORK/runs/bench_warp.json" \
+    > "$WORK/logs/bench.log" 2>&1
+  log "benchmark: $(grep -o 'Warp / C MuJoCo.*' "$WORK/logs/bench.log")"
+  pack
+fi
+if stage loop; then
+  jobs=$WORK/loop.jobs
+  printf '%s\n' "0 gather mnm 50 $COUNT $WORK/runs/c/ckpt" "1 gather mnm 50 $COUNT $WORK/runs/w/ckpt" \
+    "2 gather almond 50 64 $WORK/runs/c/ckpt" "3 gather almond 50 64 $WORK/runs/w/ckpt" > "$jobs"
+  OUT=$WORK/runs/loop WORK=$WORK/ladder JOBS=$jobs bash scripts/gpu_ladder.sh > "$WORK/logs/loop.log" 2>&1
+  log "closed loop: $(grep -c done "$WORK/logs/loop.log") jobs done"
+  pack
+fi
+log "done"
+touch "$WORK/done"
