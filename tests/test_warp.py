@@ -4,12 +4,13 @@ The engine tests run where warp-lang is installed (``pip install ".[warp]"``; Wa
 the missing-extra tests run everywhere."""
 
 import dataclasses
+import json
 
 import jax
 import numpy as np
 import pytest
 
-from dynres_jax.commands import generate_data
+from dynres_jax.commands import evaluate, generate_data
 from dynres_jax.config import PushConfig, SceneConfig, SimConfig
 from dynres_jax.errors import InputError
 from dynres_jax.learn import data
@@ -31,11 +32,12 @@ def test_asking_for_warp_without_the_extra_names_the_extra(no_warp, tmp_path, ca
                 lambda: data.check_devices(data.quick_config(backend="warp"))):
         with pytest.raises(InputError, match=r'pip install "dynres-jax\[warp\]"'):
             ask()
-    with pytest.raises(SystemExit) as stop:
-        generate_data.main(["--out", str(tmp_path / "d"), "--quick", "--backend", "warp"])
-    assert stop.value.code == 2
-    assert 'dynres-jax[warp]' in capsys.readouterr().err
-    assert not (tmp_path / "d" / "config.json").exists()  # refused before any work
+    for command, out in ((generate_data, "d"), (evaluate, "e")):
+        with pytest.raises(SystemExit) as stop:
+            command.main(["--out", str(tmp_path / out), "--quick", "--backend", "warp"])
+        assert stop.value.code == 2
+        assert 'dynres-jax[warp]' in capsys.readouterr().err
+        assert not (tmp_path / out).exists()  # refused before any work
 
 
 def test_capacities_grow_with_pieces_and_worlds():
@@ -81,7 +83,7 @@ def test_a_warp_batch_equals_its_worlds_one_at_a_time(c_and_warp):
     """Worlds share MuJoCo Warp's contact buffer in a batch; each world's physics is still its own. Over the first 60
     steps of the pushes (the plate lowering and meeting the pile) a world batched with others and the same world alone
     agree to float rounding. (Over a whole push they drift apart by up to millimetres: a world's contact rows are
-    ordered by the batch's shared buffer, and a pile amplifies rounding, as C MuJoCo's own does: studies.warp_engine.)"""
+    ordered by the batch's shared buffer, and a pile amplifies rounding: studies.warp_engine.)"""
     start, actions, _, pool, _ = c_and_warp
     engines = {n: pool._worlds(n).env for n in (1, 3)}
     plate = jax.vmap(engines[3].plate_trajectory)(actions)
@@ -114,3 +116,17 @@ def test_generate_data_on_warp_writes_the_shard_layout(tmp_path):
     shard = np.load(tmp_path / "d" / "shard_00000.npz")
     assert "overflow" not in shard.files and shard["pos"].shape[:2] == (4, 3)
     assert np.abs(shard["pos"][:, -1] - shard["pos"][:, 0]).max() > 0.005  # the random pushes moved pieces
+
+
+@needs_warp
+def test_evaluate_runs_its_episodes_in_warp_worlds(tmp_path):
+    """The closed loop over WarpPool worlds: the same episodes as over C workers end close to where C's end."""
+    finals = {}
+    for backend in ("warp", "mujoco"):
+        summary = evaluate.main(["--quick", "--episodes", "2", "--mpc-steps", "2", "--pieces", "30", "--samples", "4",
+                                 "--adam-steps", "2", "--methods", "50", "--dynamics", "sweep", "--workers", "1",
+                                 "--backend", backend, "--out", str(tmp_path / backend)])
+        assert list(summary["methods"]) == ["50"]
+        finals[backend] = np.array(json.loads((tmp_path / backend / "50.json").read_text())["final_distance"])
+    assert np.all(np.isfinite(finals["warp"]))
+    np.testing.assert_allclose(finals["warp"], finals["mujoco"], rtol=0.25)

@@ -6,20 +6,20 @@ Redistribute, many episodes at once.
 
 Episode i of a task has the same pile, goal and planner keys for every method and any --episodes (seeded by (--seed,
 i)). Each method runs all episodes together: perception and planning vmapped on the JAX device, pushes in C worker
-processes (``WorldPool``). With ``--time-budget S`` every method plans under the same budget of S seconds per
-decision, spent by one timing table (``timing.json``, measured once per resolution bucket on this device or given by
-``--timing``): a coarse ω affords more Adam steps. Without it every decision runs ``--adam-steps``.
-Methods (``--methods``): fixed ω; "adaptive", the regressor g picks ω every step; "oracle" (an upper bound) plans at
-each ω of ORACLE_OMEGAS and keeps the push that left the lowest d on copies of the worlds (the summary says how much
-of its gain over the best fixed ω adaptive recovers, ``oracle_gap``); "cnn", the paper's CNN-dynamics baseline at
-``--cnn-omega``. The ladder of docs/ladder, where the simulator picks among the planner's candidates at
-``--best-omega`` (``choosers.BestOfK``, ``SimulatorScored``): "bestK" (e.g. best5) among K plans from independent
-keys, the oracle's control; "sim" among the M first samples, no model; "rerank" among the M plans after the model's
-Adam steps. Redistribute's episode i draws the letter i modulo ``--letters``. Writes per method ``METHOD.json`` (final
-d and inside share per episode, means per step; finished methods are skipped on a rerun), ``summary.json`` (means with
-95 % intervals, success rates, every method paired with adaptive or the first method: Δ final d with a
-paired-bootstrap interval, McNemar's test on success), ``score.png`` (share of episodes with final d below τ) and
-``steps.png`` (mean d over the MPC steps).
+processes (``WorldPool``), or in MuJoCo Warp on the GPU with ``--backend warp`` (``WarpPool``: C's physics,
+docs/warp). With ``--time-budget S`` every method plans under the same budget of S seconds per decision, spent by one
+timing table (``timing.json``, measured once per resolution bucket on this device or given by ``--timing``): a coarse
+ω affords more Adam steps. Without it every decision runs ``--adam-steps``. Methods (``--methods``): fixed ω;
+"adaptive", the regressor g picks ω every step; "oracle" (an upper bound) plans at each ω of ORACLE_OMEGAS and keeps
+the push that left the lowest d on copies of the worlds (the summary says how much of its gain over the best fixed ω
+adaptive recovers, ``oracle_gap``); "cnn", the paper's CNN-dynamics baseline at ``--cnn-omega``. The ladder of
+docs/ladder, where the simulator picks among the planner's candidates at ``--best-omega`` (``choosers.BestOfK``,
+``SimulatorScored``): "bestK" (e.g. best5) among K plans from independent keys, the oracle's control; "sim" among the
+M first samples, no model; "rerank" among the M plans after the model's Adam steps. Redistribute's episode i draws
+the letter i modulo ``--letters``. Writes per method ``METHOD.json`` (final d and inside share per episode, means per
+step; finished methods are skipped on a rerun), ``summary.json`` (means with 95 % intervals, success rates, every
+method paired with adaptive or the first method: Δ final d with a paired-bootstrap interval, McNemar's test on
+success), ``score.png`` (share of episodes with final d below τ) and ``steps.png`` (mean d over the MPC steps).
 
 Several processes share the episodes through jax.distributed (a launcher, or --coordinator, --num-processes,
 --process-id): process I runs episodes I, I + K, ... of every method and writes ``parts/METHOD.I-of-K.json``;
@@ -28,6 +28,7 @@ process 0 merges them into ``METHOD.json`` and writes the summary.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 
@@ -61,12 +62,13 @@ from dynres_jax.control.choosers import (
 )
 from dynres_jax.control.goals import make_goal, stack
 from dynres_jax.control.mpc import SensorView, fold, run
+from dynres_jax.errors import InputError
 from dynres_jax.io import ckpt, files
 from dynres_jax.io.draw import evaluation_plots
 from dynres_jax.models.registry import SHIPPED_CNN_DYNAMICS, SHIPPED_DYNAMICS, SHIPPED_REGRESSOR, describe
 from dynres_jax.sim.camera import Camera
 from dynres_jax.sim.env import PileEnv
-from dynres_jax.sim.pool import WorldPool, process_pool
+from dynres_jax.sim.pool import make_pool, process_pool, resolve_backend
 from dynres_jax.sim.sensor import SENSORS
 from dynres_jax.stats import mcnemar, paired_bootstrap, wilson
 
@@ -256,6 +258,9 @@ def main(argv=None):
     parser.add_argument("--cnn-ckpt", default=SHIPPED_CNN_DYNAMICS, help="the CNN-dynamics checkpoint of method 'cnn'")
     parser.add_argument("--cnn-omega", type=checks.omega, default=50, help="ω of method 'cnn'")
     parser.add_argument("--workers", type=checks.count(1, 1024), default=None)
+    parser.add_argument("--backend", choices=["mujoco", "warp"], default="mujoco",
+                        help="the worlds' engine: C MuJoCo in --workers processes, or MuJoCo Warp on the GPU "
+                             '(pip install ".[warp]")')
     parser.add_argument("--seed", type=checks.seed, default=0)
     parser.add_argument("--out", required=True)
     checks.add_fresh(parser)
@@ -288,6 +293,10 @@ def main(argv=None):
     if args.episodes < size:
         parser.error(f"--episodes must be at least the {size} processes of the job, got {args.episodes}")
     resolve_pieces(parser, args)
+    try:
+        resolve_backend(args.backend)
+    except InputError as e:
+        parser.error(f"--backend: {e}")
     camera = CameraConfig(width=64, height=64) if args.quick else CameraConfig()
     sim = SimConfig(scene=SceneConfig(kinds=(args.kind,), pieces=(args.pieces,)), camera=camera,
                     pile=PileConfig(layout="spread" if args.task == "gather" else "blob"))
@@ -310,8 +319,8 @@ def main(argv=None):
     os.makedirs(os.path.join(args.out, "parts"), exist_ok=True)
     mine = np.arange(rank, args.episodes, size)  # this process's episodes
     results = {}
-    with process_pool(args.workers) as processes:
-        pool = WorldPool(sim, processes)
+    with process_pool(args.workers) if args.backend == "mujoco" else contextlib.nullcontext() as processes:
+        pool = make_pool(sim, args.backend, processes)
         masks = episode_goals(args.task, args.episodes, args.seed, pool.env, args.letters)
         goals = stack([make_goal(masks[i], pool.camera) for i in mine])
         pile_keys, keys = episode_keys(args.seed, mine)

@@ -253,7 +253,7 @@ def simulate_shard(config: DataConfig, shard: int, devices=None, pool=None) -> d
     else:
         env, fn, sharding = _episode_fn(sim, config.pushes, tuple(devices), config.backend, config.worlds)
         out = jax.device_get(fn(jax.device_put(keys, sharding)))
-        flags = out.pop("overflow", np.zeros(1, np.int32))[:, -1]
+        flags = out.pop("overflow", np.zeros((1, 1), np.int32))[:, -1]  # sticky: the last frame has them all
         if flags.any():
             raise warp.CapacityError(warp.describe(flags, config.worlds, env.scene.n_pieces))
     out["episode"] = shard * config.worlds + np.arange(config.worlds, dtype=np.int64)
