@@ -110,6 +110,19 @@ def _c_worker(job) -> tuple[int, float]:
     return n, time.perf_counter() - t0
 
 
+def c_jobs(env: PileEnv, qpos, qvel, actions, seconds: float) -> list[tuple]:
+    """``_c_worker``'s jobs, one per action [K, 4]: every worker starts from the world (qpos, qvel) of ``env``'s scene
+    and cycles through all K pushes' plate trajectories, each worker from a different one."""
+    m = env.scene.model
+    d = mujoco.MjData(m)
+    d.qpos[:], d.qvel[:] = np.asarray(qpos, np.float64), np.asarray(qvel, np.float64)
+    state0 = np.empty(mujoco.mj_stateSize(m, FULL_STATE))
+    mujoco.mj_getState(m, d, state0, FULL_STATE)
+    pp, pq = jax.vmap(env.plate_trajectory)(jnp.asarray(actions))
+    plate = np.concatenate([np.asarray(pp), np.asarray(pq)], axis=2).astype(np.float64)
+    return [(env.scene.xml, state0, np.roll(plate, i, 0), seconds) for i in range(len(plate))]
+
+
 def c_reference(cfg: SimConfig, seconds: float, cores: int | None = None) -> dict:
     """C MuJoCo on whole pushes, one world per core on every core, two ways: one process per core, and one
     ``mujoco.rollout`` call on a pool of C threads. The faster of the two is the peer MJX is compared with."""
@@ -117,16 +130,13 @@ def c_reference(cfg: SimConfig, seconds: float, cores: int | None = None) -> dic
     env = PileEnv(cfg, backend="mujoco", render=False)
     m = env.scene.model
     state = env.reset(jax.random.PRNGKey(0))
-    d = mujoco.MjData(m)
-    d.qpos[:], d.qvel[:] = np.asarray(state.qpos, np.float64), np.asarray(state.qvel, np.float64)
-    state0 = np.empty(mujoco.mj_stateSize(m, FULL_STATE))
-    mujoco.mj_getState(m, d, state0, FULL_STATE)
     actions = jax.vmap(env.sample_push, in_axes=(0, None))(jax.random.split(jax.random.PRNGKey(1), cores), state.pos)
-    pp, pq = jax.vmap(env.plate_trajectory)(actions)
-    plate = np.concatenate([np.asarray(pp), np.asarray(pq)], axis=2).astype(np.float64)
+    jobs = c_jobs(env, state.qpos, state.qvel, actions, seconds)
+    d, plate = mujoco.MjData(m), jobs[0][2]
+    mujoco.mj_setState(m, d, jobs[0][1], FULL_STATE)
 
     with multiprocessing.get_context("spawn").Pool(cores) as pool:
-        done = pool.map(_c_worker, [(env.scene.xml, state0, np.roll(plate, i, 0), seconds) for i in range(cores)])
+        done = pool.map(_c_worker, jobs)
     per_process = sum(n / t for n, t in done)
 
     threads = [mujoco.MjData(m) for _ in range(cores)]

@@ -16,7 +16,7 @@ import time
 import jax
 import numpy as np
 
-from benchmarks.bench_sim import _batch, _c_worker, _timed, c_reference
+from benchmarks.bench_sim import _batch, _c_worker, _timed, c_jobs, c_reference
 from dynres_jax.config import SceneConfig, SimConfig, replace
 from dynres_jax.sim import warp
 from dynres_jax.sim.env import PileEnv
@@ -52,27 +52,19 @@ def warp_rates(cfg: SimConfig, worlds: list[int], graph_modes: list[str]) -> lis
 
 def together(cfg: SimConfig, worlds: int, graph_mode: str, seconds: float, cores: int) -> dict:
     """Warp batches on the GPU for ``seconds`` while ``cores`` C worker processes push in the same scene."""
-    from benchmarks.bench_sim import FULL_STATE, mujoco
-
     env = warp_engine(cfg, worlds, graph_mode)
     states, actions = _batch(env, worlds)
     push = jax.jit(jax.vmap(env.push))
     jax.block_until_ready(push(states, actions).pos)  # compiled
-    m, d = env.scene.model, mujoco.MjData(env.scene.model)
-    d.qpos[:], d.qvel[:] = np.asarray(states.qpos[0], np.float64), np.asarray(states.qvel[0], np.float64)
-    state0 = np.empty(mujoco.mj_stateSize(m, FULL_STATE))
-    mujoco.mj_getState(m, d, state0, FULL_STATE)
-    pp, pq = jax.vmap(env.plate_trajectory)(actions[:cores])
-    plate = np.concatenate([np.asarray(pp), np.asarray(pq)], axis=2).astype(np.float64)
+    jobs = c_jobs(env, states.qpos[0], states.qvel[0], actions[:cores], seconds)
     with multiprocessing.get_context("spawn").Pool(cores) as pool:
-        c_jobs = pool.map_async(_c_worker, [(env.scene.xml, state0, np.roll(plate, i, 0), seconds)
-                                            for i in range(cores)])
+        c_done = pool.map_async(_c_worker, jobs)
         n, t0 = 0, time.perf_counter()
         while time.perf_counter() - t0 < seconds:
             jax.block_until_ready(push(states, actions).pos)
             n += worlds
         w_rate = n / (time.perf_counter() - t0)
-        c_rate = sum(k / t for k, t in c_jobs.get())
+        c_rate = sum(k / t for k, t in c_done.get())
     print(f"  together: Warp {w_rate:.1f} + C ({cores} cores) {c_rate:.1f} = {w_rate + c_rate:.1f} pushes/s",
           flush=True)
     return dict(worlds=worlds, graph_mode=graph_mode, c_cores=cores, warp_pushes_per_s=w_rate,

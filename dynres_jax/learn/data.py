@@ -199,11 +199,11 @@ def shard_sim_config(config: DataConfig, shard: int) -> SimConfig:
 def check_devices(config: DataConfig, devices=None) -> list:
     """The devices a run shards its worlds over (default this process's); ValueError unless worlds divides (MJX;
     "mujoco" simulates on host processes and renders on the first device)."""
-    devices = list(devices or jax.local_devices())
-    if concrete(config).backend == "warp" and len(devices) > 1:
+    devices, backend = list(devices or jax.local_devices()), concrete(config).backend
+    if backend == "warp" and len(devices) > 1:
         raise ValueError(f"backend 'warp' simulates a shard on one device, but {len(devices)} are visible; pick one "
                          "(CUDA_VISIBLE_DEVICES=0) or run one process per GPU (--coordinator)")
-    if concrete(config).backend != "mujoco" and config.worlds % len(devices):
+    if backend != "mujoco" and config.worlds % len(devices):
         raise ValueError(f"DataConfig.worlds={config.worlds} must be a multiple of the device count "
                          f"{len(devices)} (worlds are split evenly over devices); use e.g. worlds="
                          f"{math.ceil(config.worlds / len(devices)) * len(devices)}")
@@ -253,9 +253,8 @@ def simulate_shard(config: DataConfig, shard: int, devices=None, pool=None) -> d
     else:
         env, fn, sharding = _episode_fn(sim, config.pushes, tuple(devices), config.backend, config.worlds)
         out = jax.device_get(fn(jax.device_put(keys, sharding)))
-        flags = out.pop("overflow", np.zeros((1, 1), np.int32))[:, -1]  # sticky: the last frame has them all
-        if flags.any():
-            raise warp.CapacityError(warp.describe(flags, config.worlds, env.scene.n_pieces))
+        if "overflow" in out:
+            warp.check_overflow(out.pop("overflow")[:, -1], env.scene.n_pieces)  # sticky: the last frame has them all
     out["episode"] = shard * config.worlds + np.arange(config.worlds, dtype=np.int64)
     out["kind"] = env.scene.kind.astype(np.int16)
     out["kind_names"] = np.array(sim.scene.kinds)

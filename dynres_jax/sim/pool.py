@@ -231,9 +231,7 @@ class WarpPool:
         return self._sizes[n]
 
     def _checked(self, states: State) -> State:
-        flags = np.asarray(states.overflow)
-        if flags.any():
-            raise warp.CapacityError(warp.describe(flags, flags.size, self.scene.n_pieces))
+        warp.check_overflow(states.overflow, self.scene.n_pieces)
         return states
 
     def reset(self, keys) -> State:

@@ -21,8 +21,8 @@ import functools
 import io
 
 import jax
-import jax.numpy as jnp
 import mujoco
+import numpy as np
 
 from dynres_jax.errors import InputError
 
@@ -81,15 +81,18 @@ def overflow(d) -> jax.Array:
     return d._impl.overflow.reshape(()) & CAPACITY_FLAGS
 
 
-def describe(flags, worlds: int, n_pieces: int) -> str:
-    """The message of a CapacityError: which capacities overflowed, in how many of ``worlds`` worlds."""
-    flags = jnp.asarray(flags).reshape(-1)
-    hit = [f"{name}: {int(jnp.sum((flags & bit) != 0))} worlds" for bit, name in _FLAG_NAMES.items()
-           if bool(jnp.any(flags & bit))]
-    naconmax, njmax = capacities(n_pieces, worlds)
-    return (f"MuJoCo Warp ran out of capacity in a batch of {worlds} worlds of {n_pieces} pieces ({'; '.join(hit)}; "
-            f"naconmax {naconmax}, njmax {njmax}): those worlds were simulated wrongly. Raise "
-            f"dynres_jax.sim.warp.CONTACTS_PER_PIECE (now {CONTACTS_PER_PIECE})")
+def check_overflow(flags, n_pieces: int) -> None:
+    """Raise CapacityError naming the capacities that overflowed, in how many of the batch's worlds: flags [B] (or
+    [B, ...], one batch), ``overflow``'s bits of a batch of worlds of ``n_pieces`` pieces."""
+    flags = np.asarray(flags).reshape(len(flags), -1)
+    hit = [f"{name}: {int(np.sum((flags & bit).any(1)))} worlds" for bit, name in _FLAG_NAMES.items()
+           if np.any(flags & bit)]
+    if not hit:
+        return
+    naconmax, njmax = capacities(n_pieces, len(flags))
+    raise CapacityError(f"MuJoCo Warp ran out of capacity in a batch of {len(flags)} worlds of {n_pieces} pieces "
+                        f"({'; '.join(hit)}; naconmax {naconmax}, njmax {njmax}): those worlds were simulated wrongly. "
+                        f"Raise dynres_jax.sim.warp.CONTACTS_PER_PIECE (now {CONTACTS_PER_PIECE})")
 
 
 @functools.lru_cache(maxsize=8)
