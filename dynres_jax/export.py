@@ -1,46 +1,41 @@
-"""Deployment: one MPC planning call of a trained model, serialised with ``jax.export`` (StableHLO).
+"""Deployment: one whole MPC decision of a trained model, serialised with ``jax.export`` (StableHLO).
 
-A robot computer with JAX installed (``jax`` and ``jaxlib`` at least as new as the exporting ones; not this
-package) loads the file with ``jax.export.deserialize`` and calls it; the model weights, the camera and the
-``PlannerConfig`` are constants inside it, the particles, the goal and the PRNG key are inputs, so the goal can
-change without exporting again:
+A robot computer with ``jax`` (jaxlib at least as new as the exporting one) and ``flatbuffers`` (which
+``jax.export`` reads its files with), not this package, loads the file and calls it on a depth frame and a goal mask:
 
-    exported = jax.export.deserialize(open("planner.jaxexport", "rb").read())
-    out = exported.call(positions, mask, radius, goal_mask, goal_distance, goal_samples, goal_sample_mask, key,
-                        init, warm)
-    out["best"][0]  # the push to execute: (x_start, y_start, x_end, y_end), metres
+    exported = jax.export.deserialize(open("decision.jaxexport", "rb").read())
+    out = exported.call(depth, goal_mask, key, omega, adam_steps, init, warm)
+    out["push"]  # the push to execute: (x_start, y_start, x_end, y_end), metres; NaN unless out["error"] == 0
 
-Inputs (``INPUT_NAMES`` order; shapes fixed at export, the sidecar ``FILE.json`` lists them):
+Everything between the frame and the push runs inside (``decision_step``): the goal's signed distance field and
+samples (``goals.goal_fields``), perception h(y, ω) (``perception.perceive``: foreground, farthest point sampling,
+re-centring; a real camera's depth by default), the particles' objective c and the shooting planner with the learned
+dynamics f(z, u, ω). The model weights, the camera, the particle capacity and the planner settings are constants
+inside it; the frame, the goal, ω, the Adam steps and the keys are inputs, so the goal or the resolution can change
+without exporting again. Inputs (``INPUT_NAMES`` order; shapes fixed at export, the sidecar ``FILE.json`` lists them):
 
-- positions [n_max, 3] float32 m, world frame: the particles (``perception.Particles.positions``); n_max is the
-  model's (its checkpoint card).
-- mask [n_max] bool: valid particles (``Particles.mask``; the first ω).
-- radius [] float32 m: the FPS covering radius of the ω-sample over the whole point cloud (``Particles.radius``),
-  from which the learned dynamics take their resolution code. It is an input, not computed inside, because it
-  depends on the point cloud, not only on the particles.
-- goal_mask [H, W] bool, goal_distance [H, W] float32 px, goal_samples [Q, 2] float32 px, goal_sample_mask [Q] bool:
-  the fields of ``goals.Goal`` (``goals.make_goal(mask, camera, n_samples=Q)``), H x W the camera's image.
-- key [2] uint32: ``jax.random.PRNGKey(seed)``'s data (the planner's key, not the perception one).
-- init [T, 4] float32 m and warm [] bool: warm start; with warm True, ``init`` (e.g. the previous plan shifted by
-  one push) replaces sample 0, as ``planner.plan(init=...)``; with warm False ``init`` is ignored (``plan(init=None)``).
+- depth [H, W] float32 m: the camera's z-depth, H x W its image; 0 (or ``sim.sensor.NO_READING``) where it gave no
+  reading. NaN or infinite pixels are an error.
+- goal_mask [H, W] bool: goal pixels (``io.frames.load_goal`` of a goal PNG, ``experiments.goal`` writes them).
+- key [2] uint32: ``jax.random.PRNGKey(seed)``'s data; split into perception's and the planner's keys as the closed
+  loop splits it (``decision.perceive_and_decide``).
+- omega [] int32: the resolution ω, 1 <= ω <= the capacity (the sidecar's ``capacity``).
+- adam_steps [] int32: refinement steps, 0 <= steps <= the planner's (an anytime budget).
+- init [T, 4] float32 m and warm [] bool: warm start; with warm True, ``init`` (e.g. the previous plan shifted by one
+  push) replaces sample 0, as the closed loop's warm start; with warm False ``init`` is ignored.
 
-Output: a dict with best [T, 4] float32 m (the lowest-cost push sequence; execute best[0]), best_cost [] float32
-(its predicted task objective c, pixels) and history [steps] float32 (the best cost seen up to each Adam step).
+Outputs (a dict): push [4] and best [T, 4] float32 m (the lowest-cost sequence; NaN when error != 0), best_cost []
+(its predicted objective c, px), objective [] (c of the frame's particles now, px), positions [capacity, 3] m and mask
+[capacity] bool (the particles), error [] int32 (0: ok; bits of ``ERRORS``) and history [N] (the best cost up to each
+Adam step).
 
-Platforms. Exported for one platform (the default: the exporting machine's backend; ``platforms=("cuda",)`` lowers
-for a GPU robot on any machine, no GPU needed), the call on the CPU equals ``planner.plan(dynamics(radius),
-decision.goal_cost(goal, camera), positions, mask, key, config, init if warm else None)`` with the live model bit for
-bit
-(tests/test_export.py). One file for several platforms (``platforms=("cpu", "cuda")``) works too, but JAX then wraps
-every matrix product, scatter, gather and random-bits call in a per-platform switch, XLA fuses the program
-differently and the floats round differently; the Adam refinement amplifies that (on the CPU, 8 sequences x 20 steps
-of the shipped model ended with a best push 7.6 cm from the live one; 50 x 100 steps within 4 mm and 0.04 px of
-cost): an equally good plan, not the same one. On a GPU nothing repeats bit for bit: scatter-adds there use atomics,
-so the live planner itself gives plans a few mm apart from run to run (seen on an H200 with jax 0.11.2: the
-cuda-only and the cpu+cuda files and the live planner all spread the same way, cost 13.53-13.66 px on one scene; the
-file took 0.04 s a call after an 8-10 s compilation).
-
-Serialisation needs the ``flatbuffers`` package (``jax.export`` imports it to write and read files).
+On the CPU the file decides bit for bit what the library's closed loop decides on the same frame, goal and key
+(``decision.decide_batch``, as ``control.robot.run_robot`` calls it; tests/test_export.py, in an environment with only
+jax and flatbuffers). ``platforms=("cuda",)`` lowers for a GPU robot on any machine. One file for several platforms
+(``platforms=("cpu", "cuda")``) works too, but JAX then wraps every matrix product, scatter, gather and random-bits
+call in a per-platform switch, XLA fuses the program differently and the floats round differently, which the Adam
+refinement amplifies into an equally good plan, not the same one. On a GPU nothing repeats bit for bit: scatter-adds
+use atomics, so the live planner itself gives plans a few mm apart from run to run.
 """
 
 from __future__ import annotations
@@ -56,130 +51,151 @@ import numpy as np
 from jax import export as jax_export
 
 from dynres_jax.config import CameraConfig, SceneConfig
-from dynres_jax.control.decision import goal_cost
-from dynres_jax.control.goals import Goal
-from dynres_jax.control.planner import PlannerConfig, plan
+from dynres_jax.control.decision import DecisionSpec, perceive_and_decide
+from dynres_jax.control.goals import goal_fields
+from dynres_jax.control.planner import PlannerConfig
 from dynres_jax.io import ckpt, files
 from dynres_jax.models.graph import no_gpu_kernels
 from dynres_jax.models.registry import load_dynamics
-from dynres_jax.sim.camera import Camera
+from dynres_jax.perception import BAD_OMEGA, EMPTY_FOREGROUND, NAN_DEPTH, TOO_FEW_POINTS
+from dynres_jax.sim.camera import Camera, Observation
+from dynres_jax.sim.sensor import NO_READING
 
-FORMAT = "dynres_jax planner, jax.export serialized Exported (StableHLO)"
+FORMAT = "dynres_jax decision (depth + goal mask -> push), jax.export serialized Exported (StableHLO)"
 DEFAULT_GOAL_SAMPLES = 500  # Q: goals.make_goal's default n_samples
-INPUT_NAMES = ("positions", "mask", "radius", "goal_mask", "goal_distance", "goal_samples", "goal_sample_mask", "key",
-               "init", "warm")
-OUTPUT_NAMES = ("best", "best_cost", "history")
+GOAL_EMPTY = 16  # error bit: the goal mask has no pixel
+GOAL_FULL = 32  # error bit: the goal mask covers the whole image
+BAD_STEPS = 64  # error bit: adam_steps outside [0, the planner's]
+ERRORS = {NAN_DEPTH: "the depth image has NaN or infinite pixels",
+          EMPTY_FOREGROUND: "no foreground: nothing stands above the table inside the workspace",
+          BAD_OMEGA: "omega outside [1, capacity]",
+          TOO_FEW_POINTS: "fewer foreground points than omega",
+          GOAL_EMPTY: "the goal mask has no pixel",
+          GOAL_FULL: "the goal mask covers the whole image",
+          BAD_STEPS: "adam_steps outside [0, the planner's adam_steps]"}
+INPUT_NAMES = ("depth", "goal_mask", "key", "omega", "adam_steps", "init", "warm")
+OUTPUT_NAMES = ("push", "best", "best_cost", "objective", "positions", "mask", "error", "history")
 
 
-def planner_step(dynamics: Callable, camera: Camera, config: PlannerConfig) -> Callable:
-    """The pure function that is exported: ``(positions, mask, radius, goal_mask, goal_distance, goal_samples,
-    goal_sample_mask, key, init, warm) -> {"best", "best_cost", "history"}`` (module docstring for shapes and units).
+def decision_step(dynamics: Callable, camera: Camera, spec: DecisionSpec, goal_samples: int = DEFAULT_GOAL_SAMPLES
+                  ) -> Callable:
+    """The pure function that is exported: ``(depth, goal_mask, key, omega, adam_steps, init, warm) -> {"push",
+    "best", ...}`` (module docstring for shapes and units): ``goals.goal_fields`` of the mask, then
+    ``decision.perceive_and_decide`` on the frame, as the closed loop decides.
 
-    dynamics: radius (m) -> planner dynamics (the first value of ``registry.load_dynamics``, or
-    ``registry.learned_dynamics(model)``); its arrays are closed over, so they become constants of the export.
-    camera: the camera the goal's pixels belong to (static). config: the planner's settings (static; one particle
-    set, so resamples must be 1; the step count is ``config.adam_steps``).
+    dynamics: radius (m) -> planner dynamics (the first value of ``registry.load_dynamics``); its arrays are closed
+    over, so they become constants of the export. camera: the camera the frame and goal belong to (static). spec: the
+    particle capacity, the planner (one particle set: resamples must be 1) and perception's settings.
     """
-    if config.resamples != 1:
-        raise ValueError(f"the exported planner takes one particle set: PlannerConfig.resamples must be 1, got "
-                         f"{config.resamples}")
+    if spec.planner.resamples != 1:
+        raise ValueError(f"the exported decision takes one particle set: PlannerConfig.resamples must be 1, got "
+                         f"{spec.planner.resamples}")
 
-    def step(positions, mask, radius, goal_mask, goal_distance, goal_samples, goal_sample_mask, key, init, warm):
-        dyn = dynamics(radius)
-        cost = goal_cost(Goal(goal_mask, goal_distance, goal_samples, goal_sample_mask), camera)
-
-        def run(start):
-            result = plan(dyn, cost, positions, mask, key, config, start)
-            return {"best": result.best, "best_cost": result.best_cost, "history": result.history}
-
-        # Both branches are compiled into the file; only the chosen one runs.
-        return jax.lax.cond(jnp.asarray(warm, bool), lambda: run(init), lambda: run(None))
+    def step(depth, goal_mask, key, omega, adam_steps, init, warm):
+        depth = jnp.where(depth == 0, NO_READING, depth)  # cameras write 0 where they have no reading
+        goal_mask = jnp.asarray(goal_mask, bool)
+        goal = goal_fields(goal_mask, camera, goal_samples)
+        steps_ok = (adam_steps >= 0) & (adam_steps <= spec.planner.adam_steps)
+        adam_steps = jnp.clip(adam_steps, 0, spec.planner.adam_steps).astype(jnp.int32)
+        frame = Observation(depth, None, None, None)  # perception reads the depth only
+        particles, c_now, result = perceive_and_decide(frame, goal, key, init, warm, omega, adam_steps, spec=spec,
+                                                       dynamics=dynamics, camera=camera)
+        error = (particles.error | jnp.where(~jnp.any(goal_mask), GOAL_EMPTY, 0)
+                 | jnp.where(jnp.all(goal_mask), GOAL_FULL, 0) | jnp.where(steps_ok, 0, BAD_STEPS)).astype(jnp.int32)
+        best = jnp.where(error == 0, result.best, jnp.nan)
+        return dict(push=best[0], best=best, best_cost=result.best_cost, objective=c_now,
+                    positions=particles.positions, mask=particles.mask, error=error, history=result.history)
 
     return step
 
 
-def input_specs(n_max: int, camera: Camera, config: PlannerConfig, goal_samples: int = DEFAULT_GOAL_SAMPLES):
+def input_specs(camera: Camera, config: PlannerConfig):
     """The exported function's inputs: a list of dicts (name, shape, dtype, units, description), INPUT_NAMES order."""
     h, w, t = camera.height, camera.width, config.horizon
     rows = [
-        ("positions", (n_max, 3), "float32", "m", "particles, world frame (z up, table at z = 0): "
-                                                  "perception.Particles.positions"),
-        ("mask", (n_max,), "bool", "", "valid particles (Particles.mask; the first omega)"),
-        ("radius", (), "float32", "m", "FPS covering radius of the omega-sample over the point cloud "
-                                       "(Particles.radius): sets the learned dynamics' resolution code"),
-        ("goal_mask", (h, w), "bool", "", "goal pixels (goals.Goal.mask)"),
-        ("goal_distance", (h, w), "float32", "px", "signed distance field, negative inside (goals.Goal.distance)"),
-        ("goal_samples", (goal_samples, 2), "float32", "px", "(u, v) FPS samples of the goal pixel centres "
-                                                             "(goals.Goal.samples)"),
-        ("goal_sample_mask", (goal_samples,), "bool", "", "valid goal samples (goals.Goal.sample_mask)"),
-        ("key", (2,), "uint32", "", "planner PRNG key: the data of jax.random.PRNGKey(seed)"),
+        ("depth", (h, w), "float32", "m", "the camera's z-depth; 0 where it gave no reading"),
+        ("goal_mask", (h, w), "bool", "", "goal pixels (a goal PNG read by io.frames.load_goal)"),
+        ("key", (2,), "uint32", "", "PRNG key: the data of jax.random.PRNGKey(seed)"),
+        ("omega", (), "int32", "particles", "the resolution, 1 <= omega <= capacity"),
+        ("adam_steps", (), "int32", "", f"refinement steps, 0 to {config.adam_steps}"),
         ("init", (t, 4), "float32", "m", "warm start (x_start, y_start, x_end, y_end) per push; used when warm"),
-        ("warm", (), "bool", "", "True: init replaces sample 0 (planner.plan(init=init)); False: init is ignored"),
+        ("warm", (), "bool", "", "True: init replaces sample 0 (the previous plan, shifted); False: init is ignored"),
     ]
     return [dict(name=n, shape=list(s), dtype=d, units=u, description=e) for n, s, d, u, e in rows]
 
 
-def output_specs(config: PlannerConfig):
+def output_specs(spec: DecisionSpec):
     """The exported function's outputs (a dict of these names): list of dicts like ``input_specs``."""
+    t, n = spec.planner.horizon, spec.capacity
     rows = [
-        ("best", (config.horizon, 4), "float32", "m", "the lowest-cost push sequence (x_start, y_start, x_end, "
-                                                      "y_end); execute best[0]"),
+        ("push", (4,), "float32", "m", "the push to execute (x_start, y_start, x_end, y_end); NaN unless error == 0"),
+        ("best", (t, 4), "float32", "m", "the lowest-cost push sequence; best[0] is push"),
         ("best_cost", (), "float32", "px", "its predicted task objective c"),
-        ("history", (config.adam_steps,), "float32", "px", "the best cost seen up to each Adam step"),
+        ("objective", (), "float32", "px", "c of the frame's particles now"),
+        ("positions", (n, 3), "float32", "m", "the particles h(y, omega), zero where masked"),
+        ("mask", (n,), "bool", "", "valid particles (the first omega)"),
+        ("error", (), "int32", "", "0: ok; else bits of 'errors'"),
+        ("history", (spec.planner.adam_steps,), "float32", "px", "the best cost seen up to each Adam step"),
     ]
     return [dict(name=n, shape=list(s), dtype=d, units=u, description=e) for n, s, d, u, e in rows]
 
 
-def export_planner(dynamics: Callable, n_max: int, camera: Camera, config: PlannerConfig, *,
-                   goal_samples: int = DEFAULT_GOAL_SAMPLES, platforms: Sequence[str] | None = None
-                   ) -> jax_export.Exported:
-    """``planner_step`` lowered for inputs of ``input_specs`` shapes -> a ``jax.export.Exported``.
+def export_decision(dynamics: Callable, camera: Camera, spec: DecisionSpec, *,
+                    goal_samples: int = DEFAULT_GOAL_SAMPLES, platforms: Sequence[str] | None = None
+                    ) -> jax_export.Exported:
+    """``decision_step`` lowered for inputs of ``input_specs`` shapes -> a ``jax.export.Exported``.
     platforms: a subset of "cpu", "cuda", "rocm", "tpu" (default: this machine's backend); one platform reproduces
-    the live planner bit for bit (on the CPU), several give one file for all of them whose plans differ by rounding
-    (module docstring).
-    """
-    specs = [jax.ShapeDtypeStruct(tuple(s["shape"]), np.dtype(s["dtype"]))
-             for s in input_specs(n_max, camera, config, goal_samples)]
-    fn = jax.jit(planner_step(dynamics, camera, config))
+    the library's decision bit for bit (on the CPU), several give one file for all of them whose plans differ by
+    rounding (module docstring)."""
+    specs = [jax.ShapeDtypeStruct(tuple(s["shape"]), np.dtype(s["dtype"])) for s in input_specs(camera, spec.planner)]
+    fn = jax.jit(decision_step(dynamics, camera, spec, goal_samples))
     with no_gpu_kernels():  # a file must lower for every platform named, on any machine
         return jax_export.export(fn, platforms=None if platforms is None else tuple(platforms))(*specs)
 
 
-def export_checkpoint(ckpt_dir: str, config: PlannerConfig | None = None, camera: Camera | None = None, *,
+def export_checkpoint(ckpt_dir: str, spec: DecisionSpec, camera: Camera | None = None, *,
                       goal_samples: int = DEFAULT_GOAL_SAMPLES, platforms: Sequence[str] | None = None,
                       plate_half_width: float = SceneConfig.plate_half_width) -> tuple[jax_export.Exported, dict]:
-    """Export the planner of the learned model in ``ckpt_dir`` (``registry.load_dynamics("learned", ...)``) ->
-    (Exported, its description for the sidecar: ``describe``). config: default ``PlannerConfig()``; camera: default the
-    simulator's (``CameraConfig()``).
-    Raises FileNotFoundError (no checkpoint there) or ``ckpt.CheckpointError`` (unreadable)."""
-    config = PlannerConfig() if config is None else config
+    """Export the decision of the learned model in ``ckpt_dir`` (``registry.load_dynamics("learned", ...)``) ->
+    (Exported, its description for the sidecar: ``describe``). camera: default the simulator's (``CameraConfig()``).
+    Raises FileNotFoundError (no checkpoint there), ``ckpt.CheckpointError`` (unreadable) or ValueError (a capacity
+    above the model's n_max)."""
     camera = Camera.top_down(CameraConfig()) if camera is None else camera
     dynamics, n_max, _ = load_dynamics("learned", ckpt_dir, plate_half_width)
-    exported = export_planner(dynamics, n_max, camera, config, goal_samples=goal_samples, platforms=platforms)
-    info = describe(exported, n_max, camera, config, goal_samples,
-                    checkpoint=dict(path=os.path.abspath(ckpt_dir), step=ckpt.latest_step(ckpt_dir)))
+    if spec.capacity > n_max:
+        raise ValueError(f"the capacity {spec.capacity} exceeds the model's n_max = {n_max}")
+    exported = export_decision(dynamics, camera, spec, goal_samples=goal_samples, platforms=platforms)
+    info = describe(exported, camera, spec, goal_samples,
+                    checkpoint=dict(path=os.path.abspath(ckpt_dir), step=ckpt.latest_step(ckpt_dir), n_max=n_max))
     return exported, info
 
 
-def describe(exported: jax_export.Exported, n_max: int, camera: Camera, config: PlannerConfig,
+def describe(exported: jax_export.Exported, camera: Camera, spec: DecisionSpec,
              goal_samples: int = DEFAULT_GOAL_SAMPLES, checkpoint: dict | None = None) -> dict:
-    """The sidecar's content: how to call the file (inputs and outputs with shapes, dtypes, units), the baked-in
-    planner config, camera and checkpoint, and the JAX that wrote it."""
-    inputs = input_specs(n_max, camera, config, goal_samples)
+    """The sidecar's content: how to call the file (inputs and outputs with shapes, dtypes, units; the error bits),
+    the baked-in capacity, perception and planner settings, camera and checkpoint, and the JAX that wrote it."""
+    inputs = input_specs(camera, spec.planner)
     got = [(list(a.shape), str(a.dtype)) for a in exported.in_avals]
     if got != [(s["shape"], s["dtype"]) for s in inputs]:  # the sidecar must describe the file, not a guess
         raise AssertionError(f"exported inputs {got} differ from input_specs")
     return dict(
         format=FORMAT,
         call=("exported = jax.export.deserialize(open(FILE, 'rb').read()); out = exported.call(" + ", ".join(
-            INPUT_NAMES) + "); out['best'][0] is the push to execute"),
-        inputs=inputs, outputs=output_specs(config),
+            INPUT_NAMES) + "); execute out['push'] when out['error'] == 0"),
+        needs="pip install jax flatbuffers (jaxlib no older than jax_version)",
+        inputs=inputs, outputs=output_specs(spec), errors={str(bit): text for bit, text in ERRORS.items()},
         platforms=list(exported.platforms), jax_version=jax.__version__,
         calling_convention_version=exported.calling_convention_version,
-        n_max=n_max, goal_samples=goal_samples,
-        planner={k: v for k, v in dataclasses.asdict(config).items() if k != "seed"},  # the key is an input
+        capacity=spec.capacity, goal_samples=goal_samples,
+        perception=dict(max_points=spec.max_points, real_depth=spec.real_depth),
+        planner={k: v for k, v in dataclasses.asdict(spec.planner).items() if k != "seed"},  # the key is an input
         camera=json.loads(camera.to_json()), checkpoint=checkpoint,
     )
+
+
+def describe_error(error: int) -> str:
+    """A readable list of the problems in an exported decision's ``error`` ('' when 0)."""
+    return "; ".join(text for bit, text in ERRORS.items() if int(error) & bit)
 
 
 def _serialization_error(e: ImportError) -> ImportError:
@@ -201,7 +217,7 @@ def save(exported: jax_export.Exported, path: str, info: dict | None = None) -> 
 
 
 def load(path: str) -> jax_export.Exported:
-    """An exported planner from ``path`` (``jax.export.deserialize``; needs only JAX); call it with ``.call``."""
+    """An exported decision from ``path`` (``jax.export.deserialize``; needs only JAX); call it with ``.call``."""
     with open(path, "rb") as f:
         data = bytearray(f.read())
     try:
@@ -210,21 +226,24 @@ def load(path: str) -> jax_export.Exported:
         raise _serialization_error(e) from e
 
 
-def call(exported: jax_export.Exported, positions, mask, radius, goal: Goal, key, init=None) -> dict:
-    """Convenience for callers that have this package: ``exported.call`` with a ``Goal``, a key (raw uint32[2] or a
-    typed key) and an optional warm start (None: no warm start) -> {"best", "best_cost", "history"}."""
+def call(exported: jax_export.Exported, depth, goal_mask, key, omega: int, adam_steps: int | None = None,
+         init=None) -> dict:
+    """Convenience for callers that have this package: ``exported.call`` with a key (raw uint32[2] or a typed key),
+    adam_steps (None: the planner's) and an optional warm start (None: no warm start)."""
     key = jnp.asarray(key)
     if jnp.issubdtype(key.dtype, jax.dtypes.prng_key):
         key = jax.random.key_data(key)
     horizon = exported.in_avals[INPUT_NAMES.index("init")].shape[0]
+    if adam_steps is None:
+        adam_steps = exported.out_avals[sorted(OUTPUT_NAMES).index("history")].shape[0]  # dict leaves: key order
     warm = init is not None
     init = jnp.zeros((horizon, 4), jnp.float32) if init is None else jnp.asarray(init, jnp.float32)
-    return exported.call(jnp.asarray(positions, jnp.float32), jnp.asarray(mask, bool), jnp.float32(radius),
-                         *goal, key, init, jnp.asarray(warm))
+    return exported.call(jnp.asarray(depth, jnp.float32), jnp.asarray(goal_mask, bool), key, jnp.int32(omega),
+                         jnp.int32(adam_steps), init, jnp.asarray(warm))
 
 
 def signature(exported: jax_export.Exported) -> str:
-    """A one-line readable signature of an exported planner: ``(name: dtype[shape], ...) -> {...}``."""
+    """A one-line readable signature of an exported decision: ``(name: dtype[shape], ...) -> {...}``."""
     def fmt(a):
         return f"{a.dtype}[{', '.join(map(str, a.shape))}]"
 
@@ -233,6 +252,6 @@ def signature(exported: jax_export.Exported) -> str:
     return f"({ins}) -> {{{', '.join(f'{n}: {fmt(outs[n])}' for n in OUTPUT_NAMES)}}}"
 
 
-__all__ = ["DEFAULT_GOAL_SAMPLES", "FORMAT", "INPUT_NAMES", "OUTPUT_NAMES", "call", "describe",
-           "export_checkpoint", "export_planner", "input_specs", "load", "output_specs", "planner_step", "save",
-           "signature"]
+__all__ = ["BAD_STEPS", "DEFAULT_GOAL_SAMPLES", "ERRORS", "FORMAT", "GOAL_EMPTY", "GOAL_FULL", "INPUT_NAMES",
+           "OUTPUT_NAMES", "call", "decision_step", "describe", "describe_error", "export_checkpoint",
+           "export_decision", "input_specs", "load", "output_specs", "save", "signature"]

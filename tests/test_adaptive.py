@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from dynres_jax.commands import evaluate, label_resolution, tradeoff, train_regressor
-from dynres_jax.control import resolution
+from dynres_jax.control import mpc, resolution
 from dynres_jax.control.budget import TimingTable, bucket_for
 from dynres_jax.control.choosers import best_of
 from dynres_jax.learn import labels as labels_lib
@@ -29,8 +29,18 @@ def timing(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def labels(tmp_path_factory, timing):
-    out = str(tmp_path_factory.mktemp("labels"))
-    return out, label_resolution.main(["--out", out, *QUICK, *timing])
+    """The quick labels, and the planner keys of every c*(ω) evaluation (``mpc.act``'s calls, in order)."""
+    out, keys = str(tmp_path_factory.mktemp("labels")), []
+    act = mpc.act
+
+    def recording(pool, now, *args, **kwargs):
+        keys.append(np.asarray(now.keys))
+        return act(pool, now, *args, **kwargs)
+
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(mpc, "act", recording)
+        summary = label_resolution.main(["--out", out, *QUICK, *timing])
+    return out, summary, keys
 
 
 @pytest.fixture(scope="module")
@@ -41,7 +51,7 @@ def regressor(labels, tmp_path_factory):
 
 
 def test_labels_follow_the_bo_recipe_and_resume(labels, timing, capsys):
-    out, summary = labels
+    out, summary, keys = labels
     assert summary["scenes"] == 8 and summary["shards_written"] == 2
     for shard in ("shard_00000.npz", "shard_00001.npz"):
         z = np.load(os.path.join(out, shard))
@@ -63,6 +73,19 @@ def test_labels_follow_the_bo_recipe_and_resume(labels, timing, capsys):
     with pytest.raises(SystemExit):  # other settings are refused, naming what differs, never mixed into the set
         label_resolution.main(["--out", out, *QUICK, *timing, "--seed", "5"])
     assert "--seed 0 there, 5 here" in capsys.readouterr().err
+
+
+def test_every_omega_of_a_scene_is_planned_from_the_same_keys(labels):
+    """Common random numbers: a shard's evaluations (5 at FIRST, then EI's) reuse one key per scene and repeat, so
+    c*(ω) - c*(ω') is the resolution's effect; scenes' keys differ, and so do the two shards'."""
+    _, summary, keys = labels
+    evals = len(keys) // summary["shards_written"]
+    assert evals > len(labels_lib.FIRST)
+    shards = [keys[i * evals:(i + 1) * evals] for i in range(summary["shards_written"])]
+    for shard in shards:
+        assert all(np.array_equal(k, shard[0]) for k in shard)
+        assert len({k.tobytes() for k in shard[0]}) == len(shard[0])  # every scene its own key
+    assert not np.array_equal(shards[0][0], shards[1][0])
 
 
 def test_mid_episode_labels_start_from_pushed_piles(labels, timing, tmp_path):

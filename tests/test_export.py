@@ -1,7 +1,9 @@
-"""Exported planner: the file reloaded with jax.export alone plans exactly what the live planner plans."""
+"""Exported decision: the file, read back where only jax and flatbuffers are installed, turns a depth frame and a goal
+mask into the push the library's closed loop chooses, bit for bit on the CPU."""
 
 import dataclasses
 import json
+import os
 
 import jax
 import jax.numpy as jnp
@@ -12,17 +14,20 @@ from flax import nnx
 from dynres_jax import export as ex
 from dynres_jax.commands import export as export_cli
 from dynres_jax.config import CameraConfig
-from dynres_jax.control.decision import goal_cost
+from dynres_jax.control.decision import DecisionSpec, batch, decide_batch
 from dynres_jax.control.goals import disc_goal, make_goal
-from dynres_jax.control.planner import PlannerConfig, plan
+from dynres_jax.control.planner import PlannerConfig
 from dynres_jax.io import ckpt
 from dynres_jax.models.dynamics import Dynamics, DynamicsConfig
 from dynres_jax.models.registry import load_dynamics
-from dynres_jax.sim.camera import Camera
+from dynres_jax.perception import BAD_OMEGA, NAN_DEPTH
+from dynres_jax.sim.camera import Camera, Observation
+from dynres_jax.sim.sensor import NO_READING
+from studies.export_check import run_robot_side
 
-N_MAX, STEP, Q = 12, 7, 16
-CAMERA = Camera.top_down(CameraConfig(width=32, height=32))
-CONFIG = PlannerConfig(samples=4, adam_steps=3, horizon=2)
+N_MAX, STEP, Q, FRAMES = 16, 7, 16, 20
+CAMERA = Camera.top_down(CameraConfig(width=32, height=32))  # 1 m above the table, 1.4 cm a pixel
+SPEC = DecisionSpec(16, PlannerConfig(samples=4, adam_steps=3, horizon=2), max_points=256, real_depth=True)
 
 
 @pytest.fixture(scope="module")
@@ -36,64 +41,115 @@ def tiny_ckpt(tmp_path_factory):
     return str(directory)
 
 
-def particles(seed, omega):
-    pos = jax.random.uniform(jax.random.PRNGKey(seed), (N_MAX, 3), minval=-0.06, maxval=0.06).at[:, 2].set(0.007)
-    mask = jnp.arange(N_MAX) < omega
-    return jnp.where(mask[:, None], pos, 0.0), mask, jnp.float32(0.015)
+def frame(seed):
+    """A robot's frame of a pile: blobs of 3 x 3 pixels 1 cm high on the table, a few missing readings."""
+    rng = np.random.default_rng(seed)
+    height = np.zeros((32, 32), np.float32)
+    for u, v in rng.integers(8, 22, size=(int(rng.integers(4, 9)), 2)):
+        height[v - 1:v + 2, u - 1:u + 2] = 0.01
+    depth = 1.0 - height  # top-down, camera 1 m up: z-depth is 1 - z
+    depth[tuple(rng.integers(0, 32, size=(2, 6)))] = NO_READING
+    unknown = np.full((32, 32), -1, np.int32)
+    return Observation(jnp.asarray(depth), unknown, unknown, np.zeros((32, 32, 3), np.uint8))
 
 
-GOALS = {"left disc": ([-0.05, 0.02], 0.05), "right disc": ([0.06, -0.03], 0.07)}
+def inputs(i):
+    """Frame i's call: (depth, goal_mask, key, omega, adam_steps, init, warm)."""
+    rng = np.random.default_rng(100 + i)
+    mask = disc_goal(CAMERA, rng.uniform(-0.08, 0.08, 2), rng.uniform(0.04, 0.08))
+    init = rng.uniform(-0.1, 0.1, (SPEC.planner.horizon, 4)).astype(np.float32)
+    return (np.asarray(frame(i).depth), mask, np.asarray(jax.random.PRNGKey(i)), np.int32(3 + i % 14),
+            np.int32(i % 4), init, np.bool_(i % 2))
+
+
+def library_decision(dynamics, depth, goal_mask, key, omega, steps, init, warm):
+    """What the robot loop decides on this frame (``control.robot.run_robot``'s call)."""
+    obs = frame(0)._replace(depth=jnp.asarray(depth))
+    goal = make_goal(goal_mask, CAMERA, n_samples=Q)
+    particles, c_now, result = decide_batch(batch(obs), batch(goal), batch(key), init[None], warm, [omega], [steps],
+                                            spec=SPEC, dynamics=dynamics, camera=CAMERA)
+    return dict(push=result.best[0, 0], best_cost=result.best_cost[0], objective=c_now[0],
+                positions=particles.positions[0], mask=particles.mask[0])
 
 
 @pytest.fixture(scope="module")
 def exported_file(tiny_ckpt, tmp_path_factory):
-    exported, info = ex.export_checkpoint(tiny_ckpt, CONFIG, CAMERA, goal_samples=Q, platforms=("cpu",))
-    path = str(tmp_path_factory.mktemp("export") / "planner.jaxexport")
+    exported, info = ex.export_checkpoint(tiny_ckpt, SPEC, CAMERA, goal_samples=Q, platforms=("cpu",))
+    path = str(tmp_path_factory.mktemp("export") / "decision.jaxexport")
     assert ex.save(exported, path, info) > 0
     return path
 
 
 @pytest.fixture(scope="module")
 def reloaded(exported_file):
-    """The file read back with jax alone (none of this package's code); one object, so it compiles once."""
-    with open(exported_file, "rb") as f:
-        return jax.export.deserialize(bytearray(f.read()))
+    """The file read back with the library's loader; one object, so it compiles once."""
+    return ex.load(exported_file)
 
 
-@pytest.mark.parametrize("goal_name, seed, warm", [("left disc", 1, False), ("right disc", 2, True)])
-def test_reloaded_file_plans_exactly_like_the_live_planner(tiny_ckpt, reloaded, goal_name, seed, warm):
-    centre, radius_m = GOALS[goal_name]
-    goal = make_goal(disc_goal(CAMERA, centre, radius_m), CAMERA, n_samples=Q)
-    positions, mask, radius = particles(seed, omega=9 if warm else 6)
-    key = jax.random.PRNGKey(seed)
-    init = jnp.array([[-0.1, 0.0, 0.0, 0.01], [0.1, 0.05, 0.0, 0.0]], jnp.float32)
-    out = reloaded.call(positions, mask, radius, *goal, key, init, jnp.asarray(warm))
-
+def test_the_file_decides_like_the_library_where_only_jax_and_flatbuffers_are(tiny_ckpt, exported_file, tmp_path):
+    calls = [inputs(i) for i in range(FRAMES)]
+    np.savez(tmp_path / "frames.npz", **{n: np.stack([c[k] for c in calls]) for k, n in enumerate(ex.INPUT_NAMES)})
+    robot = run_robot_side(exported_file, str(tmp_path / "frames.npz"), str(tmp_path / "out.npz"), None,
+                           str(tmp_path))  # this Python, isolated, in a site of links to jax and flatbuffers only
+    installed = sorted(os.listdir(tmp_path / "site"))
+    assert not any(n.startswith(("dynres", "flax", "mujoco", "cv2", "opencv")) for n in installed), installed
+    assert "flatbuffers" in installed and "jaxlib" in installed
+    assert not robot["error"].any() and robot["seconds"].shape == (FRAMES,)
     dynamics, n_max, _ = load_dynamics("learned", tiny_ckpt, 0.04)
     assert n_max == N_MAX
-    live = plan(dynamics(radius), goal_cost(goal, CAMERA), positions, mask, key, CONFIG, init if warm else None)
-    np.testing.assert_array_equal(np.asarray(out["best"]), np.asarray(live.best))
-    np.testing.assert_array_equal(np.asarray(out["best_cost"]), np.asarray(live.best_cost))
-    np.testing.assert_array_equal(np.asarray(out["history"]), np.asarray(live.history))
-    assert out["best"].shape == (CONFIG.horizon, 4) and out["history"].shape == (CONFIG.adam_steps,)
-    # the convenience wrapper passes the same arguments
-    again = ex.call(reloaded, positions, mask, radius, goal, key, init if warm else None)
-    np.testing.assert_array_equal(np.asarray(again["best"]), np.asarray(live.best))
+    pushes = set()
+    for i, call in enumerate(calls):
+        live = library_decision(dynamics, *call)
+        for k, v in live.items():
+            np.testing.assert_array_equal(robot[k][i], np.asarray(v), err_msg=f"frame {i}: {k}")
+        assert int(robot["mask"][i].sum()) == call[3]  # ω particles
+        pushes.add(tuple(np.round(robot["push"][i], 4)))
+    assert len(pushes) == FRAMES  # every frame its own push: the inputs matter
 
 
-def test_wrong_input_shapes_are_jax_errors(exported_file):
-    exported = ex.load(exported_file)  # the library's loader
-    goal = make_goal(disc_goal(CAMERA, [0.0, 0.0], 0.05), CAMERA, n_samples=Q)
-    positions, mask, radius = particles(0, 5)
+def test_a_missing_reading_may_be_written_as_zero(reloaded):
+    depth, *rest = inputs(3)
+    assert (depth == NO_READING).any()
+    as_camera = np.where(depth == NO_READING, 0.0, depth).astype(np.float32)
+    a, b = reloaded.call(depth, *rest), reloaded.call(as_camera, *rest)
+    for k in ex.OUTPUT_NAMES:
+        np.testing.assert_array_equal(np.asarray(a[k]), np.asarray(b[k]))
+
+
+def test_bad_input_is_flagged_and_gives_no_push(reloaded):
+    depth, goal_mask, key, omega, steps, init, warm = inputs(5)
+    cases = {
+        "empty goal": ((depth, np.zeros_like(goal_mask), key, omega, steps, init, warm), ex.GOAL_EMPTY),
+        "whole-image goal": ((depth, np.ones_like(goal_mask), key, omega, steps, init, warm), ex.GOAL_FULL),
+        "NaN depth": ((np.where(goal_mask, np.nan, depth).astype(np.float32), goal_mask, key, omega, steps, init,
+                       warm), NAN_DEPTH),
+        "omega 0": ((depth, goal_mask, key, np.int32(0), steps, init, warm), BAD_OMEGA),
+        "omega above capacity": ((depth, goal_mask, key, np.int32(SPEC.capacity + 1), steps, init, warm), BAD_OMEGA),
+        "too many Adam steps": ((depth, goal_mask, key, omega, np.int32(SPEC.planner.adam_steps + 1), init, warm),
+                                ex.BAD_STEPS),
+    }
+    for what, (args, bit) in cases.items():
+        out = reloaded.call(*args)
+        error = int(out["error"])
+        assert error & bit, what
+        assert np.isnan(np.asarray(out["push"])).all(), what
+        assert ex.ERRORS[bit] in ex.describe_error(error), what
+    assert int(reloaded.call(*inputs(5))["error"]) == 0 and ex.describe_error(0) == ""
     with pytest.raises(ValueError, match="shape"):
-        exported.call(positions[:5], mask[:5], radius, *goal, jax.random.PRNGKey(0), jnp.zeros((2, 4)), False)
+        reloaded.call(depth[:5], goal_mask, key, omega, steps, init, warm)
+
+
+def test_convenience_call_and_key_types(reloaded):
+    depth, goal_mask, key, omega, _, init, _ = inputs(7)
+    full = reloaded.call(depth, goal_mask, key, omega, np.int32(SPEC.planner.adam_steps), init, np.bool_(True))
+    again = ex.call(reloaded, depth, goal_mask, jax.random.wrap_key_data(jnp.asarray(key)), int(omega), init=init)
+    np.testing.assert_array_equal(np.asarray(full["push"]), np.asarray(again["push"]))
 
 
 def test_one_file_for_cpu_and_cuda(tiny_ckpt):
-    """jax.export lowers the planner for both platforms at once, on a machine without a GPU, and the file reads back
-    with both. (Running it costs a second compilation of the planner; done by hand: it runs on the CPU, with plans
-    equal to the live ones up to rounding, dynres_jax/export.py.)"""
-    exported, info = ex.export_checkpoint(tiny_ckpt, CONFIG, CAMERA, goal_samples=Q, platforms=("cpu", "cuda"))
+    """jax.export lowers the decision for both platforms at once, on a machine without a GPU, and the file reads back
+    with both."""
+    exported, info = ex.export_checkpoint(tiny_ckpt, SPEC, CAMERA, goal_samples=Q, platforms=("cpu", "cuda"))
     assert tuple(exported.platforms) == ("cpu", "cuda") and info["platforms"] == ["cpu", "cuda"]
     again = jax.export.deserialize(exported.serialize())
     assert tuple(again.platforms) == ("cpu", "cuda") and again.in_avals == exported.in_avals
@@ -102,32 +158,38 @@ def test_one_file_for_cpu_and_cuda(tiny_ckpt):
 def test_cli_writes_the_file_and_its_sidecar(tiny_ckpt, tmp_path, capsys):
     camera_json = tmp_path / "camera.json"
     camera_json.write_text(CAMERA.to_json())
-    out = tmp_path / "robot" / "planner.jaxexport"
+    out = tmp_path / "robot" / "decision.jaxexport"
     summary = export_cli.main(["--ckpt", tiny_ckpt, "--out", str(out), "--samples", "4", "--adam-steps", "3",
-                               "--horizon", "2", "--camera", str(camera_json), "--goal-samples", str(Q),
-                               "--platforms", "cpu"])
+                               "--horizon", "2", "--resolution", "12", "--camera", str(camera_json),
+                               "--goal-samples", str(Q), "--platforms", "cpu"])
     assert out.stat().st_size == summary["bytes"] > 0
-    assert "signature: (positions: float32[12, 3]" in capsys.readouterr().out
-    info = json.loads((tmp_path / "robot" / "planner.jaxexport.json").read_text())
+    assert "signature: (depth: float32[32, 32], goal_mask: bool[32, 32]" in capsys.readouterr().out
+    info = json.loads((tmp_path / "robot" / "decision.jaxexport.json").read_text())
     assert [i["name"] for i in info["inputs"]] == list(ex.INPUT_NAMES)
     shapes = {i["name"]: (i["shape"], i["dtype"]) for i in info["inputs"]}
-    assert shapes["positions"] == ([N_MAX, 3], "float32") and shapes["goal_distance"] == ([32, 32], "float32")
-    assert shapes["goal_samples"] == ([Q, 2], "float32") and shapes["key"] == ([2], "uint32")
+    assert shapes["depth"] == ([32, 32], "float32") and shapes["goal_mask"] == ([32, 32], "bool")
+    assert shapes["key"] == ([2], "uint32") and shapes["omega"] == ([], "int32")
     assert shapes["init"] == ([2, 4], "float32") and shapes["warm"] == ([], "bool")
-    assert [o["name"] for o in info["outputs"]] == list(ex.OUTPUT_NAMES)
+    outputs = {o["name"]: o["shape"] for o in info["outputs"]}
+    assert list(outputs) == list(ex.OUTPUT_NAMES) and outputs["positions"] == [16, 3]  # ω 12's bucket: 16 slots
+    assert info["capacity"] == 16 and info["perception"]["real_depth"] is True
     assert info["planner"]["samples"] == 4 and info["planner"]["adam_steps"] == 3 and info["planner"]["horizon"] == 2
     assert info["planner"]["reach"] == pytest.approx(0.2 + 0.005 + 0.002)  # pushes may start outside a wall
-    assert info["checkpoint"]["step"] == STEP and info["platforms"] == ["cpu"] and info["n_max"] == N_MAX
+    assert info["checkpoint"]["step"] == STEP and info["platforms"] == ["cpu"] and "flatbuffers" in info["needs"]
+    assert set(info["errors"]) == {str(b) for b in ex.ERRORS}
     exported = ex.load(str(out))
     assert [list(a.shape) for a in exported.in_avals] == [i["shape"] for i in info["inputs"]]
     assert not any(p.name.startswith(".tmp-") for p in out.parent.iterdir())  # atomic writes left nothing behind
 
 
-def test_cli_missing_checkpoint_and_help(tmp_path, capsys):
+def test_cli_refuses_before_work(tiny_ckpt, tmp_path, capsys):
     with pytest.raises(SystemExit) as exit_info:
         export_cli.main(["--ckpt", str(tmp_path / "nowhere"), "--out", str(tmp_path / "p.jaxexport")])
     assert exit_info.value.code == 2 and "no checkpoint" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as exit_info:  # the tiny model holds 16 particles: ω 20's bucket is 32
+        export_cli.main(["--ckpt", tiny_ckpt, "--resolution", "20", "--out", str(tmp_path / "p.jaxexport")])
+    assert exit_info.value.code == 2 and "n_max = 16" in capsys.readouterr().err
     assert not (tmp_path / "p.jaxexport").exists()
     with pytest.raises(SystemExit) as exit_info:
         export_cli.main(["--help"])
-    assert exit_info.value.code == 0 and "jax.export.deserialize" in capsys.readouterr().out
+    assert exit_info.value.code == 0 and "pip install jax flatbuffers" in capsys.readouterr().out

@@ -9,8 +9,17 @@ import pytest
 
 from dynres_jax.config import CameraConfig, SceneConfig, SimConfig
 from dynres_jax.control import objective as obj
-from dynres_jax.control.goals import disc_goal, make_goal, polygon_goal, random_polygon_goal, sort_goals, text_goal
-from dynres_jax.control.objective import bilinear, distribution_distance, inside_share, squared_distance_to
+from dynres_jax.control.goals import (
+    disc_goal,
+    make_goal,
+    polygon_goal,
+    random_polygon_goal,
+    signed_distance,
+    sort_goals,
+    squared_distance_to,
+    text_goal,
+)
+from dynres_jax.control.objective import bilinear, distribution_distance, inside_share
 from dynres_jax.perception import foreground
 from dynres_jax.sim.camera import Camera
 from dynres_jax.sim.env import PileEnv
@@ -123,6 +132,20 @@ def test_sdf_sign_and_magnitude():
         other = outside if mask[i, j] else inside
         brute = np.min(np.hypot(*(other - [i, j]).T))
         assert abs(abs(sdf[i, j]) - brute) <= 1.0
+
+
+def test_signed_distance_is_opencvs_exact_transform():
+    """The goal's distance field, pure JAX (so it runs inside an exported decision), against OpenCV's exact Euclidean
+    transform (DIST_MASK_PRECISE) of the mask and its complement: masks touching the border, thin ones, random ones."""
+    rng = np.random.default_rng(4)
+    masks = [text_goal(CAM, "S", (0.0, 0.0), 0.2), np.eye(40, 56, 3, dtype=bool), np.ones((9, 13), bool)]
+    masks[2][4, 6] = False
+    masks += [rng.uniform(size=tuple(rng.integers(3, 60, 2))) < rng.uniform(0.05, 0.95) for _ in range(8)]
+    for mask in masks:
+        u8 = mask.astype(np.uint8)
+        reference = (cv2.distanceTransform(1 - u8, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+                     - cv2.distanceTransform(u8, cv2.DIST_L2, cv2.DIST_MASK_PRECISE))
+        np.testing.assert_allclose(np.asarray(signed_distance(mask)), reference, rtol=2e-7, atol=1e-6)  # an ulp
 
 
 def test_goal_samples_are_goal_pixels(disc):

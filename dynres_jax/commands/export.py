@@ -1,22 +1,22 @@
-"""Export the MPC planner of a trained dynamics model as one file, for a robot computer that has JAX but not this code:
+"""Export a trained dynamics model's whole MPC decision as one file, for a robot computer that has JAX but not this
+code:
 
-    python -m experiments.export --ckpt checkpoints/dynamics --out planner.jaxexport
+    python -m experiments.export --ckpt checkpoints/dynamics --out decision.jaxexport
 
-writes FILE (a ``jax.export`` serialised StableHLO program: one planning call, the model weights, the camera and the
-planner settings inside) and FILE.json (its inputs and outputs with shapes, dtypes and units, the planner settings,
-camera and checkpoint step). On the robot (needs jax, jaxlib no older than the exporting ones, and flatbuffers):
+writes FILE (a ``jax.export`` serialised StableHLO program: depth frame + goal mask -> push, with the goal's distance
+field, perception, the model weights, the camera and the planner settings inside) and FILE.json (its inputs and
+outputs with shapes, dtypes and units, the error bits, the settings, camera and checkpoint step). On the robot,
+``pip install jax flatbuffers`` (jaxlib no older than the exporting one) and:
 
-    exported = jax.export.deserialize(open("planner.jaxexport", "rb").read())
-    out = exported.call(positions, mask, radius, goal_mask, goal_distance, goal_samples, goal_sample_mask, key,
-                        init, warm)
-    push = out["best"][0]   # (x_start, y_start, x_end, y_end), metres
+    exported = jax.export.deserialize(open("decision.jaxexport", "rb").read())
+    out = exported.call(depth, goal_mask, key, omega, adam_steps, init, warm)
+    push = out["push"]   # (x_start, y_start, x_end, y_end), metres; execute it when out["error"] == 0
 
-The particles (positions, mask, radius) come from perception (dynres_jax.perception.sample_particles), the goal
-arrays from dynres_jax.control.goals.make_goal (computed once per goal, on any machine), key is
-jax.random.PRNGKey(seed). --platforms: default this machine's backend; --platforms cuda for a GPU robot works on any
-machine. On the CPU a one-platform file plans bit for bit what the live planner plans; --platforms cpu cuda gives one
-file for both, whose plans differ from the live ones by float rounding, amplified by the optimisation (on a GPU
-neither the live planner nor the file repeats bit for bit from run to run; dynres_jax/export.py).
+depth: the camera's [H, W] z-depth in metres (0: no reading), goal_mask: [H, W] bool (a goal PNG, experiments.goal),
+key: jax.random.PRNGKey(seed), omega: the resolution (up to the bucket of --resolution), adam_steps: up to
+--adam-steps. The camera (--camera, as calibrated on the robot) is fixed in the file. --platforms: default this
+machine's backend; --platforms cuda for a GPU robot works on any machine. On the CPU a one-platform file decides bit
+for bit what the library's closed loop decides (dynres_jax/export.py).
 """
 
 from __future__ import annotations
@@ -30,6 +30,8 @@ import jax
 from dynres_jax import export
 from dynres_jax.commands import checks
 from dynres_jax.config import CameraConfig, PushConfig, SceneConfig
+from dynres_jax.control.budget import bucket_for
+from dynres_jax.control.decision import DecisionSpec
 from dynres_jax.control.planner import PlannerConfig
 from dynres_jax.io import frames
 from dynres_jax.io.ckpt import CheckpointError
@@ -46,6 +48,12 @@ def main(argv=None):
     defaults = PlannerConfig()
     parser.add_argument("--ckpt", default=SHIPPED_DYNAMICS, help="dynamics checkpoint (default: the shipped one)")
     parser.add_argument("--out", required=True, help="the file to write; its description goes to OUT.json")
+    parser.add_argument("--resolution", type=checks.omega, default=50,
+                        help="the largest ω the robot will ask for: the file holds its bucket's particle slots "
+                             "(control.budget.bucket_for), and the call's omega may be any ω up to them")
+    parser.add_argument("--real-depth", action=argparse.BooleanOptionalAction, default=True,
+                        help="perception for a real camera's depth (a 3 x 3 median, the table plane fitted from the "
+                             "frame); --no-real-depth for a simulator's exact depth")
     parser.add_argument("--samples", type=checks.count(1), default=50, help="action sequences optimised at once (M)")
     parser.add_argument("--adam-steps", type=checks.count(1), default=100, help="Adam steps per plan (N)")
     parser.add_argument("--horizon", type=checks.count(1, 10), default=defaults.horizon, help="pushes per sequence (T)")
@@ -58,8 +66,8 @@ def main(argv=None):
                         help="pushes may start outside a wall of the default bin, as the closed loop's do "
                              "(PileEnv.reach), to sweep pieces off the walls")
     parser.add_argument("--camera", default=None,
-                        help="camera JSON (Camera.to_json: K, rotation, centre, width, height) the goals' pixels "
-                             "belong to (default: the simulator's top-down 128 x 128 camera)")
+                        help="camera JSON (Camera.to_json: K, rotation, centre, width, height) of the robot's frames "
+                             "and goals, its pose calibrated (default: the simulator's top-down 128 x 128 camera)")
     parser.add_argument("--goal-samples", type=checks.count(1, 100_000), default=export.DEFAULT_GOAL_SAMPLES,
                         help="Q, the goal's FPS samples (goals.make_goal's n_samples)")
     parser.add_argument("--platforms", nargs="+", choices=PLATFORMS, default=None,
@@ -77,11 +85,14 @@ def main(argv=None):
         parser.error(str(e))
     camera = Camera.top_down(CameraConfig()) if args.camera is None else frames.load_camera(args.camera)
     checks.out_file(args.out, (".jaxexport",))
+    spec = DecisionSpec(bucket_for(args.resolution), config, real_depth=args.real_depth)
     try:
-        exported, info = export.export_checkpoint(args.ckpt, config, camera, goal_samples=args.goal_samples,
+        exported, info = export.export_checkpoint(args.ckpt, spec, camera, goal_samples=args.goal_samples,
                                                   platforms=args.platforms)
     except CheckpointError as e:
         parser.error(f"--ckpt: {e}")
+    except ValueError as e:
+        parser.error(f"--resolution {args.resolution}: {e}")
     size = export.save(exported, args.out, info)
     summary = dict(out=os.path.abspath(args.out), sidecar=os.path.abspath(args.out) + ".json", bytes=size,
                    platforms=list(exported.platforms), checkpoint_step=info["checkpoint"]["step"],
@@ -89,7 +100,7 @@ def main(argv=None):
     print(f"wrote {args.out} ({size / 1e6:.2f} MB, {', '.join(exported.platforms)}; checkpoint step "
           f"{summary['checkpoint_step']}) and {args.out}.json")
     print(f"signature: {summary['signature']}")
-    print(json.dumps(dict(planner=info["planner"], n_max=info["n_max"])))
+    print(json.dumps(dict(planner=info["planner"], capacity=info["capacity"], perception=info["perception"])))
     return summary
 
 

@@ -7,7 +7,8 @@ For every scene (a settled pile and a goal), ``c+(ω) = c*(ω) + w_R · d_0 · �
 100 and then at ``--evals`` - 5 more ω chosen by Expected Improvement; c*(ω) is the distribution distance d after one
 push planned at ω under the time budget (``--time-budget`` seconds per decision on this device, spent by a timing
 table measured once per resolution bucket and saved as ``timing.json``: a coarse ω affords more Adam steps) and
-executed in the simulator, averaged over ``--repeats`` plans; d_0 is d before the push. The label is the argmin
+executed in the simulator, averaged over ``--repeats`` plans (common random numbers: every ω of a scene is planned
+from the same --repeats keys); d_0 is d before the push. The label is the argmin
 of the GP posterior mean; the GP's noise is never below the measured variance of an evaluation (the repeats'
 variance over their count, averaged over the scene's evaluations so far; ``repeat_var`` in the shards).
 

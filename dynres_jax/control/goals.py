@@ -6,6 +6,7 @@ piece kind (Sort). Outputs of the mask builders are [H, W] bool; a goal outside 
 
 from __future__ import annotations
 
+import functools
 from typing import NamedTuple
 
 import cv2
@@ -232,10 +233,41 @@ def sort_goals(camera: Camera, centres, radius: float, *, bin_half_width: float 
 # Goal: signed distance field and FPS samples (pixels)
 # ---------------------------------------------------------------------------------------------------------------
 
+def squared_distance_to(mask):
+    """Exact squared Euclidean distance (pixels²) from every pixel centre of mask [H, W] bool's grid to the nearest
+    True pixel centre -> [H, W] float32 (0 on True pixels, +inf everywhere when none is True). Separable: the
+    nearest True pixel of each column, then the best column for each pixel (O(H²W + HW²), memory O(HW))."""
+    mask = jnp.asarray(mask, bool)
+    H, W = mask.shape
+    rows, cols = jnp.arange(H, dtype=jnp.float32), jnp.arange(W, dtype=jnp.float32)
+    column = jax.lax.map(lambda i: jnp.min(jnp.where(mask, jnp.square(rows - i)[:, None], jnp.inf), axis=0), rows)
+    return jax.lax.map(lambda g: jnp.min(g[None, :] + jnp.square(cols[:, None] - cols[None, :]), axis=1), column)
+
+
+def signed_distance(mask) -> jax.Array:
+    """mask [H, W] bool -> its signed distance field [H, W] float32 (px): outside a pixel's distance to the nearest
+    goal pixel, inside minus its distance to the nearest non-goal pixel (centre to centre; what cv2.distanceTransform
+    with DIST_MASK_PRECISE gives for the mask and its complement)."""
+    mask = jnp.asarray(mask, bool)
+    return jnp.sqrt(squared_distance_to(mask)) - jnp.sqrt(squared_distance_to(~mask))
+
+
+@functools.partial(jax.jit, static_argnames=("camera", "n_samples"))
+def goal_fields(mask, camera: Camera, n_samples: int) -> Goal:
+    """The Goal of mask [H, W] bool, traceable (no checks: an empty mask gives no valid sample, a full one a
+    meaningless distance field; ``make_goal`` checks): its ``signed_distance`` and ``n_samples`` FPS samples of the
+    goal pixel centres, starting from the first goal pixel in raster order."""
+    mask = jnp.asarray(mask, bool)
+    uv = jnp.asarray(camera.pixel_centres().reshape(-1, 2), jnp.float32)
+    flat = mask.reshape(-1)
+    idx, _ = fps(jnp.concatenate([uv, jnp.zeros_like(uv[:, :1])], -1), flat, n_samples,
+                 jnp.argmax(flat).astype(jnp.int32))
+    return Goal(mask, signed_distance(mask), uv[idx], jnp.arange(n_samples) < jnp.sum(flat))
+
+
 def make_goal(mask, camera: Camera, n_samples: int = 500) -> Goal:
     """Goal mask [H, W] bool (the camera's pixel grid) -> Goal with its signed distance field (pixels, exact
-    Euclidean: cv2.distanceTransform with DIST_MASK_PRECISE of the mask and its complement, outside − inside) and
-    ``n_samples`` FPS samples of the goal pixel centres, starting from the first goal pixel in raster order.
+    Euclidean, ``signed_distance``) and ``n_samples`` FPS samples of the goal pixel centres (``goal_fields``).
     ValueError for a mask of the wrong shape, an empty mask (no pixels) or one covering the whole image."""
     mask = np.asarray(mask)
     if mask.shape != (camera.height, camera.width):
@@ -246,10 +278,4 @@ def make_goal(mask, camera: Camera, n_samples: int = 500) -> Goal:
     _check_nonempty("goal mask", mask)
     if mask.all():
         raise ValueError("goal mask covers the whole image: its signed distance field is undefined")
-    inside = cv2.distanceTransform(mask.astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
-    outside = cv2.distanceTransform((~mask).astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
-    uv = camera.pixel_centres().reshape(-1, 2).astype(np.float32)
-    flat = mask.reshape(-1)
-    idx, _ = fps(np.concatenate([uv, np.zeros_like(uv[:, :1])], -1), flat, int(n_samples), int(np.argmax(flat)))
-    return Goal(jnp.asarray(mask), jnp.asarray(outside - inside, jnp.float32), jnp.asarray(uv[np.asarray(idx)]),
-                jnp.arange(n_samples) < int(flat.sum()))
+    return goal_fields(mask, camera, int(n_samples))

@@ -27,7 +27,7 @@ import functools
 import jax
 import jax.numpy as jnp
 
-from dynres_jax.control.goals import Goal, KindGoals
+from dynres_jax.control.goals import Goal, KindGoals, squared_distance_to
 from dynres_jax.perception import foreground
 from dynres_jax.sim.camera import Camera, Observation
 
@@ -126,17 +126,6 @@ def kind_objective(positions, mask, kinds, goals: KindGoals, camera: Camera, bas
     return jnp.sum(jnp.where(goals.hold, jax.nn.relu(costs - baseline), costs))
 
 
-def squared_distance_to(mask):
-    """Exact squared Euclidean distance (pixels²) from every pixel centre of mask [H, W] bool's grid to the nearest
-    True pixel centre -> [H, W] float32 (0 on True pixels, +inf everywhere when none is True). Separable: the
-    nearest True pixel of each column, then the best column for each pixel (O(H²W + HW²), memory O(HW))."""
-    mask = jnp.asarray(mask, bool)
-    H, W = mask.shape
-    rows, cols = jnp.arange(H, dtype=jnp.float32), jnp.arange(W, dtype=jnp.float32)
-    column = jax.lax.map(lambda i: jnp.min(jnp.where(mask, jnp.square(rows - i)[:, None], jnp.inf), axis=0), rows)
-    return jax.lax.map(lambda g: jnp.min(g[None, :] + jnp.square(cols[:, None] - cols[None, :]), axis=1), column)
-
-
 @jax.jit
 def _mask_distance(current, goal_mask):
     """d of two pixel masks [H, W] -> scalar (pixels): unsigned, each summed over its pixels, over |current|."""
@@ -150,9 +139,9 @@ def distribution_distance(observation_or_mask, goal: Goal, camera: Camera, **for
     """The paper's metric d (supplement, "Distribution Distance"), unsigned -> scalar (pixels).
 
     d = (Σ_{f∈F} min_{q∈Q} |f − q| + Σ_{q∈Q} min_{f∈F} |f − q|) / |F|, with F the foreground pixels, Q every goal
-    pixel (not a subsample) and distances between pixel centres, exact (``squared_distance_to``). A foreground pixel
-    inside the goal adds 0 (no signed distance). The sum is divided by the foreground pixel count, as the reference
-    divides c by ω: a mean per foreground pixel. observation_or_mask: an Observation (its foreground by
+    pixel (not a subsample) and distances between pixel centres, exact (``goals.squared_distance_to``). A
+    foreground pixel inside the goal adds 0 (no signed distance). The sum is divided by the foreground pixel count, as
+    the reference divides c by ω: a mean per foreground pixel. observation_or_mask: an Observation (its foreground by
     ``perception.foreground``, ``foreground_kw`` passed on: kind= for one kind of a Sort scene) or a foreground
     mask [H, W] bool. +inf when there is no foreground pixel. ``jax.vmap`` over observations and goals."""
     if isinstance(observation_or_mask, Observation):

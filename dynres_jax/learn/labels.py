@@ -114,10 +114,13 @@ def label_shard(cfg: LabelConfig, shard: int, dynamics, planner: Callable[[PileE
     starts, goals_r = jax.tree.map(rep, start), jax.tree.map(rep, goals)
     init = jnp.zeros((b * r, mpc_cfg.planner.horizon, 4), jnp.float32)  # no warm start: each plan from its samples
 
-    def c_star(omega, i):
+    # Common random numbers: every ω of a scene is planned from the same R keys, so the same perception start and
+    # the same starting pushes (decision.py); c*(ω) - c*(ω') is then the resolution's effect, not the draws'.
+    keys = jax.random.split(jax.random.fold_in(jax.random.PRNGKey(plan_seed), shard * 100), b * r)
+
+    def c_star(omega):
         """c*(ω) [B] of every scene (the mean of its repeats), the variance of that mean [B] (0 with one repeat) and
         the Adam steps [B] each plan ran (its bucket's, under the budget)."""
-        keys = jax.random.split(jax.random.fold_in(jax.random.PRNGKey(plan_seed), shard * 100 + i), b * r)
         now = mpc.Situation(starts, starts.obs, camera, goals_r, None, keys, init, False)
         done = mpc.act(pool, now, rep(omega), cfg=mpc_cfg, timing=timing, dynamics=dynamics,
                        score=lambda after, g: dict(distance=measure(after.obs, g)))
@@ -137,7 +140,7 @@ def label_shard(cfg: LabelConfig, shard: int, dynamics, planner: Callable[[PileE
         else:
             w = propose(omega, target, mask, jax.random.split(jax.random.fold_in(jax.random.PRNGKey(plan_seed), i), b),
                         jnp.asarray(repeat_var[:, :i].mean(axis=1)))
-        c, repeat_var[:, i], adam_steps[:, i] = c_star(w, i)
+        c, repeat_var[:, i], adam_steps[:, i] = c_star(w)
         omega, mask = omega.at[:, i].set(w), mask.at[:, i].set(True)
         c_stars, target = c_stars.at[:, i].set(c), target.at[:, i].set(resolution.penalised(c, d0, w))
     label, mean = jax.jit(jax.vmap(resolution.best_omega))(omega, target, mask, jax.random.split(
