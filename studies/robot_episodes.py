@@ -31,7 +31,7 @@ from dynres_jax.control.goals import make_goal
 from dynres_jax.control.mpc import MPCConfig
 from dynres_jax.control.objective import distribution_distance, inside_share
 from dynres_jax.control.planner import planner_config
-from dynres_jax.control.robot import SimulatedRobot, Workspace, run_robot
+from dynres_jax.control.robot import STOP_SHARE, SimulatedRobot, Workspace, run_robot
 from dynres_jax.io.files import write_json, write_text
 from dynres_jax.models.registry import SHIPPED_DYNAMICS, load_dynamics
 from dynres_jax.sim.env import PileEnv
@@ -132,7 +132,7 @@ def main(argv=None):
     parser.add_argument("--kind", default="coffee", choices=sorted(KINDS))
     parser.add_argument("--sensor", default="realsense", choices=sorted(k for k in SENSORS if k != "none"))
     parser.add_argument("--steps", type=int, default=20)
-    parser.add_argument("--success", type=float, default=0.9, help="the robot stops at this share seen inside")
+    parser.add_argument("--success", type=float, default=STOP_SHARE, help="the robot stops at this share seen inside")
     parser.add_argument("--resolution", type=int, default=50)
     parser.add_argument("--samples", type=int, default=50)
     parser.add_argument("--adam-steps", type=int, default=100)

@@ -29,7 +29,7 @@ from dynres_jax.config import KINDS, CameraConfig, PileConfig, SceneConfig, SimC
 from dynres_jax.control.goals import disc_goal, make_goal
 from dynres_jax.control.mpc import MPCConfig
 from dynres_jax.control.objective import inside_share
-from dynres_jax.control.robot import DryRun, ReplaySource, SimulatedRobot, Workspace, run_robot
+from dynres_jax.control.robot import STOP_SHARE, DryRun, ReplaySource, SimulatedRobot, Workspace, run_robot
 from dynres_jax.io import files
 from dynres_jax.io.draw import caption, overlay
 from dynres_jax.io.frames import load_goal, save_frame
@@ -50,7 +50,7 @@ def main(argv=None):
     parser.add_argument("--sensor", default="realsense", choices=sorted(SENSORS), help="the simulator's camera profile")
     parser.add_argument("--calibrate", action="store_true", help="refine the camera's pose from the first frame")
     parser.add_argument("--steps", type=checks.count(1), default=20, help="pushes at most")
-    parser.add_argument("--success", type=checks.number(0.01, 1.0), default=0.9,
+    parser.add_argument("--success", type=checks.number(0.01, 1.0), default=STOP_SHARE,
                         help="stop when this share of the foreground lies inside the goal")
     parser.add_argument("--resolution", type=checks.omega, default=50, help="ω")
     parser.add_argument("--samples", type=checks.count(1), default=50)

@@ -50,6 +50,10 @@ from dynres_jax.perception import calibrate, foreground
 from dynres_jax.sim import pushes
 from dynres_jax.sim.camera import Camera, Observation
 
+STOP_SHARE = 0.97  # stop at this share of the frame's foreground inside the goal: a depth camera's share reads
+# 2.8 ± 1.3 points above the pieces' own (64 simulated RealSense episodes, docs/robot), so stopping at the 0.9 that
+# success asks of the pieces left 83 % of episodes just short of it
+
 
 class FrameSource(Protocol):
     """A camera: ``camera`` (intrinsics and pose in the table frame) and ``read()``, the next frame."""
@@ -160,7 +164,7 @@ def seen_scores(obs: Observation, goal: Goal, camera: Camera, real_depth: bool) 
 
 
 def run_robot(source: FrameSource, pusher: Pusher, goal_mask, dynamics, cfg: MPCConfig, omega: int, key, *,
-              workspace: Workspace, bin_size: tuple[float, float] | None = None, success: float = 0.9,
+              workspace: Workspace, bin_size: tuple[float, float] | None = None, success: float = STOP_SHARE,
               on_step: Callable | None = None, log=print) -> list[dict]:
     """The loop: read a frame, stop if ``success`` of its foreground is inside the goal (or after cfg.mpc_steps
     pushes), else plan at ω, check the push against ``workspace`` and send it. bin_size: (bin_half_width,
