@@ -1,5 +1,6 @@
 """Closed loop: a tiny Gather episode with the sweep heuristic as the model (CPU)."""
 
+import dataclasses
 import json
 
 import jax
@@ -8,6 +9,7 @@ import numpy as np
 import pytest
 
 from dynres_jax.config import CameraConfig, PileConfig, PushConfig, SceneConfig, SimConfig
+from dynres_jax.control.budget import TimingTable
 from dynres_jax.control.choosers import (
     AdaptiveOmega,
     BestOfK,
@@ -15,6 +17,7 @@ from dynres_jax.control.choosers import (
     FixedOmega,
     OracleOmega,
     Orders,
+    ProbeOmega,
     SimulatorScored,
     climb,
     on_ladder,
@@ -127,8 +130,6 @@ def test_pool_episodes_with_per_episode_omega_and_budget_equal_one_at_a_time():
     """run on a WorldPool with ω chosen per episode (adaptive) in different buckets and a time budget makes the same
     decisions as run_episode at each episode's ω in its own bucket: every episode runs the Adam steps its bucket
     affords (from the same frozen timing table), and the batch's larger bucket pads inertly."""
-    from dynres_jax.control.budget import TimingTable
-
     sim = SimConfig(scene=SceneConfig(pieces=(6,)), pile=PileConfig(layout="spread"),
                     push=PushConfig(max_length=0.1, settle_time=0.04), camera=CameraConfig(width=48, height=48))
     pool, env = WorldPool(sim), PileEnv(sim, backend="mujoco")
@@ -187,6 +188,32 @@ def test_oracle_keeps_the_best_candidate_per_episode(three):
     with pytest.raises(ValueError, match="perception failed in episodes"):
         run(pool, starts, FixedOmega(goals, 100), sweep_dynamics(0.04),
             MPCConfig(mpc_steps=1, buckets=(100,), max_points=256, planner=planner), keys, log=lambda s: None)
+
+
+def test_probe_keeps_the_plan_the_model_rates_best_per_second(three):
+    """The probe over (2, 6) under a budget: each candidate plans on half of it (bucket 6 affords 1 Adam step, not
+    the 3 of the whole budget), and each episode keeps the candidate with the larger predicted fall of c per second of
+    the table's price, computed here by hand from fixed-ω runs on half the budget; only that push is executed."""
+    pool, goals, planner, cfg, keys, starts = three
+    table = TimingTable("test", 4, 1, fixed_s={2: 2**-10, 6: 2**-9}, step_s={2: 2**-10, 6: 2**-8}, frozen=True)
+    whole, half = (dataclasses.replace(cfg, time_budget=b) for b in (2**-6, 2**-7))
+    assert whole.allot([6], table)[1].tolist() == [3] and whole.allot([6], table, share=0.5)[1].tolist() == [1]
+    runs = {w: run(pool, starts, FixedOmega(goals, w), sweep_dynamics(0.04), half, keys, timing=table,
+                   log=lambda s: None).records[0] for w in (2, 6)}
+    rate = {w: (r["objective"] - r["predicted_objective"]) / np.array(
+        [table.seconds(int(b), int(s)) for b, s in zip(r["bucket"], r["adam_steps"], strict=True)])
+        for w, r in runs.items()}
+    best = np.where(rate[6] > rate[2], 6, 2)
+    assert set(best.tolist()) == {2, 6}  # chosen per episode: both candidates are kept somewhere
+    _, records = run(pool, starts, ProbeOmega(goals, (2, 6)), sweep_dynamics(0.04), whole, keys, timing=table,
+                     log=lambda s: None)
+    assert records[0]["omega"].tolist() == best.tolist()
+    assert records[0]["adam_steps"].tolist() == [3 if w == 2 else 1 for w in best]
+    for b, w in enumerate(best):
+        for key in ("distance", "predicted_objective", "action"):
+            np.testing.assert_allclose(records[0][key][b], runs[w][key][b], rtol=1e-6, err_msg=key)
+    with pytest.raises(ValueError, match="at least two"):
+        ProbeOmega(goals, (50,))
 
 
 def test_best_of_k_keeps_the_best_of_independent_plans(three):

@@ -7,19 +7,21 @@ Redistribute, many episodes at once.
 Episode i of a task has the same pile, goal and planner keys for every method and any --episodes (seeded by (--seed,
 i)). Each method runs all episodes together: perception and planning vmapped on the JAX device, pushes in C worker
 processes (``WorldPool``), or in MuJoCo Warp on the GPU with ``--backend warp`` (``WarpPool``: C's physics,
-docs/warp). With ``--time-budget S`` every method plans under the same budget of S seconds per decision, spent by one
-timing table (``timing.json``, measured once per resolution bucket on this device or given by ``--timing``): a coarse
-ω affords more Adam steps. Without it every decision runs ``--adam-steps``. Methods (``--methods``): fixed ω;
-"adaptive", the regressor g picks ω every step; "oracle" (an upper bound) plans at each ω of ORACLE_OMEGAS and keeps
-the push that left the lowest d on copies of the worlds (the summary says how much of its gain over the best fixed ω
-adaptive recovers, ``oracle_gap``); "cnn", the paper's CNN-dynamics baseline at ``--cnn-omega``. The ladder of
-docs/ladder, where the simulator picks among the planner's candidates at ``--best-omega`` (``choosers.BestOfK``,
-``SimulatorScored``): "bestK" (e.g. best5) among K plans from independent keys, the oracle's control; "sim" among the
-M first samples, no model; "rerank" among the M plans after the model's Adam steps. Redistribute's episode i draws
-the letter i modulo ``--letters``. Writes per method ``METHOD.json`` (final d and inside share per episode, means per
-step; finished methods are skipped on a rerun), ``summary.json`` (means with 95 % intervals, success rates, every
-method paired with adaptive or the first method: Δ final d with a paired-bootstrap interval, McNemar's test on
-success), ``score.png`` (share of episodes with final d below τ) and ``steps.png`` (mean d over the MPC steps).
+docs/warp). With ``--time-budget S`` every method plans under the same budget of S seconds per decision, spent by
+one timing table (``timing.json``, measured once per resolution bucket on this device or given by ``--timing``): a
+coarse ω affords more Adam steps. Without it every decision runs ``--adam-steps``. Methods (``--methods``): fixed ω;
+"adaptive", the regressor g picks ω every step; "probe", no labels: each step plans at each ω of PROBE_OMEGAS on an
+equal share of the budget and keeps the plan whose model predicts the largest fall of c per second; "oracle" (an
+upper bound) plans at each ω of ORACLE_OMEGAS and keeps the push that left the lowest d on copies of the worlds (the
+summary says how much of its gain over the best fixed ω adaptive recovers, ``oracle_gap``); "cnn", the paper's
+CNN-dynamics baseline at ``--cnn-omega``. The ladder of docs/ladder, where the simulator picks among the planner's
+candidates at ``--best-omega`` (``choosers.BestOfK``, ``SimulatorScored``): "bestK" (e.g. best5) among K plans from
+independent keys, the oracle's control; "sim" among the M first samples, no model; "rerank" among the M plans after
+the model's Adam steps. Redistribute's episode i draws the letter i modulo ``--letters``. Writes per method
+``METHOD.json`` (final d and inside share per episode, means per step; finished methods are skipped on a rerun),
+``summary.json`` (means with 95 % intervals, success rates, every method paired with adaptive or the first method: Δ
+final d with a paired-bootstrap interval, McNemar's test on success), ``score.png`` (share of episodes with final d
+below τ) and ``steps.png`` (mean d over the MPC steps).
 
 Several processes share the episodes through jax.distributed (a launcher, or --coordinator, --num-processes,
 --process-id): process I runs episodes I, I + K, ... of every method and writes ``parts/METHOD.I-of-K.json``;
@@ -56,6 +58,7 @@ from dynres_jax.control.choosers import (
     Chooser,
     FixedOmega,
     OracleOmega,
+    ProbeOmega,
     best_of,
     climb,
     on_ladder,
@@ -179,14 +182,17 @@ def label(method: str, r: dict) -> str:
 
 
 def method_chooser(method: str, goals, args, camera) -> Chooser:
-    """The chooser of an evaluation method against goals [B]: a fixed ω ("50"; "cnn" at --cnn-omega), the regressor
-    ("adaptive"), the oracle over ORACLE_OMEGAS, the best of K plans at --best-omega ("bestK", e.g. "best5"), or the
-    simulator choosing among the planner's first samples ("sim") or among its plans after the model's Adam steps
-    ("rerank"), both at --best-omega."""
+    """The chooser of an evaluation method against goals [B]: a fixed ω ("50"; "cnn" at --cnn-omega), the
+    regressor ("adaptive"), the probe of PROBE_OMEGAS judged by the model ("probe"), the oracle over
+    ORACLE_OMEGAS, the best of K plans at --best-omega ("bestK", e.g. "best5"), or the simulator choosing among
+    the planner's first samples ("sim") or among its plans after the model's Adam steps ("rerank"), both at
+    --best-omega."""
     if method == "adaptive":
         return AdaptiveOmega(goals, resolution.load_regressor(args.regressor, camera))
     if method == "oracle":
         return OracleOmega(goals, ORACLE_OMEGAS)
+    if method == "probe":
+        return ProbeOmega(goals)
     if on_ladder(method):
         return climb(FixedOmega(goals, args.best_omega), method)
     return FixedOmega(goals, args.cnn_omega if method == "cnn" else int(method))
@@ -236,7 +242,9 @@ def main(argv=None):
     parser.add_argument("--episodes", type=checks.count(1), default=64)
     parser.add_argument("--mpc-steps", type=checks.count(1), default=20, help="MPC steps per episode")
     parser.add_argument("--methods", nargs="+", default=["10", "25", "50", "75", "100", "adaptive"],
-                        help="fixed ω (integers), 'adaptive' (the regressor picks ω), 'oracle' (every step keeps the "
+                        help="fixed ω (integers), 'adaptive' (the regressor picks ω), 'probe' (every step plans at "
+                             "each ω of PROBE_OMEGAS on a share of the budget, keeps the one the model rates best per "
+                             "second: no labels), 'oracle' (every step keeps the "
                              "best of ω in ORACLE_OMEGAS by the simulated outcome), 'bestK' (e.g. best5: every step "
                              "keeps the best of K plans at --best-omega by the simulated outcome, the oracle's "
                              "control), 'sim' (the simulator chooses among the planner's first samples, no model), "
@@ -281,8 +289,9 @@ def main(argv=None):
     table = load_timing(parser, args)
     for m in args.methods:
         fixed = m.isdigit() and OMEGA_MIN <= int(m) <= OMEGA_MAX
-        if m not in ("adaptive", "oracle", "cnn") and not fixed and not on_ladder(m):
-            parser.error(f"--methods takes 'adaptive', 'oracle', 'cnn', 'sim', 'rerank', 'bestK' (K >= 1) or integers "
+        if m not in ("adaptive", "probe", "oracle", "cnn") and not fixed and not on_ladder(m):
+            parser.error(f"--methods takes 'adaptive', 'probe', 'oracle', 'cnn', 'sim', 'rerank', 'bestK' (K >= 1) or "
+                         f"integers "
                          f"in [{OMEGA_MIN}, {OMEGA_MAX}], got {m!r}")
     if len(set(args.methods)) < len(args.methods):
         parser.error(f"--methods names a method twice: {' '.join(args.methods)}")

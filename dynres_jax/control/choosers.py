@@ -1,9 +1,10 @@
 """Choosers: what the closed loop plans for at each MPC step (``mpc.run``). A chooser is called with the step and
 the frames the planner sees, and answers with ``Orders``: the goals, the resolution ω of every episode (or several
-candidate ω, of which the loop keeps per episode the one whose push left the lowest d), and which piece kinds to
-perceive. Fixed ω, the regressor g (adaptive ω, paper Sec. IV-C), the oracle over ω, the best of K plans at one ω,
-the simulator as the model (the ``sim`` ceiling) and Sort's A* waypoints (``sort.SortPolicy``) are choosers; a new
-way of choosing is a new chooser, not a new parameter of the loop.
+candidate ω, of which the loop keeps per episode the one whose push left the lowest d, or the one the model rates
+best), and which piece kinds to perceive. Fixed ω, the regressor g (adaptive ω, paper Sec. IV-C), a probe of several
+ω judged by the model (no labels), the oracle over ω, the best of K plans at one ω, the simulator as the model (the
+``sim`` ceiling) and Sort's A* waypoints (``sort.SortPolicy``) are choosers; a new way of choosing is a new chooser,
+not a new parameter of the loop.
 """
 
 from __future__ import annotations
@@ -17,6 +18,7 @@ from dynres_jax.config import check_omega
 from dynres_jax.control.goals import Goal, KindGoals
 
 ORACLE_OMEGAS = (10, 25, 50, 75, 100)  # the oracle's candidates at every step
+PROBE_OMEGAS = (25, 50, 100)  # the probe's candidates: one in each bucket above 16
 
 
 class Orders(NamedTuple):
@@ -27,7 +29,10 @@ class Orders(NamedTuple):
     for every ω; d > 0: keys of their own, ``mpc.PLAN_DRAWS``); None: every candidate draw 0. simulated: None (the
     model's best plan is pushed), "samples" (no model, no Adam step: the planner's M first samples are each pushed on
     a copy of the worlds and the one that left the lowest d kept) or "plans" (the planner's M candidates after its
-    Adam steps with the model, chosen among the same way) (``mpc.act_simulated``)."""
+    Adam steps with the model, chosen among the same way) (``mpc.act_simulated``). keep: how the loop chooses among
+    several candidates: "distance" (each pushed on a copy of the worlds, the lowest d kept) or "rate" (each planned
+    with an equal share of the decision's time budget, the one whose model predicts the largest fall of c per second
+    of planning kept and pushed; nothing simulated, ``mpc.act_by_rate``)."""
 
     goals: Goal | KindGoals
     omegas: tuple[np.ndarray, ...]
@@ -35,6 +40,7 @@ class Orders(NamedTuple):
     record: dict = {}
     draws: tuple[int, ...] | None = None
     simulated: str | None = None
+    keep: str = "distance"
 
 
 class Chooser:
@@ -80,6 +86,20 @@ class OracleOmega(Chooser):
 
     def __call__(self, t, obs) -> Orders:
         return Orders(self.goals, tuple(np.full(len(obs.depth), w, np.int32) for w in self.omegas))
+
+
+class ProbeOmega(Chooser):
+    """ω without labels: every step plans at each candidate ω (the same keys), each with an equal share of the
+    decision's time budget, and keeps per episode the plan whose predicted fall of c per second of planning is the
+    largest (``Orders.keep`` "rate"). The model judges its own plans; no world is pushed twice."""
+
+    def __init__(self, goals, omegas=PROBE_OMEGAS):
+        if len(omegas) < 2:
+            raise ValueError("the probe needs at least two candidate ω")
+        self.goals, self.omegas = goals, tuple(check_omega(w, "a probe candidate") for w in omegas)
+
+    def __call__(self, t, obs) -> Orders:
+        return Orders(self.goals, tuple(np.full(len(obs.depth), w, np.int32) for w in self.omegas), keep="rate")
 
 
 class BestOfK(Chooser):

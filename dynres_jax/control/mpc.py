@@ -65,19 +65,22 @@ class MPCConfig:
         """The compiled decision's settings at particle capacity ``capacity``."""
         return DecisionSpec(capacity, self.planner, self.max_points, self.real_depth)
 
-    def adam_steps(self, bucket: int, table: budget.TimingTable | None = None) -> int:
-        """The Adam steps of a decision at ``bucket`` (``budget.adam_steps`` with this config's budget). ValueError
-        when the table was measured for another planner batch (samples, horizon)."""
+    def adam_steps(self, bucket: int, table: budget.TimingTable | None = None, share: float = 1.0) -> int:
+        """The Adam steps of a decision at ``bucket`` (``budget.adam_steps`` with ``share`` of this config's budget).
+        ValueError when the table was measured for another planner batch (samples, horizon)."""
         if self.time_budget is not None and table is not None and (table.samples, table.horizon) != (
                 self.planner.samples, self.planner.horizon):
             raise InputError(f"the timing table was measured for {table.samples} samples x horizon {table.horizon}, "
                              f"the planner has {self.planner.samples} x {self.planner.horizon}: measure it again")
-        return budget.adam_steps(bucket, self.planner.adam_steps, self.time_budget, table)
+        seconds = None if self.time_budget is None else self.time_budget * share
+        return budget.adam_steps(bucket, self.planner.adam_steps, seconds, table)
 
-    def allot(self, omegas, table: budget.TimingTable | None = None) -> tuple[np.ndarray, np.ndarray]:
-        """Per decision of a batch at omegas [B]: its bucket [B] and the Adam steps [B] it runs (``adam_steps``)."""
+    def allot(self, omegas, table: budget.TimingTable | None = None, share: float = 1.0
+              ) -> tuple[np.ndarray, np.ndarray]:
+        """Per decision of a batch at omegas [B]: its bucket [B] and the Adam steps [B] it runs (``adam_steps``, with
+        ``share`` of the budget)."""
         buckets = np.array([budget.bucket_for(int(w), self.buckets) for w in np.asarray(omegas)])
-        return buckets, np.array([self.adam_steps(int(b), table) for b in buckets], np.int32)
+        return buckets, np.array([self.adam_steps(int(b), table, share) for b in buckets], np.int32)
 
 
 def measure_timing(obs, goal: Goal, dynamics, cfg: MPCConfig, camera, repeats: int = 3,
@@ -146,22 +149,43 @@ class Situation(NamedTuple):
     warm: bool
 
 
-def act(worlds: Worlds, now: Situation, omega, *, cfg: MPCConfig, timing: budget.TimingTable | None, dynamics,
-        score: Callable) -> dict:
-    """Allot, decide, push, score: one decision per episode at omega [B] from ``now``, its first push executed in
-    ``worlds`` and the result scored by ``score(states, goals) -> dict``. Returns arrays [B]: omega, bucket,
-    adam_steps, objective (c before), predicted_objective, best (the plan), particles, action, states (after), the
-    scores, and wall (the decision's seconds)."""
-    buckets, steps = cfg.allot(omega, timing)
+def plan_only(now: Situation, omega, *, cfg: MPCConfig, timing: budget.TimingTable | None, dynamics,
+              share: float = 1.0) -> dict:
+    """Allot (``share`` of the budget) and decide: one decision per episode at omega [B] from ``now``. Returns arrays
+    [B]: omega, bucket, adam_steps, objective (c before), predicted_objective, best (the plan), particles, action
+    (its first push) and wall (the decision's seconds)."""
+    buckets, steps = cfg.allot(omega, timing, share)
     t0 = time.perf_counter()
     particles, c_now, result = decide_batch(now.seen, now.goals, now.keys, now.init, now.warm, omega, steps, now.kinds,
                                             spec=cfg.spec(int(buckets.max())), dynamics=dynamics, camera=now.camera)
     action = np.asarray(jax.block_until_ready(result.best[:, 0]))
-    wall = time.perf_counter() - t0
-    after = worlds.push(now.states, action)
     return dict(omega=np.asarray(omega), bucket=buckets, adam_steps=steps, objective=c_now,
                 predicted_objective=result.best_cost, best=result.best, particles=particles, action=action,
-                states=after, wall=np.full(len(action), wall), **score(after, now.goals))
+                wall=np.full(len(action), time.perf_counter() - t0))
+
+
+def act(worlds: Worlds, now: Situation, omega, *, cfg: MPCConfig, timing: budget.TimingTable | None, dynamics,
+        score: Callable) -> dict:
+    """Allot, decide, push, score: ``plan_only``'s decision at omega [B], its first push executed in ``worlds`` and
+    the result scored by ``score(states, goals) -> dict``. Returns ``plan_only``'s arrays [B], states (after) and the
+    scores."""
+    planned = plan_only(now, omega, cfg=cfg, timing=timing, dynamics=dynamics)
+    after = worlds.push(now.states, planned["action"])
+    return dict(planned, states=after, **score(after, now.goals))
+
+
+def act_by_rate(worlds: Worlds, now: Situation, omegas, *, cfg: MPCConfig, timing: budget.TimingTable | None,
+                dynamics, score: Callable) -> dict:
+    """One decision per candidate ω (omegas: a tuple of [B]), each with an equal share of the budget, and per episode
+    the one whose model predicts the largest fall of c per second of planning (the table's price of its bucket and
+    steps; without a table, its wall time) kept; only its push is executed. Returns ``act``'s arrays [B]."""
+    plans = [plan_only(now, omega, cfg=cfg, timing=timing, dynamics=dynamics, share=1 / len(omegas))
+             for omega in omegas]
+    rates = np.stack([(np.asarray(p["objective"]) - np.asarray(p["predicted_objective"])) / _seconds(p, timing)
+                      for p in plans])
+    planned = _pick(plans, np.argmax(rates, axis=0))
+    after = worlds.push(now.states, np.asarray(planned["action"]))
+    return dict(planned, states=after, **score(after, now.goals))
 
 
 def act_simulated(worlds: Worlds, now: Situation, omega, *, cfg: MPCConfig, timing, dynamics, score,
@@ -237,8 +261,11 @@ def run(worlds: Worlds, states: State, chooser: Chooser, dynamics, cfg: MPCConfi
         draws = orders.draws or (0,) * len(orders.omegas)
         decide = act if orders.simulated is None else functools.partial(act_simulated,
                                                                          refine=orders.simulated == "plans")
-        kept = _lowest_distance([decide(worlds, _drawn(now, d), omega, cfg=cfg, timing=timing, dynamics=dynamics,
-                                        score=score) for omega, d in zip(orders.omegas, draws, strict=True)])
+        if orders.keep == "rate":
+            kept = act_by_rate(worlds, now, orders.omegas, cfg=cfg, timing=timing, dynamics=dynamics, score=score)
+        else:
+            kept = _lowest_distance([decide(worlds, _drawn(now, d), omega, cfg=cfg, timing=timing, dynamics=dynamics,
+                                            score=score) for omega, d in zip(orders.omegas, draws, strict=True)])
         record = dict(step=t, **{k: np.asarray(kept[k]) for k in ("omega", "bucket", "adam_steps", "objective",
                                                                   "predicted_objective", "distance", "inside",
                                                                   "action")})
@@ -299,15 +326,27 @@ def shift(best):
 
 
 def _lowest_distance(outcomes: list[dict]) -> dict:
-    """Per episode b, leaf [b] of the outcome whose push left the lowest d (``act``'s dicts, arrays [B]; particles of
-    candidates in smaller buckets padded with masked slots to the largest)."""
+    """Per episode b, leaf [b] of the outcome whose push left the lowest d (``act``'s dicts, arrays [B])."""
+    return _pick(outcomes, np.argmin(np.stack([np.asarray(o["distance"]) for o in outcomes]), axis=0))
+
+
+def _pick(outcomes: list[dict], pick) -> dict:
+    """Per episode b, leaf [b] of outcome pick[b] (dicts of arrays [B]; particles of candidates in smaller buckets
+    padded with masked slots to the largest)."""
     slots = max(o["particles"].mask.shape[1] for o in outcomes)
     pad = lambda x: jnp.pad(x, [(0, 0), (0, slots - x.shape[1])] + [(0, 0)] * (x.ndim - 2))  # noqa: E731
     outcomes = [dict(o, particles=o["particles"]._replace(positions=pad(o["particles"].positions),
                                                           mask=pad(o["particles"].mask))) for o in outcomes]
-    pick = jnp.asarray(np.argmin(np.stack([np.asarray(o["distance"]) for o in outcomes]), axis=0))
-    rows = jnp.arange(len(pick))
+    pick, rows = jnp.asarray(pick), jnp.arange(len(pick))
     return jax.tree.map(lambda *x: jnp.stack([jnp.asarray(v) for v in x])[pick, rows], *outcomes)
+
+
+def _seconds(planned: dict, timing: budget.TimingTable | None) -> np.ndarray:
+    """A decision's planning seconds [B]: the table's price of its bucket and steps, else its wall time."""
+    if timing is None:
+        return np.asarray(planned["wall"])
+    return np.array([timing.seconds(int(b), int(s)) for b, s in zip(planned["bucket"], planned["adam_steps"],
+                                                                    strict=True)])
 
 
 def _planning_seconds(kept: dict, timing: budget.TimingTable | None) -> np.ndarray:
@@ -318,7 +357,7 @@ def _planning_seconds(kept: dict, timing: budget.TimingTable | None) -> np.ndarr
         return np.asarray(kept["wall"])
     if timing is None:
         return np.full(len(kept["wall"]), np.nan)
-    return np.array([timing.seconds(int(b), int(s)) for b, s in zip(kept["bucket"], kept["adam_steps"], strict=True)])
+    return _seconds(kept, timing)
 
 
 @functools.cache
