@@ -46,8 +46,10 @@ def row(name: str, m: dict) -> dict:
 
 
 def fig5(folder: str, name: str, methods, extra: dict) -> dict:
+    """One task's fixed ω and adaptive (folder/name), and extra choosers run on the same episodes in other folders:
+    {label: (folder, method)}; each chooser against the best fixed ω."""
     runs = {m: method(os.path.join(folder, name), m) for m in methods}
-    runs.update({label: method(path, "adaptive") for label, path in extra.items() if os.path.isdir(path)})
+    runs.update({label: method(path, m) for label, (path, m) in extra.items() if os.path.isdir(path)})
     fixed = [m for m in FIXED if m in runs]
     best = min(fixed, key=lambda m: runs[m]["d"].mean())
     return dict(rows=[row(m, r) for m, r in runs.items()], best_fixed=best, device=runs[best]["device"],
@@ -85,9 +87,11 @@ def main(argv=None):
     args = parser.parse_args(argv)
     result = {}
     for task in ("gather", "redistribute"):
-        result[f"fig5 {task}"] = fig5(args.fig5, f"{task}_budget", (*FIXED, "adaptive"),
-                                      {"adaptive, g on new labels": os.path.join(args.fig5, f"{task}_budget_gnew")})
-    result["fig5 gather, no budget"] = fig5(args.fig5, "gather_nobudget", ("25", "50", "100", "adaptive"), {})
+        result[f"fig5 {task}"] = fig5(args.fig5, f"{task}_budget", (*FIXED, "adaptive"), {
+            "adaptive, g on new labels": (os.path.join(args.fig5, f"{task}_budget_gnew"), "adaptive"),
+            "probe (no labels)": (os.path.join(args.fig5, f"{task}_budget_probe"), "probe")})
+    for task in ("gather", "redistribute"):
+        result[f"fig5 {task}, no budget"] = fig5(args.fig5, f"{task}_nobudget", ("25", "50", "100", "adaptive"), {})
     result.update({f"split {task}": split(folder) for task, folder in (s.split("=", 1) for s in args.split)})
     with open(os.path.join(args.labels, "reliability", "reliability.json")) as f:
         reliability = json.load(f)

@@ -91,7 +91,8 @@ class OracleOmega(Chooser):
 class ProbeOmega(Chooser):
     """ω without labels: every step plans at each candidate ω (the same keys), each with an equal share of the
     decision's time budget, and keeps per episode the plan whose predicted fall of c per second of planning is the
-    largest (``Orders.keep`` "rate"). The model judges its own plans; no world is pushed twice."""
+    largest (``Orders.keep`` "rate"). The model judges its own plans; no world is pushed twice. A step's record
+    (Adam steps, planning seconds) is the kept plan's; the step spent the whole budget."""
 
     def __init__(self, goals, omegas=PROBE_OMEGAS):
         if len(omegas) < 2:
