@@ -15,33 +15,33 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import sys
 
 import numpy as np
 
-from dynres_jax.commands.evaluate import SUCCESS
-from dynres_jax.io import files
-from dynres_jax.stats import mcnemar, paired_bootstrap, wilson
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from ladder_table import _pair  # noqa: E402
+
+from dynres_jax.commands.evaluate import succeeded  # noqa: E402
+from dynres_jax.io import files  # noqa: E402
+from dynres_jax.stats import wilson  # noqa: E402
 
 FIXED = ("10", "25", "50", "75", "100")
 
 
 def method(folder: str, name: str) -> dict:
-    """A method's final d and success per episode, and its mean Adam steps."""
+    """A method's run as ladder_table reads one (episode, success, distance per episode), with its mean ω and Adam
+    steps and its device."""
     with open(os.path.join(folder, f"{name}.json")) as f:
         run = json.load(f)
-    return dict(d=np.asarray(run["final_distance"]), ok=np.asarray(run["final_inside"]) >= SUCCESS - 1e-6,
-                adam_steps=float(np.mean(run["adam_steps"])), omega=float(np.mean(run["omega"])),
-                device=run["device"])
-
-
-def pair(a: dict, b: dict) -> dict:
-    """a against b on the same episodes: Δ final d (a - b) with its bootstrap interval, McNemar on success."""
-    return dict(delta_d=paired_bootstrap(a["d"], b["d"]), success=mcnemar(a["ok"], b["ok"]))
+    return dict(episode=list(range(len(run["final_inside"]))), success=succeeded(run["final_inside"]),
+                distance=np.asarray(run["final_distance"]), adam_steps=float(np.mean(run["adam_steps"])),
+                omega=float(np.mean(run["omega"])), device=run["device"])
 
 
 def row(name: str, m: dict) -> dict:
-    k, n = int(m["ok"].sum()), len(m["ok"])
-    return dict(method=name, final_d=float(m["d"].mean()), success=k / n, success_ci95=wilson(k, n),
+    k, n = int(m["success"].sum()), len(m["success"])
+    return dict(method=name, final_d=float(m["distance"].mean()), success=k / n, success_ci95=wilson(k, n),
                 adam_steps=m["adam_steps"], omega=m["omega"], episodes=n)
 
 
@@ -51,18 +51,18 @@ def fig5(folder: str, name: str, methods, extra: dict) -> dict:
     runs = {m: method(os.path.join(folder, name), m) for m in methods}
     runs.update({label: method(path, m) for label, (path, m) in extra.items() if os.path.isdir(path)})
     fixed = [m for m in FIXED if m in runs]
-    best = min(fixed, key=lambda m: runs[m]["d"].mean())
+    best = min(fixed, key=lambda m: runs[m]["distance"].mean())
     return dict(rows=[row(m, r) for m, r in runs.items()], best_fixed=best, device=runs[best]["device"],
-                against_best={m: pair(runs[m], runs[best]) for m in runs if m not in fixed})
+                against_best={m: _pair(runs[m], runs[best]) for m in runs if m not in fixed})
 
 
 def split(folder: str) -> dict:
     """The oracle's gap over ω = 50, the part the best of 5 plans at ω = 50 buys, and the rest: the part that is ω."""
     runs = {m: method(folder, m) for m in ("50", "best5", "oracle")}
-    gap, plans = (runs["50"]["d"] - runs[m]["d"] for m in ("oracle", "best5"))
+    gap, plans = (runs["50"]["distance"] - runs[m]["distance"] for m in ("oracle", "best5"))
     return dict(rows=[row(m, r) for m, r in runs.items()], oracle_gap=float(gap.mean()),
                 plan_selection=float(plans.mean()), omega_part=float((gap - plans).mean()),
-                oracle_vs_best5=pair(runs["oracle"], runs["best5"]))
+                oracle_vs_best5=_pair(runs["oracle"], runs["best5"]))
 
 
 def fmt(p: dict) -> str:

@@ -100,6 +100,15 @@ def run_robot_side(file: str, frames: str, out: str, python: str | None, work: s
     return dict(np.load(out))
 
 
+def library_decision(obs, goal, key, omega, steps, init, warm, *, spec, dynamics, camera) -> dict:
+    """The library's decision on one frame as the robot loop makes it (``decision.decide_batch`` on a batch of one):
+    the outputs the exported file gives too (push, best_cost, objective, positions, mask)."""
+    particles, c_now, result = decide_batch(batch(obs), batch(goal), batch(key), jnp.asarray(init)[None], warm,
+                                            [omega], [steps], spec=spec, dynamics=dynamics, camera=camera)
+    return dict(push=result.best[0, 0], best_cost=result.best_cost[0], objective=c_now[0],
+                positions=particles.positions[0], mask=particles.mask[0])
+
+
 def frames(n: int, seed: int):
     """n simulated frames as a RealSense gives them, the camera calibrated from the first, and each frame's call:
     (camera, [(depth, goal_mask, key, omega, adam_steps, init, warm)], the scene's planner settings)."""
@@ -152,11 +161,8 @@ def main(argv=None):
     for i, (obs, call) in enumerate(zip(seen, calls, strict=True)):
         depth, goal_mask, key, omega, steps, init, warm = call
         t0 = time.perf_counter()
-        particles, c_now, result = decide_batch(batch(obs), batch(make_goal(goal_mask, camera)), batch(key),
-                                                jnp.asarray(init)[None], warm, [omega], [steps], spec=spec,
-                                                dynamics=dynamics, camera=camera)
-        live = dict(push=result.best[0, 0], best_cost=result.best_cost[0], objective=c_now[0],
-                    positions=particles.positions[0], mask=particles.mask[0])
+        live = library_decision(obs, make_goal(goal_mask, camera), key, omega, steps, init, warm, spec=spec,
+                                dynamics=dynamics, camera=camera)
         seconds = time.perf_counter() - t0
         same = all(np.array_equal(robot[k][i], np.asarray(v)) for k, v in live.items())
         rows.append(dict(frame=i, omega=int(omega), adam_steps=int(steps), warm=bool(warm),

@@ -14,7 +14,7 @@ from flax import nnx
 from dynres_jax import export as ex
 from dynres_jax.commands import export as export_cli
 from dynres_jax.config import CameraConfig
-from dynres_jax.control.decision import DecisionSpec, batch, decide_batch
+from dynres_jax.control.decision import DecisionSpec
 from dynres_jax.control.goals import disc_goal, make_goal
 from dynres_jax.control.planner import PlannerConfig
 from dynres_jax.io import ckpt
@@ -23,7 +23,7 @@ from dynres_jax.models.registry import load_dynamics
 from dynres_jax.perception import BAD_OMEGA, NAN_DEPTH
 from dynres_jax.sim.camera import Camera, Observation
 from dynres_jax.sim.sensor import NO_READING
-from studies.export_check import run_robot_side
+from studies import export_check
 
 N_MAX, STEP, Q, FRAMES = 16, 7, 16, 20
 CAMERA = Camera.top_down(CameraConfig(width=32, height=32))  # 1 m above the table, 1.4 cm a pixel
@@ -65,11 +65,8 @@ def inputs(i):
 def library_decision(dynamics, depth, goal_mask, key, omega, steps, init, warm):
     """What the robot loop decides on this frame (``control.robot.run_robot``'s call)."""
     obs = frame(0)._replace(depth=jnp.asarray(depth))
-    goal = make_goal(goal_mask, CAMERA, n_samples=Q)
-    particles, c_now, result = decide_batch(batch(obs), batch(goal), batch(key), init[None], warm, [omega], [steps],
-                                            spec=SPEC, dynamics=dynamics, camera=CAMERA)
-    return dict(push=result.best[0, 0], best_cost=result.best_cost[0], objective=c_now[0],
-                positions=particles.positions[0], mask=particles.mask[0])
+    return export_check.library_decision(obs, make_goal(goal_mask, CAMERA, n_samples=Q), key, omega, steps, init,
+                                         warm, spec=SPEC, dynamics=dynamics, camera=CAMERA)
 
 
 @pytest.fixture(scope="module")
@@ -89,8 +86,9 @@ def reloaded(exported_file):
 def test_the_file_decides_like_the_library_where_only_jax_and_flatbuffers_are(tiny_ckpt, exported_file, tmp_path):
     calls = [inputs(i) for i in range(FRAMES)]
     np.savez(tmp_path / "frames.npz", **{n: np.stack([c[k] for c in calls]) for k, n in enumerate(ex.INPUT_NAMES)})
-    robot = run_robot_side(exported_file, str(tmp_path / "frames.npz"), str(tmp_path / "out.npz"), None,
-                           str(tmp_path))  # this Python, isolated, in a site of links to jax and flatbuffers only
+    # this Python, isolated, in a site of links to jax and flatbuffers only
+    robot = export_check.run_robot_side(exported_file, str(tmp_path / "frames.npz"), str(tmp_path / "out.npz"), None,
+                                        str(tmp_path))
     installed = sorted(os.listdir(tmp_path / "site"))
     assert not any(n.startswith(("dynres", "flax", "mujoco", "cv2", "opencv")) for n in installed), installed
     assert "flatbuffers" in installed and "jaxlib" in installed

@@ -291,8 +291,7 @@ def main(argv=None):
         fixed = m.isdigit() and OMEGA_MIN <= int(m) <= OMEGA_MAX
         if m not in ("adaptive", "probe", "oracle", "cnn") and not fixed and not on_ladder(m):
             parser.error(f"--methods takes 'adaptive', 'probe', 'oracle', 'cnn', 'sim', 'rerank', 'bestK' (K >= 1) or "
-                         f"integers "
-                         f"in [{OMEGA_MIN}, {OMEGA_MAX}], got {m!r}")
+                         f"integers in [{OMEGA_MIN}, {OMEGA_MAX}], got {m!r}")
     if len(set(args.methods)) < len(args.methods):
         parser.error(f"--methods names a method twice: {' '.join(args.methods)}")
     if " " in args.letters:

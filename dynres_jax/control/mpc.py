@@ -258,12 +258,12 @@ def run(worlds: Worlds, states: State, chooser: Chooser, dynamics, cfg: MPCConfi
         now = Situation(states, seen, camera, orders.goals, orders.kinds, step_keys, init, warm)
         for omega in orders.omegas:
             announce(cfg, omega, log)
-        draws = orders.draws or (0,) * len(orders.omegas)
-        decide = act if orders.simulated is None else functools.partial(act_simulated,
-                                                                         refine=orders.simulated == "plans")
         if orders.keep == "rate":
             kept = act_by_rate(worlds, now, orders.omegas, cfg=cfg, timing=timing, dynamics=dynamics, score=score)
         else:
+            draws = orders.draws or (0,) * len(orders.omegas)
+            decide = act if orders.simulated is None else functools.partial(act_simulated,
+                                                                             refine=orders.simulated == "plans")
             kept = _lowest_distance([decide(worlds, _drawn(now, d), omega, cfg=cfg, timing=timing, dynamics=dynamics,
                                             score=score) for omega, d in zip(orders.omegas, draws, strict=True)])
         record = dict(step=t, **{k: np.asarray(kept[k]) for k in ("omega", "bucket", "adam_steps", "objective",

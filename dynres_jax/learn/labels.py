@@ -117,11 +117,11 @@ def label_shard(cfg: LabelConfig, shard: int, dynamics, planner: Callable[[PileE
     # Common random numbers: every ω of a scene is planned from the same R keys, so the same perception start and
     # the same starting pushes (decision.py); c*(ω) - c*(ω') is then the resolution's effect, not the draws'.
     keys = jax.random.split(jax.random.fold_in(jax.random.PRNGKey(plan_seed), shard * 100), b * r)
+    now = mpc.Situation(starts, starts.obs, camera, goals_r, None, keys, init, False)
 
     def c_star(omega):
         """c*(ω) [B] of every scene (the mean of its repeats), the variance of that mean [B] (0 with one repeat) and
         the Adam steps [B] each plan ran (its bucket's, under the budget)."""
-        now = mpc.Situation(starts, starts.obs, camera, goals_r, None, keys, init, False)
         done = mpc.act(pool, now, rep(omega), cfg=mpc_cfg, timing=timing, dynamics=dynamics,
                        score=lambda after, g: dict(distance=measure(after.obs, g)))
         values = np.asarray(done["distance"]).reshape(b, r)
