@@ -268,7 +268,12 @@ def _place(tree, sharding):
 
 def sharded(tree, mesh: Mesh):
     """Every leaf split along its first axis over the mesh's "batch" axis."""
-    return _place(tree, NamedSharding(mesh, PartitionSpec("batch")))
+    return _place(tree, split(mesh))
+
+
+def split(mesh: Mesh) -> NamedSharding:
+    """The sharding of an array split along its first axis over the mesh's "batch" axis (a batch inside jit)."""
+    return NamedSharding(mesh, PartitionSpec("batch"))
 
 
 def whole(mesh: Mesh) -> NamedSharding:

@@ -19,7 +19,7 @@ from test_train import CFG, shards  # noqa: F401  (shards: the module-scoped tin
 from dynres_jax.commands import eval_dynamics, evaluate, train_dynamics
 from dynres_jax.io import ckpt
 from dynres_jax.learn import targets
-from dynres_jax.learn.train import TrainConfig, _batch, card, make_step, train
+from dynres_jax.learn.train import TrainConfig, card, make_step, resident, train
 from dynres_jax.models.cnn_dynamics import PILE_SHARE, CNNDynamics, CNNDynamicsConfig, sample, splat, tent_weights
 from dynres_jax.models.dynamics import Dynamics, count_params, predict, resolution_code
 from dynres_jax.models.graph import sweep_rollout
@@ -175,10 +175,9 @@ def test_training_reduces_the_loss_and_the_checkpoint_restores(cnn_run, shards):
     graphdef, initial = nnx.split(make_model(SMALL, CNN_CFG.seed))
     _, loss = make_step(graphdef, optax.adam(0.0), train_set.camera, CNN_CFG)
     key = jax.random.PRNGKey(CNN_CFG.seed)
-    batches = [_batch(train_set, np.random.default_rng([CNN_CFG.seed, i]), CNN_CFG, jax.random.fold_in(key, i))
-               for i in range(CNN_CFG.steps)]
-    before = np.mean([float(loss(initial, *b)["mse"]) for b in batches])
-    after = np.mean([float(loss(nnx.split(model)[1], *b)["mse"]) for b in batches])
+    frames, keys = resident(train_set), [jax.random.fold_in(key, i) for i in range(CNN_CFG.steps)]
+    before = np.mean([float(loss(initial, frames, k)["mse"]) for k in keys])
+    after = np.mean([float(loss(nnx.split(model)[1], frames, k)["mse"]) for k in keys])
     assert after < before, (before, after)
     _, n_max, name = load_dynamics("learned", f"{out}/ckpt", SMALL.plate_half_width)  # the planner's loader
     assert n_max == CNN_CFG.n_max and f"step {CNN_CFG.steps}" in name

@@ -18,9 +18,10 @@ from dynres_jax.learn import data, targets
 from dynres_jax.learn.train import (
     DISTANCE_EPS,
     TrainConfig,
-    _batch,
     _Speed,
+    draw,
     make_step,
+    resident,
     rollout_errors,
     train,
 )
@@ -143,7 +144,8 @@ def test_rollout_errors_equal_a_loop_over_samples_and_particles(shards):
     train_set = targets.load_shards(shards, "train")
     cfg = dataclasses.replace(CFG, batch=3)
     graphdef, params = nnx.split(Dynamics(cfg.model, rngs=nnx.Rngs(3)))
-    windows, omegas, keys = _batch(train_set, np.random.default_rng(5), cfg, jax.random.PRNGKey(5))
+    frames = resident(train_set)
+    windows, omegas, keys = draw(frames, jax.random.PRNGKey(5), cfg)
     samples = jax.vmap(lambda w, o, k: targets.make_sample(w, o, k, train_set.camera, cfg.n_max,
                                                         max_points=cfg.max_points))(windows, omegas, keys)
     got = rollout_errors(graphdef, params, samples)
@@ -160,7 +162,8 @@ def test_rollout_errors_equal_a_loop_over_samples_and_particles(shards):
     np.testing.assert_allclose(float(got["mse"]), np.mean(sq), rtol=1e-4)
     np.testing.assert_allclose(float(got["distance"]), np.mean(dist), rtol=1e-4)
     _, evaluate = make_step(graphdef, None, train_set.camera, cfg)  # the jitted evaluation gives the same errors
-    np.testing.assert_allclose(float(evaluate(params, windows, omegas, keys)["distance"]), np.mean(dist), rtol=1e-4)
+    np.testing.assert_allclose(float(evaluate(params, frames, jax.random.PRNGKey(5))["distance"]), np.mean(dist),
+                               rtol=1e-4)
 
 
 @pytest.mark.parametrize("recipe, shipped", [("shipped", "SHIPPED_DYNAMICS"), ("cnn", "SHIPPED_CNN_DYNAMICS")])

@@ -192,6 +192,33 @@ def random_windows(data: Dataset, rng: np.random.Generator, batch: int, horizon:
                    horizon)
 
 
+class Frames(NamedTuple):
+    """A Dataset's arrays (``Dataset``'s shapes), as NumPy or on the devices (``train.resident``): what
+    ``draw_windows`` cuts windows from inside a jitted step."""
+
+    depth: jax.Array
+    piece: jax.Array
+    pos: jax.Array
+    mat: jax.Array
+    piece_mask: jax.Array
+    kind: jax.Array
+    action: jax.Array
+
+
+def draw_windows(frames: Frames, key, batch: int, horizon: int) -> Window:
+    """``batch`` windows of ``horizon`` pushes, rows and start frames uniform from ``key``; pure JAX (the ``windows``
+    of rows and starts drawn on the device)."""
+    episodes, pushes = frames.action.shape[:2]
+    k_rows, k_t = jax.random.split(key)
+    rows = jax.random.randint(k_rows, (batch,), 0, episodes)
+    t = jax.random.randint(k_t, (batch,), 0, pushes - horizon + 1)
+    span = t[:, None] + jnp.arange(horizon + 1)
+    r = rows[:, None]
+    return Window(frames.depth[rows, t].astype(jnp.float32), frames.piece[rows, t].astype(jnp.int32),
+                  frames.pos[r, span], frames.mat[r, span], frames.piece_mask[rows],
+                  frames.kind[rows].astype(jnp.int32), frames.action[r, span[:, :-1]])
+
+
 class Sample(NamedTuple):
     """A training sample: positions [horizon + 1, n_max, 3] of the particles at frames t..t+horizon (m, 0 where
     masked); mask [n_max] (the first ω); kind [n_max] int32 (KIND_NAMES index of each particle's piece, -1 masked);

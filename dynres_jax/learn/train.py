@@ -1,11 +1,15 @@
 """Training the dynamics f(z, u, ω): multi-step rollout loss on valid particles, every sample with its own ω.
 
-One step: ``batch`` random windows of ``horizon`` pushes (``targets.random_windows``); each gets its own ω uniform in
-``[omega_min, n_max]`` and a key; perception h turns frame t into ω particles, attached to their pieces, whose
-positions over the next ``horizon`` frames are the targets (``targets.make_sample``, inside the jitted step); the model
-rolls out ``horizon`` pushes from the particles at frame t, and the loss (``TrainConfig.loss``) is the mean squared
-error, or the mean Euclidean error, over valid particles and steps (samples whose perception failed weigh 0). Adam on
-the model's parameters.
+The data live on the devices (``resident``: every frame's depth and segmentation, every piece's poses, replicated on
+each device), so a step draws its batch there (``draw``): ``batch`` random windows of ``horizon`` pushes, each with its
+own ω uniform in ``[omega_min, n_max]`` and a key, all from the step's key alone; perception h turns frame t into ω
+particles, attached to their pieces, whose positions over the next ``horizon`` frames are the targets
+(``targets.make_sample``); the model rolls out ``horizon`` pushes from the particles at frame t, and the loss
+(``TrainConfig.loss``) is the mean squared error, or the mean Euclidean error, over valid particles and steps (samples
+whose perception failed weigh 0). Nothing crosses from the host in a step. Adam on the model's parameters, the
+learning rate warmed up linearly over ``warmup`` steps (large batches), then cosine-decayed. ``noise``: every
+particle of a sample is moved by the same Gaussian offset in every frame of its window (GNS's input noise; the
+displacements it must predict are unchanged), so the model sees particles a little off where perception puts them.
 
 The model is the GNN (``dynamics.Dynamics``, ``TrainConfig.model`` a ``DynamicsConfig``) or the CNN baseline
 (``cnn_dynamics.CNNDynamics``, a ``CNNDynamicsConfig``); both have the same call interface, and the checkpoint's card
@@ -48,7 +52,7 @@ from dynres_jax.models.dynamics import DynamicsConfig, resolution_code, rollout
 from dynres_jax.models.registry import make_model, model_class
 
 SCHEDULE = ("steps", "eval_every", "ckpt_every", "val_batches")  # may change when a run resumes; nothing else may
-VAL_STREAM = 2**30  # seeds of validation batches: (seed, VAL_STREAM, b), apart from training steps' (seed, step)
+VAL_STREAM = 2**30  # keys of validation batches: VAL_STREAM + b folded into the seed's, apart from steps' (step)
 LOSSES = ("mse", "distance")  # TrainConfig.loss: see rollout_errors
 DISTANCE_EPS = 1e-4  # m: smoothing of the "distance" loss at zero error
 
@@ -63,7 +67,9 @@ class TrainConfig:
     and validation (episodes with any piece of them are dropped), so ``eval_dynamics`` can report the model on kinds
     it never saw; loss: "mse" (the reference's mean squared error) or "distance" (the mean
     Euclidean error that ``eval_dynamics`` reports; less pulled by the few pieces that end far from any guess);
-    model: the GNN's ``DynamicsConfig`` or the CNN's ``CNNDynamicsConfig``."""
+    warmup: steps over which the learning rate rises linearly from 0 to lr (0: none); noise (m): the standard
+    deviation of each sample's per-particle offset (module docstring; 0: none); model: the GNN's ``DynamicsConfig``
+    or the CNN's ``CNNDynamicsConfig``."""
 
     steps: int = 20_000
     batch: int = 32
@@ -79,6 +85,8 @@ class TrainConfig:
     seed: int = 0
     loss: str = "mse"
     held_out_kinds: tuple[str, ...] = ()
+    warmup: int = 0
+    noise: float = 0.0
     model: DynamicsConfig | CNNDynamicsConfig = field(default_factory=DynamicsConfig)
 
     def __post_init__(self):
@@ -93,6 +101,9 @@ class TrainConfig:
                                                            "val_batches", "n_max") if getattr(self, name) < 1}
         if small:
             raise ValueError(f"TrainConfig: {', '.join(f'{k} = {v}' for k, v in small.items())} must be at least 1")
+        if not 0 <= self.warmup < self.steps or not 0 <= self.noise < 0.05:
+            raise ValueError(f"TrainConfig: warmup must lie in [0, steps) and noise in [0, 0.05) m, got {self.warmup}, "
+                             f"{self.noise}")
         if not self.lr > 0 or not 0 <= self.lr_final <= 1:
             raise ValueError(f"TrainConfig: lr must be > 0 and lr_final in [0, 1], got {self.lr}, {self.lr_final}")
 
@@ -135,19 +146,47 @@ def make_sample(window: targets.Window, omega, key, camera, cfg: TrainConfig) ->
     return targets.make_sample(window, omega, key, camera, cfg.n_max, max_points=cfg.max_points)
 
 
+def resident(dataset: targets.Dataset, mesh: Mesh | None = None) -> targets.Frames:
+    """A Dataset's arrays on every device of the mesh (default ``distributed.batch_mesh()``), whole on each: what
+    ``draw`` takes its windows from."""
+    frames = targets.Frames(*(getattr(dataset, name) for name in targets.Frames._fields))
+    return distributed.replicated(frames, mesh or distributed.batch_mesh())
+
+
+def draw(frames: targets.Frames, key, cfg: TrainConfig):
+    """A batch from the step's key alone: (windows [batch], ω [batch] int32, keys [batch]); pure JAX."""
+    k_windows, k_omega, k_samples = jax.random.split(key, 3)
+    windows = targets.draw_windows(frames, k_windows, cfg.batch, cfg.horizon)
+    omegas = jax.random.randint(k_omega, (cfg.batch,), cfg.omega_min, cfg.n_max + 1, jnp.int32)
+    return windows, omegas, jax.random.split(k_samples, cfg.batch)
+
+
+def with_noise(samples: targets.Sample, key, sigma: float) -> targets.Sample:
+    """samples [B] with every valid particle moved by one N(0, σ²) offset in x and y, the same in all its frames."""
+    if sigma == 0:
+        return samples
+    offset = sigma * jax.random.normal(key, samples.mask.shape + (2,))
+    offset = jnp.concatenate([offset, jnp.zeros_like(offset[..., :1])], -1) * samples.mask[..., None]
+    return samples._replace(positions=samples.positions + offset[:, None])
+
+
 def make_step(graphdef, optimizer: optax.GradientTransformation, camera, cfg: TrainConfig,
               mesh: Mesh | None = None):
-    """The jitted training step (params, opt_state, windows, omegas, keys) -> (params, opt_state, errors) and
-    evaluation (params, windows, omegas, keys) -> errors; errors as ``rollout_errors``; the loss is
-    ``errors[cfg.loss]``. The batch comes split over ``mesh`` (``distributed.sharded``; default
+    """The jitted training step (params, opt_state, frames, key) -> (params, opt_state, errors) and evaluation
+    (params, frames, key) -> errors; errors as ``rollout_errors``; the loss is ``errors[cfg.loss]``. frames: the
+    ``resident`` data; key: the batch's (``draw``). The batch is split over ``mesh`` (default
     ``distributed.batch_mesh()``); what they return is replicated on it."""
     mesh = mesh or distributed.batch_mesh()
+    whole, split = distributed.whole(mesh), distributed.split(mesh)
     sample = jax.vmap(functools.partial(make_sample, camera=camera, cfg=cfg))
-    whole = distributed.whole(mesh)
 
-    @functools.partial(jax.jit, out_shardings=whole)
-    def step(params, opt_state, windows, omegas, keys):
-        samples = sample(windows, omegas, keys)
+    def samples_of(frames, key):
+        batch = jax.lax.with_sharding_constraint(draw(frames, key, cfg), split)
+        return sample(*batch)
+
+    @functools.partial(jax.jit, out_shardings=whole, donate_argnums=(0, 1))
+    def step(params, opt_state, frames, key):
+        samples = with_noise(samples_of(frames, key), jax.random.fold_in(key, 1), cfg.noise)
 
         def loss(p):
             errors = rollout_errors(graphdef, p, samples)
@@ -158,19 +197,17 @@ def make_step(graphdef, optimizer: optax.GradientTransformation, camera, cfg: Tr
         return optax.apply_updates(params, updates), opt_state, errors
 
     @functools.partial(jax.jit, out_shardings=whole)
-    def evaluate(params, windows, omegas, keys):
-        return rollout_errors(graphdef, params, sample(windows, omegas, keys))
+    def evaluate(params, frames, key):
+        return rollout_errors(graphdef, params, samples_of(frames, key))
 
     return step, evaluate
 
 
-def _batch(dataset: targets.Dataset, rng: np.random.Generator, cfg: TrainConfig, key, mesh: Mesh | None = None):
-    """A batch of windows, ω and keys, split over the mesh (default ``distributed.batch_mesh()``); the same for every
-    process and device count."""
-    mesh = mesh or distributed.batch_mesh()
-    windows = targets.random_windows(dataset, rng, cfg.batch, cfg.horizon)
-    omegas = rng.integers(cfg.omega_min, cfg.n_max + 1, cfg.batch).astype(np.int32)
-    return distributed.sharded((windows, omegas, jax.random.split(key, cfg.batch)), mesh)
+def schedule(cfg: TrainConfig):
+    """The learning rate against step: a linear warm-up over cfg.warmup steps, then cosine decay to lr * lr_final."""
+    if cfg.warmup == 0:
+        return optax.cosine_decay_schedule(cfg.lr, cfg.steps, alpha=cfg.lr_final)
+    return optax.warmup_cosine_decay_schedule(0.0, cfg.lr, cfg.warmup, cfg.steps, end_value=cfg.lr * cfg.lr_final)
 
 
 def plot_curves(metrics_path: str, out_png: str) -> None:
@@ -244,7 +281,7 @@ def train(cfg: TrainConfig, data_dir: str, out_dir: str, progress: bool = True,
     os.makedirs(out_dir, exist_ok=True)
     ckpt_dir, metrics_path = os.path.join(out_dir, "ckpt"), os.path.join(out_dir, "metrics.jsonl")
     graphdef, params = nnx.split(make_model(cfg.model, cfg.seed))
-    optimizer = optax.adam(optax.cosine_decay_schedule(cfg.lr, cfg.steps, alpha=cfg.lr_final))
+    optimizer = optax.adam(schedule(cfg))
     opt_state = optimizer.init(params)
     start = 0
     if ckpt.latest_step(ckpt_dir) is not None:
@@ -260,22 +297,21 @@ def train(cfg: TrainConfig, data_dir: str, out_dir: str, progress: bool = True,
             _trim_metrics(metrics_path, start)
     params, opt_state = distributed.replicated((params, opt_state), mesh)
     step_fn, eval_fn = make_step(graphdef, optimizer, train_set.camera, cfg, mesh)
+    train_frames, val_frames = resident(train_set, mesh), resident(val_set, mesh)
     key = jax.random.PRNGKey(cfg.seed)
     last = {}
     bar = tqdm(range(start, cfg.steps), initial=start, total=cfg.steps, desc="train", disable=not progress)
     t0 = time.perf_counter()
     speed = _Speed(cfg.batch)
     for i in bar:
-        rng = np.random.default_rng([cfg.seed, i])  # a step's batch depends on (seed, step) only: resumable
-        params, opt_state, errors = step_fn(params, opt_state,
-                                            *_batch(train_set, rng, cfg, jax.random.fold_in(key, i), mesh))
+        # a step's batch depends on (seed, step) only: resumable
+        params, opt_state, errors = step_fn(params, opt_state, train_frames, jax.random.fold_in(key, i))
         speed.stepped(params)
         done = i + 1
         out_of_time = max_minutes is not None and distributed.agree(time.perf_counter() - t0 > 60 * max_minutes)
         if done % cfg.eval_every == 0 or done == cfg.steps or out_of_time:
             speed.pause(params)
-            val = [distributed.host(eval_fn(params, *_batch(val_set, np.random.default_rng([cfg.seed, VAL_STREAM, b]),
-                                                            cfg, jax.random.fold_in(key, VAL_STREAM + b), mesh)))
+            val = [distributed.host(eval_fn(params, val_frames, jax.random.fold_in(key, VAL_STREAM + b)))
                    for b in range(cfg.val_batches)]
             val = {name: float(np.mean([v[name] for v in val])) for name in LOSSES}
             train_mse = float(distributed.host(errors)["mse"])

@@ -1,0 +1,216 @@
+"""The ranking benchmark of the dynamics f(z, u, ω): does a model order the planner's own candidate pushes as the
+simulator does?
+
+The closed loop fails where the model ranks the planner's refined plans wrongly (docs/ladder: the simulator choosing
+among the same plans succeeds far more often). A ranking set holds S planning states the closed loop visits (the
+particles the planner saw and its goal) and, for each, C candidate pushes (the planner's M plans after its Adam steps
+and its best), each pushed on a copy of the world in C MuJoCo (``studies.ranking`` builds it). The true outcome of a
+candidate is the task objective c of the same particles carried rigidly with their pieces to where the push left
+them (``targets.attach_particles``): what a perfect particle model would predict. A model's prediction is c of its
+predicted particles. Scores per state (``ranking_scores``): Spearman's and Kendall's rank correlations between
+predicted and true c, the top-1 regret (true c of the model's pick minus the best true c, pixels), whether the pick is
+among the true top 5, and the one-step error of the predicted particles (mm); ``summarise`` gives their means over
+states with bootstrap intervals.
+"""
+
+from __future__ import annotations
+
+import functools
+import json
+import os
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from dynres_jax.config import SimConfig
+from dynres_jax.control.decision import goal_cost
+from dynres_jax.control.goals import make_goal, stack
+from dynres_jax.errors import InputError
+from dynres_jax.io.shards import save_npz
+from dynres_jax.sim.camera import Camera
+
+TOP = 5  # a pick counts as good when it is among the true TOP best candidates
+BOOTSTRAP = 2000  # resamplings of the states for the intervals
+SET_FILE = "ranking_set.npz"
+
+
+class RankingSet(NamedTuple):
+    """S planning states with C candidate pushes each (N particle slots, H x W images). group [S] str: what the
+    state comes from (e.g. "gather mnm"); positions [S, N, 3] m, mask [S, N], radius [S] m: the particles the planner
+    saw; goal_mask [S, H, W] bool; candidates [S, C, 4] m: first pushes; true_positions [S, C, N, 3] m: the particles
+    carried with their pieces by each push in the simulator; true_c [S, C]: c of those (pixels); true_d [S, C]: the
+    distance d of the simulated frame after each push (pixels); sim: the scenes' SimConfig (its camera)."""
+
+    group: np.ndarray
+    positions: np.ndarray
+    mask: np.ndarray
+    radius: np.ndarray
+    goal_mask: np.ndarray
+    candidates: np.ndarray
+    true_positions: np.ndarray
+    true_c: np.ndarray
+    true_d: np.ndarray
+    sim: SimConfig
+
+    @property
+    def camera(self) -> Camera:
+        return Camera.top_down(self.sim.camera)
+
+
+def save(path: str, ranking: RankingSet) -> None:
+    """Write a set as one .npz (atomically), its SimConfig as JSON inside."""
+    arrays = {k: np.asarray(v) for k, v in ranking._asdict().items() if k != "sim"}
+    save_npz(path, {**arrays, "sim_config": np.array(ranking.sim.to_json())})
+
+
+def load(path: str) -> RankingSet:
+    """Read a set written by ``save`` (a file, or a folder holding SET_FILE); InputError naming what is missing."""
+    if os.path.isdir(path):
+        path = os.path.join(path, SET_FILE)
+    if not os.path.exists(path):
+        raise InputError(f"ranking set {path!r} does not exist (python -m studies.ranking build makes one)")
+    with np.load(path) as f:
+        missing = [k for k in (*RankingSet._fields[:-1], "sim_config") if k not in f]
+        if missing:
+            raise InputError(f"{path}: not a ranking set (no {', '.join(missing)})")
+        fields = {k: f[k] for k in RankingSet._fields[:-1]}
+        sim = SimConfig.from_json(str(f["sim_config"]))
+    return RankingSet(**fields, sim=sim)
+
+
+def concatenate(sets: list[RankingSet]) -> RankingSet:
+    """Several sets of one camera as one (states appended; particle slots padded to the widest)."""
+    if any(s.sim.camera != sets[0].sim.camera for s in sets):
+        raise ValueError("ranking sets of different cameras cannot be joined")
+    n = max(s.mask.shape[1] for s in sets)
+
+    def pad(x, axis):
+        widths = [(0, 0)] * x.ndim
+        widths[axis] = (0, n - x.shape[axis])
+        return np.pad(x, widths)
+
+    slots = {"positions": 1, "mask": 1, "true_positions": 2}
+    fields = {k: np.concatenate([pad(getattr(s, k), slots[k]) if k in slots else getattr(s, k) for s in sets])
+              for k in RankingSet._fields[:-1]}
+    return RankingSet(**fields, sim=sets[0].sim)
+
+
+@functools.partial(jax.jit, static_argnames=("dynamics", "camera"))
+def _predict(positions, mask, radius, goals, candidates, *, dynamics, camera):
+    """Per state and candidate: (c of the predicted particles [S, C], the predicted particles [S, C, N, 3])."""
+
+    def state(pos, m, r, goal, pushes):
+        f, cost = dynamics(r), goal_cost(goal, camera)
+
+        def one(push):
+            final = f(pos, m, push[None])[-1]
+            return cost(final, m), final
+
+        return jax.vmap(one)(pushes)
+
+    return jax.lax.map(lambda x: state(*x), (positions, mask, radius, goals, candidates))
+
+
+def predict(ranking: RankingSet, dynamics) -> tuple[np.ndarray, np.ndarray]:
+    """A planner dynamics (``registry``: radius -> (positions, mask, actions) -> [T, N, 3]) on every candidate of a
+    set: (predicted c [S, C] pixels, predicted particles [S, C, N, 3] m)."""
+    camera = ranking.camera
+    goals = stack([make_goal(m, camera) for m in ranking.goal_mask])
+    c, final = _predict(jnp.asarray(ranking.positions), jnp.asarray(ranking.mask), jnp.asarray(ranking.radius), goals,
+                        jnp.asarray(ranking.candidates), dynamics=dynamics, camera=camera)
+    return np.asarray(c), np.asarray(final)
+
+
+def _ranks(x):
+    """Ranks 0..C-1 of each row of x [S, C] (average ranks on ties)."""
+    order = np.argsort(x, axis=1, kind="stable")
+    ranks = np.empty_like(x, dtype=np.float64)
+    np.put_along_axis(ranks, order, np.arange(x.shape[1], dtype=np.float64)[None].repeat(len(x), 0), axis=1)
+    for s in range(len(x)):  # ties (rare for floats): the mean rank of the tied values
+        values, inverse, counts = np.unique(x[s], return_inverse=True, return_counts=True)
+        if len(values) < x.shape[1]:
+            sums = np.bincount(inverse, ranks[s])
+            ranks[s] = (sums / counts)[inverse]
+    return ranks
+
+
+def spearman(predicted, true) -> np.ndarray:
+    """Spearman's rank correlation of each row of predicted and true [S, C] -> [S] (0 for a constant row)."""
+    a, b = _ranks(np.asarray(predicted, np.float64)), _ranks(np.asarray(true, np.float64))
+    a, b = a - a.mean(1, keepdims=True), b - b.mean(1, keepdims=True)
+    den = np.sqrt(np.sum(a * a, 1) * np.sum(b * b, 1))
+    return np.where(den > 0, np.sum(a * b, 1) / np.where(den > 0, den, 1.0), 0.0)
+
+
+def kendall(predicted, true) -> np.ndarray:
+    """Kendall's tau-b of each row of predicted and true [S, C] -> [S] (0 for a constant row)."""
+    p, t = np.asarray(predicted, np.float64), np.asarray(true, np.float64)
+    dp = np.sign(p[:, :, None] - p[:, None, :])
+    dt = np.sign(t[:, :, None] - t[:, None, :])
+    upper = np.triu(np.ones((p.shape[1], p.shape[1]), bool), 1)[None]
+    concord = np.sum(dp * dt * upper, axis=(1, 2))
+    n_p, n_t = np.sum((dp != 0) * upper, axis=(1, 2)), np.sum((dt != 0) * upper, axis=(1, 2))
+    den = np.sqrt(n_p * n_t)
+    return np.where(den > 0, concord / np.where(den > 0, den, 1.0), 0.0)
+
+
+def ranking_scores(predicted_c, true_c, predicted_positions=None, true_positions=None, mask=None) -> dict:
+    """Per-state scores [S] of a model's predicted c [S, C] against the true c [S, C]: spearman, kendall, regret (true
+    c of the model's pick minus the lowest true c, pixels), top5 (1.0 when the pick is among the true TOP lowest) and,
+    given the predicted and true particles [S, C, N, 3] with mask [S, N], error_mm: the mean distance between them
+    over the valid particles and candidates (mm)."""
+    predicted_c, true_c = np.asarray(predicted_c, np.float64), np.asarray(true_c, np.float64)
+    pick = np.argmin(predicted_c, axis=1)
+    rows = np.arange(len(pick))
+    true_rank = _ranks(true_c)[rows, pick]
+    scores = dict(spearman=spearman(predicted_c, true_c), kendall=kendall(predicted_c, true_c),
+                  regret=true_c[rows, pick] - true_c.min(1), top5=(true_rank < TOP).astype(np.float64))
+    if predicted_positions is not None:
+        err = np.linalg.norm(np.asarray(predicted_positions) - np.asarray(true_positions), axis=-1)  # [S, C, N]
+        w = np.asarray(mask, np.float64)[:, None, :]
+        scores["error_mm"] = 1000 * np.sum(err * w, axis=(1, 2)) / np.maximum(np.sum(w, axis=2).sum(1), 1)
+    return scores
+
+
+def summarise(scores: dict, seed: int = 0) -> dict:
+    """Per score: the mean over states and its 95 % percentile-bootstrap interval (states resampled)."""
+    rng = np.random.default_rng(seed)
+    out = {}
+    for name, values in scores.items():
+        values = np.asarray(values, np.float64)
+        idx = rng.integers(0, len(values), (BOOTSTRAP, len(values)))
+        means = values[idx].mean(1)
+        out[name] = dict(mean=float(values.mean()), ci95=[float(np.percentile(means, 2.5)),
+                                                          float(np.percentile(means, 97.5))])
+    return out
+
+
+def score_model(ranking: RankingSet, dynamics) -> dict:
+    """A model on a set: {"all": summary, group: summary, ...} (``summarise`` of ``ranking_scores``), with the states
+    each summary covers."""
+    c, final = predict(ranking, dynamics)
+    per_state = ranking_scores(c, ranking.true_c, final, ranking.true_positions, ranking.mask)
+    out = {"all": dict(states=len(c), **summarise(per_state))}
+    for group in sorted(set(ranking.group.tolist())):
+        rows = ranking.group == group
+        out[str(group)] = dict(states=int(rows.sum()), **summarise({k: v[rows] for k, v in per_state.items()}))
+    return out
+
+
+def write_table(results: dict, path: str) -> None:
+    """results {model name: ``score_model``} -> a Markdown table (one row per model and group) and the JSON beside
+    it."""
+    with open(os.path.splitext(path)[0] + ".json", "w") as f:
+        json.dump(results, f, indent=1)
+    lines = ["| model | states | Spearman | Kendall | top-1 regret (px) | pick in true top 5 | one-step error (mm) |",
+             "|---|---|---|---|---|---|---|"]
+    for name, groups in results.items():
+        for group, s in groups.items():
+            cell = lambda k, fmt="{:.3f}": (f"{fmt.format(s[k]['mean'])} [{fmt.format(s[k]['ci95'][0])}, "  # noqa: E731
+                                            f"{fmt.format(s[k]['ci95'][1])}]") if k in s else ""
+            lines.append(f"| {name} ({group}) | {s['states']} | {cell('spearman')} | {cell('kendall')} | "
+                         f"{cell('regret')} | {cell('top5', '{:.2f}')} | {cell('error_mm', '{:.2f}')} |")
+    with open(path, "w") as f:
+        f.write("\n".join(lines) + "\n")

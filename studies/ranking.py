@@ -1,0 +1,173 @@
+"""The ranking benchmark (``dynres_jax.learn.ranking``): build a set of planning states and candidate pushes once,
+then score every model on the same candidates.
+
+    python -m studies.ranking build --out runs/ranking --task gather --kind mnm --episodes 16
+    python -m studies.ranking build --out runs/ranking_letters --task redistribute --letters ZRKW --episodes 16
+    python -m studies.ranking score --set runs/ranking runs/ranking_letters --ckpt shipped sweep runs/new/ckpt \\
+        --out runs/ranking/scores.md
+
+build: ``--episodes`` closed-loop episodes of the task (the shipped model, ω = ``--omega``, the planner's M x N)
+run ``--mpc-steps`` steps; at each step of ``--capture`` the world is kept. Each kept state is planned again with
+fresh keys and no warm start (the planner's M plans after its Adam steps, and its best: C = M + 1 candidates), and
+every candidate's first push is pushed on a copy of the world in C MuJoCo; the particles the planner saw are carried
+with their pieces to where the push left them (the true outcome). Written atomically to ``OUT/ranking_set.npz``.
+
+score: each model (a checkpoint folder, ``shipped``, or ``sweep`` for the sweep heuristic) on every set; a
+Markdown table and its JSON.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from dynres_jax.config import DEFAULT_PIECES, PileConfig, SceneConfig, SimConfig
+from dynres_jax.control import tasks
+from dynres_jax.control.choosers import FixedOmega
+from dynres_jax.control.decision import decide_batch
+from dynres_jax.control.goals import make_goal, stack
+from dynres_jax.control.mpc import MPCConfig, _scorer, fold, run
+from dynres_jax.control.objective import objective
+from dynres_jax.control.planner import planner_config
+from dynres_jax.learn import ranking
+from dynres_jax.learn.targets import attach_particles
+from dynres_jax.models.registry import SHIPPED_DYNAMICS, load_dynamics
+from dynres_jax.sim.pool import WorldPool, process_pool
+
+CAPTURE_FOLD = 1 << 21  # a kept state's re-planning keys fold this + its step into the episode's keys
+
+
+def episode_goal(task: str, i: int, seed: int, env, letters: str) -> np.ndarray:
+    """Episode i's goal mask from rng (seed, i): a Gather disc, or the letter letters[i % len(letters)]."""
+    rng = np.random.default_rng((seed, i))
+    if task == "gather":
+        return tasks.gather_goal(rng, env)[0]
+    return tasks.redistribute_goal(rng, env, letters[i % len(letters)])[0]
+
+
+def carried(states, particles, camera, after):
+    """The particles [B, N] of each world carried rigidly with their pieces from states [B] to after [B]: [B, N, 3]."""
+
+    def one(obs_piece, pos, mat, p, m, pos_after, mat_after):
+        index, local = attach_particles(p, m, pos, mat, obs_piece, camera)
+        moved = pos_after[jnp.maximum(index, 0)] + jnp.einsum("nij,nj->ni", mat_after[jnp.maximum(index, 0)], local)
+        return jnp.where(m[:, None], moved, 0.0)
+
+    return jax.vmap(one)(states.obs.piece, states.pos, states.mat, particles.positions, particles.mask, after.pos,
+                         after.mat)
+
+
+def build(args) -> ranking.RankingSet:
+    pieces = args.pieces or DEFAULT_PIECES[args.kind]
+    sim = SimConfig(scene=SceneConfig(kinds=(args.kind,), pieces=(pieces,)),
+                    pile=PileConfig(layout="spread" if args.task == "gather" else "blob"))
+    model = load_dynamics("learned", SHIPPED_DYNAMICS if args.policy == "shipped" else args.policy,
+                          sim.scene.plate_half_width)
+    with process_pool(args.workers) as processes:
+        pool = WorldPool(sim, processes)
+        camera = pool.camera
+        masks = [episode_goal(args.task, i, args.seed, pool.env, args.letters) for i in range(args.episodes)]
+        goals = stack([make_goal(m, camera) for m in masks])
+        piles = jax.vmap(lambda i: jax.random.fold_in(jax.random.PRNGKey(args.seed), i))(jnp.arange(args.episodes))
+        keys = fold(piles, 1)
+        cfg = MPCConfig(mpc_steps=max(args.capture) + 1,
+                        planner=planner_config(pool.env, samples=args.samples, adam_steps=args.adam_steps))
+        kept = {}
+
+        def keep(t, states, particles, record):
+            if t in args.capture:
+                kept[t] = states
+
+        print(f"closed loop: {args.episodes} episodes of {args.task} ({args.kind}), {cfg.mpc_steps} steps")
+        run(pool, pool.reset(piles), FixedOmega(goals, args.omega), model.dynamics, cfg, keys, on_step=[keep])
+        score = _scorer(camera, tuple(np.asarray(pool.scene.kind).tolist()))
+        parts = []
+        for t in args.capture:
+            t0 = time.perf_counter()
+            states, b = kept[t], args.episodes
+            omega = np.full(b, args.omega, np.int32)
+            particles, _, result = decide_batch(
+                states.obs, goals, fold(keys, CAPTURE_FOLD + t), jnp.zeros((b, 1, 4)), False, omega,
+                np.full(b, args.adam_steps, np.int32), spec=cfg.spec(64), dynamics=model.dynamics, camera=camera)
+            candidates = np.concatenate([np.asarray(result.actions[:, :, 0]), np.asarray(result.best[:, None, 0])], 1)
+            c = candidates.shape[1]
+            tile = lambda x: jnp.concatenate([jnp.asarray(x)] * c)  # noqa: E731  (candidate-major [C * B, ...])
+            after = pool.push(jax.tree.map(tile, states), candidates.transpose(1, 0, 2).reshape(c * b, 4))
+            d = np.asarray(score(after, jax.tree.map(tile, goals))["distance"]).reshape(c, b).T
+            moved = np.asarray(carried(jax.tree.map(tile, states), jax.tree.map(tile, particles), camera, after))
+            moved = moved.reshape(c, b, *moved.shape[1:]).transpose(1, 0, 2, 3)
+            true_c = np.asarray(jax.vmap(jax.vmap(lambda p, m, g: objective(p, m, g, camera), (0, None, None)))(
+                jnp.asarray(moved), particles.mask, goals))
+            broken = np.asarray(after.broken).reshape(c, b).T.any(1)
+            ok = ~broken & (np.asarray(particles.error) == 0)
+            parts.append(ranking.RankingSet(
+                group=np.array([f"{args.task} {args.kind}"] * int(ok.sum())),
+                positions=np.asarray(particles.positions)[ok], mask=np.asarray(particles.mask)[ok],
+                radius=np.asarray(particles.radius)[ok], goal_mask=np.asarray(masks)[ok],
+                candidates=candidates[ok], true_positions=moved[ok], true_c=true_c[ok], true_d=d[ok], sim=sim))
+            print(f"step {t}: {int(ok.sum())} of {b} states, {c} candidates each ({time.perf_counter() - t0:.0f} s)")
+    return ranking.concatenate(parts)
+
+
+def score(args) -> dict:
+    sets = ranking.concatenate([ranking.load(path) for path in args.set])
+    results = {}
+    for name in args.ckpt:
+        if name == "sweep":
+            model = load_dynamics("sweep", None, sets.sim.scene.plate_half_width)
+        else:
+            model = load_dynamics("learned", SHIPPED_DYNAMICS if name == "shipped" else name,
+                                  sets.sim.scene.plate_half_width)
+        t0 = time.perf_counter()
+        results[name] = ranking.score_model(sets, model.dynamics)
+        a = results[name]["all"]
+        print(f"{name}: Spearman {a['spearman']['mean']:.3f}, regret {a['regret']['mean']:.3f} px, top-5 "
+              f"{a['top5']['mean']:.2f}, one-step {a['error_mm']['mean']:.2f} mm ({time.perf_counter() - t0:.0f} s)")
+    os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
+    ranking.write_table(results, args.out)
+    return results
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    sub = parser.add_subparsers(dest="command", required=True)
+    b = sub.add_parser("build", help="closed-loop states, the planner's candidates, each pushed in C MuJoCo")
+    b.add_argument("--out", required=True)
+    b.add_argument("--task", choices=tasks.TASKS, default="gather")
+    b.add_argument("--kind", default="mnm", choices=sorted(DEFAULT_PIECES))
+    b.add_argument("--pieces", type=int, default=None)
+    b.add_argument("--letters", default="ZRKW")
+    b.add_argument("--episodes", type=int, default=16)
+    b.add_argument("--capture", type=int, nargs="+", default=[0, 3, 6, 10, 14])
+    b.add_argument("--omega", type=int, default=50)
+    b.add_argument("--samples", type=int, default=50)
+    b.add_argument("--adam-steps", type=int, default=100)
+    b.add_argument("--policy", default="shipped", help="the checkpoint the closed loop and the candidates plan with")
+    b.add_argument("--seed", type=int, default=7700)
+    b.add_argument("--workers", type=int, default=None)
+    s = sub.add_parser("score", help="models on sets")
+    s.add_argument("--set", nargs="+", required=True)
+    s.add_argument("--ckpt", nargs="+", default=["shipped", "sweep"])
+    s.add_argument("--out", required=True, help="the table (.md; its JSON beside it)")
+    args = parser.parse_args(argv)
+    if args.command == "build":
+        if min(args.capture) < 0 or args.episodes < 1 or not 1 <= args.omega <= 64:
+            parser.error("--capture steps must be >= 0, --episodes >= 1 and --omega in [1, 64]")
+        path = os.path.join(args.out, ranking.SET_FILE)
+        if os.path.exists(path):
+            parser.error(f"{path} exists: a set is built once (another --out for another)")
+        os.makedirs(args.out, exist_ok=True)
+        result = build(args)
+        ranking.save(path, result)
+        print(f"wrote {path}: {len(result.group)} states")
+    else:
+        score(args)
+
+
+if __name__ == "__main__":
+    main()
