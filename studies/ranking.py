@@ -96,7 +96,7 @@ def build(args) -> ranking.RankingSet:
                 np.full(b, args.adam_steps, np.int32), spec=cfg.spec(64), dynamics=model.dynamics, camera=camera)
             candidates = np.concatenate([np.asarray(result.actions[:, :, 0]), np.asarray(result.best[:, None, 0])], 1)
             c = candidates.shape[1]
-            tile = lambda x: jnp.concatenate([jnp.asarray(x)] * c)  # noqa: E731  (candidate-major [C * B, ...])
+            tile = lambda x, c=c: jnp.concatenate([jnp.asarray(x)] * c)  # noqa: E731  (candidate-major [C * B, ...])
             after = pool.push(jax.tree.map(tile, states), candidates.transpose(1, 0, 2).reshape(c * b, 4))
             d = np.asarray(score(after, jax.tree.map(tile, goals))["distance"]).reshape(c, b).T
             moved = np.asarray(carried(jax.tree.map(tile, states), jax.tree.map(tile, particles), camera, after))

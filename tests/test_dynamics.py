@@ -169,10 +169,10 @@ def test_pair_table_equals_per_edge_codes(config, edge_dtype):
         assert np.all(np.isnan(np.asarray(b)[:, ~mask])) and np.all(np.isfinite(np.asarray(b)[:, mask]))
     grads = [jax.jit(jax.grad(lambda x, t=t: run(x, t)[1].sum()))(pushes[:, None]) for t in (False, True)]
     np.testing.assert_allclose(grads[1], grads[0], rtol=1e-3, atol=1e-5)
-    with pytest.raises(ValueError, match="pair_table needs edge codes that do not depend on the push"):
+    with pytest.raises(ValueError, match="pair_table needs PropNet edge codes that do not depend on the push"):
         Dynamics(reference(hidden=H, push_frame=True), rngs=nnx.Rngs(0))(positions, mask, PUSH, code,
                                                                               pair_table=True)
-    with pytest.raises(ValueError, match="pair_table needs edge codes that do not depend on the push"):
+    with pytest.raises(ValueError, match="pair_table needs PropNet edge codes that do not depend on the push"):
         Dynamics(reference(hidden=H, push_frame=True), rngs=nnx.Rngs(0)).edge_table(positions, mask, code)
 
 
@@ -433,3 +433,87 @@ def test_context_options_keep_padding_inert_equivariance_and_vmap(context_split)
     perm = np.random.default_rng(5).permutation(N)
     np.testing.assert_allclose(np.asarray(f(positions[perm], mask[perm], PUSH, 0.4)), reference[perm], atol=1e-6)
     check_vmap_over_scenes(context_split, f, scene, PUSH, 10)
+
+
+GNS = reference(hidden=H, processor="gns", propagation_steps=2, residual=True)
+
+
+def _np_mlp(layers, x):
+    """A Sequential of Linear / relu / LayerNorm layers in NumPy (float64)."""
+    for layer in layers:
+        if isinstance(layer, nnx.Linear):
+            x = x @ np.asarray(layer.kernel[...], np.float64) + np.asarray(layer.bias[...], np.float64)
+        elif isinstance(layer, nnx.LayerNorm):
+            mean, var = x.mean(-1, keepdims=True), x.var(-1, keepdims=True)
+            x = (x - mean) / np.sqrt(var + layer.epsilon) * np.asarray(layer.scale[...]) + np.asarray(layer.bias[...])
+        elif isinstance(layer, nnx.Sequential):
+            x = _np_mlp(layer.layers, x)
+        else:
+            x = np.maximum(x, 0.0)
+    return x
+
+
+def numpy_gns(model, positions, mask, action, code):
+    """GNS written out with NumPy loops over nodes and their edges: concatenated [edge, receiver, sender] inputs to
+    each step's edge MLP, messages summed per receiver, residuals on nodes and edges."""
+    cfg = model.config
+    clean = np.where(mask[:, None], positions, 0.0)
+    guess = np.asarray(sweep_displacement(clean, mask, action, cfg.plate_half_width), np.float64)
+    neighbours, edge_mask = (np.asarray(x) for x in build_edges(clean + guess, mask, cfg.edge_radius, cfg.k))
+    n, k = neighbours.shape
+    nodes = _np_mlp(model.node_encoder.layers, np.concatenate([guess / cfg.length_scale, np.ones((n, 1)),
+                                                               code * np.ones((n, 1))], -1))
+    edges = np.zeros((n, k, cfg.hidden))
+    for i in range(n):
+        for e in range(k):
+            rel = (clean[i] - clean[neighbours[i, e]]) / cfg.length_scale
+            edges[i, e] = _np_mlp(model.edge_encoder.layers, np.concatenate([rel, [np.linalg.norm(rel), code]]))
+    for step in model.steps.layers:
+        new_edges, summed = edges.copy(), np.zeros((n, cfg.hidden))
+        for i in range(n):
+            for e in range(k):
+                if edge_mask[i, e]:
+                    x = np.concatenate([edges[i, e], nodes[i], nodes[neighbours[i, e]]])
+                    m = _np_mlp([step.edge_in, "relu", step.edge_out, step.edge_norm], x)
+                    new_edges[i, e] += m
+                    summed[i] += m
+        nodes = nodes + _np_mlp([step.node_mlp, step.node_norm], np.concatenate([nodes, summed], -1))
+        edges = new_edges
+    out = positions + _np_mlp(model.predictor.layers, nodes) * cfg.length_scale + guess
+    return np.where(mask[:, None], out, positions)
+
+
+def test_gns_matches_a_numpy_loop():
+    """The GNS processor (split first layer, gathered sender terms, masked messages) equals a plain loop over every
+    node and edge; perturbed parameters, so every layer matters."""
+    graphdef, state = perturbed(GNS, scale=0.1)
+    positions, mask = scene(8)
+    got = jax.jit(predict)(graphdef, state, positions, mask, PUSH, 0.3)
+    expected = numpy_gns(nnx.merge(graphdef, state), positions, mask, PUSH, 0.3)
+    np.testing.assert_allclose(np.asarray(got), expected, atol=2e-5)
+    assert np.abs(expected - positions)[mask].max() > 1e-3  # the push moves particles
+
+
+def test_gns_padding_is_inert_and_the_planner_runs_it():
+    """Padding slots (holding garbage) change no valid particle's prediction; the planner's dynamics (no pair table
+    for gns) rolls the model out as predict does; bfloat16 edges and pair tables are refused."""
+    from dynres_jax.models.registry import learned_dynamics
+
+    graphdef, state = perturbed(GNS, scale=0.1)
+    positions, mask = scene(9, n=N, n_valid=N_VALID)
+    small = jax.jit(predict)(graphdef, state, positions[:N_VALID], mask[:N_VALID], PUSH, 0.3)
+    garbage = positions.copy()
+    garbage[N_VALID:] = 7.0
+    large = jax.jit(predict)(graphdef, state, garbage, mask, PUSH, 0.3)
+    np.testing.assert_allclose(np.asarray(large[:N_VALID]), np.asarray(small), atol=1e-5)
+    model = nnx.merge(graphdef, state)
+    radius = R_REF * np.exp(-0.3)
+    planned = learned_dynamics(model)(radius)(positions, mask, PUSH[None])
+    np.testing.assert_allclose(np.asarray(planned[0]), np.asarray(predict(graphdef, state, positions, mask, PUSH,
+                                                                          resolution_code(radius))), atol=1e-6)
+    with pytest.raises(ValueError, match="float32 only"):
+        predict(graphdef, state, positions, mask, PUSH, 0.3, edge_dtype=jnp.bfloat16)
+    with pytest.raises(ValueError, match="gns processor has none"):
+        predict(graphdef, state, positions, mask, PUSH, 0.3, pair_table=True)
+    with pytest.raises(ValueError, match="processor must be one of"):
+        DynamicsConfig(processor="mlp")

@@ -11,8 +11,8 @@ more is needed; by hand --coordinator, --num-processes, --process-id); --batch m
 --recipe NAME starts from a named config (``train.RECIPES``: "shipped", the shipped model's; "cnn", the CNN
 baseline's; "quick", seconds on a CPU for ``generate_data --quick``'s data); flags given beside it override its values.
 
---model gnn (default): the PropNet GNN (``dynres_jax.models.dynamics``; --hidden, --propagation-steps, --push-frame,
---world-edges, --bin-position, --residual). --model cnn: the
+--model gnn (default): the graph network (``dynres_jax.models.dynamics``; --processor propnet or gns, --hidden,
+--propagation-steps, --push-frame, --world-edges, --bin-position, --residual). --model cnn: the
 CNN baseline (``dynres_jax.models.cnn_dynamics``; --grid, --channels, and --no-residual to predict whole displacements
 instead of correcting the sweep heuristic). --loss mse (default) or distance: the training loss
 (``TrainConfig.loss``).
@@ -34,10 +34,10 @@ from dynres_jax.io.shards import iter_shards
 from dynres_jax.learn.targets import is_validation
 from dynres_jax.learn.train import RECIPES, SCHEDULE, TrainConfig, train
 from dynres_jax.models.cnn_dynamics import CNNDynamicsConfig
-from dynres_jax.models.dynamics import DynamicsConfig
+from dynres_jax.models.dynamics import PROCESSORS, DynamicsConfig
 from dynres_jax.models.registry import MODEL_CLASSES, model_class
 
-GNN_ONLY = ("hidden", "propagation_steps", "push_frame", "world_edges", "bin_position")
+GNN_ONLY = ("hidden", "propagation_steps", "push_frame", "world_edges", "bin_position", "processor")
 CNN_ONLY = ("grid", "channels")
 
 
@@ -82,6 +82,9 @@ def main(argv=None):
     parser.add_argument("--bin-position", action=argparse.BooleanOptionalAction, default=None,
                         help="gnn: DynamicsConfig.bin_position (node inputs say where in the bin a particle is; "
                              "default on)")
+    parser.add_argument("--processor", choices=PROCESSORS, default=None,
+                        help="gnn: propnet (the reference's propagation; default) or gns (encode-process-decode "
+                             "with unshared 2-layer MLPs, LayerNorm and residuals: models/dynamics.py)")
     parser.add_argument("--residual", action=argparse.BooleanOptionalAction, default=None,
                         help="correct the sweep heuristic (default on; all four off: the paper's architecture)")
     parser.add_argument("--grid", type=checks.count(2), default=None,

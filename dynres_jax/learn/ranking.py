@@ -208,8 +208,9 @@ def write_table(results: dict, path: str) -> None:
              "|---|---|---|---|---|---|---|"]
     for name, groups in results.items():
         for group, s in groups.items():
-            cell = lambda k, fmt="{:.3f}": (f"{fmt.format(s[k]['mean'])} [{fmt.format(s[k]['ci95'][0])}, "  # noqa: E731
-                                            f"{fmt.format(s[k]['ci95'][1])}]") if k in s else ""
+            def cell(k, fmt="{:.3f}", s=s):
+                return f"{fmt.format(s[k]['mean'])} [{fmt.format(s[k]['ci95'][0])}, {fmt.format(s[k]['ci95'][1])}]"
+
             lines.append(f"| {name} ({group}) | {s['states']} | {cell('spearman')} | {cell('kendall')} | "
                          f"{cell('regret')} | {cell('top5', '{:.2f}')} | {cell('error_mm', '{:.2f}')} |")
     with open(path, "w") as f:

@@ -30,6 +30,15 @@ dropped (the particle's height, a pooled global context, edges reaching with the
 sub-pushes: none moved the error by more than a few per cent, ``docs/results.md``) are in the history before
 2026-11-24.
 
+Processor ``"gns"`` (``DynamicsConfig.processor``; default ``"propnet"``, steps 3-4 above): the encode-process-decode
+network of GNS (Sanchez-Gonzalez et al. 2020) on the same graph and inputs. Encoders: node input -> MLP -> LayerNorm;
+edge input [p_r - p_s (3), |p_r - p_s| (1), resolution code (1)] -> MLP -> LayerNorm (the constant attribute is
+dropped). Then ``propagation_steps`` message-passing steps, each with weights of its own: an edge's message
+m_ij = LN(MLP([e_ij, v_i, v_j])), e_ij <- e_ij + m_ij; a node's update v_i <- v_i + LN(MLP([v_i, Σ_j m_ij])). Every
+MLP has two layers (H -> H, ReLU between). The decoder is the predictor above. The first layer of the edge MLP is
+split as PropNet's propagator is (receiver and sender terms per node, gathered), so the per-edge work of a step is two
+H x H products. It has no pair table and computes in float32 only.
+
 The reference's architecture (``REFERENCE``: H = 64, 3 propagation steps, the four options off) has 38,403
 parameters, the reference's "about 38k"; the defaults are the shipped model's (the four options on).
 
@@ -92,6 +101,8 @@ R_MIN = 1e-3  # m: radii below this (including the 0 of bad perception input) ar
 NODE_IN = 5  # guessed displacement (3), attribute (1), resolution code (1)
 NODE_IN_PUSH_FRAME = 7  # push_frame: guess along the push, s, t, s - L, L (1 each), attribute (1), code (1)
 EDGE_IN = 6  # receiver attribute (1), sender attribute (1), p_r - p_s (3), resolution code (1)
+GNS_EDGE_IN = 5  # processor "gns": p_r - p_s (3), |p_r - p_s| (1), resolution code (1)
+PROCESSORS = ("propnet", "gns")  # DynamicsConfig.processor
 
 
 @dataclass(frozen=True)
@@ -100,7 +111,8 @@ class DynamicsConfig:
     H of every layer; propagation_steps: message-passing rounds; plate_half_width (m): the sweep heuristic's plate;
     edge_radius (m) and k: the graph; length_scale (m): the model's unit of length; bin_half_width (m): the unit of
     the ``bin_position`` inputs. The flags: module docstring, "Options"; all four off is the reference's
-    architecture (``REFERENCE``)."""
+    architecture (``REFERENCE``). processor: "propnet" (the reference's propagation) or "gns" (module docstring,
+    "Processor")."""
 
     hidden: int = 64
     propagation_steps: int = 3
@@ -113,9 +125,12 @@ class DynamicsConfig:
     world_edges: bool = True
     bin_position: bool = True
     bin_half_width: float = SceneConfig.bin_half_width
+    processor: str = "propnet"
 
     def __post_init__(self):
         check_fields(self)
+        if self.processor not in PROCESSORS:
+            raise ValueError(f"DynamicsConfig.processor must be one of {', '.join(PROCESSORS)}, got {self.processor!r}")
 
     @property
     def node_inputs(self) -> int:
@@ -127,6 +142,12 @@ class DynamicsConfig:
         """Whether the edge encoder sees p_r - p_s rotated into the push frame (push_frame without world_edges), so
         its codes depend on the push and cannot come from a ``pair_table``."""
         return self.push_frame and not self.world_edges
+
+    @property
+    def pair_table(self) -> bool:
+        """Whether the planner may take the first push's edge codes from a pair table (PropNet with edges that do not
+        depend on the push)."""
+        return self.processor == "propnet" and not self.edges_in_push_frame
 
 
 REFERENCE = DynamicsConfig(push_frame=False, residual=False, world_edges=False, bin_position=False)  # the paper's f
@@ -220,16 +241,46 @@ def _incoming_bwd(pair, residuals, grad):
 _incoming.defvjp(_incoming_fwd, _incoming_bwd)
 
 
+class _GNSStep(nnx.Module):
+    """One GNS message-passing step with weights of its own (module docstring, "Processor")."""
+
+    def __init__(self, h: int, rngs: nnx.Rngs):
+        self.edge_in = nnx.Linear(3 * h, h, rngs=rngs)  # [edge, receiver, sender]: split when applied
+        self.edge_out = nnx.Linear(h, h, rngs=rngs)
+        self.edge_norm = nnx.LayerNorm(h, rngs=rngs)
+        self.node_mlp = _mlp((2 * h, h, h), rngs, final_relu=False)  # [node, summed messages]
+        self.node_norm = nnx.LayerNorm(h, rngs=rngs)
+
+    def __call__(self, nodes, edges, neighbours, valid):
+        """nodes [N, H], edges [N, k, H], neighbours [N, k], valid [N, k, 1] -> (nodes, edges) after the step."""
+        h = nodes.shape[-1]
+        w = self.edge_in.kernel[...]
+        terms = nodes @ jnp.concatenate([w[h:2 * h], w[2 * h:]], axis=1)  # [N, 2H]: receiver | sender
+        hidden = edges @ w[:h] + terms[:, None, :h] + terms[neighbours, h:] + self.edge_in.bias[...]
+        message = jnp.where(valid, self.edge_norm(self.edge_out(nnx.relu(hidden))), 0.0)
+        summed = jnp.sum(message, axis=1)
+        nodes = nodes + self.node_norm(self.node_mlp(jnp.concatenate([nodes, summed], -1)))
+        return nodes, edges + message
+
+
 class Dynamics(nnx.Module):
     """f(z, u, ω) as a flax NNX module; see the module docstring for the architecture."""
 
     def __init__(self, config: DynamicsConfig = DynamicsConfig(), *, rngs: nnx.Rngs):
         h = config.hidden
         self.config = config
-        self.node_encoder = _mlp((config.node_inputs, h, h), rngs, final_relu=True)
-        self.edge_encoder = _mlp((EDGE_IN, h, h, h), rngs, final_relu=True)
-        self.edge_propagator = nnx.Linear(3 * h + 1, h, rngs=rngs)  # [edge code, receiver, sender, code]
-        self.node_propagator = nnx.Linear(2 * h + 1, h, rngs=rngs)  # [node code, summed edge effects, code]
+        if config.processor == "gns":
+            self.node_encoder = nnx.Sequential(_mlp((config.node_inputs, h, h), rngs, final_relu=False),
+                                               nnx.LayerNorm(h, rngs=rngs))
+            self.edge_encoder = nnx.Sequential(_mlp((GNS_EDGE_IN, h, h), rngs, final_relu=False),
+                                               nnx.LayerNorm(h, rngs=rngs))
+            # one _GNSStep per message-passing step; a Sequential only holds them (``_gns`` calls each by hand)
+            self.steps = nnx.Sequential(*(_GNSStep(h, rngs) for _ in range(config.propagation_steps)))
+        else:
+            self.node_encoder = _mlp((config.node_inputs, h, h), rngs, final_relu=True)
+            self.edge_encoder = _mlp((EDGE_IN, h, h, h), rngs, final_relu=True)
+            self.edge_propagator = nnx.Linear(3 * h + 1, h, rngs=rngs)  # [edge code, receiver, sender, code]
+            self.node_propagator = nnx.Linear(2 * h + 1, h, rngs=rngs)  # [node code, summed edge effects, code]
         self.predictor = _mlp((h, h, 3), rngs, final_relu=False)
         if config.residual:  # the correction starts at zero: an untrained model is the sweep heuristic
             last = self.predictor.layers[-1]
@@ -249,7 +300,7 @@ class Dynamics(nnx.Module):
         code = jnp.asarray(code, jnp.float32)
         action = jnp.asarray(action, jnp.float32)
         dt = jnp.dtype(edge_dtype)
-        cfg, h, n = self.config, self.config.hidden, positions.shape[0]
+        cfg, n = self.config, positions.shape[0]
         clean = jnp.where(mask[:, None], positions, 0.0)
         guess = sweep_displacement(clean, mask, action, cfg.plate_half_width)
         neighbours, edge_mask = build_edges(clean + guess, mask, cfg.edge_radius, cfg.k)
@@ -267,25 +318,15 @@ class Dynamics(nnx.Module):
         if cfg.bin_position:
             node_in += [xy[:, :2] / cfg.bin_half_width for xy in (clean, clean + guess)]  # 0 where masked, as both are
         node_code = self.node_encoder(jnp.concatenate(node_in + [attr, jnp.broadcast_to(code, (n, 1))], axis=-1))
-
-        w_e = self.edge_propagator.kernel[...]
-        w_n, b_n = self.node_propagator.kernel[...], self.node_propagator.bias[...]
-        if table is None and pair_table:
-            table = self._table(clean, attr, code, dt)
-        if table is not None:
-            edge_const = table  # [N, N, H] dt: _incoming gathers each edge's row
+        rel = None if table is not None or pair_table else (clean[:, None, :] - clean[neighbours]) / cfg.length_scale
+        if rel is not None and cfg.edges_in_push_frame:
+            rel = rel @ frame.T
+        if cfg.processor == "gns":
+            if dt != jnp.float32:
+                raise ValueError("the gns processor computes in float32 only (edge_dtype)")
+            effect = self._gns(node_code, rel, code, neighbours, edge_mask)
         else:
-            rel = (clean[:, None, :] - clean[neighbours]) / cfg.length_scale  # [N, k, 3]: receiver i minus sender j
-            if cfg.edges_in_push_frame:
-                rel = rel @ frame.T
-            edge_const = self._edge_constant(rel, attr, attr[neighbours], code, dt)  # [N, k, H] dt
-        node_const = node_code @ w_n[:h] + code * w_n[2 * h] + b_n  # [N, H]
-        w_terms = jnp.concatenate([w_e[h:2 * h], w_e[2 * h:3 * h]], axis=1)  # [H, 2H]: receiver | sender
-        effect = node_code
-        for _ in range(cfg.propagation_steps):
-            node_terms = effect @ w_terms  # [N, 2H]: receiver and sender terms
-            incoming = _incoming(table is not None, edge_const, neighbours, edge_mask, node_terms)  # [N, H]
-            effect = nnx.relu(node_const + incoming @ w_n[h:2 * h] + effect)
+            effect = self._propnet(node_code, rel, attr, code, neighbours, edge_mask, clean, table, pair_table, dt)
 
         displacement = self.predictor(effect) * cfg.length_scale
         if cfg.push_frame:
@@ -294,10 +335,41 @@ class Dynamics(nnx.Module):
             displacement = displacement + guess  # the network predicts the correction to the sweep heuristic
         return jnp.where(mask[:, None], positions + displacement, positions)
 
+    def _gns(self, node_code, rel, code, neighbours, edge_mask):
+        """GNS's processor (module docstring, "Processor"): node codes [N, H], rel [N, k, 3] (p_r - p_s in length
+        units), code [], the graph -> the latent nodes after the message-passing steps [N, H]."""
+        length = jnp.sqrt(jnp.sum(jnp.square(rel), -1, keepdims=True) + 1e-12)
+        edges = self.edge_encoder(jnp.concatenate([rel, length, jnp.broadcast_to(code, length.shape)], -1))
+        nodes, valid = node_code, edge_mask[..., None]
+        for gns_step in self.steps.layers:
+            nodes, edges = gns_step(nodes, edges, neighbours, valid)
+        return nodes
+
+    def _propnet(self, node_code, rel, attr, code, neighbours, edge_mask, clean, table, pair_table, dt):
+        """PropNet's propagation (module docstring, steps 3-4): -> the node effects after the steps [N, H]."""
+        cfg, h = self.config, self.config.hidden
+        w_e = self.edge_propagator.kernel[...]
+        w_n, b_n = self.node_propagator.kernel[...], self.node_propagator.bias[...]
+        if table is None and pair_table:
+            table = self._table(clean, attr, code, dt)
+        if table is not None:
+            edge_const = table  # [N, N, H] dt: _incoming gathers each edge's row
+        else:
+            edge_const = self._edge_constant(rel, attr, attr[neighbours], code, dt)  # [N, k, H] dt
+        node_const = node_code @ w_n[:h] + code * w_n[2 * h] + b_n  # [N, H]
+        w_terms = jnp.concatenate([w_e[h:2 * h], w_e[2 * h:3 * h]], axis=1)  # [H, 2H]: receiver | sender
+        effect = node_code
+        for _ in range(cfg.propagation_steps):
+            node_terms = effect @ w_terms  # [N, 2H]: receiver and sender terms
+            incoming = _incoming(table is not None, edge_const, neighbours, edge_mask, node_terms)  # [N, H]
+            effect = nnx.relu(node_const + incoming @ w_n[h:2 * h] + effect)
+        return effect
+
     def _check_pair_table(self):
-        if self.config.edges_in_push_frame:
-            raise ValueError("pair_table needs edge codes that do not depend on the push: a model with push_frame=True "
-                             "and world_edges=False rotates its edges into the push frame")
+        if not self.config.pair_table:
+            raise ValueError("pair_table needs PropNet edge codes that do not depend on the push: the gns processor "
+                             "has none, and a model with push_frame=True and world_edges=False rotates its edges into "
+                             "the push frame")
 
     def _edge_constant(self, rel, receiver_attr, sender_attr, code, dt):
         """rel [R, S, 3] (p_r - p_s in length units), receiver_attr [R, 1], sender_attr [R, S, 1], code [] -> the

@@ -101,7 +101,7 @@ def learned_dynamics(model: Dynamics, edge_dtype: str = "float32"):
         raise ValueError(f"edge_dtype must be one of {EDGE_DTYPES}, got {edge_dtype!r}")
     if edge_dtype != "float32" and not isinstance(model, Dynamics):
         raise ValueError(f"edge_dtype={edge_dtype!r} needs the graph network (Dynamics), got {type(model).__name__}")
-    pair_table = isinstance(model, Dynamics) and not model.config.edges_in_push_frame
+    pair_table = isinstance(model, Dynamics) and model.config.pair_table
     graphdef, state = nnx.split(model)
     return lambda radius: Partial(_Learned(edge_dtype, pair_table), graphdef, state, resolution_code(radius))
 
