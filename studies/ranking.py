@@ -165,8 +165,8 @@ def main(argv=None):
         result = build(args)
         ranking.save(path, result)
         print(f"wrote {path}: {len(result.group)} states")
-    else:
-        score(args)
+        return result
+    return score(args)
 
 
 if __name__ == "__main__":

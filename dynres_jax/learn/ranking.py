@@ -169,8 +169,8 @@ def ranking_scores(predicted_c, true_c, predicted_positions=None, true_positions
                   regret=true_c[rows, pick] - true_c.min(1), top5=(true_rank < TOP).astype(np.float64))
     if predicted_positions is not None:
         err = np.linalg.norm(np.asarray(predicted_positions) - np.asarray(true_positions), axis=-1)  # [S, C, N]
-        w = np.asarray(mask, np.float64)[:, None, :]
-        scores["error_mm"] = 1000 * np.sum(err * w, axis=(1, 2)) / np.maximum(np.sum(w, axis=2).sum(1), 1)
+        w = np.broadcast_to(np.asarray(mask, np.float64)[:, None, :], err.shape)
+        scores["error_mm"] = 1000 * np.sum(err * w, axis=(1, 2)) / np.maximum(np.sum(w, axis=(1, 2)), 1)
     return scores
 
 

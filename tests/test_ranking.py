@@ -1,0 +1,114 @@
+"""The ranking benchmark (learn.ranking, studies.ranking): rank statistics against brute-force definitions, a tiny set
+built from the closed loop and scored, saved and loaded."""
+
+import itertools
+
+import numpy as np
+import pytest
+
+from dynres_jax.learn import ranking
+from dynres_jax.models.registry import load_dynamics
+
+
+def brute_kendall(p, t):
+    """Kendall's tau-b by counting pairs."""
+    conc = disc = tie_p = tie_t = 0
+    for i, j in itertools.combinations(range(len(p)), 2):
+        a, b = np.sign(p[i] - p[j]), np.sign(t[i] - t[j])
+        if a == 0 and b == 0:
+            continue
+        if a == 0:
+            tie_p += 1
+        elif b == 0:
+            tie_t += 1
+        elif a == b:
+            conc += 1
+        else:
+            disc += 1
+    return (conc - disc) / np.sqrt((conc + disc + tie_p) * (conc + disc + tie_t))
+
+
+def brute_spearman(p, t):
+    """Pearson correlation of average ranks, the ranks counted by hand."""
+    def ranks(x):
+        return np.array([np.sum(x < v) + (np.sum(x == v) - 1) / 2 for v in x])
+
+    return np.corrcoef(ranks(p), ranks(t))[0, 1]
+
+
+def test_rank_statistics_equal_their_definitions():
+    rng = np.random.default_rng(0)
+    p = rng.integers(0, 6, (5, 9)).astype(float)  # ties on purpose
+    t = p + rng.normal(0, 2, p.shape)
+    t[:, :2] = t[:, 2:4]  # ties in the truth too
+    np.testing.assert_allclose(ranking.kendall(p, t), [brute_kendall(a, b) for a, b in zip(p, t, strict=True)])
+    np.testing.assert_allclose(ranking.spearman(p, t), [brute_spearman(a, b) for a, b in zip(p, t, strict=True)])
+
+
+def test_scores_of_a_perfect_a_reversed_and_a_constant_ranking():
+    true = np.array([[3.0, 1.0, 2.0, 5.0, 4.0, 9.0, 7.0]])
+    perfect = ranking.ranking_scores(true + 10, true)
+    assert perfect["spearman"][0] == pytest.approx(1) and perfect["kendall"][0] == pytest.approx(1)
+    assert perfect["regret"][0] == 0 and perfect["top5"][0] == 1
+    reverse = ranking.ranking_scores(-true, true)
+    assert reverse["spearman"][0] == pytest.approx(-1) and reverse["kendall"][0] == pytest.approx(-1)
+    assert reverse["regret"][0] == 9.0 - 1.0 and reverse["top5"][0] == 0  # picks the worst
+    flat = ranking.ranking_scores(np.zeros_like(true), true)
+    assert flat["spearman"][0] == 0 and flat["kendall"][0] == 0 and flat["regret"][0] == 3.0 - 1.0  # the first
+    true_pos = np.zeros((1, 7, 4, 3))
+    mask = np.array([[True, True, True, False]])
+    off = true_pos + np.array([0.003, 0.0, 0.0]) * mask[:, None, :, None]
+    off[:, :, 3] = 5.0  # a masked slot's garbage counts for nothing
+    assert ranking.ranking_scores(true, true, off, true_pos, mask)["error_mm"][0] == pytest.approx(3.0)
+    s = ranking.summarise({"x": np.array([0.0, 1.0, 1.0, 0.0])})
+    assert s["x"]["mean"] == 0.5 and 0 <= s["x"]["ci95"][0] < 0.5 < s["x"]["ci95"][1] <= 1
+
+
+@pytest.fixture(scope="module")
+def tiny_set(tmp_path_factory):
+    from studies import ranking as study
+
+    out = tmp_path_factory.mktemp("ranking")
+    study.main(["build", "--out", str(out), "--episodes", "2", "--samples", "4", "--adam-steps", "2", "--capture",
+                "0", "1", "--workers", "2", "--kind", "coffee", "--pieces", "30"])
+    return str(out)
+
+
+def test_a_tiny_set_is_built_from_the_closed_loop_and_scored(tiny_set, tmp_path):
+    from studies import ranking as study
+
+    s = ranking.load(tiny_set)
+    c = 4 + 1  # the planner's samples and its best
+    assert len(s.group) == 4 and s.candidates.shape == (4, c, 4) and s.true_c.shape == (4, c)
+    assert s.true_positions.shape == (4, c) + s.positions.shape[1:]
+    # the true outcome moved the particles the push swept, and kept masked slots at zero
+    moved = np.linalg.norm(s.true_positions - s.positions[:, None], axis=-1)
+    assert np.any(moved[:, :, s.mask[0]] > 0.005) and np.all(s.true_positions[:, :, ~s.mask[0]] == 0)
+    sweep = load_dynamics("sweep", None, s.sim.scene.plate_half_width).dynamics
+    c_pred, final = ranking.predict(s, sweep)
+    assert c_pred.shape == (4, c) and np.all(np.isfinite(c_pred))
+    results = study.main(["score", "--set", tiny_set, "--ckpt", "shipped", "sweep", "--out", str(tmp_path / "t.md")])
+    table = (tmp_path / "t.md").read_text()
+    assert "| shipped (all) | 4 |" in table and "| sweep (gather coffee) | 4 |" in table
+    assert -1 <= results["shipped"]["all"]["spearman"]["mean"] <= 1 and results["sweep"]["all"]["error_mm"]["mean"] > 0
+    # the truth is c of the carried particles: recomputed from them, it is the saved true c
+    import jax
+
+    from dynres_jax.control.goals import make_goal
+    from dynres_jax.control.objective import objective
+
+    for i in range(len(s.group)):
+        goal = make_goal(s.goal_mask[i], s.camera)
+        again = jax.vmap(lambda p, i=i, goal=goal: objective(p, s.mask[i], goal, s.camera))(s.true_positions[i])
+        np.testing.assert_allclose(np.asarray(again), s.true_c[i], rtol=1e-5)
+
+
+def test_concatenate_pads_slots_and_refuses_other_cameras(tiny_set):
+    s = ranking.load(tiny_set)
+    narrow = s._replace(positions=s.positions[:, :50], mask=s.mask[:, :50], true_positions=s.true_positions[:, :, :50])
+    both = ranking.concatenate([s, narrow])
+    assert both.positions.shape[1] == s.positions.shape[1] and len(both.group) == 2 * len(s.group)
+    np.testing.assert_array_equal(both.mask[len(s.group):, 50:], False)
+    from dynres_jax.config import CameraConfig, SimConfig
+    with pytest.raises(ValueError, match="different cameras"):
+        ranking.concatenate([s, s._replace(sim=SimConfig(camera=CameraConfig(width=64, height=64)))])
