@@ -31,21 +31,24 @@ data_dirs() { echo "$WORK/data/R"; for g in $(seq 0 $((gpus - 1))); do echo "$WO
 
 gen() {  # NAME SEED WORLDS WORKERS EPISODES [FLAGS...]
   local name=$1 seed=$2 worlds=$3 workers=$4 episodes=$5; shift 5
+  [ -f "$WORK/data/$name.done" ] && return  # made by an earlier call on this machine
   # shellcheck disable=SC2086
   python -m experiments.generate_data --out "$WORK/data/$name" --episodes "$episodes" --pushes 10 --worlds "$worlds" \
     --seed "$seed" --workers "$workers" --no-progress ${DATA_FLAGS:-} "$@" > "$R/logs/data_$name.log" 2>&1
   local status=$?
+  [ $status -eq 0 ] && touch "$WORK/data/$name.done"
   log "data $name: $(grep -o '"frames": [0-9]*' "$R/logs/data_$name.log") (exit $status)"
 }
 
 train() {  # NAME GPUS BATCH LR STEPS [FLAGS...]: --recipe shipped on every data set
   local name=$1 devices=$2 batch=$3 lr=$4 steps=$5; shift 5
   local warmup=$((steps / 20))
+  [ -f "$WORK/runs/$name.done" ] && return
   # shellcheck disable=SC2046
   CUDA_VISIBLE_DEVICES=$devices python -m experiments.train_dynamics --recipe shipped --data $(data_dirs) \
     --out "$WORK/runs/$name" --batch "$batch" --lr "$lr" --steps "$steps" --warmup "$warmup" \
     --eval-every "$(( steps > 4 ? steps / 4 : 1 ))" --ckpt-every "$steps" --quiet "$@" \
-    > "$R/logs/train_$name.log" 2>&1
+    > "$R/logs/train_$name.log" 2>&1 && touch "$WORK/runs/$name.done"
   log "train $name ($devices, batch $batch, $steps steps): $(tail -1 "$WORK/runs/$name/metrics.jsonl")"
 }
 
@@ -58,7 +61,7 @@ gen R 21 128 $((cores / 2)) "$EPISODES_R" &
 for g in $(seq 0 $((gpus - 1))); do
   CUDA_VISIBLE_DEVICES=$g gen "P$g" $((30 + g)) 64 $((cores / 2 / gpus)) "$EPISODES_P" --planned 0.5 --policy shipped &
 done
-CUDA_VISIBLE_DEVICES=0 python -m studies.ranking build --out "$R/rk_redistribute" --task redistribute --kind coffee \
+[ -f "$R/rk_redistribute/ranking_set.npz" ] || CUDA_VISIBLE_DEVICES=0 python -m studies.ranking build --out "$R/rk_redistribute" --task redistribute --kind coffee \
   --letters JTULY --episodes "${RANKING_EPISODES:-12}" --capture 0 4 8 12 --seed 7800 --workers 8 ${RANKING_FLAGS:-} \
   > "$R/logs/ranking_build.log" 2>&1 && log "ranking set: $(tail -1 "$R/logs/ranking_build.log")"
 wait
@@ -112,7 +115,7 @@ CUDA_VISIBLE_DEVICES=0 python -m studies.ranking score --set "$RANKING"/* "$R/rk
   --out "$R/ranking.md" > "$R/logs/ranking.log" 2>&1; log "ranking: $(cat "$R/ranking.md" | tr '\n' ' ' | head -c 300)"
 # shellcheck disable=SC2086
 (CUDA_VISIBLE_DEVICES=0 python -m studies.noise_floor --out "$WORK/floor" ${FLOOR:---scenes 32 --worlds 8 --pushes 2} --sigmas 1 \
-  --ckpt shipped $ckpts --workers $((cores / 4)) --no-progress > "$R/logs/floor.log" 2>&1;
+  --ckpt dynres_jax/checkpoints/dynamics $ckpts --workers $((cores / 4)) --no-progress > "$R/logs/floor.log" 2>&1;
   cp "$WORK/floor/floor.md" "$WORK/floor/floor.json" "$R/" 2>/dev/null; log "floor done") &
 jobs=$WORK/closed_loop.jobs; : > "$jobs"
 lane=0
