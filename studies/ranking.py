@@ -12,8 +12,8 @@ fresh keys and no warm start (the planner's M plans after its Adam steps, and it
 every candidate's first push is pushed on a copy of the world in C MuJoCo; the particles the planner saw are carried
 with their pieces to where the push left them (the true outcome). Written atomically to ``OUT/ranking_set.npz``.
 
-score: each model (a checkpoint folder, ``shipped``, or ``sweep`` for the sweep heuristic) on every set; a
-Markdown table and its JSON.
+score: each model (a checkpoint folder, ``shipped``, or ``sweep`` for the sweep heuristic) on every set, beside the
+physics ceiling (the twin's c as the prediction); a Markdown table and its JSON.
 """
 
 from __future__ import annotations
@@ -38,6 +38,7 @@ from dynres_jax.learn import ranking
 from dynres_jax.learn.targets import attach_particles
 from dynres_jax.models.registry import SHIPPED_DYNAMICS, load_dynamics
 from dynres_jax.sim.pool import WorldPool, process_pool
+from studies.noise_floor import perturb  # noqa: E402
 
 CAPTURE_FOLD = 1 << 21  # a kept state's re-planning keys fold this + its step into the episode's keys
 
@@ -60,6 +61,16 @@ def carried(states, particles, camera, after):
 
     return jax.vmap(one)(states.obs.piece, states.pos, states.mat, particles.positions, particles.mask, after.pos,
                          after.mat)
+
+
+def outcome(states, particles, after, goals, camera, c: int):
+    """Candidate-major worlds [C * B] before and after their pushes, the particles [C * B] the planner saw and the
+    goals [B] -> (the particles carried to where each push left their pieces [B, C, N, 3], their c [B, C])."""
+    moved = np.asarray(carried(states, particles, camera, after))
+    moved = moved.reshape(c, -1, *moved.shape[1:]).transpose(1, 0, 2, 3)
+    mask = np.asarray(particles.mask)[:moved.shape[0]]
+    cost = jax.vmap(jax.vmap(lambda p, m, g: objective(p, m, g, camera), (0, None, None)))
+    return moved, np.asarray(cost(jnp.asarray(moved), mask, goals))
 
 
 def build(args) -> ranking.RankingSet:
@@ -96,27 +107,29 @@ def build(args) -> ranking.RankingSet:
                 np.full(b, args.adam_steps, np.int32), spec=cfg.spec(64), dynamics=model.dynamics, camera=camera)
             candidates = np.concatenate([np.asarray(result.actions[:, :, 0]), np.asarray(result.best[:, None, 0])], 1)
             c = candidates.shape[1]
-            tile = lambda x, c=c: jnp.concatenate([jnp.asarray(x)] * c)  # noqa: E731  (candidate-major [C * B, ...])
-            after = pool.push(jax.tree.map(tile, states), candidates.transpose(1, 0, 2).reshape(c * b, 4))
-            d = np.asarray(score(after, jax.tree.map(tile, goals))["distance"]).reshape(c, b).T
-            moved = np.asarray(carried(jax.tree.map(tile, states), jax.tree.map(tile, particles), camera, after))
-            moved = moved.reshape(c, b, *moved.shape[1:]).transpose(1, 0, 2, 3)
-            true_c = np.asarray(jax.vmap(jax.vmap(lambda p, m, g: objective(p, m, g, camera), (0, None, None)))(
-                jnp.asarray(moved), particles.mask, goals))
-            broken = np.asarray(after.broken).reshape(c, b).T.any(1)
+            tile = lambda x, c=c: jax.tree.map(lambda y: jnp.concatenate([jnp.asarray(y)] * c), x)  # noqa: E731
+            pushes = candidates.transpose(1, 0, 2).reshape(c * b, 4)  # candidate-major: [C * B, ...]
+            after = pool.push(tile(states), pushes)
+            twin = pool.push(perturb(tile(states), pool.scene.qpos_adr, args.twin_sigma / 1000,
+                                     jax.random.PRNGKey(args.seed * 1000 + t)), pushes)
+            d = np.asarray(score(after, tile(goals))["distance"]).reshape(c, b).T
+            moved, true_c = outcome(tile(states), tile(particles), after, goals, camera, c)
+            _, twin_c = outcome(tile(states), tile(particles), twin, goals, camera, c)
+            broken = np.asarray(after.broken | twin.broken).reshape(c, b).T.any(1)
             ok = ~broken & (np.asarray(particles.error) == 0)
             parts.append(ranking.RankingSet(
                 group=np.array([f"{args.task} {args.kind}"] * int(ok.sum())),
                 positions=np.asarray(particles.positions)[ok], mask=np.asarray(particles.mask)[ok],
                 radius=np.asarray(particles.radius)[ok], goal_mask=np.asarray(masks)[ok],
-                candidates=candidates[ok], true_positions=moved[ok], true_c=true_c[ok], true_d=d[ok], sim=sim))
+                candidates=candidates[ok], true_positions=moved[ok], true_c=true_c[ok], true_d=d[ok], twin_c=twin_c[ok],
+                sim=sim))
             print(f"step {t}: {int(ok.sum())} of {b} states, {c} candidates each ({time.perf_counter() - t0:.0f} s)")
     return ranking.concatenate(parts)
 
 
 def score(args) -> dict:
     sets = ranking.concatenate([ranking.load(path) for path in args.set])
-    results = {}
+    results = {"physics (twin)": ranking.score_ceiling(sets)}
     for name in args.ckpt:
         if name == "sweep":
             model = load_dynamics("sweep", None, sets.sim.scene.plate_half_width)
@@ -150,6 +163,9 @@ def main(argv=None):
     b.add_argument("--policy", default="shipped", help="the checkpoint the closed loop and the candidates plan with")
     b.add_argument("--seed", type=int, default=7700)
     b.add_argument("--workers", type=int, default=None)
+    b.add_argument("--twin-sigma", type=float, default=1.0,
+                   help="mm: each candidate is also pushed on a twin world whose pieces are moved by N(0, σ²) in x and "
+                        "y; the twin's ranking of the candidates is the physics ceiling")
     s = sub.add_parser("score", help="models on sets")
     s.add_argument("--set", nargs="+", required=True)
     s.add_argument("--ckpt", nargs="+", default=["shipped", "sweep"])

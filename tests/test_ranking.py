@@ -90,6 +90,8 @@ def test_a_tiny_set_is_built_from_the_closed_loop_and_scored(tiny_set, tmp_path)
     results = study.main(["score", "--set", tiny_set, "--ckpt", "shipped", "sweep", "--out", str(tmp_path / "t.md")])
     table = (tmp_path / "t.md").read_text()
     assert "| shipped (all) | 4 |" in table and "| sweep (gather coffee) | 4 |" in table
+    assert "| physics (twin) (all) | 4 |" in table and "error_mm" not in results["physics (twin)"]["all"]
+    assert s.twin_c.shape == s.true_c.shape and np.all(np.isfinite(s.twin_c)) and not np.array_equal(s.twin_c, s.true_c)
     assert -1 <= results["shipped"]["all"]["spearman"]["mean"] <= 1 and results["sweep"]["all"]["error_mm"]["mean"] > 0
     # the truth is c of the carried particles: recomputed from them, it is the saved true c
     import jax

@@ -41,7 +41,9 @@ class RankingSet(NamedTuple):
     state comes from (e.g. "gather mnm"); positions [S, N, 3] m, mask [S, N], radius [S] m: the particles the planner
     saw; goal_mask [S, H, W] bool; candidates [S, C, 4] m: first pushes; true_positions [S, C, N, 3] m: the particles
     carried with their pieces by each push in the simulator; true_c [S, C]: c of those (pixels); true_d [S, C]: the
-    distance d of the simulated frame after each push (pixels); sim: the scenes' SimConfig (its camera)."""
+    distance d of the simulated frame after each push (pixels); twin_c [S, C]: c of the particles carried by each
+    push on a twin of the world whose pieces were moved by about a millimetre (the physics ceiling: how well the
+    world itself, known to within a millimetre, ranks the candidates); sim: the scenes' SimConfig (its camera)."""
 
     group: np.ndarray
     positions: np.ndarray
@@ -52,6 +54,7 @@ class RankingSet(NamedTuple):
     true_positions: np.ndarray
     true_c: np.ndarray
     true_d: np.ndarray
+    twin_c: np.ndarray
     sim: SimConfig
 
     @property
@@ -187,21 +190,29 @@ def summarise(scores: dict, seed: int = 0) -> dict:
     return out
 
 
-def score_model(ranking: RankingSet, dynamics) -> dict:
-    """A model on a set: {"all": summary, group: summary, ...} (``summarise`` of ``ranking_scores``), with the states
-    each summary covers."""
-    c, final = predict(ranking, dynamics)
-    per_state = ranking_scores(c, ranking.true_c, final, ranking.true_positions, ranking.mask)
-    out = {"all": dict(states=len(c), **summarise(per_state))}
+def by_group(ranking: RankingSet, per_state: dict) -> dict:
+    """Per-state scores [S] -> {"all": summary, group: summary, ...} (``summarise``), with the states each covers."""
+    out = {"all": dict(states=len(ranking.group), **summarise(per_state))}
     for group in sorted(set(ranking.group.tolist())):
         rows = ranking.group == group
         out[str(group)] = dict(states=int(rows.sum()), **summarise({k: v[rows] for k, v in per_state.items()}))
     return out
 
 
+def score_model(ranking: RankingSet, dynamics) -> dict:
+    """A model on a set (``by_group`` of ``ranking_scores``)."""
+    c, final = predict(ranking, dynamics)
+    return by_group(ranking, ranking_scores(c, ranking.true_c, final, ranking.true_positions, ranking.mask))
+
+
+def score_ceiling(ranking: RankingSet) -> dict:
+    """The physics ceiling in ``score_model``'s form: the twin's c ranking the candidates (no particle error)."""
+    return by_group(ranking, ranking_scores(ranking.twin_c, ranking.true_c))
+
+
 def write_table(results: dict, path: str) -> None:
-    """results {model name: ``score_model``} -> a Markdown table (one row per model and group) and the JSON beside
-    it."""
+    """results {model name: ``score_model``} -> a Markdown table (one row per model and group; a score a row lacks is
+    left blank) and the JSON beside it."""
     with open(os.path.splitext(path)[0] + ".json", "w") as f:
         json.dump(results, f, indent=1)
     lines = ["| model | states | Spearman | Kendall | top-1 regret (px) | pick in true top 5 | one-step error (mm) |",
@@ -209,6 +220,8 @@ def write_table(results: dict, path: str) -> None:
     for name, groups in results.items():
         for group, s in groups.items():
             def cell(k, fmt="{:.3f}", s=s):
+                if k not in s:
+                    return ""
                 return f"{fmt.format(s[k]['mean'])} [{fmt.format(s[k]['ci95'][0])}, {fmt.format(s[k]['ci95'][1])}]"
 
             lines.append(f"| {name} ({group}) | {s['states']} | {cell('spearman')} | {cell('kendall')} | "
