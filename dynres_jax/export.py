@@ -66,13 +66,17 @@ DEFAULT_GOAL_SAMPLES = 500  # Q: goals.make_goal's default n_samples
 GOAL_EMPTY = 16  # error bit: the goal mask has no pixel
 GOAL_FULL = 32  # error bit: the goal mask covers the whole image
 BAD_STEPS = 64  # error bit: adam_steps outside [0, the planner's]
+BAD_INIT = 128  # error bit: warm, and the warm start init has NaN or infinite values
+NOT_FINITE = 256  # error bit: the plan came out NaN or infinite (any other cause)
 ERRORS = {NAN_DEPTH: "the depth image has NaN or infinite pixels",
           EMPTY_FOREGROUND: "no foreground: nothing stands above the table inside the workspace",
           BAD_OMEGA: "omega outside [1, capacity]",
           TOO_FEW_POINTS: "fewer foreground points than omega",
           GOAL_EMPTY: "the goal mask has no pixel",
           GOAL_FULL: "the goal mask covers the whole image",
-          BAD_STEPS: "adam_steps outside [0, the planner's adam_steps]"}
+          BAD_STEPS: "adam_steps outside [0, the planner's adam_steps]",
+          BAD_INIT: "warm is set and init (the warm start) has NaN or infinite values",
+          NOT_FINITE: "the plan is NaN or infinite"}
 INPUT_NAMES = ("depth", "goal_mask", "key", "omega", "adam_steps", "init", "warm")
 OUTPUT_NAMES = ("push", "best", "best_cost", "objective", "positions", "mask", "error", "history")
 
@@ -100,8 +104,11 @@ def decision_step(dynamics: Callable, camera: Camera, spec: DecisionSpec, goal_s
         frame = Observation(depth, None, None, None)  # perception reads the depth only
         particles, c_now, result = perceive_and_decide(frame, goal, key, init, warm, omega, adam_steps, spec=spec,
                                                        dynamics=dynamics, camera=camera)
+        init_ok = ~jnp.asarray(warm, bool) | jnp.all(jnp.isfinite(init))
         error = (particles.error | jnp.where(~jnp.any(goal_mask), GOAL_EMPTY, 0)
-                 | jnp.where(jnp.all(goal_mask), GOAL_FULL, 0) | jnp.where(steps_ok, 0, BAD_STEPS)).astype(jnp.int32)
+                 | jnp.where(jnp.all(goal_mask), GOAL_FULL, 0) | jnp.where(steps_ok, 0, BAD_STEPS)
+                 | jnp.where(init_ok, 0, BAD_INIT)).astype(jnp.int32)
+        error = error | jnp.where((error == 0) & ~jnp.all(jnp.isfinite(result.best)), NOT_FINITE, 0)  # never a NaN push
         best = jnp.where(error == 0, result.best, jnp.nan)
         return dict(push=best[0], best=best, best_cost=result.best_cost, objective=c_now,
                     positions=particles.positions, mask=particles.mask, error=error, history=result.history)
@@ -252,6 +259,6 @@ def signature(exported: jax_export.Exported) -> str:
     return f"({ins}) -> {{{', '.join(f'{n}: {fmt(outs[n])}' for n in OUTPUT_NAMES)}}}"
 
 
-__all__ = ["BAD_STEPS", "DEFAULT_GOAL_SAMPLES", "ERRORS", "FORMAT", "GOAL_EMPTY", "GOAL_FULL", "INPUT_NAMES",
-           "OUTPUT_NAMES", "call", "decision_step", "describe", "describe_error", "export_checkpoint",
-           "export_decision", "input_specs", "load", "output_specs", "save", "signature"]
+__all__ = ["BAD_INIT", "BAD_STEPS", "DEFAULT_GOAL_SAMPLES", "ERRORS", "FORMAT", "GOAL_EMPTY", "GOAL_FULL",
+           "INPUT_NAMES", "NOT_FINITE", "OUTPUT_NAMES", "call", "decision_step", "describe", "describe_error",
+           "export_checkpoint", "export_decision", "input_specs", "load", "output_specs", "save", "signature"]

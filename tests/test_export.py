@@ -125,6 +125,8 @@ def test_bad_input_is_flagged_and_gives_no_push(reloaded):
         "omega above capacity": ((depth, goal_mask, key, np.int32(SPEC.capacity + 1), steps, init, warm), BAD_OMEGA),
         "too many Adam steps": ((depth, goal_mask, key, omega, np.int32(SPEC.planner.adam_steps + 1), init, warm),
                                 ex.BAD_STEPS),
+        "NaN warm start": ((depth, goal_mask, key, omega, steps, np.full_like(init, np.nan), np.bool_(True)),
+                           ex.BAD_INIT),
     }
     for what, (args, bit) in cases.items():
         out = reloaded.call(*args)

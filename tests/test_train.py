@@ -19,6 +19,7 @@ from dynres_jax.learn.train import (
     DISTANCE_EPS,
     TrainConfig,
     _Speed,
+    _trim_metrics,
     draw,
     make_step,
     resident,
@@ -244,3 +245,23 @@ def test_quick_data_trains_with_the_quick_recipe(tmp_path, capsys):
                          "--steps", "2", "--quiet"])
     metrics = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert metrics["step"] == 2 and np.isfinite(metrics["val_rmse_mm"])  # the 10th episode held out
+
+
+def test_metrics_survive_a_torn_last_line_and_a_rerun(tmp_path):
+    """A crash mid-append leaves a last line cut short: it reads as absent, and a resume rewrites the file with one
+    row per step up to its checkpoint (a step written twice keeps its last row); a damaged line before the last is
+    named."""
+    from dynres_jax.errors import InputError
+    from dynres_jax.learn.train import read_metrics
+
+    path = tmp_path / "metrics.jsonl"
+    rows = [{"step": 2, "v": 1}, {"step": 4, "v": 2}, {"step": 2, "v": 3}, {"step": 6, "v": 4}]
+    path.write_text("".join(json.dumps(r) + "\n" for r in rows) + '{"step": 8, "v"')
+    assert read_metrics(str(path)) == rows
+    _trim_metrics(str(path), 4)
+    assert [json.loads(line) for line in path.read_text().splitlines()] == [{"step": 2, "v": 3}, {"step": 4, "v": 2}]
+    _trim_metrics(str(path), 0)  # a fresh start: nothing kept
+    assert path.read_text() == ""
+    path.write_text('{"step": 2}\n{"ste\n{"step": 4}\n')
+    with pytest.raises(InputError, match="line 2 is not JSON"):
+        read_metrics(str(path))

@@ -21,8 +21,8 @@ update; ``batch`` must divide by the device count. A batch depends on (seed, ste
 one device and four give the same run to float tolerance. Process 0 writes checkpoints and metrics.
 
 Long runs write a checkpoint (model + optimiser, ``ckpt``) every ``ckpt_every`` steps and resume from the newest;
-metrics go to ``metrics.jsonl`` (one JSON object a line; on resume, lines past the checkpoint are dropped) and
-``curves.png``.
+metrics go to ``metrics.jsonl`` (one JSON object a line; on resume, lines past the checkpoint are dropped, a last line
+cut short by a crash is read as absent) and ``curves.png``.
 """
 
 from __future__ import annotations
@@ -215,7 +215,7 @@ def plot_curves(metrics_path: str, out_png: str) -> None:
     state, so a notebook's own plotting backend is left as it is."""
     from matplotlib.figure import Figure
 
-    rows = [json.loads(line) for line in open(metrics_path)]
+    rows = read_metrics(metrics_path)
     fig = Figure(figsize=(6, 3.5))
     ax = fig.subplots()
     for name in ("train_rmse_mm", "val_rmse_mm"):
@@ -228,12 +228,27 @@ def plot_curves(metrics_path: str, out_png: str) -> None:
     fig.savefig(out_png, dpi=120)
 
 
+def read_metrics(path: str) -> list[dict]:
+    """The rows of a metrics.jsonl. A last line cut short (a crash or a full disk mid-append) is read as absent; a
+    damaged line before it is an InputError naming the file and line."""
+    with open(path) as f:
+        lines = f.read().splitlines()
+    rows = []
+    for i, line in enumerate(lines):
+        try:
+            rows.append(json.loads(line))
+        except ValueError:
+            if i < len(lines) - 1:
+                raise InputError(f"{path}: line {i + 1} is not JSON (the file was damaged)") from None
+    return rows
+
+
 def _trim_metrics(path: str, last_step: int) -> None:
-    """Drop metric lines written after the checkpoint a resumed run starts from (atomically)."""
+    """Keep the metric rows up to the checkpoint a resumed run starts from, one per step (atomically)."""
     if not os.path.exists(path):
         return
-    keep = [line for line in open(path) if json.loads(line)["step"] <= last_step]
-    files.write_text(path, "".join(keep))
+    keep = {r["step"]: r for r in read_metrics(path) if r["step"] <= last_step}  # a step written twice: the last
+    files.write_text(path, "".join(json.dumps(r) + "\n" for _, r in sorted(keep.items())))
 
 
 class _Speed:
@@ -293,8 +308,8 @@ def train(cfg: TrainConfig, data_dir: str, out_dir: str, progress: bool = True,
             raise ValueError(f"{ckpt_dir} was trained with another TrainConfig ({', '.join(changed)} differ); "
                              "use a new --out or the same flags")
         params, opt_state, start = restored["module"], restored["opt"], meta["step"]
-        if distributed.is_writer():
-            _trim_metrics(metrics_path, start)
+    if distributed.is_writer():  # rows past the checkpoint (all of them without one) are redone
+        _trim_metrics(metrics_path, start)
     params, opt_state = distributed.replicated((params, opt_state), mesh)
     step_fn, eval_fn = make_step(graphdef, optimizer, train_set.camera, cfg, mesh)
     train_frames, val_frames = resident(train_set, mesh), resident(val_set, mesh)
