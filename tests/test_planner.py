@@ -239,3 +239,26 @@ def test_config_errors():
     positions, mask = pile(jax.random.PRNGKey(1), n=4)
     with pytest.raises(ValueError, match="resamples"):
         plan(sweep_dynamics, centroid_cost, positions, mask, None, PlannerConfig(samples=2, adam_steps=1, resamples=2))
+
+
+def test_particles_no_plan_can_start_from_are_refused_by_name():
+    """NaN or infinite valid positions, no valid particle, integer positions (millimetres?) and a config that is not
+    a PlannerConfig are one-line InputErrors before any work; garbage in masked slots stays allowed."""
+    from dynres_jax.errors import InputError
+
+    positions, mask = pile(jax.random.PRNGKey(2), n=6)
+    small = PlannerConfig(samples=2, adam_steps=1, bound=BOUND)
+    cases = {"NaN or infinite": np.asarray(positions).copy(), "no valid particle": positions,
+             "floating-point metres": np.round(np.asarray(positions) * 1000).astype(np.int32)}
+    cases["NaN or infinite"][0, 0] = np.nan
+    for match, p in cases.items():
+        m = np.zeros_like(mask) if match == "no valid particle" else mask
+        with pytest.raises(InputError, match=match):
+            plan(sweep_dynamics, centroid_cost, p, m, None, small)
+    with pytest.raises(InputError, match="must be a PlannerConfig"):
+        plan(sweep_dynamics, centroid_cost, positions, mask, None, {"samples": 2})
+    mask = np.asarray(mask).copy()
+    mask[-2:] = False
+    garbage = np.asarray(positions).copy()
+    garbage[~mask] = 7.0  # masked slots are not checked (the learned model ignores them, even NaN)
+    assert np.isfinite(float(plan(sweep_dynamics, centroid_cost, garbage, mask, None, small).best_cost))

@@ -39,6 +39,7 @@ import optax
 from jax.tree_util import Partial
 
 from dynres_jax.config import PushConfig, check_fields
+from dynres_jax.errors import InputError
 from dynres_jax.sim.pushes import check_reach, pile_points, project, sample_actions
 
 
@@ -145,6 +146,23 @@ def sample_pushes(key, points, valid, config: PlannerConfig):
                           c.reach, wall)
 
 
+def _check_particles(positions, mask) -> None:
+    """InputError, before any work, for particles no plan can start from: positions not floating-point (metres),
+    a valid one NaN or infinite, or a particle set with no valid particle. Traced arguments are not checked."""
+    if isinstance(positions, jax.core.Tracer) or isinstance(mask, jax.core.Tracer):
+        return
+    positions, mask = np.asarray(positions), np.asarray(mask)
+    if not np.issubdtype(positions.dtype, np.floating):
+        raise InputError(f"positions must be floating-point metres, got {positions.dtype}")
+    if mask.shape != positions.shape[:-1]:
+        return  # _batched names the shapes
+    mask = mask.astype(bool)
+    if not np.all(np.isfinite(positions[mask])):
+        raise InputError("positions of valid particles are NaN or infinite")
+    if not np.all(mask.reshape(-1, mask.shape[-1]).any(axis=-1)):
+        raise InputError("no valid particle to plan with (the mask is all False)")
+
+
 def _prepared(dynamics_fn, positions, mask):
     """The per-plan hook: (dynamics taking a context, contexts [R, ...]) for positions [R, N, 3] and mask [R, N]. A
     dynamics ``Partial(fn, *args)`` whose fn has a ``prepare(*args, positions [N, 3], mask [N])`` method gets its
@@ -215,6 +233,9 @@ def plan(dynamics_fn, cost_fn, positions, mask, key, config: PlannerConfig = Pla
     [0, config.adam_steps]; default config.adam_steps. The best is the lowest-cost sequence evaluated at any step, so
     its cost never exceeds the warm start's.
     """
+    if not isinstance(config, PlannerConfig):
+        raise InputError(f"config must be a PlannerConfig, got {type(config).__name__}")
+    _check_particles(positions, mask)
     positions, mask = _batched(positions, mask, config.resamples)
     if adam_steps is None:
         adam_steps = config.adam_steps
