@@ -16,23 +16,33 @@ The stages, each one module away from the paper's symbols (README, "Paper to cod
 What the quick start and the notebooks use is importable from here.
 """
 
-from dynres_jax.config import CameraConfig, PileConfig, PushConfig, SceneConfig, SimConfig
-from dynres_jax.control.choosers import AdaptiveOmega, FixedOmega, OracleOmega
-from dynres_jax.control.decision import goal_cost
-from dynres_jax.control.goals import disc_goal, make_goal, text_goal
-from dynres_jax.control.mpc import MPCConfig, run, run_episode
-from dynres_jax.control.objective import distribution_distance, inside_share, objective
-from dynres_jax.control.planner import PlannerConfig, plan
-from dynres_jax.control.task_env import TaskEnv
-from dynres_jax.models.registry import SHIPPED_DYNAMICS, SHIPPED_REGRESSOR, load_dynamics
-from dynres_jax.perception import sample_particles
-from dynres_jax.sim.env import PileEnv
-from dynres_jax.sim.pool import EnvWorlds
+import importlib
 
-__all__ = [
-    "SHIPPED_DYNAMICS", "SHIPPED_REGRESSOR", "AdaptiveOmega", "CameraConfig", "EnvWorlds", "FixedOmega", "MPCConfig",
-    "OracleOmega", "PileConfig", "PileEnv", "PlannerConfig", "PushConfig", "SceneConfig", "SimConfig", "TaskEnv",
-    "disc_goal",
-    "distribution_distance", "goal_cost", "inside_share", "load_dynamics", "make_goal", "objective", "plan", "run",
-    "run_episode", "sample_particles", "text_goal",
-]
+_HOMES = {  # name -> the module it lives in; imported on first use, so ``import dynres_jax.config`` stays light
+    **dict.fromkeys(("CameraConfig", "PileConfig", "PushConfig", "SceneConfig", "SimConfig"), "config"),
+    **dict.fromkeys(("AdaptiveOmega", "FixedOmega", "OracleOmega"), "control.choosers"),
+    "goal_cost": "control.decision",
+    **dict.fromkeys(("disc_goal", "make_goal", "text_goal"), "control.goals"),
+    **dict.fromkeys(("MPCConfig", "run", "run_episode"), "control.mpc"),
+    **dict.fromkeys(("distribution_distance", "inside_share", "objective"), "control.objective"),
+    **dict.fromkeys(("PlannerConfig", "plan"), "control.planner"),
+    "TaskEnv": "control.task_env",
+    **dict.fromkeys(("SHIPPED_DYNAMICS", "SHIPPED_REGRESSOR", "load_dynamics"), "models.registry"),
+    "sample_particles": "perception",
+    "PileEnv": "sim.env",
+    "EnvWorlds": "sim.pool",
+}
+
+__all__ = sorted(_HOMES)
+
+
+def __getattr__(name: str):
+    if name not in _HOMES:
+        raise AttributeError(f"module 'dynres_jax' has no attribute {name!r}")
+    value = getattr(importlib.import_module(f"dynres_jax.{_HOMES[name]}"), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__():
+    return sorted(set(globals()) | set(_HOMES))

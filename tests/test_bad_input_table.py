@@ -232,7 +232,7 @@ D = [  # generate_data
     (["--image-size", "4"], "image_size"), (["--backend", "x"], "backend"), (["--seed", "-1"], "--seed"),
     (["--pieces-step", "0"], "pieces_step"), (["--workers", "0"], "--workers"), (["--out", "{file}"], "--out"),
     (["--out", "{other_run}"], "--out"), (["--out", "{foreign}"], "--out"), (["--planned", "1.5"], "planned"),
-    (["--planned", "0.5", "--policy", "/nonexistent"], "--policy"),
+    (["--planned", "0.5", "--policy", "/nonexistent"], "--policy"), (["--policy", "shipped"], "--planned above 0"),
 ]
 T = [  # train_dynamics (the data folder is checked after the flags)
     (["--data", "/nonexistent"], "--data"), (["--data", "{data_missing}"], "--data"),
@@ -246,7 +246,9 @@ T = [  # train_dynamics (the data folder is checked after the flags)
     (["--model", "x"], "--model"), (["--hidden", "0"], "--hidden"), (["--propagation-steps", "0"], "--propagation-steps"),
     (["--grid", "4"], "--grid"), (["--model", "cnn", "--hidden", "8"], "--hidden"), (["--max-minutes", "0"], "--max-minutes"),
     (["--max-minutes", "nan"], "--max-minutes"), (["--recipe", "x"], "--recipe"), (["--seed", "-1"], "--seed"),
-    (["--max-points", "0"], "--max-points"), (["--batch", "x"], "--batch"), (["--data", "{data_ok}", "--out", "{train_run}"], "--data /elsewhere/piles there"),
+    (["--max-points", "0"], "--max-points"), (["--batch", "x"], "--batch"), (["--warmup", "30000"], "warmup"),
+    (["--noise", "1"], "noise"), (["--model", "cnn", "--processor", "gns"], "--processor"),
+    (["--processor", "mlp"], "--processor"), (["--data", "{data_ok}", "{data_ok}"], "twice"), (["--data", "{data_ok}", "--out", "{train_run}"], "--data /elsewhere/piles there"),
 ]
 TR = [  # train_regressor
     (["--labels", "/nonexistent"], "--labels"), (["--labels", "{labels_missing}"], "--labels"),

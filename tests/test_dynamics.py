@@ -179,12 +179,12 @@ def test_pair_table_equals_per_edge_codes(config, edge_dtype):
 @pytest.mark.parametrize("pair", [False, True])
 @pytest.mark.parametrize("k", [4, 200])
 def test_incoming_gradient_equals_autodiff_of_the_formula(pair, k):
-    """The propagation step's hand-written gradient (``_incoming``: receiver terms through the forward pass's
+    """The propagation step's hand-written gradient (``incoming_effects``: receiver terms through the forward pass's
     active-edge counts, sender terms through recomputed active edges) equals autodiff of the plain formula
     Σ_j edge_mask_ij ReLU(c_ij + r_i + s_nij) in every input (r and s side by side), with repeated and masked
     neighbours, on the per-edge constants and on the pair table; with k = 200 most edges are active, so counts pass
     int8's 127."""
-    from dynres_jax.models.dynamics import _incoming
+    from dynres_jax.models.propagation import incoming_effects
 
     rng = np.random.default_rng(1)
     n, h = 12, 8
@@ -199,7 +199,7 @@ def test_incoming_gradient_equals_autodiff_of_the_formula(pair, k):
         r, s = terms[:, :h], terms[:, h:]
         return jnp.sum(jnp.where(edge_mask[..., None], jax.nn.relu(c + r[:, None] + s[neighbours]), 0.0), axis=1)
 
-    ours = lambda c, terms: _incoming(pair, c, neighbours, edge_mask, terms)  # noqa: E731
+    ours = lambda c, terms: incoming_effects(pair, c, neighbours, edge_mask, terms)  # noqa: E731
     (a, vjp_a), (b, vjp_b) = (jax.vjp(f, constant, node_terms) for f in (formula, ours))
     np.testing.assert_allclose(b, a, rtol=1e-6, atol=1e-6)
     for x, y in zip(vjp_b(grad), vjp_a(grad), strict=True):

@@ -4,6 +4,8 @@ control/ never asks what kind of worlds it pushes, and no module of the library 
 import ast
 import pathlib
 
+import pytest
+
 PACKAGE = pathlib.Path(__file__).resolve().parent.parent / "dynres_jax"
 
 
@@ -40,3 +42,24 @@ def test_no_module_over_400_lines():
     long = {p.relative_to(PACKAGE).as_posix(): n for p in PACKAGE.rglob("*.py")
             if (n := len(p.read_text().splitlines())) > 400}
     assert not long, long
+
+
+def test_the_package_face_is_light_and_complete():
+    """``import dynres_jax.config`` and ``dynres_jax.sim`` load neither OpenCV nor the control layer (the face imports
+    on first use), and every name the face offers resolves to the object of its home module."""
+    import subprocess
+    import sys
+
+    code = ("import sys, dynres_jax.config, dynres_jax.sim; "
+            "print(sorted(m for m in ('cv2', 'dynres_jax.control', 'dynres_jax.learn') if m in sys.modules))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0 and out.stdout.strip() == "[]", out.stdout + out.stderr[-2000:]
+    import importlib
+
+    import dynres_jax
+    from dynres_jax import _HOMES
+
+    for name in dynres_jax.__all__:
+        assert getattr(dynres_jax, name) is getattr(importlib.import_module(f"dynres_jax.{_HOMES[name]}"), name)
+    with pytest.raises(AttributeError, match="no attribute 'nothing'"):
+        dynres_jax.nothing  # noqa: B018

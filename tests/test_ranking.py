@@ -69,8 +69,8 @@ def tiny_set(tmp_path_factory):
     from studies import ranking as study
 
     out = tmp_path_factory.mktemp("ranking")
-    study.main(["build", "--out", str(out), "--episodes", "2", "--samples", "4", "--adam-steps", "2", "--capture",
-                "0", "1", "--workers", "2", "--kind", "coffee", "--pieces", "30"])
+    study.main(["build", "--out", str(out), "--episodes", "3", "--samples", "4", "--adam-steps", "2", "--capture",
+                "0", "--workers", "2", "--kind", "coffee", "--pieces", "30"])
     return str(out)
 
 
@@ -79,18 +79,18 @@ def test_a_tiny_set_is_built_from_the_closed_loop_and_scored(tiny_set, tmp_path)
 
     s = ranking.load(tiny_set)
     c = 4 + 1  # the planner's samples and its best
-    assert len(s.group) == 4 and s.candidates.shape == (4, c, 4) and s.true_c.shape == (4, c)
-    assert s.true_positions.shape == (4, c) + s.positions.shape[1:]
+    assert len(s.group) == 3 and s.candidates.shape == (3, c, 4) and s.true_c.shape == (3, c)
+    assert s.true_positions.shape == (3, c) + s.positions.shape[1:]
     # the true outcome moved the particles the push swept, and kept masked slots at zero
     moved = np.linalg.norm(s.true_positions - s.positions[:, None], axis=-1)
     assert np.any(moved[:, :, s.mask[0]] > 0.005) and np.all(s.true_positions[:, :, ~s.mask[0]] == 0)
     sweep = load_dynamics("sweep", None, s.sim.scene.plate_half_width).dynamics
     c_pred, final = ranking.predict(s, sweep)
-    assert c_pred.shape == (4, c) and np.all(np.isfinite(c_pred))
+    assert c_pred.shape == (3, c) and np.all(np.isfinite(c_pred))
     results = study.main(["score", "--set", tiny_set, "--ckpt", "shipped", "sweep", "--out", str(tmp_path / "t.md")])
     table = (tmp_path / "t.md").read_text()
-    assert "| shipped (all) | 4 |" in table and "| sweep (gather coffee) | 4 |" in table
-    assert "| physics (twin) (all) | 4 |" in table and "error_mm" not in results["physics (twin)"]["all"]
+    assert "| shipped (all) | 3 |" in table and "| sweep (gather coffee) | 3 |" in table
+    assert "| physics (twin) (all) | 3 |" in table and "error_mm" not in results["physics (twin)"]["all"]
     assert s.twin_c.shape == s.true_c.shape and np.all(np.isfinite(s.twin_c)) and not np.array_equal(s.twin_c, s.true_c)
     assert -1 <= results["shipped"]["all"]["spearman"]["mean"] <= 1 and results["sweep"]["all"]["error_mm"]["mean"] > 0
     # the truth is c of the carried particles: recomputed from them, it is the saved true c

@@ -75,6 +75,8 @@ def main(argv=None) -> dict:
             check_room(scene)
     except (ValueError, TypeError) as e:
         parser.error(str(e))
+    if args.policy is not None and config.planned == 0:
+        parser.error("--policy plans the on-policy pushes: it needs --planned above 0")
     if config.planned > 0 and ckpt.latest_step(on_policy.policy_dir(config.policy)) is None:
         parser.error(f"--policy {config.policy}: no checkpoint there (a folder with a finished step, RUN/ckpt)")
     checks.claim(args.out, "generate_data", checks.settings(args), args.fresh)

@@ -111,6 +111,9 @@ def main(argv=None):
         distributed.check_batch(cfg.batch, distributed.batch_mesh())
     except (ValueError, TypeError) as e:
         parser.error(str(e))
+    twice = sorted({f for f in args.data if [os.path.abspath(g) for g in args.data].count(os.path.abspath(f)) > 1})
+    if twice:
+        parser.error(f"--data names {', '.join(twice)} twice: its episodes would count twice")
     for folder in args.data:
         check_data(folder, cfg)
     checks.claim(args.out, "train_dynamics", checks.settings(args, ignore=(*SCHEDULE, "max_minutes")), args.fresh)
