@@ -31,7 +31,7 @@ from dynres_jax.control import tasks
 from dynres_jax.control.choosers import FixedOmega
 from dynres_jax.control.decision import decide_batch
 from dynres_jax.control.goals import make_goal, stack
-from dynres_jax.control.mpc import MPCConfig, _scorer, fold, run
+from dynres_jax.control.mpc import MPCConfig, fold, run, scorer
 from dynres_jax.control.objective import objective
 from dynres_jax.control.planner import planner_config
 from dynres_jax.learn import ranking
@@ -96,7 +96,7 @@ def build(args) -> ranking.RankingSet:
 
         print(f"closed loop: {args.episodes} episodes of {args.task} ({args.kind}), {cfg.mpc_steps} steps")
         run(pool, pool.reset(piles), FixedOmega(goals, args.omega), model.dynamics, cfg, keys, on_step=[keep])
-        score = _scorer(camera, tuple(np.asarray(pool.scene.kind).tolist()))
+        score = scorer(camera, tuple(np.asarray(pool.scene.kind).tolist()))
         parts = []
         for t in args.capture:
             t0 = time.perf_counter()

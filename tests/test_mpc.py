@@ -24,7 +24,7 @@ from dynres_jax.control.choosers import (
 )
 from dynres_jax.control.decision import batch, decide_batch, goal_cost
 from dynres_jax.control.goals import disc_goal, make_goal
-from dynres_jax.control.mpc import MPCConfig, _scorer, fold, run, run_episode
+from dynres_jax.control.mpc import MPCConfig, fold, run, run_episode, scorer
 from dynres_jax.control.objective import distribution_distance
 from dynres_jax.control.planner import PlannerConfig, _plan_jit, plan
 from dynres_jax.io.draw import PUSH_COLOUR, goal_frames, overlay
@@ -261,7 +261,7 @@ def test_simulator_scored_keeps_the_sample_with_the_lowest_true_d(three):
     _, _, result = decide_batch(starts.obs, goals, fold(keys, 0), jnp.zeros((3, 1, 4)), False, omega, zero,
                                 spec=cfg.spec(6), dynamics=sweep_dynamics(0.04), camera=pool.camera)
     samples = np.asarray(result.actions)[:, :, 0]  # [B, M, 4]
-    score = _scorer(pool.camera, tuple(np.asarray(pool.scene.kind).tolist()))
+    score = scorer(pool.camera, tuple(np.asarray(pool.scene.kind).tolist()))
     four = lambda x: jnp.concatenate([jnp.asarray(x)] * 4)  # noqa: E731
     d = np.stack([np.asarray(score(pool.push(jax.tree.map(four, starts), four(samples[:, m])),
                                    jax.tree.map(four, goals))["distance"])[:3] for m in range(4)], 1)

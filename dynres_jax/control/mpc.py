@@ -247,7 +247,7 @@ def run(worlds: Worlds, states: State, chooser: Chooser, dynamics, cfg: MPCConfi
     if cfg.time_budget is not None and timing is None:
         raise ValueError("a closed loop under a time budget needs a timing table (mpc.measure_timing, --timing FILE)")
     view = view or ExactView(worlds.camera)
-    score = _scorer(worlds.camera, tuple(np.asarray(worlds.scene.kind).tolist()))
+    score = scorer(worlds.camera, tuple(np.asarray(worlds.scene.kind).tolist()))
     records, warm = [], False
     init = jnp.zeros((len(keys), cfg.planner.horizon, 4), jnp.float32)  # no warm start at the first step
     for t in range(cfg.mpc_steps):
@@ -361,7 +361,7 @@ def _planning_seconds(kept: dict, timing: budget.TimingTable | None) -> np.ndarr
 
 
 @functools.cache
-def _scorer(camera, piece_kinds: tuple[int, ...]):
+def scorer(camera, piece_kinds: tuple[int, ...]):
     """A jitted ``(states [B], goals [B]) -> {distance, inside}`` on the true state (``_measure``)."""
     one = per_episode(functools.partial(_measure, camera, jnp.asarray(piece_kinds)))
     scores = jax.jit(lambda obs, pos, goals: one(obs, pos, goals))
