@@ -179,7 +179,10 @@ def test_a_recipe_is_its_shipped_checkpoints_config(recipe, shipped, monkeypatch
 
     meta = ckpt.load_module(getattr(registry, shipped), build_model)[1]
     cfg = RECIPES[recipe]
-    assert dataclasses.asdict(cfg.model) == meta["dynamics"]
+    model, recorded_model = dataclasses.asdict(cfg.model), meta["dynamics"]
+    assert {k: v for k, v in model.items() if k in recorded_model} == recorded_model
+    defaults = dataclasses.asdict(type(cfg.model)())  # fields added since the card was written: their defaults
+    assert all(model[k] == defaults[k] for k in model if k not in recorded_model)
     recorded = {k: v for k, v in meta["train"].items() if k != "model"}
     assert {k: list(v) if isinstance(v, tuple) else v for k, v in dataclasses.asdict(cfg).items()
             if k in recorded} == recorded
