@@ -13,6 +13,9 @@
 #    JTULY, COUNT episodes each, seeds from 6000) for the shipped model and each variant.
 # Results: $WORK/results/ (logs, probe and run metrics, ranking and floor tables, lanes); $WORK/done at the end.
 #   setsid nohup bash scripts/gpu_dynamics_scale.sh > /tmp/scale.log 2>&1 &
+# On the lent machines: carry the wheels, $OLD and $RANKING on every call that runs or polls it (a carried folder is
+# removed from the machine by a call that does not carry it: 2026-11-26's old-trainer probe and ranking stage failed
+# so), and call python3 through a wrapper script, not a symbolic link (a link to a venv's python leaves the venv).
 # Env: WORK (/tmp/s48), OLD (.old), RANKING (.rk: ranking sets), EPISODES_R (2048), EPISODES_P (256 a GPU),
 # MINUTES (6), COUNT (64), VARIANTS ("NAME BATCH LR FLAGS;..."). A CPU dry run: EPISODES_R=10 EPISODES_P=10 MINUTES=0.3
 # COUNT=1 DATA_FLAGS="--kinds coffee --pieces 20 20 --two-kinds 0 --image-size 64" PROBE=4 RANKING=/tmp/rk_test
