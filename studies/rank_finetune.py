@@ -115,10 +115,7 @@ def main(argv=None) -> dict:
     with open(os.path.join(args.out, "rank_finetune.json"), "w") as f:
         json.dump(results, f, indent=1)
     ranking.write_table({"before": before, "after": after}, os.path.join(args.out, "rank_finetune.md"))
-    for name, r in (("before", before), ("after", after)):
-        a = r["all"]
-        print(f"{name}: Spearman {a['spearman']['mean']:.3f}, top-5 {a['top5']['mean']:.2f}, regret "
-              f"{a['regret']['mean']:.2f} px, one-step {a['error_mm']['mean']:.2f} mm")
+    print(f"before: {ranking.headline(before)}\nafter: {ranking.headline(after)}")
     return results
 
 

@@ -138,9 +138,7 @@ def score(args) -> dict:
                                   sets.sim.scene.plate_half_width)
         t0 = time.perf_counter()
         results[name] = ranking.score_model(sets, model.dynamics)
-        a = results[name]["all"]
-        print(f"{name}: Spearman {a['spearman']['mean']:.3f}, regret {a['regret']['mean']:.3f} px, top-5 "
-              f"{a['top5']['mean']:.2f}, one-step {a['error_mm']['mean']:.2f} mm ({time.perf_counter() - t0:.0f} s)")
+        print(f"{name}: {ranking.headline(results[name])} ({time.perf_counter() - t0:.0f} s)")
     os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
     ranking.write_table(results, args.out)
     return results

@@ -210,6 +210,13 @@ def score_ceiling(ranking: RankingSet) -> dict:
     return by_group(ranking, ranking_scores(ranking.twin_c, ranking.true_c))
 
 
+def headline(scores: dict) -> str:
+    """One line of a ``score_model`` (or ``score_ceiling``) result's "all" row: Spearman, top-5, regret, one-step."""
+    a = scores["all"]
+    line = f"Spearman {a['spearman']['mean']:.3f}, top-5 {a['top5']['mean']:.2f}, regret {a['regret']['mean']:.2f} px"
+    return line + (f", one-step {a['error_mm']['mean']:.2f} mm" if "error_mm" in a else "")
+
+
 def write_table(results: dict, path: str) -> None:
     """results {model name: ``score_model``} -> a Markdown table (one row per model and group; a score a row lacks is
     left blank) and the JSON beside it."""
