@@ -1,7 +1,7 @@
 """Statistics of paired evaluations: every method sees the same episodes, so methods are compared episode by episode.
 
 - ``paired_bootstrap``: the mean of per-episode differences with a 95 % percentile-bootstrap interval (episodes
-  resampled with replacement, the same draw for both methods: the pairing is kept).
+  resampled with replacement, the same draw for both methods: the pairing is kept); ``bootstrap_mean`` of any values.
 - ``mcnemar``: the exact McNemar test on paired successes (a two-sided binomial test on the discordant pairs).
 - ``wilson``: the 95 % Wilson interval of one success rate.
 """
@@ -23,10 +23,16 @@ def paired_bootstrap(first, second, *, samples: int = BOOTSTRAP_SAMPLES, seed: i
     if first.shape != second.shape or first.ndim != 1 or len(first) < 2:
         raise ValueError(f"paired values must be two [E] arrays with E >= 2, got {first.shape} and {second.shape}")
     delta = first - second
-    draws = np.random.default_rng(seed).integers(0, len(delta), size=(samples, len(delta)))
-    means = delta[draws].mean(axis=1)
-    lo, hi = np.percentile(means, [2.5, 97.5])
-    return dict(mean=float(delta.mean()), ci95=(float(lo), float(hi)), episodes=len(delta))
+    return dict(bootstrap_mean(delta, np.random.default_rng(seed), samples), episodes=len(delta))
+
+
+def bootstrap_mean(values, rng: np.random.Generator, samples: int = BOOTSTRAP_SAMPLES) -> dict:
+    """values [E] -> {"mean": their mean, "ci95": (lo, hi) its 95 % percentile-bootstrap interval} (values resampled
+    with replacement, ``samples`` times, from ``rng``)."""
+    values = np.asarray(values, np.float64)
+    draws = rng.integers(0, len(values), size=(samples, len(values)))
+    lo, hi = np.percentile(values[draws].mean(axis=1), [2.5, 97.5])
+    return dict(mean=float(values.mean()), ci95=(float(lo), float(hi)))
 
 
 def mcnemar(first, second) -> dict:

@@ -23,7 +23,6 @@ import numpy as np
 import optax
 from flax import nnx
 
-from dynres_jax.control.goals import make_goal, stack
 from dynres_jax.control.objective import objective
 from dynres_jax.io import ckpt
 from dynres_jax.learn import ranking
@@ -52,9 +51,8 @@ def state_losses(graphdef, params, state, camera, temperature: float):
 
 def arrays(s: ranking.RankingSet):
     """A set as the tuple ``state_losses`` takes, batched over states (goals rebuilt from their masks)."""
-    goals = stack([make_goal(m, s.camera) for m in s.goal_mask])
-    return (jnp.asarray(s.positions), jnp.asarray(s.mask), jnp.asarray(s.radius), goals, jnp.asarray(s.candidates),
-            jnp.asarray(s.true_c), jnp.asarray(s.true_positions))
+    return (jnp.asarray(s.positions), jnp.asarray(s.mask), jnp.asarray(s.radius), ranking.goals(s),
+            jnp.asarray(s.candidates), jnp.asarray(s.true_c), jnp.asarray(s.true_positions))
 
 
 def finetune(model, train: ranking.RankingSet, *, steps: int, batch: int, lr: float, temperature: float,

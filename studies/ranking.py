@@ -35,10 +35,10 @@ from dynres_jax.control.mpc import MPCConfig, fold, run, scorer
 from dynres_jax.control.objective import objective
 from dynres_jax.control.planner import planner_config
 from dynres_jax.learn import ranking
-from dynres_jax.learn.targets import attach_particles
+from dynres_jax.learn.targets import attach_particles, particle_trajectory
 from dynres_jax.models.registry import SHIPPED_DYNAMICS, load_dynamics
 from dynres_jax.sim.pool import WorldPool, process_pool
-from studies.noise_floor import perturb  # noqa: E402
+from studies.noise_floor import perturb
 
 CAPTURE_FOLD = 1 << 21  # a kept state's re-planning keys fold this + its step into the episode's keys
 
@@ -56,8 +56,7 @@ def carried(states, particles, camera, after):
 
     def one(obs_piece, pos, mat, p, m, pos_after, mat_after):
         index, local = attach_particles(p, m, pos, mat, obs_piece, camera)
-        moved = pos_after[jnp.maximum(index, 0)] + jnp.einsum("nij,nj->ni", mat_after[jnp.maximum(index, 0)], local)
-        return jnp.where(m[:, None], moved, 0.0)
+        return particle_trajectory(index, local, pos_after[None], mat_after[None])[0]
 
     return jax.vmap(one)(states.obs.piece, states.pos, states.mat, particles.positions, particles.mask, after.pos,
                          after.mat)

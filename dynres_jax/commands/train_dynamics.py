@@ -111,7 +111,8 @@ def main(argv=None):
         distributed.check_batch(cfg.batch, distributed.batch_mesh())
     except (ValueError, TypeError) as e:
         parser.error(str(e))
-    twice = sorted({f for f in args.data if [os.path.abspath(g) for g in args.data].count(os.path.abspath(f)) > 1})
+    absolute = [os.path.abspath(f) for f in args.data]
+    twice = sorted({f for f, a in zip(args.data, absolute, strict=True) if absolute.count(a) > 1})
     if twice:
         parser.error(f"--data names {', '.join(twice)} twice: its episodes would count twice")
     for folder in args.data:

@@ -26,10 +26,11 @@ import numpy as np
 
 from dynres_jax.config import SimConfig
 from dynres_jax.control.decision import goal_cost
-from dynres_jax.control.goals import make_goal, stack
+from dynres_jax.control.goals import Goal, make_goal, stack
 from dynres_jax.errors import InputError
 from dynres_jax.io.shards import save_npz
 from dynres_jax.sim.camera import Camera
+from dynres_jax.stats import bootstrap_mean
 
 TOP = 5  # a pick counts as good when it is among the true TOP best candidates
 BOOTSTRAP = 2000  # resamplings of the states for the intervals
@@ -116,13 +117,16 @@ def _predict(positions, mask, radius, goals, candidates, *, dynamics, camera):
     return jax.lax.map(lambda x: state(*x), (positions, mask, radius, goals, candidates))
 
 
+def goals(ranking: RankingSet) -> Goal:
+    """The states' goals [S], rebuilt from their masks (``make_goal``)."""
+    return stack([make_goal(m, ranking.camera) for m in ranking.goal_mask])
+
+
 def predict(ranking: RankingSet, dynamics) -> tuple[np.ndarray, np.ndarray]:
     """A planner dynamics (``registry``: radius -> (positions, mask, actions) -> [T, N, 3]) on every candidate of a
     set: (predicted c [S, C] pixels, predicted particles [S, C, N, 3] m)."""
-    camera = ranking.camera
-    goals = stack([make_goal(m, camera) for m in ranking.goal_mask])
-    c, final = _predict(jnp.asarray(ranking.positions), jnp.asarray(ranking.mask), jnp.asarray(ranking.radius), goals,
-                        jnp.asarray(ranking.candidates), dynamics=dynamics, camera=camera)
+    c, final = _predict(jnp.asarray(ranking.positions), jnp.asarray(ranking.mask), jnp.asarray(ranking.radius),
+                        goals(ranking), jnp.asarray(ranking.candidates), dynamics=dynamics, camera=ranking.camera)
     return np.asarray(c), np.asarray(final)
 
 
@@ -179,14 +183,11 @@ def ranking_scores(predicted_c, true_c, predicted_positions=None, true_positions
 
 def summarise(scores: dict, seed: int = 0) -> dict:
     """Per score: the mean over states and its 95 % percentile-bootstrap interval (states resampled)."""
-    rng = np.random.default_rng(seed)
+    rng = np.random.default_rng(seed)  # one stream over the scores, in their order
     out = {}
     for name, values in scores.items():
-        values = np.asarray(values, np.float64)
-        idx = rng.integers(0, len(values), (BOOTSTRAP, len(values)))
-        means = values[idx].mean(1)
-        out[name] = dict(mean=float(values.mean()), ci95=[float(np.percentile(means, 2.5)),
-                                                          float(np.percentile(means, 97.5))])
+        one = bootstrap_mean(values, rng, BOOTSTRAP)
+        out[name] = dict(mean=one["mean"], ci95=list(one["ci95"]))
     return out
 
 

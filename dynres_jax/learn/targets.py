@@ -179,11 +179,16 @@ def windows(data: Dataset, rows, t, horizon: int = 5) -> Window:
         raise ValueError(f"horizon={horizon} must be in [1, pushes per episode = {data.pushes}]")
     if rows.shape != t.shape or np.any(t < 0) or np.any(t > data.pushes - horizon):
         raise ValueError(f"t must match rows in shape and lie in [0, {data.pushes - horizon}] (pushes - horizon)")
+    return _cut(data, rows, t, horizon)
+
+
+def _cut(data, rows, t, horizon: int) -> Window:
+    """The windows at rows [B] and start frames t [B] of a Dataset or Frames (NumPy in, NumPy out; JAX in, JAX out)."""
     span = t[:, None] + np.arange(horizon + 1)
     r = rows[:, None]
-    pos, mat, action = data.pos[r, span], data.mat[r, span], data.action[r, span[:, :-1]]
-    return Window(data.depth[rows, t].astype(np.float32), data.piece[rows, t].astype(np.int32), pos, mat,
-                  data.piece_mask[rows], data.kind[rows].astype(np.int32), action)
+    return Window(data.depth[rows, t].astype(np.float32), data.piece[rows, t].astype(np.int32), data.pos[r, span],
+                  data.mat[r, span], data.piece_mask[rows], data.kind[rows].astype(np.int32),
+                  data.action[r, span[:, :-1]])
 
 
 def random_windows(data: Dataset, rng: np.random.Generator, batch: int, horizon: int = 5) -> Window:
@@ -212,11 +217,7 @@ def draw_windows(frames: Frames, key, batch: int, horizon: int) -> Window:
     k_rows, k_t = jax.random.split(key)
     rows = jax.random.randint(k_rows, (batch,), 0, episodes)
     t = jax.random.randint(k_t, (batch,), 0, pushes - horizon + 1)
-    span = t[:, None] + jnp.arange(horizon + 1)
-    r = rows[:, None]
-    return Window(frames.depth[rows, t].astype(jnp.float32), frames.piece[rows, t].astype(jnp.int32),
-                  frames.pos[r, span], frames.mat[r, span], frames.piece_mask[rows],
-                  frames.kind[rows].astype(jnp.int32), frames.action[r, span[:, :-1]])
+    return _cut(frames, rows, t, horizon)
 
 
 class Sample(NamedTuple):
