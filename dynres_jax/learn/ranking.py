@@ -23,6 +23,7 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
+from scipy.stats import rankdata
 
 from dynres_jax.config import SimConfig
 from dynres_jax.control.decision import goal_cost
@@ -132,15 +133,7 @@ def predict(ranking: RankingSet, dynamics) -> tuple[np.ndarray, np.ndarray]:
 
 def _ranks(x):
     """Ranks 0..C-1 of each row of x [S, C] (average ranks on ties)."""
-    order = np.argsort(x, axis=1, kind="stable")
-    ranks = np.empty_like(x, dtype=np.float64)
-    np.put_along_axis(ranks, order, np.arange(x.shape[1], dtype=np.float64)[None].repeat(len(x), 0), axis=1)
-    for s in range(len(x)):  # ties (rare for floats): the mean rank of the tied values
-        values, inverse, counts = np.unique(x[s], return_inverse=True, return_counts=True)
-        if len(values) < x.shape[1]:
-            sums = np.bincount(inverse, ranks[s])
-            ranks[s] = (sums / counts)[inverse]
-    return ranks
+    return rankdata(x, axis=1) - 1.0
 
 
 def spearman(predicted, true) -> np.ndarray:
