@@ -19,7 +19,7 @@ OUT=${OUT:-runs/ladder}; WORK=${WORK:-/tmp/ladder}; SEED=${SEED:-5000}; LETTERS=
 JOBS=${JOBS:?JOBS names a file of job lines}
 lanes=$(awk 'NF && $1 !~ /^#/ {print $1}' "$JOBS" | sort -u)
 gpus=$(nvidia-smi -L 2>/dev/null | wc -l); gpus=$((gpus > 0 ? gpus : 1))
-cores=$(nproc); share=$((cores / $(echo "$lanes" | wc -w)))
+cores=$(nproc); share=$((cores / $(echo "$lanes" | wc -w))); share=$((share > 0 ? share : 1))
 XLA_PYTHON_CLIENT_MEM_FRACTION=$(python -c "print(round(0.9 / -(-$(echo "$lanes" | wc -w) // $gpus), 3))")
 export XLA_PYTHON_CLIENT_MEM_FRACTION
 mkdir -p "$OUT" "$WORK"

@@ -9,6 +9,8 @@ core until a study shows it does.
 
     python -m studies.rank_finetune --train docs/dynamics_scale/sets/gather_mnm.npz \
         --test docs/dynamics_scale/sets/redistribute_jtuly.npz --out runs/rank_finetune --steps 300
+
+Rounds of on-policy candidates (plan with model k, fine-tune model k + 1 on its candidates): scripts/gpu_rank_rounds.sh.
 """
 
 from __future__ import annotations
@@ -98,16 +100,23 @@ def main(argv=None) -> dict:
     parser.add_argument("--rank-weight", type=float, default=1.0, help="0: the position loss alone (the control)")
     parser.add_argument("--position-weight", type=float, default=1.0)
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--save", default=None,
+                        help="a new folder: the fine-tuned model as a checkpoint (--ckpt's card, plus these settings), "
+                             "for evaluate --ckpt or the next round's --policy")
     args = parser.parse_args(argv)
     if args.steps < 1 or args.batch < 1 or not args.lr > 0 or not args.temperature > 0 or min(
             args.rank_weight, args.position_weight) < 0:
         parser.error("--steps and --batch must be >= 1, --lr and --temperature > 0, the weights >= 0")
+    if args.save and os.path.exists(args.save):
+        parser.error(f"--save {args.save} exists: a fine-tuned checkpoint is written to a new folder")
     train, test = (ranking.concatenate([ranking.load(p) for p in paths]) for paths in (args.train, args.test))
-    model, _, _ = ckpt.load_module(args.ckpt, build_model)
+    model, meta, _ = ckpt.load_module(args.ckpt, build_model)
     before = ranking.score_model(test, learned_dynamics(model))
     tuned = finetune(model, train, steps=args.steps, batch=args.batch, lr=args.lr, temperature=args.temperature,
                      rank_weight=args.rank_weight, position_weight=args.position_weight, seed=args.seed)
     after = ranking.score_model(test, learned_dynamics(tuned))
+    if args.save:
+        ckpt.save_module(args.save, args.steps, tuned, {**meta, "rank_finetune": vars(args)})
     results = {"before": before, "after": after, "settings": {k: v for k, v in vars(args).items()}}
     os.makedirs(args.out, exist_ok=True)
     with open(os.path.join(args.out, "rank_finetune.json"), "w") as f:

@@ -13,7 +13,8 @@ every candidate's first push is pushed on a copy of the world in C MuJoCo; the p
 with their pieces to where the push left them (the true outcome). Written atomically to ``OUT/ranking_set.npz``.
 
 score: each model (a checkpoint folder, ``shipped``, or ``sweep`` for the sweep heuristic) on every set, beside the
-physics ceiling (the twin's c as the prediction); a Markdown table and its JSON.
+physics ceiling (the twin's c as the prediction; left out where a set was built without twins, ``--twin-sigma 0``);
+a Markdown table and its JSON.
 """
 
 from __future__ import annotations
@@ -109,12 +110,15 @@ def build(args) -> ranking.RankingSet:
             tile = lambda x, c=c: jax.tree.map(lambda y: jnp.concatenate([jnp.asarray(y)] * c), x)  # noqa: E731
             pushes = candidates.transpose(1, 0, 2).reshape(c * b, 4)  # candidate-major: [C * B, ...]
             after = pool.push(tile(states), pushes)
-            twin = pool.push(perturb(tile(states), pool.scene.qpos_adr, args.twin_sigma / 1000,
-                                     jax.random.PRNGKey(args.seed * 1000 + t)), pushes)
             d = np.asarray(score(after, tile(goals))["distance"]).reshape(c, b).T
             moved, true_c = outcome(tile(states), tile(particles), after, goals, camera, c)
-            _, twin_c = outcome(tile(states), tile(particles), twin, goals, camera, c)
-            broken = np.asarray(after.broken | twin.broken).reshape(c, b).T.any(1)
+            broken = np.asarray(after.broken).reshape(c, b).T.any(1)
+            twin_c = np.full_like(true_c, np.nan)
+            if args.twin_sigma > 0:
+                twin = pool.push(perturb(tile(states), pool.scene.qpos_adr, args.twin_sigma / 1000,
+                                         jax.random.PRNGKey(args.seed * 1000 + t)), pushes)
+                _, twin_c = outcome(tile(states), tile(particles), twin, goals, camera, c)
+                broken |= np.asarray(twin.broken).reshape(c, b).T.any(1)
             ok = ~broken & (np.asarray(particles.error) == 0)
             parts.append(ranking.RankingSet(
                 group=np.array([f"{args.task} {args.kind}"] * int(ok.sum())),
@@ -128,7 +132,7 @@ def build(args) -> ranking.RankingSet:
 
 def score(args) -> dict:
     sets = ranking.concatenate([ranking.load(path) for path in args.set])
-    results = {"physics (twin)": ranking.score_ceiling(sets)}
+    results = {"physics (twin)": ranking.score_ceiling(sets)} if np.isfinite(sets.twin_c).all() else {}
     for name in args.ckpt:
         if name == "sweep":
             model = load_dynamics("sweep", None, sets.sim.scene.plate_half_width)
@@ -162,15 +166,16 @@ def main(argv=None):
     b.add_argument("--workers", type=int, default=None)
     b.add_argument("--twin-sigma", type=float, default=1.0,
                    help="mm: each candidate is also pushed on a twin world whose pieces are moved by N(0, σ²) in x and "
-                        "y; the twin's ranking of the candidates is the physics ceiling")
+                        "y; the twin's ranking of the candidates is the physics ceiling (0: no twin, half the pushes; "
+                        "a set to train on)")
     s = sub.add_parser("score", help="models on sets")
     s.add_argument("--set", nargs="+", required=True)
     s.add_argument("--ckpt", nargs="+", default=["shipped", "sweep"])
     s.add_argument("--out", required=True, help="the table (.md; its JSON beside it)")
     args = parser.parse_args(argv)
     if args.command == "build":
-        if min(args.capture) < 0 or args.episodes < 1 or not 1 <= args.omega <= 64:
-            parser.error("--capture steps must be >= 0, --episodes >= 1 and --omega in [1, 64]")
+        if min(args.capture) < 0 or args.episodes < 1 or not 1 <= args.omega <= 64 or args.twin_sigma < 0:
+            parser.error("--capture steps must be >= 0, --episodes >= 1, --omega in [1, 64], --twin-sigma >= 0")
         path = os.path.join(args.out, ranking.SET_FILE)
         if os.path.exists(path):
             parser.error(f"{path} exists: a set is built once (another --out for another)")

@@ -150,3 +150,34 @@ def test_rank_finetuning_lowers_the_listwise_loss_it_trains():
     tuned = finetune(model, s, steps=10, batch=6, lr=1e-3, temperature=1.0, rank_weight=1.0, position_weight=0.0,
                      log=lambda *_: None)
     assert loss(tuned) < 0.8 * loss(model)
+
+
+def test_a_set_without_twins_is_scored_without_the_ceiling(tiny_set, tmp_path):
+    from dynres_jax.errors import InputError
+    from studies import ranking as study
+
+    s = ranking.load(tiny_set)
+    bare = s._replace(twin_c=np.full_like(s.twin_c, np.nan))
+    with pytest.raises(InputError, match="no twins"):
+        ranking.score_ceiling(bare)
+    ranking.save(str(tmp_path / "bare.npz"), bare)
+    results = study.main(["score", "--set", str(tmp_path / "bare.npz"), "--ckpt", "sweep", "--out",
+                          str(tmp_path / "t.md")])
+    assert list(results) == ["sweep"]
+
+
+def test_rank_finetune_saves_a_checkpoint_the_planner_loads(tiny_set, tmp_path):
+    """--save writes the fine-tuned model with the source's card: it loads as a planner model, predicts otherwise than
+    the source, and a second run refuses to overwrite it."""
+    from dynres_jax.models.registry import SHIPPED_DYNAMICS
+    from studies import rank_finetune
+
+    out = str(tmp_path / "tuned")
+    rank_finetune.main(["--train", tiny_set, "--test", tiny_set, "--out", str(tmp_path / "r"), "--steps", "3",
+                        "--batch", "2", "--lr", "1e-3", "--save", out])
+    s = ranking.load(tiny_set)
+    tuned = ranking.predict(s, load_dynamics("learned", out, s.sim.scene.plate_half_width).dynamics)[1]
+    source = ranking.predict(s, load_dynamics("learned", SHIPPED_DYNAMICS, s.sim.scene.plate_half_width).dynamics)[1]
+    assert np.abs(tuned - source).max() > 1e-5
+    with pytest.raises(SystemExit):
+        rank_finetune.main(["--train", tiny_set, "--test", tiny_set, "--out", str(tmp_path / "r"), "--save", out])

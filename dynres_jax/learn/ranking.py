@@ -45,7 +45,8 @@ class RankingSet(NamedTuple):
     carried with their pieces by each push in the simulator; true_c [S, C]: c of those (pixels); true_d [S, C]: the
     distance d of the simulated frame after each push (pixels); twin_c [S, C]: c of the particles carried by each
     push on a twin of the world whose pieces were moved by about a millimetre (the physics ceiling: how well the
-    world itself, known to within a millimetre, ranks the candidates); sim: the scenes' SimConfig (its camera)."""
+    world itself, known to within a millimetre, ranks the candidates; NaN in a set built without twins);
+    sim: the scenes' SimConfig (its camera)."""
 
     group: np.ndarray
     positions: np.ndarray
@@ -200,7 +201,10 @@ def score_model(ranking: RankingSet, dynamics) -> dict:
 
 
 def score_ceiling(ranking: RankingSet) -> dict:
-    """The physics ceiling in ``score_model``'s form: the twin's c ranking the candidates (no particle error)."""
+    """The physics ceiling in ``score_model``'s form: the twin's c ranking the candidates (no particle error).
+    InputError for a set built without twins (its twin_c NaN)."""
+    if not np.isfinite(ranking.twin_c).all():
+        raise InputError("this ranking set has no twins (built with --twin-sigma 0): no physics ceiling")
     return by_group(ranking, ranking_scores(ranking.twin_c, ranking.true_c))
 
 
