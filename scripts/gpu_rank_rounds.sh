@@ -9,14 +9,16 @@
 # The next round: POLICY=a fine-tuned checkpoint of this one, ROUND=2 (new seeds for the sets).
 # Results: $WORK/results/ (logs, sets' sizes, ranking tables, lanes, closed_loop.md, each model's ckpt); $WORK/done.
 # Env: WORK (/tmp/rr), POLICY (the shipped checkpoint), ROUND (1), EPISODES (64 a set), CAPTURE ("0 3 6 9"),
-# COUNT (64), STEPS (1000), BATCH (16 states a step), LR (1e-4), VARIANTS ("pos 0;list 1": NAME RANK_WEIGHT),
-# LETTERS_TRAIN (ACEHMNSX: letters never used for tuning or testing), BUILD_FLAGS, FLAGS (more evaluate flags).
+# COUNT (64), STEPS (1000), BATCH (16 states a step), LR (1e-4), VARIANTS ("pos --rank-weight 0;list --rank-weight 1":
+# NAME and rank_finetune's flags), LETTERS_TRAIN (ACEHMNSX: letters never used for tuning or testing), LETTERS (the
+# closed loop's, JTULY), BUILD_FLAGS, FLAGS (more evaluate flags).
 # A CPU dry run: EPISODES=2 CAPTURE=0 COUNT=1 STEPS=2 BUILD_FLAGS="--samples 4 --adam-steps 2 --pieces 30"
 # FLAGS="--quick --samples 4 --adam-steps 2 --mpc-steps 1".
 set -uo pipefail
 WORK=${WORK:-/tmp/rr}; POLICY=$(realpath "${POLICY:-dynres_jax/checkpoints/dynamics}"); ROUND=${ROUND:-1}
 EPISODES=${EPISODES:-64}; CAPTURE=${CAPTURE:-"0 3 6 9"}; COUNT=${COUNT:-64}; STEPS=${STEPS:-1000}
-BATCH=${BATCH:-16}; LR=${LR:-1e-4}; VARIANTS=${VARIANTS:-"pos 0;list 1"}; LETTERS_TRAIN=${LETTERS_TRAIN:-ACEHMNSX}
+BATCH=${BATCH:-16}; LR=${LR:-1e-4}; LETTERS_TRAIN=${LETTERS_TRAIN:-ACEHMNSX}
+VARIANTS=${VARIANTS:-"pos --rank-weight 0;list --rank-weight 1"}
 cores=$(nproc); R=$WORK/results; mkdir -p "$R/logs" "$WORK/sets" "$WORK/runs"
 export XLA_PYTHON_CLIENT_PREALLOCATE=false PYTHONPATH=${PYTHONPATH:+$PYTHONPATH:}$PWD  # builds and lanes share the GPU
 log() { echo "$(date +%T) $*" | tee -a "$R/logs/stages.log"; }
@@ -37,18 +39,18 @@ build "gather_mnm_$ROUND" gather mnm $s "$EPISODES" &
 build "redistribute_$ROUND" redistribute coffee $((s + 10)) "$EPISODES" --letters "$LETTERS_TRAIN" &
 build "gather_almond_$ROUND" gather almond $((s + 20)) $((EPISODES / 2 > 0 ? EPISODES / 2 : 1)) &
 wait
-sets=$(ls "$WORK"/sets/*_"$ROUND"/ranking_set.npz)
+sets=$(ls "$WORK"/sets/*/ranking_set.npz)  # this round's and any earlier round's on this machine (aggregated)
 tests=$(ls docs/dynamics_scale/sets/*.npz)
 
 IFS=';' read -ra specs <<< "$VARIANTS"
 ckpts=()
 for spec in "${specs[@]}"; do
-  read -r name weight <<< "$spec"
+  read -r name flags <<< "$spec"
   name="r${ROUND}$name"; ckpts+=("$WORK/runs/$name/ckpt")  # [a-z0-9]: the ladder table's model names
   [ -d "$WORK/runs/$name/ckpt" ] && continue
   # shellcheck disable=SC2086
   python -m studies.rank_finetune --train $sets --test $tests --ckpt "$POLICY" --out "$WORK/runs/$name" \
-    --steps "$STEPS" --batch "$BATCH" --lr "$LR" --rank-weight "$weight" --save "$WORK/runs/$name/ckpt" \
+    --steps "$STEPS" --batch "$BATCH" --lr "$LR" $flags --save "$WORK/runs/$name/ckpt" \
     > "$R/logs/finetune_$name.log" 2>&1
   log "fine-tune $name: $(tail -2 "$R/logs/finetune_$name.log" | tr '\n' ' ')"
   mkdir -p "$R/runs"
@@ -63,7 +65,7 @@ for c in "$policy_col" "${ckpts[@]}"; do
   echo "$lane gather mnm 50 $COUNT $c" >> "$jobs"; echo "$((lane + 1)) redistribute coffee 50 $COUNT $c" >> "$jobs"
   lane=$((lane + 2))
 done
-OUT=$R/lanes WORK=$WORK/ladder JOBS=$jobs SEED=6000 bash scripts/gpu_ladder.sh > "$R/logs/ladder.log" 2>&1
+OUT=$R/lanes WORK=$WORK/ladder JOBS=$jobs SEED=6000 LETTERS=${LETTERS:-JTULY} bash scripts/gpu_ladder.sh > "$R/logs/ladder.log" 2>&1
 log "closed loop: $(grep -c done "$R/logs/ladder.log") jobs done"
 mkdir -p "$WORK/unpacked"
 for t in "$R"/lanes/*.tar.gz; do tar -xzf "$t" -C "$WORK/unpacked"; done
