@@ -117,7 +117,7 @@ def test_concatenate_pads_slots_and_refuses_other_cameras(tiny_set):
 
 
 def test_listwise_loss_is_listnets_cross_entropy_by_hand():
-    from studies.rank_finetune import listwise
+    from dynres_jax.learn.rank_loss import listwise
 
     pred, true = np.array([2.0, 1.0, 4.0]), np.array([1.0, 3.0, 2.0])
     p = np.exp(-true) / np.exp(-true).sum()
@@ -135,8 +135,8 @@ def test_rank_finetuning_lowers_the_listwise_loss_it_trains():
     from flax import nnx
 
     from dynres_jax.io import ckpt
+    from dynres_jax.learn.rank_loss import arrays, finetune, state_losses
     from dynres_jax.models.registry import SHIPPED_DYNAMICS, build_model
-    from studies.rank_finetune import arrays, finetune, state_losses
 
     full = ranking.load(os.path.join(os.path.dirname(__file__), "..", "docs", "dynamics_scale", "sets",
                                      "gather_mnm.npz"))
