@@ -54,6 +54,33 @@ def test_a_checkpoint_with_non_finite_weights_is_refused(tmp_path):
         ckpt.load_module(str(tmp_path / "ckpt"), build_model)
 
 
+@pytest.fixture(scope="module")
+def tiny_model():
+    cfg = TrainConfig(model=DynamicsConfig(hidden=4))
+    return cfg, make_model(cfg.model)
+
+
+@pytest.mark.parametrize("edit, message", [
+    (lambda c: c.pop("train"), "no train section"),
+    (lambda c: c["train"].update(n_max="100"), "train.n_max must be a whole number in \\[1, 100\\]; got '100'"),
+    (lambda c: c["train"].update(n_max=None), "train.n_max must be a whole number .* got None"),
+    (lambda c: c["train"].update(n_max=0), "got 0"),
+    (lambda c: c["dynamics"].update(k=0), "DynamicsConfig.k must be at least 1"),
+    (lambda c: c["dynamics"].update(edge_radius=-1.0), "DynamicsConfig.edge_radius must be positive"),
+    (lambda c: c["dynamics"].update(propagation_steps=0), "DynamicsConfig.propagation_steps must be at least 1"),
+])
+def test_a_sealed_card_is_read_not_trusted(tiny_model, tmp_path, edit, message):
+    """A card edited and sealed again (its manifest matches) is refused in one line naming the field, before any
+    planning: it was a KeyError, a TypeError, or a model planning with no edges or no message passing."""
+    cfg, model = tiny_model
+    meta = card(cfg)
+    edit(meta)
+    ckpt.save_module(str(tmp_path / "ckpt"), 1, model, meta)
+    with pytest.raises(ckpt.CheckpointError, match=message) as refused:
+        load_dynamics("learned", str(tmp_path / "ckpt"), 0.04)
+    assert str(tmp_path / "ckpt") in str(refused.value) and "\n" not in str(refused.value)
+
+
 def test_a_checkpoint_asked_for_by_name_is_never_replaced_by_the_heuristic(tmp_path, capsys):
     with pytest.raises(FileNotFoundError, match="no checkpoint"):
         load_dynamics("auto", str(tmp_path / "typo"), 0.04)

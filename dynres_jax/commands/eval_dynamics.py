@@ -19,7 +19,7 @@ from dynres_jax.io import ckpt, files
 from dynres_jax.learn import data, targets, train
 from dynres_jax.models.dynamics import resolution_code, rollout
 from dynres_jax.models.graph import SWEEP_REGIONS, sweep_region, sweep_rollout
-from dynres_jax.models.registry import build_model
+from dynres_jax.models.registry import build_model, trained_n_max
 
 METHODS = ("model", "nothing moves", "sweep heuristic")
 
@@ -128,11 +128,12 @@ def main(argv=None):
     args = parser.parse_args(argv)
     try:
         model, meta, _ = ckpt.load_module(args.ckpt, build_model)
+        n_max = trained_n_max(meta, args.ckpt)
     except ckpt.CheckpointError as e:
         parser.error(f"--ckpt: {e}")
     tcfg = meta["train"]
-    if max(args.omegas) > tcfg["n_max"]:
-        parser.error(f"--omegas must be at most the model's n_max = {tcfg['n_max']}")
+    if max(args.omegas) > n_max:
+        parser.error(f"--omegas must be at most the model's n_max = {n_max}")
     if len(set(args.omegas)) < len(args.omegas):
         parser.error(f"--omegas names an ω twice: {args.omegas}")
     val = targets.load_shards(args.data, "val")

@@ -129,6 +129,12 @@ class DynamicsConfig:
 
     def __post_init__(self):
         check_fields(self)
+        for name in ("hidden", "propagation_steps", "k"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"DynamicsConfig.{name} must be at least 1, got {getattr(self, name)!r}")
+        for name in ("plate_half_width", "edge_radius", "length_scale", "bin_half_width"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"DynamicsConfig.{name} must be positive (m), got {getattr(self, name)!r}")
         if self.processor not in PROCESSORS:
             raise ValueError(f"DynamicsConfig.processor must be one of {', '.join(PROCESSORS)}, got {self.processor!r}")
 

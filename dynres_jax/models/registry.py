@@ -120,6 +120,19 @@ class LoadedDynamics(NamedTuple):
     name: str
 
 
+def trained_n_max(meta: dict, where) -> int:
+    """A checkpoint card's ``train.n_max`` (the most particles the model was trained on), checked: a
+    ``ckpt.CheckpointError`` naming the folder ``where`` when the card has no train section or n_max is not a whole
+    number in [1, OMEGA_MAX] (a resealed card is read, not trusted)."""
+    train = meta.get("train")
+    n_max = train.get("n_max") if isinstance(train, dict) else None
+    if isinstance(n_max, bool) or not isinstance(n_max, int) or not 1 <= n_max <= OMEGA_MAX:
+        found = f"got {n_max!r}" if isinstance(train, dict) else "the card has no train section"
+        raise ckpt.CheckpointError(f"checkpoint {str(where)!r}: its card's train.n_max must be a whole number in "
+                                   f"[1, {OMEGA_MAX}]; {found}")
+    return n_max
+
+
 def load_dynamics(choice: str, ckpt_dir: str, plate_half_width: float, edge_dtype: str = "float32"):
     """The planner's model. choice: "learned" (the checkpoint in ``ckpt_dir``), "sweep" (the heuristic), or "auto"
     (the checkpoint; the heuristic, with a warning, only when ``ckpt_dir`` is the shipped one and it is missing, as in
@@ -133,7 +146,8 @@ def load_dynamics(choice: str, ckpt_dir: str, plate_half_width: float, edge_dtyp
         choice = "sweep"
     if choice != "sweep":
         model, meta, _ = ckpt.load_module(ckpt_dir, build_model)
+        n_max = trained_n_max(meta, ckpt_dir)
         dynamics = learned_dynamics(model, edge_dtype)
         edges = "" if jnp.dtype(edge_dtype) == jnp.float32 else f", {jnp.dtype(edge_dtype).name} edges"
-        return LoadedDynamics(dynamics, meta["train"]["n_max"], f"learned ({ckpt_dir}, step {meta.get('step')}{edges})")
+        return LoadedDynamics(dynamics, n_max, f"learned ({ckpt_dir}, step {meta.get('step')}{edges})")
     return LoadedDynamics(sweep_dynamics(plate_half_width), OMEGA_MAX, "sweep heuristic")
