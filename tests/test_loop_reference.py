@@ -10,7 +10,7 @@ import pytest
 from loop_reference import REFERENCE, record
 
 from dynres_jax.config import OMEGA_MIN
-from dynres_jax.models.registry import SHIPPED_DYNAMICS
+from dynres_jax.models.registry import SHIPPED_DYNAMICS, shipped_dynamics
 
 
 @pytest.fixture(scope="module")
@@ -51,13 +51,14 @@ def test_the_loop_repeats_its_recorded_behaviour(runs, case):
 @pytest.mark.parametrize("case", ["gather", "adaptive", "letter", "sort"])
 def test_the_task_commands_write_their_episodes(runs, folder, case):
     """Each task command wrote metrics.json (its summary, JSON-ready), an episode.gif with a frame per MPC step and
-    the end, and final.png; --ckpt names the checkpoint it loaded."""
+    the end, and final.png; it names the checkpoint it loaded (without --ckpt: its task's shipped one, Sort's own)."""
     metrics = json.loads((folder / case / "metrics.json").read_text())
     frames = iio.imread(folder / case / "episode.gif", index=None)
     assert [r["step"] for r in metrics["steps"]] == [0, 1] and len(frames) == 3
     assert (folder / case / "final.png").exists()
     assert frames.ndim == 4 and frames.shape[-1] == 3 and frames.std() > 0
-    assert metrics["dynamics"].startswith(f"learned ({SHIPPED_DYNAMICS}")
+    shipped = shipped_dynamics("sort") if case == "sort" else SHIPPED_DYNAMICS
+    assert metrics["dynamics"].startswith(f"learned ({shipped},") and SHIPPED_DYNAMICS != shipped_dynamics("sort")
     for r in metrics["steps"]:
         assert OMEGA_MIN <= r["omega"] <= r["bucket"] and r["planning_s"] > 0
     if case == "sort":

@@ -58,7 +58,7 @@ def main(argv=None):
 
     sim = SimConfig(scene=SceneConfig(kinds=tuple(args.kinds), pieces=tuple(args.pieces)),
                     pile=PileConfig(layout="two_blobs"), camera=CameraConfig())
-    loop = build_loop(args, sim, parser)
+    loop = build_loop(args, sim, parser, "sort")
     env, cfg, timing = loop.env, loop.cfg, loop.timing
 
     try:

@@ -47,7 +47,13 @@ from dynres_jax.errors import InputError
 from dynres_jax.io import files
 from dynres_jax.io.ckpt import CheckpointError
 from dynres_jax.io.draw import goal_frames
-from dynres_jax.models.registry import SHIPPED_DYNAMICS, SHIPPED_REGRESSOR, LoadedDynamics, load_dynamics
+from dynres_jax.models.registry import (
+    SHIPPED_DYNAMICS,
+    SHIPPED_REGRESSOR,
+    LoadedDynamics,
+    load_dynamics,
+    shipped_dynamics,
+)
 from dynres_jax.sim.camera import Camera
 from dynres_jax.sim.env import PileEnv
 
@@ -74,7 +80,8 @@ def add_loop_args(parser: argparse.ArgumentParser, task: str) -> None:
     parser.add_argument("--adam-steps", type=checks.count(1), default=100,
                         help="Adam steps per plan (N; the most a plan may run under --time-budget)")
     add_budget_args(parser)
-    parser.add_argument("--ckpt", default=None, help=f"dynamics checkpoint (default {SHIPPED_DYNAMICS} if present)")
+    parser.add_argument("--ckpt", default=None,
+                        help=f"dynamics checkpoint (default {shipped_dynamics(task)} if present)")
     parser.add_argument("--dynamics", default="auto", choices=["auto", "learned", "sweep"],
                         help="auto: the checkpoint when there is one, else the sweep heuristic")
     parser.add_argument("--out", default=f"out/{task}")
@@ -134,13 +141,14 @@ def check_budget(cfg: MPCConfig, table: budget.TimingTable | None, omegas) -> No
                              f"step {table.step_s[bucket]:.3g} s; give a larger budget")
 
 
-def load_model(parser: argparse.ArgumentParser, choice: str, ckpt_dir: str, plate_half_width: float
-               ) -> LoadedDynamics:
-    """``registry.load_dynamics``, with a missing or damaged checkpoint named by ``parser.error`` before any work."""
-    if choice == "sweep" and ckpt_dir is not None and os.path.abspath(ckpt_dir) != SHIPPED_DYNAMICS:
+def load_model(parser: argparse.ArgumentParser, choice: str, ckpt_dir: str, plate_half_width: float,
+               shipped: str = SHIPPED_DYNAMICS) -> LoadedDynamics:
+    """``registry.load_dynamics`` of ``ckpt_dir`` (None: ``shipped``), with a missing or damaged checkpoint named by
+    ``parser.error`` before any work."""
+    if choice == "sweep" and ckpt_dir is not None and os.path.abspath(ckpt_dir) != shipped:
         parser.error(f"--ckpt {ckpt_dir} is given but --dynamics sweep plans without a checkpoint; drop one of them")
     try:
-        return load_dynamics(choice, ckpt_dir or SHIPPED_DYNAMICS, plate_half_width)
+        return load_dynamics(choice, ckpt_dir or shipped, plate_half_width)
     except CheckpointError as e:
         parser.error(f"--ckpt: {e}")
 
@@ -163,12 +171,13 @@ class Loop:
         return FixedOmega(goals, self.omega) if self.regressor is None else AdaptiveOmega(goals, self.regressor)
 
 
-def build_loop(args, sim: SimConfig, parser: argparse.ArgumentParser) -> Loop:
-    """The ``Loop`` of the loop flags; parser.error naming a bad flag, before any work (the scene is built last)."""
+def build_loop(args, sim: SimConfig, parser: argparse.ArgumentParser, task: str) -> Loop:
+    """The ``Loop`` of ``task``'s loop flags; parser.error naming a bad flag, before any work (the scene is built
+    last)."""
     omega = str(args.resolution)
     if omega != "adaptive" and (not omega.isdigit() or not OMEGA_MIN <= int(omega) <= OMEGA_MAX):
         parser.error(f"--resolution must be 'adaptive' or an integer in [{OMEGA_MIN}, {OMEGA_MAX}], got {omega!r}")
-    model = load_model(parser, args.dynamics, args.ckpt, sim.scene.plate_half_width)
+    model = load_model(parser, args.dynamics, args.ckpt, sim.scene.plate_half_width, shipped_dynamics(task))
     if omega != "adaptive" and int(omega) > model.n_max:
         parser.error(f"--resolution {omega} exceeds the model's n_max = {model.n_max}")
     timing = load_timing(parser, args)
@@ -211,7 +220,7 @@ def main(task: str, argv=None):
 
     sim = SimConfig(scene=SceneConfig(kinds=(args.kind,), pieces=(args.pieces,)), pile=PileConfig(layout=args.layout),
                     camera=CameraConfig())
-    loop = build_loop(args, sim, parser)
+    loop = build_loop(args, sim, parser, task)
     env, cfg, timing = loop.env, loop.cfg, loop.timing
 
     rng = np.random.default_rng(args.seed)

@@ -21,9 +21,17 @@ from dynres_jax.models.graph import sweep_rollout
 
 SHIPPED = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "checkpoints")  # package data
 SHIPPED_DYNAMICS = os.path.join(SHIPPED, "dynamics")  # the graph network f every command plans with by default
+SHIPPED_SORT_DYNAMICS = os.path.join(SHIPPED, "sort_dynamics")  # Sort's f: the one before the ranking fine-tune
 SHIPPED_CNN_DYNAMICS = os.path.join(SHIPPED, "cnn_dynamics")  # the paper's CNN-dynamics baseline
 SHIPPED_REGRESSOR = os.path.join(SHIPPED, "regressor")  # the resolution regressor g of adaptive ω
 MODEL_CLASSES = {"gnn": (DynamicsConfig, Dynamics), "cnn": (CNNDynamicsConfig, CNNDynamics)}  # card name -> classes
+
+
+def shipped_dynamics(task: str) -> str:
+    """The shipped checkpoint a task plans with by default: Sort keeps the model from before the fine-tune on
+    Gather's candidates (checkpoints/dynamics/CARD.md), which lifted M&M Gather but lowered Sort on every kind pair
+    (docs/dynamics_scale/rounds.md); Gather and Redistribute plan with the fine-tuned one."""
+    return SHIPPED_SORT_DYNAMICS if task == "sort" else SHIPPED_DYNAMICS
 
 
 def model_class(config) -> str:
@@ -141,7 +149,8 @@ def load_dynamics(choice: str, ckpt_dir: str, plate_half_width: float, edge_dtyp
     missing checkpoint, ``ckpt.CheckpointError`` for a damaged one."""
     if choice not in ("auto", "learned", "sweep"):
         raise ValueError(f"dynamics must be 'auto', 'learned' or 'sweep', got {choice!r}")
-    if choice == "auto" and ckpt.latest_step(ckpt_dir) is None and os.path.abspath(ckpt_dir) == SHIPPED_DYNAMICS:
+    if choice == "auto" and ckpt.latest_step(ckpt_dir) is None and os.path.abspath(ckpt_dir) in (
+            SHIPPED_DYNAMICS, SHIPPED_SORT_DYNAMICS):
         warnings.warn(f"no shipped checkpoint in {ckpt_dir}: planning with the sweep heuristic", stacklevel=2)
         choice = "sweep"
     if choice != "sweep":
