@@ -1,7 +1,7 @@
 """Export a trained dynamics model's whole MPC decision as one file, for a robot computer that has JAX but not this
 code:
 
-    python -m experiments.export --ckpt checkpoints/dynamics --out decision.jaxexport
+    python -m experiments.export --out decision.jaxexport    # the shipped model; --ckpt runs/NAME/ckpt for another
 
 writes FILE (a ``jax.export`` serialised StableHLO program: depth frame + goal mask -> push, with the goal's distance
 field, perception, the model weights, the camera and the planner settings inside) and FILE.json (its inputs and
