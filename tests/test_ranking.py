@@ -128,28 +128,29 @@ def test_listwise_loss_is_listnets_cross_entropy_by_hand():
 
 def test_rank_finetuning_lowers_the_listwise_loss_it_trains():
     """Fine-tuning on the ranking alone (no position loss) lowers that loss on the states it trained on (six states
-    of the committed M&M set, all their 51 candidates)."""
+    of the committed M&M set, all their 51 candidates), from a fresh small model (the shipped one is already
+    fine-tuned on it)."""
     import os
 
     import jax
     from flax import nnx
 
-    from dynres_jax.io import ckpt
     from dynres_jax.learn.rank_loss import arrays, finetune, state_losses
-    from dynres_jax.models.registry import SHIPPED_DYNAMICS, build_model
+    from dynres_jax.models.dynamics import DynamicsConfig
+    from dynres_jax.models.registry import make_model
 
     full = ranking.load(os.path.join(os.path.dirname(__file__), "..", "docs", "dynamics_scale", "sets",
                                      "gather_mnm.npz"))
     s = full._replace(**{k: getattr(full, k)[:6] for k in ranking.RankingSet._fields[:-1]})
-    model = ckpt.load_module(SHIPPED_DYNAMICS, build_model)[0]
+    model = make_model(DynamicsConfig(hidden=16, propagation_steps=1), seed=3)
 
     def loss(m):
         graphdef, params = nnx.split(m)
         return float(np.mean(jax.vmap(lambda *x: state_losses(graphdef, params, x, s.camera, 1.0)[0])(*arrays(s))))
 
-    tuned = finetune(model, s, steps=10, batch=6, lr=1e-3, temperature=1.0, rank_weight=1.0, position_weight=0.0,
+    tuned = finetune(model, s, steps=20, batch=6, lr=1e-2, temperature=1.0, rank_weight=1.0, position_weight=0.0,
                      log=lambda *_: None)
-    assert loss(tuned) < 0.8 * loss(model)
+    assert loss(tuned) < 0.85 * loss(model)  # measured: 0.78
 
 
 def test_a_set_without_twins_is_scored_without_the_ceiling(tiny_set, tmp_path):
