@@ -146,6 +146,7 @@ G = [  # gather (and the flags every closed-loop task shares)
     (["--resolution", "adaptive", "--regressor", "/nonexistent"], "--regressor"),
     (["--resolution", "adaptive", "--regressor", "{dynamics}"], "--regressor"),
     (["--resolution", "adaptive", "--regressor", "{flipped_regressor}"], "--regressor"),
+    (["--resolution", "40", "--regressor", "{regressor}"], "--regressor is for --resolution adaptive"),
     (["--out", "{file}/run"], "--out"), (["--out", "{file}"], "--out"), (["--out", "{other_run}"], "--out"),
     (["--out", "{foreign}"], "--out"), (["--out", "{gather_run}"], "--out"), (["--no-such-flag"], "unrecognized"),
 ]

@@ -74,7 +74,8 @@ def add_loop_args(parser: argparse.ArgumentParser, task: str) -> None:
                             help="ω, the particles the planner reasons with: an integer, or 'adaptive' (the regressor "
                                  "g picks ω every step; not the default: under a time budget it ties ω = 50 on Gather "
                                  "and beats it on Redistribute, docs/budget/README.md)")
-        parser.add_argument("--regressor", default=SHIPPED_REGRESSOR, help="regressor checkpoint for adaptive ω")
+        parser.add_argument("--regressor", default=None,
+                            help=f"regressor checkpoint for --resolution adaptive (default {SHIPPED_REGRESSOR})")
     parser.add_argument("--backend", default="mujoco", choices=["mujoco", "mjx"])
     parser.add_argument("--samples", type=checks.count(1), default=50, help="action sequences optimised at once (M)")
     parser.add_argument("--adam-steps", type=checks.count(1), default=100,
@@ -182,9 +183,11 @@ def build_loop(args, sim: SimConfig, parser: argparse.ArgumentParser, task: str)
         parser.error(f"--resolution {omega} exceeds the model's n_max = {model.n_max}")
     timing = load_timing(parser, args)
     regressor = None
+    if omega != "adaptive" and getattr(args, "regressor", None) is not None:
+        parser.error(f"--regressor is for --resolution adaptive; with a fixed ω ({omega}) nothing would use it")
     if omega == "adaptive":
         try:
-            regressor = load_regressor(args.regressor, Camera.top_down(sim.camera))
+            regressor = load_regressor(args.regressor or SHIPPED_REGRESSOR, Camera.top_down(sim.camera))
         except CheckpointError as e:
             parser.error(f"--regressor: {e}")
     env = PileEnv(sim, backend=args.backend)
