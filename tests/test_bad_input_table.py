@@ -147,6 +147,7 @@ G = [  # gather (and the flags every closed-loop task shares)
     (["--resolution", "adaptive", "--regressor", "{dynamics}"], "--regressor"),
     (["--resolution", "adaptive", "--regressor", "{flipped_regressor}"], "--regressor"),
     (["--resolution", "40", "--regressor", "{regressor}"], "--regressor is for --resolution adaptive"),
+    (["--ckpt", ""], "--ckpt: no checkpoint"),
     (["--out", "{file}/run"], "--out"), (["--out", "{file}"], "--out"), (["--out", "{other_run}"], "--out"),
     (["--out", "{foreign}"], "--out"), (["--out", "{gather_run}"], "--out"), (["--no-such-flag"], "unrecognized"),
 ]
@@ -184,6 +185,7 @@ P = [  # plan: one frame of a real camera
     (["--workspace", "0"], "--workspace"), (["--workspace", "-1"], "--workspace"), (["--workspace", "nan"], "--workspace"),
     (["--bound", "0"], "--bound"), (["--bound", "nan"], "--bound"), (["--plate-half-width", "0"], "--plate-half-width"),
     (["--plate-half-width", "1"], "--plate-half-width"), (["--samples", "0"], "--samples"),
+    (["--plate-half-width", "0.05"], "--plate-half-width is the sweep heuristic's"), (["--ckpt", ""], "--ckpt"),
     (["--adam-steps", "0"], "--adam-steps"), (["--seed", "-1"], "--seed"), (["--ckpt", "/nonexistent"], "--ckpt"),
     (["--ckpt", "{flipped_dynamics}"], "damaged"), (["--ckpt", "{regressor}"], "--ckpt"),
     (["--dynamics", "sweep", "--ckpt", "{regressor}"], "--ckpt"), (["--out", "{foreign}"], "--out"),

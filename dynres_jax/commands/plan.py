@@ -25,7 +25,7 @@ from dynres_jax.control.goals import check_within, make_goal
 from dynres_jax.control.planner import PlannerConfig, plan
 from dynres_jax.io import files, frames
 from dynres_jax.io.draw import overlay
-from dynres_jax.models.registry import SHIPPED_DYNAMICS
+from dynres_jax.models.registry import SHIPPED_DYNAMICS, SWEEP_NAME
 from dynres_jax.perception import WORKSPACE_HALF_WIDTH, calibrate, sample_particles
 from dynres_jax.sim.pushes import wall_reach
 from dynres_jax.sim.sensor import SENSORS
@@ -43,7 +43,9 @@ def main(argv=None):
                         help="half-width (m) of the square where pieces can be; outside it nothing is foreground")
     parser.add_argument("--bound", type=checks.number(0.0, 2.0, above=True), default=0.18,
                         help="pushes stay within ±bound m")
-    parser.add_argument("--plate-half-width", type=checks.number(0.005, 0.5), default=0.04, help="m")
+    parser.add_argument("--plate-half-width", type=checks.number(0.005, 0.5), default=None,
+                        help=f"m: the sweep heuristic's plate (default {SceneConfig.plate_half_width}; a learned "
+                             "model has its own)")
     parser.add_argument("--samples", type=checks.count(1), default=50)
     parser.add_argument("--adam-steps", type=checks.count(1), default=100)
     parser.add_argument("--dynamics", default="auto", choices=["auto", "learned", "sweep"])
@@ -84,7 +86,10 @@ def main(argv=None):
             camera = calibrate(obs, camera, bin_half_width=args.bin_half_width, wall_height=args.wall_height)
         except ValueError as e:
             parser.error(f"--calibrate: {e}")
-    dynamics, n_max, name = load_model(parser, args.dynamics, args.ckpt, args.plate_half_width)
+    plate = SceneConfig.plate_half_width if args.plate_half_width is None else args.plate_half_width
+    dynamics, n_max, name = load_model(parser, args.dynamics, args.ckpt, plate)
+    if args.plate_half_width is not None and name != SWEEP_NAME:
+        parser.error("--plate-half-width is the sweep heuristic's (--dynamics sweep); a learned model has its own")
     if args.resolution > n_max:
         parser.error(f"--resolution {args.resolution} exceeds the model's n_max = {n_max}")
     key_h, key_plan = jax.random.split(jax.random.PRNGKey(args.seed))

@@ -144,12 +144,12 @@ def check_budget(cfg: MPCConfig, table: budget.TimingTable | None, omegas) -> No
 
 def load_model(parser: argparse.ArgumentParser, choice: str, ckpt_dir: str, plate_half_width: float,
                shipped: str = SHIPPED_DYNAMICS) -> LoadedDynamics:
-    """``registry.load_dynamics`` of ``ckpt_dir`` (None: ``shipped``), with a missing or damaged checkpoint named by
-    ``parser.error`` before any work."""
+    """``registry.load_dynamics`` of ``ckpt_dir`` (None: ``shipped``; "" is no checkpoint, not the default), with a
+    missing or damaged checkpoint named by ``parser.error`` before any work."""
     if choice == "sweep" and ckpt_dir is not None and os.path.abspath(ckpt_dir) != shipped:
         parser.error(f"--ckpt {ckpt_dir} is given but --dynamics sweep plans without a checkpoint; drop one of them")
     try:
-        return load_dynamics(choice, ckpt_dir or shipped, plate_half_width)
+        return load_dynamics(choice, shipped if ckpt_dir is None else ckpt_dir, plate_half_width)
     except CheckpointError as e:
         parser.error(f"--ckpt: {e}")
 

@@ -24,6 +24,7 @@ SHIPPED_DYNAMICS = os.path.join(SHIPPED, "dynamics")  # the graph network f ever
 SHIPPED_SORT_DYNAMICS = os.path.join(SHIPPED, "sort_dynamics")  # Sort's f: the one before the ranking fine-tune
 SHIPPED_CNN_DYNAMICS = os.path.join(SHIPPED, "cnn_dynamics")  # the paper's CNN-dynamics baseline
 SHIPPED_REGRESSOR = os.path.join(SHIPPED, "regressor")  # the resolution regressor g of adaptive ω
+SWEEP_NAME = "sweep heuristic"  # LoadedDynamics.name of the heuristic
 MODEL_CLASSES = {"gnn": (DynamicsConfig, Dynamics), "cnn": (CNNDynamicsConfig, CNNDynamics)}  # card name -> classes
 
 
@@ -159,4 +160,4 @@ def load_dynamics(choice: str, ckpt_dir: str, plate_half_width: float, edge_dtyp
         dynamics = learned_dynamics(model, edge_dtype)
         edges = "" if jnp.dtype(edge_dtype) == jnp.float32 else f", {jnp.dtype(edge_dtype).name} edges"
         return LoadedDynamics(dynamics, n_max, f"learned ({ckpt_dir}, step {meta.get('step')}{edges})")
-    return LoadedDynamics(sweep_dynamics(plate_half_width), OMEGA_MAX, "sweep heuristic")
+    return LoadedDynamics(sweep_dynamics(plate_half_width), OMEGA_MAX, SWEEP_NAME)
