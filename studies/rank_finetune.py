@@ -56,7 +56,7 @@ def main(argv=None) -> dict:
     after = ranking.score_model(test, learned_dynamics(tuned))
     if args.save:
         ckpt.save_module(args.save, args.steps, tuned, {**meta, "rank_finetune": vars(args)})
-    results = {"before": before, "after": after, "settings": {k: v for k, v in vars(args).items()}}
+    results = {"before": before, "after": after, "settings": vars(args)}
     os.makedirs(args.out, exist_ok=True)
     with open(os.path.join(args.out, "rank_finetune.json"), "w") as f:
         json.dump(results, f, indent=1)

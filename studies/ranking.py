@@ -132,7 +132,7 @@ def build(args) -> ranking.RankingSet:
 
 def score(args) -> dict:
     sets = ranking.concatenate([ranking.load(path) for path in args.set])
-    results = {"physics (twin)": ranking.score_ceiling(sets)} if np.isfinite(sets.twin_c).all() else {}
+    results = {"physics (twin)": ranking.score_ceiling(sets)} if sets.has_twins else {}
     for name in args.ckpt:
         if name == "sweep":
             model = load_dynamics("sweep", None, sets.sim.scene.plate_half_width)

@@ -61,6 +61,11 @@ class RankingSet(NamedTuple):
     sim: SimConfig
 
     @property
+    def has_twins(self) -> bool:
+        """Whether the set was built with twins (``twin_c`` finite), so it has a physics ceiling."""
+        return bool(np.isfinite(self.twin_c).all())
+
+    @property
     def camera(self) -> Camera:
         return Camera.top_down(self.sim.camera)
 
@@ -203,7 +208,7 @@ def score_model(ranking: RankingSet, dynamics) -> dict:
 def score_ceiling(ranking: RankingSet) -> dict:
     """The physics ceiling in ``score_model``'s form: the twin's c ranking the candidates (no particle error).
     InputError for a set built without twins (its twin_c NaN)."""
-    if not np.isfinite(ranking.twin_c).all():
+    if not ranking.has_twins:
         raise InputError("this ranking set has no twins (built with --twin-sigma 0): no physics ceiling")
     return by_group(ranking, ranking_scores(ranking.twin_c, ranking.true_c))
 
