@@ -15,12 +15,19 @@ particles, in mm:
 - the twins' distance E|X1 - X2| between where the same particle ends in the two twins;
 - the floor E|X1 - X2| / 2. For outcomes X1, X2 drawn independently given the observation and any prediction p made
   from it, |X1 - X2| <= |X1 - p| + |X2 - p|, so E|X - p| >= E|X1 - X2| / 2: no predictor beats the floor on worlds
-  known only to within σ.
+  known only to within σ;
+- with ``--twins K`` (K >= 3) the achievable floor: the error of the other twins' median (per coordinate) against a
+  held-out twin, each twin held out in turn. A predictor that simulates K - 1 worlds known to within σ reaches it, so
+  the best predictor lies between the floor and the achievable floor.
+
+Every quantity is also split by where the particle starts relative to the push (``graph.SWEEP_REGIONS``: swept,
+band edge, off the path), the error lying mostly where the plate passes.
 
 Each scene's sums are written atomically to ``OUT/scenes/``; a killed run resumes where it stopped. At the end:
-``OUT/floor.json``, ``floor.md`` (the table) and ``floor.png`` (the floor against σ, as a share of the heuristic).
+``OUT/floor.json``, ``floor.md`` (the tables) and ``floor.png`` (the floor against σ, as a share of the heuristic).
 
     python -m studies.noise_floor --out runs/noise_floor --scenes 48 --worlds 8
+    python -m studies.noise_floor --out runs/achievable --twins 5 --sigmas 1 3 --omegas 50
 """
 
 from __future__ import annotations
@@ -39,7 +46,7 @@ from tqdm import tqdm
 from dynres_jax.io import ckpt, files
 from dynres_jax.learn import data, targets
 from dynres_jax.models.dynamics import predict, resolution_code
-from dynres_jax.models.graph import sweep_rollout
+from dynres_jax.models.graph import SWEEP_REGIONS, sweep_region, sweep_rollout
 from dynres_jax.models.registry import SHIPPED_DYNAMICS, build_model
 from dynres_jax.perception import sample_particles
 from dynres_jax.sim.env import State
@@ -56,9 +63,18 @@ def perturb(states: State, qpos_adr, sigma: float, key) -> State:
 
 
 def distance_sum(a, b, valid) -> float:
-    """Sum over valid entries of |a - b| (metres): a, b [..., 3], valid [...] bool."""
+    """Sum over valid entries of |a - b| (metres): a, b [..., 3], valid [...] bool (broadcast to a's leading axes)."""
     d = np.linalg.norm(np.asarray(a, np.float64) - np.asarray(b, np.float64), axis=-1)
-    return float(d[np.asarray(valid, bool)].sum())
+    return float(d[np.broadcast_to(np.asarray(valid, bool), d.shape)].sum())
+
+
+def held_out_median(twins) -> tuple[np.ndarray, np.ndarray]:
+    """Leave-one-out medians: twins [K, ...3] positions (K >= 3) -> (medians, held) [K, ...3], medians[j] the
+    per-coordinate median of every twin but j, held[j] twin j."""
+    twins = np.asarray(twins, np.float64)
+    k = len(twins)
+    medians = np.stack([np.median(np.delete(twins, j, axis=0), axis=0) for j in range(k)])
+    return medians, twins
 
 
 def _tracks(worlds: WorldPool, n_max: int, max_points):
@@ -72,6 +88,9 @@ def _tracks(worlds: WorldPool, n_max: int, max_points):
         return p.positions, p.mask & (p.error == 0), index, local, p.radius
 
     return jax.jit(jax.vmap(one, in_axes=(0, 0, 0, None, 0)))
+
+
+_regions = jax.jit(jax.vmap(sweep_region, in_axes=(0, 0, None)))
 
 
 # One push predicted per world, compiled once per model structure (not per scene: shapes are [B, n_max]).
@@ -110,9 +129,9 @@ def measure_scene(config: data.DataConfig, scene: int, args, models: dict, pool)
         outcome = worlds.push(states, actions)
         twins = {}
         for i, sigma in enumerate(args.sigmas):
-            k1, k2 = jax.random.split(jax.random.fold_in(k_twin, i))
+            keys = jax.random.split(jax.random.fold_in(k_twin, i), args.twins)
             twins[sigma] = [worlds.push(perturb(states, worlds.scene.qpos_adr, sigma / 1000, k), actions)
-                            for k in (k1, k2)]
+                            for k in keys]
         broken = [outcome.broken] + [t.broken for pair in twins.values() for t in pair]
         ok = ~short & ~np.any(np.asarray(broken), 0)
         for omega in args.omegas:
@@ -123,38 +142,79 @@ def measure_scene(config: data.DataConfig, scene: int, args, models: dict, pool)
             pairs = [("sweep heuristic", _sweep(x, mask, actions, plate_half_width), truth)]
             pairs += [(f"model {name}", _step(g, p, x, mask, actions, resolution_code(radius)), truth)
                       for name, (g, p) in models.items()]
-            pairs += [(f"twins {sigma:g} mm", trajectories(index, local, t1.pos, t1.mat),
-                       trajectories(index, local, t2.pos, t2.mat)) for sigma, (t1, t2) in twins.items()]
+            for sigma, ts in twins.items():
+                ends = [trajectories(index, local, t.pos, t.mat) for t in ts]
+                pairs.append((f"twins {sigma:g} mm", ends[0], ends[1]))
+                if len(ends) >= 3:
+                    medians, held = held_out_median(ends)
+                    k = len(ends)  # each held-out twin counts 1/K, so the sums stay per particle
+                    pairs.append((f"achievable {sigma:g} mm", medians / k, held / k))
+            region = np.asarray(_regions(x, actions, plate_half_width))
             row = sums[str(omega)]
-            for name, a, b in pairs:
-                row[name] = row.get(name, 0.0) + distance_sum(a, b, valid)
-            row["particles"] = row.get("particles", 0) + int(valid.sum())
+            subsets = [("", valid)] + [(f" | {r}", valid & (region == i)) for i, r in enumerate(SWEEP_REGIONS)]
+            for part, where in subsets:
+                for name, a, b in pairs:
+                    row[name + part] = row.get(name + part, 0.0) + distance_sum(a, b, where)
+                row["particles" + part] = row.get("particles" + part, 0) + int(where.sum())
         states = outcome
     return {"scene": scene, "kinds": list(sim.scene.kinds), "pieces": list(sim.scene.pieces), "sums": sums}
 
 
+def _means(rows: list[dict], sigmas, part: str = "") -> dict:
+    """Sums of one subset of particles (part: "" for all, " | REGION" for one) -> {quantity: mm, "particles": n},
+    each σ's floor half the twins' distance."""
+    n = max(sum(r.get("particles" + part, 0) for r in rows), 1)
+    names = [k for k in rows[0] if " | " not in k and k != "particles"]
+    mean = {k: sum(r.get(k + part, 0.0) for r in rows) / n * 1000 for k in names}
+    for sigma in sigmas:
+        mean[f"floor {sigma:g} mm"] = mean[f"twins {sigma:g} mm"] / 2
+    return dict(mean, particles=sum(r.get("particles" + part, 0) for r in rows))
+
+
 def summarise(results: list[dict], omegas, sigmas) -> dict:
-    """Scene sums -> {ω: {quantity: mean over particles in mm}}, plus each σ's floor (half the twins' distance)."""
+    """Scene sums -> {ω: {quantity: mean over particles in mm, "particles": n, "regions": {region: the same over the
+    particles starting there}}}, each σ's floor half the twins' distance."""
     out = {}
     for omega in omegas:
         rows = [r["sums"][str(omega)] for r in results]
-        n = max(sum(r["particles"] for r in rows), 1)
-        mean = {k: sum(r[k] for r in rows) / n * 1000 for k in rows[0] if k != "particles"}
-        for sigma in sigmas:
-            mean[f"floor {sigma:g} mm"] = mean[f"twins {sigma:g} mm"] / 2
-        out[str(omega)] = dict(mean, particles=n)
+        regions = {r: _means(rows, sigmas, f" | {r}") for r in SWEEP_REGIONS}
+        out[str(omega)] = dict(_means(rows, sigmas), regions=regions)
     return out
 
 
+def _columns(m: dict, sigmas, names) -> list[str]:
+    """The quantities a table shows, in order: heuristic, models, per σ the twins, the floor and (when measured) the
+    achievable floor."""
+    per_sigma = [f"{q} {s:g} mm" for s in sigmas for q in ("twins", "floor", "achievable") if f"{q} {s:g} mm" in m]
+    return ["sweep heuristic", *[f"model {n}" for n in names], *per_sigma]
+
+
 def table(summary: dict, sigmas, names) -> str:
-    """Markdown: per ω the heuristic, each model, and per σ the twins' distance and the floor (mm), with ratios."""
+    """Markdown: per ω the heuristic, each model, and per σ the twins' distance, the floor and the achievable floor
+    (mm), with ratios: model / heuristic, floor / heuristic at the first σ, model / achievable at each σ."""
     models = [f"model {n}" for n in names]
-    head = ["sweep heuristic", *models] + [f"{q} {s:g} mm" for s in sigmas for q in ("twins", "floor")]
-    ratios = [f"{m} / heuristic" for m in models] + [f"floor / heuristic (σ = {sigmas[0]:g} mm)"]
-    lines = [f"| ω | {' | '.join(head + ratios)} |", "|---:|" + "---:|" * (len(head) + len(ratios))]
+    first = next(iter(summary.values()))
+    head = _columns(first, sigmas, names)
+    achievable = [f"achievable {s:g} mm" for s in sigmas if f"achievable {s:g} mm" in first]
+    ratios = ([(m, "sweep heuristic") for m in models] + [(f"floor {sigmas[0]:g} mm", "sweep heuristic")]
+              + [(m, a) for a in achievable for m in models])
+    labels = [f"{a} / {b}".replace("sweep heuristic", "heuristic") for a, b in ratios]
+    lines = [f"| ω | {' | '.join(head + labels)} |", "|---:|" + "---:|" * (len(head) + len(labels))]
     for omega, m in summary.items():
-        values = [m[k] for k in head] + [m[k] / m["sweep heuristic"] for k in models + [f"floor {sigmas[0]:g} mm"]]
+        values = [m[k] for k in head] + [m[a] / m[b] for a, b in ratios]
         lines.append(f"| {omega} | " + " | ".join(f"{v:.2f}" for v in values) + " |")
+    return "\n".join(lines)
+
+
+def region_table(summary: dict, sigmas, names) -> str:
+    """Markdown: the same quantities per ω and per region of the push (``SWEEP_REGIONS``), with each region's share
+    of the particles."""
+    head = _columns(next(iter(summary.values())), sigmas, names)
+    lines = [f"| ω | region | particles | {' | '.join(head)} |", "|---:|---|---:|" + "---:|" * len(head)]
+    for omega, m in summary.items():
+        for region, r in m["regions"].items():
+            share = f"{r['particles'] / max(m['particles'], 1):.0%}"
+            lines.append(f"| {omega} | {region} | {share} | " + " | ".join(f"{r[k]:.2f}" for k in head) + " |")
     return "\n".join(lines)
 
 
@@ -169,6 +229,9 @@ def plot(summary: dict, sigmas, names, path: str) -> None:
         colour = f"C{i}"
         ax.plot(sigmas, [m[f"floor {s:g} mm"] / m["sweep heuristic"] for s in sigmas], "o-", color=colour,
                 label=f"floor, ω = {omega}")
+        if all(f"achievable {s:g} mm" in m for s in sigmas):
+            ax.plot(sigmas, [m[f"achievable {s:g} mm"] / m["sweep heuristic"] for s in sigmas], "s--",
+                    color=colour, label=f"achievable (median of twins), ω = {omega}")
         for name in names:
             ax.axhline(m[f"model {name}"] / m["sweep heuristic"], color=colour, ls=":", lw=1)
     ax.axhline(0.5, color="k", ls="--", lw=1, label="target: half the heuristic")
@@ -198,6 +261,8 @@ def main(argv=None) -> dict:
     parser.add_argument("--scenes", type=int, default=48, help="scenes, drawn as the training data's shards")
     parser.add_argument("--worlds", type=int, default=8, help="worlds per scene")
     parser.add_argument("--pushes", type=int, default=2, help="pushes per world")
+    parser.add_argument("--twins", type=int, default=2,
+                        help="twins per σ; 3 or more also measure the achievable floor (median of the others)")
     parser.add_argument("--sigmas", type=float, nargs="+", default=[0.01, 1.0],
                         help="twins' perturbation, standard deviation per axis (mm)")
     parser.add_argument("--omegas", type=int, nargs="+", default=[10, 25, 50, 100])
@@ -208,6 +273,8 @@ def main(argv=None) -> dict:
     for name in ("scenes", "worlds", "pushes"):
         if getattr(args, name) < 1:
             parser.error(f"--{name} must be at least 1")
+    if args.twins < 2:
+        parser.error(f"--twins must be at least 2 (the floor compares two), got {args.twins}")
     if any(s < 0 for s in args.sigmas):
         parser.error(f"--sigmas must be non-negative, got {args.sigmas}")
     models, settings_of = {}, set()
@@ -224,7 +291,7 @@ def main(argv=None) -> dict:
     config = data.DataConfig(seed=args.seed, backend="mujoco")
     folder = os.path.join(args.out, "scenes")
     os.makedirs(folder, exist_ok=True)
-    settings = {k: getattr(args, k) for k in ("ckpt", "worlds", "pushes", "sigmas", "omegas", "seed")}
+    settings = {k: getattr(args, k) for k in ("ckpt", "worlds", "pushes", "twins", "sigmas", "omegas", "seed")}
     settings_path = os.path.join(args.out, "settings.json")
     if os.path.exists(settings_path) and json.load(open(settings_path)) != settings:
         parser.error(f"{args.out} holds a run with other settings ({settings_path}); use another --out")
@@ -239,7 +306,9 @@ def main(argv=None) -> dict:
                "omegas": summarise(results, args.omegas, args.sigmas)}
     files.write_json(os.path.join(args.out, "floor.json"), summary)
     plot(summary["omegas"], args.sigmas, list(models), os.path.join(args.out, "floor.png"))
-    text = table(summary["omegas"], args.sigmas, list(models))
+    text = (table(summary["omegas"], args.sigmas, list(models))
+            + "\n\nBy where each particle starts relative to the push:\n\n"
+            + region_table(summary["omegas"], args.sigmas, list(models)))
     files.write_text(os.path.join(args.out, "floor.md"), text)
     print(text)
     return summary
