@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from dynres_jax.config import CameraConfig, PileConfig, PushConfig, SceneConfig, SimConfig
+from dynres_jax.control import sort
 from dynres_jax.control.choosers import BestOfK, Chooser, Orders, SimulatorScored
 from dynres_jax.control.decision import batch, goal_cost
 from dynres_jax.control.goals import BIN_HALF_WIDTH, make_goal, stack_goals
@@ -47,6 +48,48 @@ def bfs_steps(start, goal, radius_cells: float, n) -> int:
     return -1
 
 
+def fewest_switches(start, goal, radius_cells: float, n) -> int:
+    """Among the fewest-steps paths between grid nodes, the fewest switches of the moved blob: BFS layers from the
+    start, then the least switches per (node, blob moved last) over each layer in turn."""
+    far = (2 * radius_cells) ** 2 - 1e-9
+
+    def gap2(node):
+        return (node[0] - node[2]) ** 2 + (node[1] - node[3]) ** 2
+
+    def moves(node):
+        for b in (0, 1):
+            for di in (-1, 0, 1):
+                for dj in (-1, 0, 1):
+                    nxt = list(node)
+                    nxt[2 * b] += di
+                    nxt[2 * b + 1] += dj
+                    nxt = tuple(nxt)
+                    if (di, dj) == (0, 0) or abs(nxt[2 * b]) > n[0] or abs(nxt[2 * b + 1]) > n[1]:
+                        continue
+                    if gap2(nxt) < far and not (gap2(node) < far and gap2(nxt) > gap2(node)):
+                        continue
+                    yield b, nxt
+
+    best, layer, seen = {(start, -1): 0}, {start}, {start}
+    while goal not in layer:
+        nxt_layer, nxt_best = set(), {}
+        for (node, last), switches in best.items():
+            for b, nxt in moves(node):
+                if nxt in seen:
+                    continue
+                nxt_layer.add(nxt)
+                cost = switches + (last not in (-1, b))
+                nxt_best[(nxt, b)] = min(cost, nxt_best.get((nxt, b), cost))
+        seen |= nxt_layer
+        layer, best = nxt_layer, nxt_best
+    return min(v for (node, _), v in best.items() if node == goal)
+
+
+def switches_of(path) -> int:
+    moved = [int(np.argmax(np.any(~np.isclose(a, b), axis=1))) for a, b in zip(path, path[1:], strict=False)]
+    return sum(a != b for a, b in zip(moved, moved[1:], strict=False))
+
+
 def check_path(path, starts, goals, radius, bound):
     """Starts and goals at the ends; each move one blob one 8-connected grid step; no overlap; inside the bound."""
     assert np.allclose(path[0], starts) and np.allclose(path[-1], goals)
@@ -72,6 +115,19 @@ def test_astar_is_optimal_on_an_open_grid(starts, goals):
     check_path(path, starts, goals, radius, bound)
     chebyshev = sum(np.max(np.abs(np.subtract(goals, starts)), axis=1)) / STEP
     assert len(path) - 1 == round(chebyshev) == bfs_steps(cells(starts), cells(goals), radius / STEP, (4, 4))
+    assert switches_of(path) == 1  # one blob's whole run, then the other's: nothing on an open grid forces more
+
+
+def test_astar_switches_blobs_least_among_the_shortest_paths():
+    """Against a layered BFS: the same number of steps and the fewest switches of the moved blob, where the blobs
+    must pass each other (so both move in turns)."""
+    for starts, goals, radius, bound, n in [
+            ([[-0.05, 0.0], [0.05, 0.0]], [[0.05, 0.0], [-0.05, 0.0]], 0.04, (0.075, 0.05), (3, 2)),
+            ([[-0.1, 0.0], [0.1, 0.0]], [[0.1, 0.0], [-0.1, 0.0]], 0.05, (0.15, 0.1), (6, 4))]:
+        path = astar_blobs(starts, goals, radius, STEP, bound)
+        check_path(path, starts, goals, radius, bound)
+        assert len(path) - 1 == bfs_steps(cells(starts), cells(goals), radius / STEP, n)
+        assert switches_of(path) == fewest_switches(cells(starts), cells(goals), radius / STEP, n) >= 1
 
 
 def test_astar_matches_bfs_when_blobs_must_detour():
@@ -143,6 +199,22 @@ def test_tiny_sort_episode_runs_and_records_every_step(env):
         assert all(0.0 <= s <= 1.0 for s in r["kind_inside"]) and 0.0 <= r["mixing"] <= 1.0
         assert np.isfinite(r["objective"]) and np.isfinite(r["predicted_objective"])
         assert np.all(np.abs(r["action"]) <= env.action_bound + 1e-5)
+
+
+def test_a_pile_inside_its_goal_counts_as_arrived(env, monkeypatch):
+    """Both centres 3 cm (1.5 grid steps) off their goals: while a pile has fewer than ARRIVED of its particles inside
+    its goal, A* moves it; once both have, the policy is in its final phase (both pursued), whatever the centres."""
+    goals, radius, _ = sort_goal(np.random.default_rng(0), env)
+    cfg = MPCConfig(mpc_steps=1, buckets=(32,), max_points=512,
+                    planner=PlannerConfig(samples=4, adam_steps=1, bound=env.action_bound, max_length=0.1))
+    policy = SortPolicy(env, cfg, 20, jax.random.PRNGKey(1), goals, radius, lambda s: None)
+    obs = env.reset(jax.random.PRNGKey(0)).obs
+    centres = goals + np.array([0.03, 0.0])
+    for inside, phase, kind in [([0.5, 0.95], "path", 0), ([0.95, 0.5], "path", 1), ([0.95, 0.95], "final", -1)]:
+        monkeypatch.setattr(sort, "_kind_centres", lambda *a, inside=inside: (centres, np.array(inside), 100))
+        record = policy(0, obs).record
+        assert record["phase"] == [phase] and record["kind"] == [kind]
+        assert np.allclose(record["perceived_inside"], [inside])
 
 
 def test_sort_climbs_the_ladder(env):
