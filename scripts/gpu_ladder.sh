@@ -12,14 +12,14 @@
 # each job a lane packs its folder into $OUT/laneN.tar.gz, so a call stopped by its time limit returns what finished;
 # a job already done in WORK (a warm machine) is skipped.
 #   OUT=runs/ladder JOBS=scripts/ladder/gather.jobs bash scripts/gpu_ladder.sh
-# Env: JOBS, OUT, WORK (/tmp/ladder), SEED (5000: seeds the project had not used), LETTERS (JTULY), STEPS (Sort's MPC
-# steps, 30), FLAGS and SORT_FLAGS (more flags of evaluate and of sort: --ckpt DIR, ...).
+# Env: JOBS, OUT, WORK (/tmp/ladder), CORES (the host's, shared out over the lanes), SEED (5000: seeds the project had
+# not used), LETTERS (JTULY), STEPS (Sort's MPC steps, 30), FLAGS and SORT_FLAGS (more flags of evaluate and of sort: --ckpt DIR, ...).
 set -uo pipefail
 OUT=${OUT:-runs/ladder}; WORK=${WORK:-/tmp/ladder}; SEED=${SEED:-5000}; LETTERS=${LETTERS:-JTULY}; STEPS=${STEPS:-30}
 JOBS=${JOBS:?JOBS names a file of job lines}
 lanes=$(awk 'NF && $1 !~ /^#/ {print $1}' "$JOBS" | sort -u)
 gpus=$(nvidia-smi -L 2>/dev/null | wc -l); gpus=$((gpus > 0 ? gpus : 1))
-cores=$(nproc); share=$((cores / $(echo "$lanes" | wc -w))); share=$((share > 0 ? share : 1))
+cores=${CORES:-$(nproc)}; share=$((cores / $(echo "$lanes" | wc -w))); share=$((share > 0 ? share : 1))
 XLA_PYTHON_CLIENT_MEM_FRACTION=$(python -c "print(round(0.9 / -(-$(echo "$lanes" | wc -w) // $gpus), 3))")
 export XLA_PYTHON_CLIENT_MEM_FRACTION
 mkdir -p "$OUT" "$WORK"
