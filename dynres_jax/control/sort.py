@@ -17,7 +17,7 @@ Paper mapping:
   by moves that strictly increase the centre distance until the circles are apart. Goals must not overlap.
 - A pile has arrived when at least ``ARRIVED`` of its particles lie inside its goal disc (ours): A* starts it at its
   goal. Without this a pile already inside its goal, whose centre sat a centimetre off (pieces fill a disc unevenly),
-  was pushed for the rest of the episode while the other pile waited (22 of 31 failures on seeds 30000, docs/sort).
+  was pushed for the rest of the episode while the other pile waited (19 of 30 failures on seeds 30000, docs/sort).
 
 Closed loop (``SortPolicy``, a chooser on the one MPC loop, ``mpc.run``): each MPC step perceives both
 piles (particles of one kind each, segmentation), takes the blob centres as the particle centroids, RE-PLANS the A* path
