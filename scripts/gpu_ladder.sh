@@ -13,7 +13,8 @@
 # a job already done in WORK (a warm machine) is skipped.
 #   OUT=runs/ladder JOBS=scripts/ladder/gather.jobs bash scripts/gpu_ladder.sh
 # Env: JOBS, OUT, WORK (/tmp/ladder), CORES (the host's, shared out over the lanes), SEED (5000: seeds the project had
-# not used), LETTERS (JTULY), STEPS (Sort's MPC steps, 30), FLAGS and SORT_FLAGS (more flags of evaluate and of sort: --ckpt DIR, ...).
+# not used), LETTERS (JTULY), STEPS (Sort's MPC steps, 30), FLAGS and SORT_FLAGS (more flags of evaluate and of sort:
+# --ckpt DIR, ...).
 set -uo pipefail
 OUT=${OUT:-runs/ladder}; WORK=${WORK:-/tmp/ladder}; SEED=${SEED:-5000}; LETTERS=${LETTERS:-JTULY}; STEPS=${STEPS:-30}
 JOBS=${JOBS:?JOBS names a file of job lines}
