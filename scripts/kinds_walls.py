@@ -1,7 +1,7 @@
 """Where Gather's failing episodes leave their pieces (issue 26): for each kind's evaluate result (METHOD.json with
 start_pieces / final_pieces), the pieces outside the goal at the end, how many of them lie within WALL m of a bin wall,
 how many never moved from such a start, and how many failing episodes would succeed if the pieces at the walls were
-inside. Goals are rebuilt from the evaluation's seed (evaluate.episode_goals), so pass the seed it ran with.
+inside. Goals are rebuilt from the evaluation's seed (tasks.episode_goal), so pass the seed it ran with.
 
     python scripts/kinds_walls.py --seed 1000 mnm=docs/kinds/rerun/mnm/50.json almond=docs/kinds/rerun/almond/50.json
 """
@@ -11,8 +11,8 @@ import json
 
 import numpy as np
 
-from dynres_jax.commands.evaluate import episode_goals, succeeded
 from dynres_jax.config import DEFAULT_PIECES, KINDS, CameraConfig, PileConfig, SceneConfig, SimConfig
+from dynres_jax.control.tasks import episode_goal, succeeded
 from dynres_jax.sim.env import PileEnv
 
 WALL = 0.02  # m: a piece whose centre is this close to a bin wall counts as at the wall
@@ -30,7 +30,7 @@ def main(argv=None):
                                 pile=PileConfig(layout="spread"), camera=CameraConfig()), backend="mujoco")
         with open(path) as f:
             run = json.load(f)
-        goals = episode_goals("gather", len(run["final_inside"]), args.seed, env)
+        goals = [episode_goal("gather", i, args.seed, env) for i in range(len(run["final_inside"]))]
         half, height = env.config.scene.bin_half_width, KINDS[kind].size[0]  # a lying piece's centre height (m)
         outside = at_wall = never_moved = fails = saved = 0
         for goal, start, final in zip(goals, np.array(run["start_pieces"]), np.array(run["final_pieces"]), strict=True):

@@ -22,7 +22,7 @@ import numpy as np
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from ladder_table import _pair  # noqa: E402
 
-from dynres_jax.commands.evaluate import succeeded  # noqa: E402
+from dynres_jax.control.tasks import succeeded  # noqa: E402
 from dynres_jax.io import files  # noqa: E402
 from dynres_jax.stats import wilson  # noqa: E402
 

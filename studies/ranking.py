@@ -44,14 +44,6 @@ from studies.noise_floor import perturb
 CAPTURE_FOLD = 1 << 21  # a kept state's re-planning keys fold this + its step into the episode's keys
 
 
-def episode_goal(task: str, i: int, seed: int, env, letters: str) -> np.ndarray:
-    """Episode i's goal mask from rng (seed, i): a Gather disc, or the letter letters[i % len(letters)]."""
-    rng = np.random.default_rng((seed, i))
-    if task == "gather":
-        return tasks.gather_goal(rng, env)[0]
-    return tasks.redistribute_goal(rng, env, letters[i % len(letters)])[0]
-
-
 def carried(states, particles, camera, after):
     """The particles [B, N] of each world carried rigidly with their pieces from states [B] to after [B]: [B, N, 3]."""
 
@@ -76,13 +68,13 @@ def outcome(states, particles, after, goals, camera, c: int):
 def build(args) -> ranking.RankingSet:
     pieces = args.pieces or DEFAULT_PIECES[args.kind]
     sim = SimConfig(scene=SceneConfig(kinds=(args.kind,), pieces=(pieces,)),
-                    pile=PileConfig(layout="spread" if args.task == "gather" else "blob"))
+                    pile=PileConfig(layout=tasks.TASKS[args.task].layout))
     model = load_dynamics("learned", SHIPPED_DYNAMICS if args.policy == "shipped" else args.policy,
                           sim.scene.plate_half_width)
     with process_pool(args.workers) as processes:
         pool = WorldPool(sim, processes)
         camera = pool.camera
-        masks = [episode_goal(args.task, i, args.seed, pool.env, args.letters) for i in range(args.episodes)]
+        masks = [tasks.episode_goal(args.task, i, args.seed, pool.env, args.letters) for i in range(args.episodes)]
         goals = stack([make_goal(m, camera) for m in masks])
         piles = jax.vmap(lambda i: jax.random.fold_in(jax.random.PRNGKey(args.seed), i))(jnp.arange(args.episodes))
         keys = fold(piles, 1)
@@ -152,7 +144,7 @@ def main(argv=None):
     sub = parser.add_subparsers(dest="command", required=True)
     b = sub.add_parser("build", help="closed-loop states, the planner's candidates, each pushed in C MuJoCo")
     b.add_argument("--out", required=True)
-    b.add_argument("--task", choices=tasks.TASKS, default="gather")
+    b.add_argument("--task", choices=sorted(tasks.TASKS), default="gather")
     b.add_argument("--kind", default="mnm", choices=sorted(DEFAULT_PIECES))
     b.add_argument("--pieces", type=int, default=None)
     b.add_argument("--letters", default="ZRKW")

@@ -3,10 +3,10 @@
 
 Runs ``control.robot.run_robot`` on the simulator as camera and arm (``SimulatedRobot``: a depth camera's profile,
 the camera it believes in, calibrated from each episode's first frame) on the Gather episodes of
-``experiments.evaluate`` (episode i's pile, goal and planner key from ``evaluate.episode_keys`` and
-``episode_goals``, so the two runs pair episode by episode). The robot stops when its own frames show ``--success``
+``experiments.evaluate`` (episode i's pile, goal and planner key from ``tasks.episode_keys`` and
+``tasks.episode_goal``, so the two runs pair episode by episode). The robot stops when its own frames show ``--success``
 of the foreground inside the goal, or after ``--steps`` pushes; the evaluation always runs every step. Success is
-scored as the evaluation scores it, on the true pieces: at least ``evaluate.SUCCESS`` of them inside the goal.
+scored as the evaluation scores it, on the true pieces: at least ``tasks.SUCCESS`` of them inside the goal.
 ``--workers K`` runs K processes (one C world each, the GPU shared); each episode is written to
 ``DIR/episodes/NNNN.json`` as it ends, and a rerun skips finished episodes. With ``--evaluate`` (an evaluate run of
 the same --seed, --kind, --sensor and --episodes), the summary pairs the two: success shares with Wilson intervals,
@@ -25,8 +25,8 @@ import time
 import jax
 import numpy as np
 
-from dynres_jax.commands.evaluate import SUCCESS, episode_goals, episode_keys
 from dynres_jax.config import DEFAULT_PIECES, KINDS, CameraConfig, PileConfig, SceneConfig, SimConfig
+from dynres_jax.control import tasks
 from dynres_jax.control.goals import make_goal
 from dynres_jax.control.mpc import MPCConfig
 from dynres_jax.control.objective import distribution_distance, inside_share
@@ -48,8 +48,8 @@ def run_part(args, part: int, parts: int) -> None:
     sim = SimConfig(scene=SceneConfig(kinds=(args.kind,), pieces=(DEFAULT_PIECES[args.kind],)),
                     pile=PileConfig(layout="spread"), camera=CameraConfig())
     env = PileEnv(sim, backend="mujoco")
-    masks = episode_goals("gather", args.episodes, args.seed, env)
-    piles, planners = episode_keys(args.seed, np.arange(args.episodes))
+    masks = [tasks.episode_goal("gather", i, args.seed, env) for i in range(args.episodes)]
+    piles, planners = tasks.episode_keys(args.seed, np.arange(args.episodes))
     dynamics, _, _ = load_dynamics("learned", args.ckpt, sim.scene.plate_half_width)
     cfg = MPCConfig(mpc_steps=args.steps, real_depth=True,
                     planner=planner_config(env, samples=args.samples, adam_steps=args.adam_steps))
@@ -68,7 +68,7 @@ def run_part(args, part: int, parts: int) -> None:
         write_json(episode_path(args.out, i), dict(
             episode=i, start_pieces=start, pushes=sum("action" in s for s in steps), seen_inside=steps[-1]["inside"],
             final_inside=inside, final_distance=float(distribution_distance(state.obs, goal, env.camera)),
-            success=inside >= SUCCESS, stopped_at_goal=steps[-1]["inside"] >= args.success,
+            success=bool(tasks.succeeded(inside)), stopped_at_goal=steps[-1]["inside"] >= args.success,
             seconds=time.perf_counter() - t0, steps=steps))
         print(f"episode {i}: {inside:.0%} inside after {sum('action' in s for s in steps)} pushes", flush=True)
 
@@ -106,7 +106,7 @@ def summarise(args) -> dict:
         if len(ev["inside"]) != len(rows) or starts != ev["start"]:
             raise SystemExit("--evaluate ran other episodes (their count or piles differ): give it this run's --seed, "
                              "--kind and --episodes")
-        ev_success = ev["inside"] >= SUCCESS
+        ev_success = tasks.succeeded(ev["inside"])
         delta = paired_bootstrap(np.array([r["final_distance"] for r in rows]), ev["distance"])
         summary["evaluate"] = dict(success_share=float(ev_success.mean()),
                                    success_ci95=wilson(int(ev_success.sum()), len(rows)),

@@ -72,4 +72,23 @@ def test_exactly_ninety_percent_inside_is_a_success():
     """Shares as ``inside_share`` computes them (float32 count ratios): 90 of 100 reads 0.89999998 and must count."""
     shares = [float(jnp.int32(k) / jnp.int32(n)) for k, n in ((90, 100), (89, 100), (18, 20), (17, 20), (9, 10))]
     assert shares[0] < 0.9  # the rounding the check must allow
-    assert evaluate.succeeded(shares).tolist() == [True, False, True, False, True]
+    assert tasks.succeeded(shares).tolist() == [True, False, True, False, True]
+
+
+def test_a_new_task_is_one_registry_line(monkeypatch, tmp_path):
+    """A toy task registered in ``tasks.TASKS`` alone (nothing in commands/ touched) runs through its task command and
+    through ``evaluate``: its goal, the whole bin, holds every piece, so every episode succeeds, which
+    Gather's goal (a disc sized to the pile) would not."""
+    from dynres_jax.commands import task
+    from dynres_jax.control.goals import polygon_goal
+
+    corners = 0.2 * np.array([[-1, -1], [1, -1], [1, 1], [-1, 1]])
+    whole_bin = tasks.Task("Everywhere: the whole bin.", "spread",
+                           lambda rng, env, letter: (polygon_goal(env.camera, corners), dict(shape="bin")))
+    monkeypatch.setitem(tasks.TASKS, "everywhere", whole_bin)
+    tiny = ["--mpc-steps", "1", "--samples", "4", "--adam-steps", "1", "--dynamics", "sweep", "--pieces", "20"]
+    summary = task.main("everywhere", [*tiny, "--out", str(tmp_path / "cmd")])
+    assert summary["goal"] == {"shape": "bin"} and summary["start_inside"] == summary["final_inside"] == 1.0
+    result = evaluate.main(["--task", "everywhere", "--quick", "--episodes", "2", "--methods", "50", "--workers", "2",
+                            *tiny, "--out", str(tmp_path / "eval")])
+    assert result["task"] == "everywhere" and result["methods"]["50"]["success_share"] == 1.0

@@ -35,7 +35,6 @@ import json
 import os
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 from jax._src import xla_bridge  # whether the backends have started: XLA reads XLA_FLAGS when they do
 
@@ -64,7 +63,7 @@ from dynres_jax.control.choosers import (
     on_ladder,
 )
 from dynres_jax.control.goals import make_goal, stack
-from dynres_jax.control.mpc import SensorView, fold, run
+from dynres_jax.control.mpc import SensorView, run
 from dynres_jax.errors import InputError
 from dynres_jax.io import ckpt, files
 from dynres_jax.io.draw import evaluation_plots
@@ -77,34 +76,6 @@ from dynres_jax.sim.sensor import SENSORS
 from dynres_jax.stats import mcnemar, paired_bootstrap, wilson
 
 QUICK = dict(episodes=4, mpc_steps=3, samples=8, adam_steps=10)  # --quick's sizes, where a flag does not set them
-SUCCESS = 0.9  # an episode succeeds when this share of the pieces ends inside the goal
-
-
-def succeeded(inside) -> np.ndarray:
-    """Per episode, whether its final inside share [E] reaches SUCCESS. The shares are float32 ratios of piece counts:
-    90 of 100 reads 0.89999998, so the comparison allows float32's rounding (1e-6, far below one piece's share)."""
-    return np.asarray(inside, np.float64) >= SUCCESS - 1e-6
-
-
-def episode_goals(task: str, episodes: int, seed: int, env, letters: str = "JTU") -> list[np.ndarray]:
-    """Episode i's goal mask: Gather's disc, or Redistribute's letter ``letters[i % len(letters)]``, from rng (seed,
-    i)."""
-    goals = []
-    for i in range(episodes):
-        rng = np.random.default_rng((seed, i))
-        if task == "gather":
-            goals.append(tasks.gather_goal(rng, env)[0])
-        else:
-            goals.append(tasks.redistribute_goal(rng, env, letters[i % len(letters)])[0])
-    return goals
-
-
-def episode_keys(seed: int, episodes) -> tuple[jax.Array, jax.Array]:
-    """Episode i's keys, from (seed, i) alone, so the first E of a run's episodes are a run of E episodes (the `sim`
-    ceiling on a subset is paired with its full run): the pile's key (``PileEnv.reset``) and the planner's. episodes
-    [E] indices -> ([E] pile keys, [E] planner keys)."""
-    piles = jax.vmap(lambda i: jax.random.fold_in(jax.random.PRNGKey(seed), i))(jnp.asarray(episodes))
-    return piles, fold(piles, 1)
 
 
 def episode_results(records: list[dict], episodes, name: str, starts, finals) -> dict:
@@ -142,7 +113,7 @@ def summarise(results: dict) -> dict:
     out = {}
     for method, r in results.items():
         d, inside = np.array(r["final_distance"]), np.array(r["final_inside"])
-        n, k = len(d), int(np.sum(succeeded(inside)))
+        n, k = len(d), int(np.sum(tasks.succeeded(inside)))
         out[method] = dict(episodes=n, final_distance=float(d.mean()),
                            final_distance_ci95=float(1.96 * d.std(ddof=1) / np.sqrt(n)) if n > 1 else 0.0,
                            final_inside=float(inside.mean()), success_share=k / n, success_ci95=wilson(k, n),
@@ -156,7 +127,7 @@ def summarise(results: dict) -> dict:
             continue
         paired[method] = dict(
             delta_d=paired_bootstrap(r["final_distance"], ref["final_distance"]),
-            success=mcnemar(succeeded(r["final_inside"]), succeeded(ref["final_inside"])))
+            success=mcnemar(tasks.succeeded(r["final_inside"]), tasks.succeeded(ref["final_inside"])))
     summary = dict(methods=out, reference=reference, paired=paired)
     fixed = [m for m in results if m.isdigit()]
     if fixed and "oracle" in results and "adaptive" in results:  # how much of the oracle's gain adaptive recovers
@@ -242,7 +213,7 @@ def check_cnn(parser, args) -> None:
 @checks.guarded("evaluate")
 def main(argv=None):
     parser = checks.parser("evaluate", __doc__)
-    parser.add_argument("--task", default="gather", choices=tasks.TASKS)
+    parser.add_argument("--task", default="gather", choices=sorted(tasks.TASKS))
     parser.add_argument("--episodes", type=checks.count(1), default=64)
     parser.add_argument("--mpc-steps", type=checks.count(1), default=20, help="MPC steps per episode")
     parser.add_argument("--methods", nargs="+", default=["10", "25", "50", "75", "100", "adaptive"],
@@ -311,7 +282,7 @@ def main(argv=None):
         parser.error(f"--backend: {e}")
     camera = CameraConfig(width=64, height=64) if args.quick else CameraConfig()
     sim = SimConfig(scene=SceneConfig(kinds=(args.kind,), pieces=(args.pieces,)), camera=camera,
-                    pile=PileConfig(layout="spread" if args.task == "gather" else "blob"))
+                    pile=PileConfig(layout=tasks.TASKS[args.task].layout))
     main_model = load_model(parser, args.dynamics, args.ckpt, sim.scene.plate_half_width)
     cnn_model = load_model(parser, "learned", args.cnn_ckpt, sim.scene.plate_half_width) if "cnn" in args.methods \
         else None
@@ -333,9 +304,10 @@ def main(argv=None):
     results = {}
     with process_pool(args.workers) if args.backend == "mujoco" else contextlib.nullcontext() as processes:
         pool = make_pool(sim, args.backend, processes)
-        masks = episode_goals(args.task, args.episodes, args.seed, pool.env, args.letters)
+        masks = [tasks.episode_goal(args.task, i, args.seed, pool.env, args.letters)
+                 for i in range(args.episodes)]
         goals = stack([make_goal(masks[i], pool.camera) for i in mine])
-        pile_keys, keys = episode_keys(args.seed, mine)
+        pile_keys, keys = tasks.episode_keys(args.seed, mine)
         todo = [m for m in args.methods if not os.path.exists(os.path.join(args.out, f"{m}.json"))]
         cfg = mpc_config(pool.env, args, mpc_steps=args.mpc_steps, real_depth=args.sensor != "none")
         timing = None
@@ -384,7 +356,7 @@ def main(argv=None):
         evaluation_plots(results, args.task, args.out, {m: label(m, r) for m, r in results.items()})
     for method, s in summary["methods"].items():
         print(f"{method:>8}: final d {s['final_distance']:8.2f} ± {s['final_distance_ci95']:.2f}  inside "
-              f"{s['final_inside']:.1%}  ≥{SUCCESS:.0%} inside in {s['success_share']:.0%} of episodes  "
+              f"{s['final_inside']:.1%}  ≥{tasks.SUCCESS:.0%} inside in {s['success_share']:.0%} of episodes  "
               f"mean ω {s['mean_omega']:.1f}")
     for method, p in summary["paired"].items():
         lo, hi = p["delta_d"]["ci95"]

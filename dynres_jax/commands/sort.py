@@ -39,7 +39,7 @@ from dynres_jax.io.draw import sort_frames
 @checks.guarded("sort")
 def main(argv=None):
     parser = checks.parser("sort", __doc__)
-    add_loop_args(parser, "sort")
+    add_loop_args(parser, "sort", adaptive=False)
     parser.add_argument("--kinds", nargs=2, default=["coffee", "candy"], choices=sorted(KINDS), metavar="KIND",
                         help=f"the two piece kinds, one a pile (from {', '.join(sorted(KINDS))})")
     parser.add_argument("--pieces", nargs=2, type=checks.count(1), default=[40, 20], metavar="N",

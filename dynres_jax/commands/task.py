@@ -57,17 +57,13 @@ from dynres_jax.models.registry import (
 from dynres_jax.sim.camera import Camera
 from dynres_jax.sim.env import PileEnv
 
-DESCRIPTIONS = {
-    "gather": "Gather (paper Sec. V): push a spread-out pile into a disc of random centre and radius.",
-    "redistribute": "Redistribute (paper Sec. V): push a pile into a letter shape.",
-}
 
-
-def add_loop_args(parser: argparse.ArgumentParser, task: str) -> None:
-    """The flags every closed-loop task command takes."""
+def add_loop_args(parser: argparse.ArgumentParser, task: str, adaptive: bool = True) -> None:
+    """The flags every closed-loop task command takes (``--out`` defaults to out/TASK); adaptive: whether
+    ``--resolution`` may be 'adaptive' (Sort plans at one ω)."""
     parser.add_argument("--seed", type=checks.seed, default=0)
     parser.add_argument("--mpc-steps", type=checks.count(1), default=20, help="MPC steps per episode")
-    if task == "sort":
+    if not adaptive:
         parser.add_argument("--resolution", type=checks.omega, default=50, help="ω: particles the planner reasons with")
     else:
         parser.add_argument("--resolution", default="50",
@@ -208,14 +204,14 @@ def write_episode(out: str, frames: list) -> None:
 
 
 def main(task: str, argv=None):
-    parser = checks.parser(task, DESCRIPTIONS[task] + "\n\n" + __doc__.split("\n\n", 2)[2])
+    spec = tasks.TASKS[task]
+    parser = checks.parser(task, spec.description + "\n\n" + __doc__.split("\n\n", 2)[2])
     add_loop_args(parser, task)
     parser.add_argument("--kind", default="coffee", choices=sorted(KINDS))
     parser.add_argument("--pieces", type=checks.count(1), default=None,
                         help="pieces in the pile (default: the kind's count for a pile of 100 coffee beans' area)")
-    parser.add_argument("--layout", default="spread" if task == "gather" else "blob",
-                        choices=["blob", "two_blobs", "spread"], help="initial pile")
-    if task == "redistribute":
+    parser.add_argument("--layout", default=spec.layout, choices=["blob", "two_blobs", "spread"], help="initial pile")
+    if spec.letter:
         parser.add_argument("--letter", default="T", type=checks.text,
                             help="the goal: any characters OpenCV draws (paper: J, T, U)")
     args = parser.parse_args(argv)
@@ -228,12 +224,9 @@ def main(task: str, argv=None):
 
     rng = np.random.default_rng(args.seed)
     try:
-        if task == "gather":
-            goal_mask, goal_info = tasks.gather_goal(rng, env)
-        else:
-            goal_mask, goal_info = tasks.redistribute_goal(rng, env, args.letter)
+        goal_mask, goal_info = spec.goal(rng, env, args.letter if spec.letter else None)
     except ValueError as e:
-        parser.error(f"--letter {args.letter!r}: {e}")
+        parser.error(f"--letter {args.letter!r}: {e}" if spec.letter else str(e))
     checks.claim(args.out, task, checks.settings(args), args.fresh)
     goal = make_goal(goal_mask, env.camera)
     state = env.reset(jax.random.PRNGKey(args.seed))
