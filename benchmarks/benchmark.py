@@ -111,7 +111,13 @@ def main(argv=None):
         print(sim_table(result))
     elif args.what == "warp":
         from benchmarks import bench_warp
+        from dynres_jax.errors import InputError
+        from dynres_jax.sim import warp
 
+        try:
+            warp.check_installed()
+        except InputError as e:
+            parser.error(str(e))
         result = bench_warp.run(args.quick, pieces=args.pieces, worlds=args.worlds, graph_modes=args.graph_modes)
         print(bench_warp.table(result))
     elif args.what == "resolution":

@@ -76,3 +76,20 @@ def test_sim_table_adds_the_whole_pushes_row():
     assert "| b | 4096 | 33,630 | 57.0 | 21.0 | 2.71x |" in table
     assert "| b, whole pushes | 4096 | - | 44.0 | 21.0 | 2.10x |" in table
     assert "a, whole pushes" not in table
+
+
+def test_warp_without_the_extra_is_one_line(capsys):
+    """``benchmark warp`` on a machine without MuJoCo Warp: exit status 2 and one line naming the extra, before any
+    work (it was a traceback around that line)."""
+    from dynres_jax.errors import InputError
+    from dynres_jax.sim import warp
+
+    try:
+        warp.check_installed()
+        pytest.skip("MuJoCo Warp is installed here")
+    except InputError:
+        pass
+    with pytest.raises(SystemExit) as stop:
+        benchmark.main(["warp", "--quick"])
+    err = capsys.readouterr().err
+    assert stop.value.code == 2 and 'pip install "dynres-jax[warp]"' in err and "Traceback" not in err
