@@ -116,7 +116,7 @@ def test_resamples_equal_mean_cost_by_hand():
     key = jax.random.PRNGKey(4)
     (p0, m0), (p1, m1) = pile(jax.random.PRNGKey(5), n=8), pile(jax.random.PRNGKey(6), n=8)
     # Sampled anywhere: through-the-pile sampling draws from the first re-sampling, which the by-hand scene lacks.
-    config = PlannerConfig(samples=8, adam_steps=20, bound=BOUND, resamples=2, near_pile=False)
+    config = PlannerConfig(samples=8, adam_steps=20, bound=BOUND, resamples=2, starts="workspace")
     result = plan(sweep_dynamics, centroid_cost, jnp.stack([p0, p1]), jnp.stack([m0, m1]), key, config)
 
     # By hand: both re-samplings side by side in one scene (the sweep acts per particle), cost = mean of the two.
@@ -124,12 +124,74 @@ def test_resamples_equal_mean_cost_by_hand():
         return 0.5 * (centroid_cost(final[:8], mask[:8]) + centroid_cost(final[8:], mask[8:]))
 
     by_hand = plan(sweep_dynamics, mean_cost, jnp.concatenate([p0, p1]), jnp.concatenate([m0, m1]), key,
-                   PlannerConfig(samples=8, adam_steps=20, bound=BOUND, near_pile=False))
+                   PlannerConfig(samples=8, adam_steps=20, bound=BOUND, starts="workspace"))
     np.testing.assert_allclose(result.best, by_hand.best, atol=1e-5)
     np.testing.assert_allclose(result.costs, by_hand.costs, rtol=1e-4, atol=1e-8)
     final = [sweep_dynamics(p, m, result.actions[0])[-1] for p, m in ((p0, m0), (p1, m1))]
     np.testing.assert_allclose(result.costs[0], 0.5 * (centroid_cost(final[0], m0) + centroid_cost(final[1], m1)),
                                rtol=1e-4, atol=1e-8)
+
+
+def test_vote_picks_the_sample_best_on_most_resamplings_by_hand():
+    """No Adam step: each re-sampling votes for its lowest-cost first sample (NumPy, from each (sample, re-sampling)
+    cost computed alone); the plan is the most voted sample (the first on a tie), from the re-sampling where it scored
+    lowest."""
+    key = jax.random.PRNGKey(7)
+    piles = [pile(jax.random.PRNGKey(10 + r), n=8, centre=(-0.08 + 0.04 * r, 0.02 * (r % 2))) for r in range(5)]
+    positions, masks = jnp.stack([p for p, _ in piles]), jnp.stack([m for _, m in piles])
+    config = PlannerConfig(samples=6, adam_steps=0, bound=BOUND, resamples=5, vote=True, starts="workspace")
+    result = plan(sweep_dynamics, centroid_cost, positions, masks, key, config)
+    first = np.asarray(plan(sweep_dynamics, centroid_cost, positions[0], masks[0], key,
+                            PlannerConfig(samples=6, adam_steps=0, bound=BOUND, starts="workspace")).actions)
+    costs = np.array([[float(centroid_cost(sweep_dynamics(p, m, jnp.asarray(a))[-1], m)) for a in first]
+                      for p, m in piles])  # [R, M]
+    votes = np.bincount(costs.argmin(axis=1), minlength=6)
+    winner = int(np.argmax(votes))
+    voters = [r for r in range(5) if costs[r].argmin() == winner]
+    r_best = min(voters, key=lambda r: costs[r, winner])
+    np.testing.assert_allclose(np.asarray(result.best), first[winner], atol=1e-6)
+    np.testing.assert_allclose(float(result.best_cost), costs[r_best, winner], rtol=1e-5)
+    np.testing.assert_allclose(np.asarray(result.costs), costs[r_best], rtol=1e-5)
+    assert len(set(costs.argmin(axis=1).tolist())) > 1  # the re-samplings disagree: the vote decides
+
+
+def test_vote_over_identical_resamplings_is_the_plan_on_one():
+    """Each copy is refined on its own re-sampling alone: with every re-sampling the same, every copy follows the
+    plan on one re-sampling, Adam steps included."""
+    positions, mask = pile(jax.random.PRNGKey(8))
+    key = jax.random.PRNGKey(9)
+    one = plan(sweep_dynamics, centroid_cost, positions, mask, key, PlannerConfig(samples=8, adam_steps=15,
+                                                                                  bound=BOUND))
+    voted = plan(sweep_dynamics, centroid_cost, jnp.stack([positions] * 3), jnp.stack([mask] * 3), key,
+                 PlannerConfig(samples=8, adam_steps=15, bound=BOUND, resamples=3, vote=True))
+    np.testing.assert_allclose(np.asarray(voted.best), np.asarray(one.best), atol=1e-6)
+    np.testing.assert_allclose(np.asarray(voted.history), np.asarray(one.history), rtol=1e-4, atol=1e-9)
+    with pytest.raises(ValueError, match="vote needs resamples"):
+        PlannerConfig(vote=True)
+
+
+def test_fixed_starts_are_one_set_over_the_workspace():
+    """starts="fixed" gives the same first pushes for any key and any pile, spread over the whole workspace (every
+    quadrant); "workspace" draws new ones per key; "pile" passes near the particles."""
+    from dynres_jax.control.planner import sample_pushes
+
+    points, valid = pile(jax.random.PRNGKey(0), n=30, centre=(0.1, 0.1))
+    other, _ = pile(jax.random.PRNGKey(1), n=30, centre=(-0.1, -0.1))
+    fixed = PlannerConfig(samples=64, bound=BOUND, starts="fixed", reach=0.2)
+    a = np.asarray(sample_pushes(jax.random.PRNGKey(2), points, valid, fixed))
+    b = np.asarray(sample_pushes(jax.random.PRNGKey(3), other, valid, fixed))
+    np.testing.assert_array_equal(a, b)
+    assert np.all(np.abs(a) <= BOUND + 1e-6)  # no start from beyond a wall
+    mid = (a[..., :2] + a[..., 2:]) / 2
+    assert {(bool(x > 0), bool(y > 0)) for x, y in mid.reshape(-1, 2)} == {(i, j) for i in (0, 1) for j in (0, 1)}
+    workspace = PlannerConfig(samples=64, bound=BOUND, starts="workspace")
+    assert not np.allclose(sample_pushes(jax.random.PRNGKey(2), points, valid, workspace),
+                           sample_pushes(jax.random.PRNGKey(3), points, valid, workspace))
+    near = np.asarray(sample_pushes(jax.random.PRNGKey(2), points, valid, PlannerConfig(samples=64, bound=BOUND)))
+    assert np.mean(np.linalg.norm((near[..., :2] + near[..., 2:]) / 2 - 0.1, axis=-1)) < np.mean(
+        np.linalg.norm(mid - 0.1, axis=-1))
+    with pytest.raises(ValueError, match="starts must be one of"):
+        PlannerConfig(starts="grid")
 
 
 def _model_dynamics(graphdef, state, code, positions, mask, actions):

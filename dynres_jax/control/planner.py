@@ -2,8 +2,9 @@
 
 Mapping to Algorithm 1 (and the reference code):
 
-1. Sample M action sequences u_{1:T} (``sample_actions``; by default each push passes near the pile's centroid, like
-   the reference's fixed initial pushes). A warm start (the previous MPC step's plan, shifted) replaces sample 0.
+1. Sample M action sequences u_{1:T} (``sample_pushes``; by default each push passes near a random particle of the
+   pile; ``starts="fixed"``: the reference's one set of pushes spread over the workspace, the same every plan). A warm
+   start (the previous MPC step's plan, shifted) replaces sample 0.
 2. For N steps, all M sequences at once (``jax.vmap``) inside one ``jax.lax.scan``: roll the dynamics out
    (``dynamics_fn``), score the final state with the task cost c (``cost_fn``), take an Adam step on the actions
    (optax) and project them back into the workspace (``project``; the reference clamps after every step).
@@ -12,8 +13,10 @@ Mapping to Algorithm 1 (and the reference code):
 The planner knows nothing about the task or the model: ``dynamics_fn(positions [N, 3], mask [N], actions [T, 4]) ->
 [T, N, 3]`` and ``cost_fn(final_positions [N, 3], mask [N]) -> []`` are any differentiable JAX functions. With R
 re-samplings of the particles (the reference evaluates every push on 30 of them), positions and mask get a leading
-[R] axis and a sequence's cost is the mean over them. A dynamics may do its work that depends on the particles only
-once per plan rather than once per Adam step (``_prepared``: the learned model's pair table, about 5 % of a step).
+[R] axis and a sequence's cost is the mean over them; or, with ``vote`` (the reference's), each sample is refined on
+each re-sampling separately and the plan is the sample that is best on the most re-samplings. A dynamics may do its
+work that depends on the particles only once per plan rather than once per Adam step (``_prepared``: the learned
+model's pair table, about 5 % of a step).
 
 Compilation: ``plan`` is jitted with the functions passed as pytrees (``jax.tree_util.Partial``), so a
 ``Partial(f, arrays...)`` reuses one compiled plan for new arrays (model weights, resolution code, goal), while a
@@ -42,6 +45,10 @@ from dynres_jax.config import PushConfig, check_fields
 from dynres_jax.errors import InputError
 from dynres_jax.sim.pushes import check_reach, pile_points, project, sample_actions
 
+STARTS = ("pile", "workspace", "fixed")  # where the planner's first pushes come from (PlannerConfig.starts)
+FIXED_STARTS_SEED = 0  # the key of starts="fixed": one set of pushes for every plan
+REFERENCE_LR_SHARE = 0.05 / 10.0  # the reference's Adam step (lr 0.05) as a share of its action range's width (±5)
+
 
 @dataclass(frozen=True)
 class PlannerConfig:
@@ -58,8 +65,12 @@ class PlannerConfig:
     min_length, max_length: push length range in m (PushConfig).
     resamples: R re-samplings of the particles each sequence is scored on (mean cost); positions then carry a
       leading [R] axis when R > 1.
-    near_pile: sample pushes through points near randomly chosen particles (else anywhere in the workspace).
-    spread: m, the radius of the disc around the centroid the sampled pushes pass through.
+    vote: (R > 1) the reference's aggregation instead of the mean: every sample refined on each re-sampling alone
+      (R copies), each re-sampling's best sample a vote, the plan the most voted sample's copy that scored best.
+    starts: the first pushes (``STARTS``): "pile", through points near random particles (a share from beyond a wall
+      with reach); "workspace", anywhere in the workspace, drawn every plan; "fixed", anywhere in the workspace, the
+      same set every plan (the reference's fixed initial pushes; key FIXED_STARTS_SEED, no wall starts).
+    spread: m, the radius of the disc around each chosen particle the "pile" pushes pass through.
     seed: PRNG seed used when ``plan`` gets key=None.
     """
 
@@ -72,7 +83,8 @@ class PlannerConfig:
     min_length: float = PushConfig.min_length
     max_length: float = PushConfig.max_length
     resamples: int = 1
-    near_pile: bool = True
+    vote: bool = False
+    starts: str = "pile"
     spread: float = 0.03
     seed: int = 0
 
@@ -86,6 +98,10 @@ class PlannerConfig:
             raise ValueError(f"PlannerConfig.adam_steps (N) must be >= 0, got {self.adam_steps}")
         if self.resamples < 1:
             raise ValueError(f"PlannerConfig.resamples (R) must be >= 1, got {self.resamples}")
+        if self.vote and self.resamples < 2:
+            raise ValueError("PlannerConfig.vote needs resamples (R) >= 2: one re-sampling has nothing to vote on")
+        if self.starts not in STARTS:
+            raise ValueError(f"PlannerConfig.starts must be one of {', '.join(STARTS)}, got {self.starts!r}")
         if self.bound <= 0:
             raise ValueError(f"PlannerConfig.bound must be > 0 m, got {self.bound}")
         if not 0 < self.min_length <= self.max_length <= 2 * self.bound:
@@ -104,7 +120,8 @@ def planner_config(env, **settings) -> PlannerConfig:
 class PlanResult(NamedTuple):
     """best [T, 4]: the lowest-cost sequence seen (projected); best_cost []: its cost; costs [M] and actions
     [M, T, 4]: every sequence after the final step; history [PlannerConfig.adam_steps]: the best cost seen up to each
-    step run, NaN past the steps run (one slot when PlannerConfig.adam_steps is 0)."""
+    step run, NaN past the steps run (one slot when PlannerConfig.adam_steps is 0). With a vote, all of these are the
+    winning copy's re-sampling's (its cost on that re-sampling alone)."""
 
     best: jax.Array
     best_cost: jax.Array
@@ -134,16 +151,20 @@ def _batched(positions, mask, resamples):
 
 
 def sample_pushes(key, points, valid, config: PlannerConfig):
-    """The planner's M starting sequences [M, T, 4] m: ``sample_actions`` through random valid points [P, 3] (valid
-    [P]) of the pile when config.near_pile, else anywhere. ``plan`` draws them through the particles; drawn through
-    the perception cloud instead (``mpc.decide``), they are the same for every ω: common random numbers."""
+    """The planner's M starting sequences [M, T, 4] m (``sample_actions``), as config.starts says: through random
+    valid points [P, 3] (valid [P]) of the pile, anywhere in the workspace, or the fixed set (key ignored). ``plan``
+    draws them through the particles; drawn through the perception cloud instead (``mpc.decide``), they are the same
+    for every ω: common random numbers."""
     c = config
+    if c.starts == "fixed":
+        key = jax.random.PRNGKey(FIXED_STARTS_SEED)
     k_points, k_actions = jax.random.split(key)
     shape = (c.samples, c.horizon)
-    centre = pile_points(k_points, points, valid, shape) if c.near_pile else None
-    wall = None if c.reach is None else pile_points(jax.random.fold_in(k_points, 1), points, valid, shape, c.reach)
+    centre = pile_points(k_points, points, valid, shape) if c.starts == "pile" else None
+    wall = None if c.reach is None or c.starts == "fixed" else pile_points(jax.random.fold_in(k_points, 1), points,
+                                                                           valid, shape, c.reach)
     return sample_actions(k_actions, c.samples, c.horizon, c.bound, c.min_length, c.max_length, centre, c.spread,
-                          c.reach, wall)
+                          None if c.starts == "fixed" else c.reach, wall)
 
 
 def _check_particles(positions, mask) -> None:
@@ -176,6 +197,43 @@ def _prepared(dynamics_fn, positions, mask):
     return dynamics_fn, context
 
 
+def _refine(dynamics_fn, cost_fn, actions, positions, mask, context, adam_steps, config):
+    """Adam steps on the M sequences actions [M, T, 4], each scored by its mean cost over the re-samplings positions
+    [R, N, 3], mask [R, N] (context: ``_prepared``'s, [R, ...]): (PlanResult, the index of the best sample seen)."""
+    c = config
+
+    def objective(seq):  # [T, 4] -> mean over the R re-samplings of the final-state cost
+        final = jax.vmap(lambda p, m, ctx: dynamics_fn(p, m, seq, ctx)[-1])(positions, mask, context)
+        return jnp.mean(jax.vmap(cost_fn)(final, mask))
+
+    value_and_grad = jax.vmap(jax.value_and_grad(objective))
+    optimiser = optax.adam(c.lr)
+
+    def keep_best(best, best_cost, best_index, actions, costs):
+        i = jnp.argmin(costs)
+        better = costs[i] < best_cost
+        return (jnp.where(better, actions[i], best), jnp.where(better, costs[i], best_cost),
+                jnp.where(better, i, best_index))
+
+    def step(i, carry):
+        actions, opt_state, best, history = carry
+        costs, grads = value_and_grad(actions)
+        best = keep_best(*best, actions, costs)
+        updates, opt_state = optimiser.update(grads, opt_state, actions)
+        actions = project(optax.apply_updates(actions, updates), c.bound, c.min_length, c.max_length,
+                          c.reach)
+        return actions, opt_state, best, history.at[i].set(best[1])
+
+    best = (actions[0], jnp.asarray(jnp.inf, jnp.float32), jnp.asarray(0, jnp.int32))
+    carry = (actions, optimiser.init(actions), best,
+             jnp.full(max(c.adam_steps, 1), jnp.nan, jnp.float32))  # one slot at least, so the loop body traces
+    adam_steps = jnp.clip(jnp.asarray(adam_steps, jnp.int32), 0, c.adam_steps)
+    actions, _, best, history = jax.lax.fori_loop(0, adam_steps, step, carry)
+    costs = jax.vmap(objective)(actions)
+    best, best_cost, best_index = keep_best(*best, actions, costs)
+    return PlanResult(best, best_cost, costs, history, actions), best_index
+
+
 def _plan(dynamics_fn, cost_fn, positions, mask, key, init, initial, adam_steps, config):
     """The jitted planner; see ``plan``. positions [R, N, 3], mask [R, N], init [T, 4] or None, initial [M, T, 4] or
     None, adam_steps [] int32 (may be traced, at most config.adam_steps)."""
@@ -186,35 +244,15 @@ def _plan(dynamics_fn, cost_fn, positions, mask, key, init, initial, adam_steps,
         actions = actions.at[0].set(project(init, c.bound, c.min_length, c.max_length, c.reach))
 
     dynamics_fn, context = _prepared(dynamics_fn, positions, mask)
-
-    def objective(seq):  # [T, 4] -> mean over the R re-samplings of the final-state cost
-        final = jax.vmap(lambda p, m, ctx: dynamics_fn(p, m, seq, ctx)[-1])(positions, mask, context)
-        return jnp.mean(jax.vmap(cost_fn)(final, mask))
-
-    value_and_grad = jax.vmap(jax.value_and_grad(objective))
-    optimiser = optax.adam(c.lr)
-
-    def keep_best(best, best_cost, actions, costs):
-        i = jnp.argmin(costs)
-        better = costs[i] < best_cost
-        return jnp.where(better, actions[i], best), jnp.where(better, costs[i], best_cost)
-
-    def step(i, carry):
-        actions, opt_state, best, best_cost, history = carry
-        costs, grads = value_and_grad(actions)
-        best, best_cost = keep_best(best, best_cost, actions, costs)
-        updates, opt_state = optimiser.update(grads, opt_state, actions)
-        actions = project(optax.apply_updates(actions, updates), c.bound, c.min_length, c.max_length,
-                          c.reach)
-        return actions, opt_state, best, best_cost, history.at[i].set(best_cost)
-
-    carry = (actions, optimiser.init(actions), actions[0], jnp.asarray(jnp.inf, jnp.float32),
-             jnp.full(max(c.adam_steps, 1), jnp.nan, jnp.float32))  # one slot at least, so the loop body traces
-    adam_steps = jnp.clip(jnp.asarray(adam_steps, jnp.int32), 0, c.adam_steps)
-    actions, _, best, best_cost, history = jax.lax.fori_loop(0, adam_steps, step, carry)
-    costs = jax.vmap(objective)(actions)
-    best, best_cost = keep_best(best, best_cost, actions, costs)
-    return PlanResult(best, best_cost, costs, history, actions)
+    if not c.vote:
+        return _refine(dynamics_fn, cost_fn, actions, positions, mask, context, adam_steps, c)[0]
+    one = lambda x: x[None]  # noqa: E731  one re-sampling as a set of one
+    plans, best_index = jax.vmap(lambda p, m, ctx: _refine(dynamics_fn, cost_fn, actions, one(p), one(m),
+                                                           jax.tree.map(one, ctx), adam_steps, c))(
+        positions, mask, context)
+    votes = jnp.zeros(c.samples, jnp.int32).at[best_index].add(1)  # each re-sampling votes for its best sample
+    r = jnp.argmin(jnp.where(best_index == jnp.argmax(votes), plans.best_cost, jnp.inf))  # the winner's best copy
+    return jax.tree.map(lambda x: x[r], plans)
 
 
 _plan_jit = jax.jit(_plan, static_argnames="config")
