@@ -148,3 +148,54 @@ def test_a_table_of_another_batch_and_bad_perception_are_named(scene):
         run_episode(env, state._replace(obs=empty), FixedOmega(batch(goal), 12), dyn,
                     MPCConfig(mpc_steps=1, buckets=(16, 32), planner=planner), jax.random.PRNGKey(0),
                     log=lambda s: None)
+
+
+def test_the_reference_pricing_by_hand():
+    """The reference's fitted step time, (2969.3971 - 69.923244 ω + 1.8509846 ω²) / 200 ms in whole ms, and the Adam
+    steps it affords: at ω = 100, 1 s buys 13 (PAPER.md: 'only 13 steps') and 2 s 27."""
+    from dynres_jax.control import budget
+
+    assert [budget.reference_step_s(w) for w in (25, 50, 75, 100)] == [0.011, 0.02, 0.04, 0.072]
+    table = budget.reference_table((25, 50, 75, 100), samples=50, horizon=1)
+    assert table.frozen and table.fixed_s == {25: 0.0, 50: 0.0, 75: 0.0, 100: 0.0}
+    assert table.steps(100, 1.0, 200) == 13 and table.steps(100, 2.0, 200) == 27
+    assert table.steps(25, 2.0, 200) == 181 and table.steps(25, 3.0, 200) == 200
+    table.refine(100, 10, 5.0)  # frozen: a run's own times do not move it
+    assert table.step_s[100] == 0.072
+
+
+def test_reference_planner_flags_resolve_to_the_authors_options_and_a_flag_beside_wins(capsys):
+    """--reference-planner fills every option as the reference's code (starts fixed, 30 re-samplings with a vote, no
+    warm start, lr 0.005 of the action range, buckets 25 50 75 100, its pricing); a flag given beside it wins; without
+    it, ours; bad combinations are one-line errors before any work."""
+    import argparse
+    from types import SimpleNamespace
+
+    from dynres_jax.commands.task import add_planner_args, mpc_config, resolve_planner_args
+    from dynres_jax.config import PushConfig
+
+    def parsed(*flags):
+        parser = argparse.ArgumentParser()
+        add_planner_args(parser)
+        parser.add_argument("--quick", action="store_true")
+        args = parser.parse_args(list(flags))
+        resolve_planner_args(parser, args)
+        return args
+
+    env = SimpleNamespace(action_bound=0.181, reach=0.2, config=SimpleNamespace(push=PushConfig()))
+    cfg = mpc_config(env, parsed("--reference-planner"))
+    p = cfg.planner
+    assert (p.starts, p.resamples, p.vote, cfg.warm_start, cfg.buckets) == ("fixed", 30, True, False, (25, 50, 75, 100))
+    assert abs(p.lr - 0.005 * 2 * 0.181) < 1e-12
+    assert parsed("--reference-planner").pricing == "reference"
+    cfg = mpc_config(env, parsed("--reference-planner", "--warm-start", "--resamples", "1", "--no-vote"))
+    assert cfg.warm_start and cfg.planner.resamples == 1 and not cfg.planner.vote and cfg.planner.starts == "fixed"
+    ours = mpc_config(env, parsed())
+    assert (ours.planner.starts, ours.planner.resamples, ours.planner.vote, ours.warm_start) == ("pile", 1, False, True)
+    assert ours.planner.lr == 0.02 and ours.buckets == (16, 32, 64, 100) and parsed().pricing == "measured"
+    for bad, says in ((["--vote"], "--vote needs --resamples"), (["--lr", "-1"], "--lr"),
+                      (["--buckets", "50", "25"], "--buckets"),
+                      (["--pricing", "reference", "--time-budget", "1", "--timing", "t.json"], "--timing and")):
+        with pytest.raises(SystemExit):
+            parsed(*bad)
+        assert says in capsys.readouterr().err

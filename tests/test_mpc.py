@@ -346,3 +346,53 @@ def test_evaluate_quick_is_quick(tmp_path):
     run = json.loads((tmp_path / "50.json").read_text())
     assert summary["methods"]["50"]["episodes"] == 4 and len(run["mean_distance"]) == 3
     assert summary["mpc_steps"] == 3 and summary["samples"] == 4 and np.all(np.array(run["adam_steps"]) == 10)
+
+
+def test_warm_start_off_plans_every_step_from_fresh_samples(episode, monkeypatch):
+    """MPCConfig.warm_start: the decisions after the first get the previous plan (warm) by default, and never with
+    warm_start=False (the reference's planner); the first never does."""
+    from dynres_jax.control import mpc
+
+    env, state, goal, *_ = episode
+    planner = PlannerConfig(samples=8, adam_steps=2, bound=env.action_bound, max_length=0.1)
+    seen = []
+
+    def spy(*args, **kwargs):
+        seen.append(bool(np.asarray(args[4]).all()))
+        return decide_batch(*args, **kwargs)
+
+    monkeypatch.setattr(mpc, "decide_batch", spy)
+    for warm_start, want in ((True, [False, True, True]), (False, [False, False, False])):
+        seen.clear()
+        cfg = MPCConfig(mpc_steps=3, buckets=(8,), max_points=512, planner=planner, warm_start=warm_start)
+        run_episode(env, state, FixedOmega(batch(goal), 6), sweep_dynamics(0.04), cfg, jax.random.PRNGKey(1),
+                    log=lambda s: None)
+        assert seen == want, (warm_start, seen)
+
+
+def test_a_decision_on_resamplings_plans_on_the_clouds_other_fps_starts(episode):
+    """With PlannerConfig.resamples R, the decision scores each push on R re-samplings of one cloud: the first is the
+    particles it reports, the others FPS from other starts (keys folded from the perception key); the plan equals the
+    planner run by hand on those R sets."""
+    from dynres_jax.control.decision import perceive_and_decide
+    from dynres_jax.control.planner import sample_pushes
+    from dynres_jax.perception import cloud_particles, perceive
+
+    env, state, goal, *_ = episode
+    planner = PlannerConfig(samples=6, adam_steps=4, bound=env.action_bound, max_length=0.1, resamples=3)
+    spec = MPCConfig(buckets=(8,), max_points=512, planner=planner).spec(8)
+    key, init = jax.random.PRNGKey(3), jnp.zeros((1, 4))
+    particles, _, result = perceive_and_decide(state.obs, goal, key, init, False, 6, 4, spec=spec,
+                                               dynamics=sweep_dynamics(0.04), camera=env.camera)
+    k_h, k_plan = jax.random.split(key)
+    seen = perceive(state.obs, env.camera, 6, k_h, 8, max_points=512)
+    sets = [seen.particles] + [cloud_particles(seen.points, seen.valid, state.obs.depth, 6, k, 8)
+                               for k in jax.random.split(jax.random.fold_in(k_h, 1), 2)]
+    assert not np.allclose(sets[0].positions, sets[1].positions)  # other starts, other particles
+    by_hand = plan(sweep_dynamics(0.04)(seen.particles.radius), goal_cost(goal, env.camera, 8),
+                   jnp.stack([s.positions for s in sets]), jnp.stack([s.mask for s in sets]), k_plan, planner,
+                   init=sample_pushes(k_plan, seen.points, seen.valid, planner)[0], adam_steps=4,
+                   initial=sample_pushes(k_plan, seen.points, seen.valid, planner))
+    np.testing.assert_allclose(np.asarray(particles.positions), np.asarray(sets[0].positions))
+    np.testing.assert_allclose(np.asarray(result.best), np.asarray(by_hand.best), atol=1e-6)
+    np.testing.assert_allclose(np.asarray(result.costs), np.asarray(by_hand.costs), rtol=1e-5)

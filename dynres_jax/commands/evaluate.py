@@ -47,6 +47,7 @@ from dynres_jax.commands.task import (
     load_timing,
     mpc_config,
     resolve_pieces,
+    resolve_planner_args,
     timing_table,
 )
 from dynres_jax.config import KINDS, OMEGA_MAX, OMEGA_MIN, CameraConfig, PileConfig, SceneConfig, SimConfig
@@ -261,6 +262,7 @@ def main(argv=None):
     if args.deterministic:
         deterministic(parser)
     rank, size = distributed.from_args(parser, args)
+    resolve_planner_args(parser, args)
     table = load_timing(parser, args)
     for m in args.methods:
         fixed = m.isdigit() and OMEGA_MIN <= int(m) <= OMEGA_MAX

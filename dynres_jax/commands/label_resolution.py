@@ -37,7 +37,15 @@ from tqdm import tqdm
 
 from dynres_jax import distributed
 from dynres_jax.commands import checks
-from dynres_jax.commands.task import add_planner_args, check_pile, load_model, load_timing, mpc_config, timing_table
+from dynres_jax.commands.task import (
+    add_planner_args,
+    check_pile,
+    load_model,
+    load_timing,
+    mpc_config,
+    resolve_planner_args,
+    timing_table,
+)
 from dynres_jax.config import KINDS, OMEGA_MAX, OMEGA_MIN, SceneConfig
 from dynres_jax.io import files
 from dynres_jax.io.shards import complete_shards, read_shard, save_npz, shard_path
@@ -82,6 +90,7 @@ def main(argv=None):
     if args.quick:
         args.scenes, args.batch, args.evals, args.repeats, args.pieces = 8, 4, 6, 1, 60  # 60: points for ω = 100
         args.samples, args.adam_steps = 4, 4
+    resolve_planner_args(parser, args)
     load_timing(parser, args)
     check_pile(parser, (args.kind,), (args.pieces,))
     try:

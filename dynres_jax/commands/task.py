@@ -41,7 +41,7 @@ from dynres_jax.control.decision import batch, episode
 from dynres_jax.control.goals import make_goal
 from dynres_jax.control.mpc import MPCConfig, measure_timing, run_episode
 from dynres_jax.control.objective import inside_share
-from dynres_jax.control.planner import planner_config
+from dynres_jax.control.planner import REFERENCE_LR_SHARE, STARTS, PlannerConfig, planner_config, reference_lr
 from dynres_jax.control.resolution import load_regressor
 from dynres_jax.errors import InputError
 from dynres_jax.io import files
@@ -256,9 +256,69 @@ def main(task: str, argv=None):
     return summary
 
 
+PLANNER_OPTIONS = dict(starts="pile", resamples=1, vote=False, warm_start=True, lr=None, buckets=budget.BUCKETS,
+                       pricing="measured")  # ours (lr None: PlannerConfig's)
+REFERENCE_PLANNER = dict(starts="fixed", resamples=30, vote=True, warm_start=False, lr="reference",
+                         buckets=(25, 50, 75, 100), pricing="reference")  # the authors' code's (issue 51)
+
+
+def add_reference_planner_args(parser) -> None:
+    """The options that make our planner the reference's, one flag each (evaluate, label_resolution, tradeoff)."""
+    g = parser.add_argument_group("the reference's planner: --reference-planner sets every option below as the "
+                                  "authors' code does; a flag given beside it wins")
+    g.add_argument("--reference-planner", action="store_true",
+                   help="--starts fixed --resamples 30 --vote --no-warm-start --lr reference --buckets 25 50 75 100 "
+                        "--pricing reference")
+    g.add_argument("--starts", choices=STARTS, default=None, help="the first pushes: pile (through the particles; "
+                   "default), workspace (anywhere, drawn every step) or fixed (one set over the workspace)")
+    g.add_argument("--resamples", type=checks.count(1, 64), default=None,
+                   help="re-samplings of the particles each push is scored on (default 1)")
+    g.add_argument("--vote", action=argparse.BooleanOptionalAction, default=None,
+                   help="with --resamples: each re-sampling votes for its best push (default: their mean cost)")
+    g.add_argument("--warm-start", action=argparse.BooleanOptionalAction, default=None,
+                   help="start each plan from the last one, shifted (default on)")
+    g.add_argument("--lr", default=None, help="the Adam step, m, or 'reference' (the authors' step relative to the "
+                   f"action range, {REFERENCE_LR_SHARE} of its width); default {PlannerConfig.lr}")
+    g.add_argument("--buckets", type=checks.count(1, OMEGA_MAX), nargs="+", default=None,
+                   help=f"resolution buckets (default {' '.join(map(str, budget.BUCKETS))}): each ω is priced as the "
+                        "smallest bucket holding it")
+    g.add_argument("--pricing", choices=["measured", "reference"], default=None,
+                   help="the price of an Adam step under --time-budget: a timing table measured here (default), or "
+                        "the authors' fitted step time per bucket (no measuring)")
+
+
+def resolve_planner_args(parser: argparse.ArgumentParser, args) -> None:
+    """Fill the reference-planner options left unset from --reference-planner's values, else ours; parser.error
+    naming a bad combination, before any work."""
+    preset = REFERENCE_PLANNER if args.reference_planner else PLANNER_OPTIONS
+    for name, value in preset.items():
+        if getattr(args, name) is None:
+            setattr(args, name, value)
+    if args.vote and args.resamples < 2:
+        parser.error(f"--vote needs --resamples of 2 or more, got {args.resamples}")
+    if args.lr is not None and args.lr != "reference":
+        try:
+            args.lr = checks.positive(args.lr)
+        except argparse.ArgumentTypeError as e:
+            parser.error(f"--lr: {e} (or 'reference')")
+    try:
+        args.buckets = budget.check_buckets(args.buckets)
+    except ValueError as e:
+        parser.error(f"--buckets: {e}")
+    if args.pricing == "reference" and getattr(args, "timing", None):
+        parser.error("--timing and --pricing reference both price the Adam steps: give one")
+
+
+def planner_options(args, env) -> dict:
+    """PlannerConfig's settings from the resolved options (``resolve_planner_args``) for pushes in ``env``."""
+    lr = reference_lr(env.action_bound) if args.lr == "reference" else args.lr
+    return dict(starts=args.starts, resamples=args.resamples, vote=args.vote, **({} if lr is None else dict(lr=lr)))
+
+
 def add_planner_args(parser) -> None:
     """The planner flags of ``experiments.evaluate`` and ``experiments.label_resolution``."""
     add_budget_args(parser)
+    add_reference_planner_args(parser)
     parser.add_argument("--samples", type=checks.count(1), default=20, help="action sequences per plan (paper M = 20)")
     parser.add_argument("--adam-steps", type=checks.count(1), default=100,
                         help="Adam steps per plan (the most, under a budget)")
@@ -269,9 +329,11 @@ def add_planner_args(parser) -> None:
 def mpc_config(env, args, mpc_steps: int = 1, real_depth: bool = False) -> MPCConfig:
     """The MPC settings the planner flags ask for (evaluate and label_resolution): mpc_steps per episode (1: a
     single decision, as a label's plan)."""
-    planner = planner_config(env, samples=args.samples, adam_steps=args.adam_steps, horizon=args.horizon)
+    planner = planner_config(env, samples=args.samples, adam_steps=args.adam_steps, horizon=args.horizon,
+                             **planner_options(args, env))
     return MPCConfig(mpc_steps=mpc_steps, planner=planner, max_points=1024 if args.quick else 4096,
-                     time_budget=args.time_budget, real_depth=real_depth)
+                     time_budget=args.time_budget, real_depth=real_depth, warm_start=args.warm_start,
+                     buckets=args.buckets)
 
 
 def timing_table(args, out_dir: str, obs, goal, dynamics, cfg: MPCConfig, camera, omegas
@@ -286,7 +348,9 @@ def timing_table(args, out_dir: str, obs, goal, dynamics, cfg: MPCConfig, camera
 
     def make() -> budget.TimingTable:
         path = args.timing or (saved if os.path.exists(saved) else None)
-        if path is not None:
+        if args.pricing == "reference":
+            table = budget.reference_table(cfg.buckets, cfg.planner.samples, cfg.planner.horizon)
+        elif path is not None:
             table = budget.TimingTable.load(path)
         else:
             table = measure_timing(episode(obs), episode(goal), dynamics, cfg, camera)

@@ -128,6 +128,22 @@ class TimingTable:
         return cls(**data, frozen=frozen)
 
 
+def reference_step_s(omega: int) -> float:
+    """The reference's price of one Adam step at ω particles (s): the quadratic its planner fitted to its own step
+    times (planners.py, ``particle_num_to_iter_time``: 11, 20, 40 and 72 ms at ω = 25, 50, 75 and 100, whole ms), at
+    least 1 ms."""
+    return max(int((2969.3971 - 69.923244 * omega + 1.8509846 * omega**2) / 200.0), 1) / 1000.0
+
+
+def reference_table(buckets: Sequence[int], samples: int, horizon: int) -> TimingTable:
+    """A timing table in the reference's pricing: no fixed part, each bucket's Adam step priced at
+    ``reference_step_s`` of its capacity; frozen, so no run refines it. With buckets (25, 50, 75, 100) every ω of
+    the paper's Fig. 5 gets its own price."""
+    buckets = check_buckets(buckets)
+    return TimingTable("reference (the authors' fitted step time)", samples, horizon, {b: 0.0 for b in buckets},
+                       {b: reference_step_s(b) for b in buckets}, frozen=True)
+
+
 def adam_steps(bucket: int, max_steps: int, seconds: float | None = None, table: TimingTable | None = None) -> int:
     """The one budget function: the Adam steps a decision at ``bucket`` runs. No budget (seconds None): max_steps.
     A budget of ``seconds`` per decision: as many steps as ``table`` says fit, at most max_steps."""
@@ -171,4 +187,5 @@ def measure(decide: Callable[[int, int], object], buckets: Sequence[int], *, sam
     return TimingTable(f"{device.platform}: {device.device_kind}", samples, horizon, fixed, step)
 
 
-__all__ = ["BUCKETS", "TimingTable", "bucket_for", "check_buckets", "measure", "adam_steps"]
+__all__ = ["BUCKETS", "TimingTable", "adam_steps", "bucket_for", "check_buckets", "measure", "reference_step_s",
+           "reference_table"]

@@ -19,7 +19,7 @@ from jax.tree_util import Partial
 from dynres_jax.control.goals import Goal, KindGoals
 from dynres_jax.control.objective import SAMPLES_PER_PARTICLE, kind_costs, kind_objective, objective
 from dynres_jax.control.planner import PlannerConfig, plan, sample_pushes
-from dynres_jax.perception import Perceived, check_particles, perceive
+from dynres_jax.perception import Perceived, check_particles, cloud_particles, perceive
 
 
 @dataclass(frozen=True)
@@ -69,12 +69,16 @@ def goal_cost(goal: Goal | KindGoals, camera, capacity: int | None = None, kinds
 
 
 def decide(seen: Perceived, goal: Goal | KindGoals, key, init, warm, adam_steps, *, spec: DecisionSpec, dynamics,
-           camera):
+           camera, resampled=None):
     """c of the perceived particles and the plan. init [T, 4]: the warm start (the previous plan, shifted), used where
     ``warm`` (may be traced), or None; adam_steps: may be traced. goal: a Goal, or KindGoals (Sort: ``seen.kinds``
     label the particles, c is ``kind_objective`` with each kind's c now as the held kinds' baseline). dynamics:
-    radius -> the planner's model (``registry``). Returns (c [], PlanResult)."""
+    radius -> the planner's model (``registry``). resampled: (positions [R, N, 3], mask [R, N]), the R re-samplings
+    the plan scores each push on (spec.planner.resamples; the first is seen.particles), or None for R = 1. Returns
+    (c [], PlanResult)."""
     p = seen.particles
+    if isinstance(goal, KindGoals) and resampled is not None:
+        raise ValueError("Sort plans on one re-sampling of the particles: its kinds label the first only")
     if isinstance(goal, KindGoals):
         baseline = kind_costs(p.positions, p.mask, seen.kinds, goal, camera)
         c_now = kind_objective(p.positions, p.mask, seen.kinds, goal, camera, baseline)
@@ -83,20 +87,29 @@ def decide(seen: Perceived, goal: Goal | KindGoals, key, init, warm, adam_steps,
         c_now = objective(p.positions, p.mask, goal, camera)
     initial = sample_pushes(key, seen.points, seen.valid, spec.planner)
     init = initial[0] if init is None else jnp.where(warm, init, initial[0])  # no warm start: sample 0 stands in
-    result = plan(dynamics(p.radius), goal_cost(goal, camera, spec.capacity, seen.kinds, baseline), p.positions,
-                  p.mask, key, spec.planner, init=init, adam_steps=adam_steps, initial=initial)
+    positions, mask = (p.positions, p.mask) if resampled is None else resampled
+    result = plan(dynamics(p.radius), goal_cost(goal, camera, spec.capacity, seen.kinds, baseline), positions,
+                  mask, key, spec.planner, init=init, adam_steps=adam_steps, initial=initial)
     return c_now, result
 
 
 def perceive_and_decide(obs, goal, key, init, warm, omega, adam_steps, kind=None, *, spec: DecisionSpec, dynamics,
                         camera):
-    """One whole decision from a frame: h at ω (``perception.perceive`` with the first half of ``key``), then
-    ``decide`` with the second. kind: perceive only this piece kind (None: every piece; KindGoals need every piece).
-    Returns (Particles, c [], PlanResult)."""
+    """One whole decision from a frame: h at ω (``perception.perceive`` with the first half of ``key``; with
+    spec.planner.resamples R > 1, R - 1 more re-samplings of the same cloud, FPS from other starts), then ``decide``
+    with the second. kind: perceive only this piece kind (None: every piece; KindGoals need every piece). Returns
+    (Particles, c [], PlanResult)."""
     k_h, k_plan = jax.random.split(key)
     seen = perceive(obs, camera, omega, k_h, spec.capacity, max_points=spec.max_points, real_depth=spec.real_depth,
                     kind=kind, with_kinds=isinstance(goal, KindGoals))
-    c_now, result = decide(seen, goal, k_plan, init, warm, adam_steps, spec=spec, dynamics=dynamics, camera=camera)
+    resampled = None
+    if spec.planner.resamples > 1:
+        keys = jax.random.split(jax.random.fold_in(k_h, 1), spec.planner.resamples - 1)
+        more = jax.vmap(lambda k: cloud_particles(seen.points, seen.valid, obs.depth, omega, k, spec.capacity))(keys)
+        p = seen.particles
+        resampled = (jnp.concatenate([p.positions[None], more.positions]), jnp.concatenate([p.mask[None], more.mask]))
+    c_now, result = decide(seen, goal, k_plan, init, warm, adam_steps, spec=spec, dynamics=dynamics, camera=camera,
+                           resampled=resampled)
     return seen.particles, c_now, result
 
 

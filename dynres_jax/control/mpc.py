@@ -44,7 +44,8 @@ class MPCConfig:
     max_points: perception's point cap; planner: the shooting optimiser's settings (its steps: the Adam steps of a
     decision without a time budget, and the most with one); time_budget: seconds per decision on the planning device
     (None: planner.adam_steps every decision); real_depth: perception treats the depth as a real camera's
-    (``perception.foreground``: a median filter, the table plane fitted; ``sim.sensor``)."""
+    (``perception.foreground``: a median filter, the table plane fitted; ``sim.sensor``); warm_start: each step's plan
+    starts from the previous one, shifted (False: from fresh samples every step, as the reference's planner)."""
 
     mpc_steps: int = 20
     buckets: tuple[int, ...] = budget.BUCKETS
@@ -52,6 +53,7 @@ class MPCConfig:
     planner: PlannerConfig = field(default_factory=PlannerConfig)
     time_budget: float | None = None
     real_depth: bool = False
+    warm_start: bool = True
 
     def __post_init__(self):
         check_fields(self)
@@ -274,7 +276,7 @@ def run(worlds: Worlds, states: State, chooser: Chooser, dynamics, cfg: MPCConfi
                       **{k: np.asarray(v) for k, v in chooser.score(kept["states"]).items()})
         for callback in on_step:
             callback(t, states, kept["particles"], record)
-        states, init, warm = kept["states"], shift(kept["best"]), True
+        states, init, warm = kept["states"], shift(kept["best"]), cfg.warm_start
         records.append(dict(record, seconds=time.perf_counter() - t0))
         _log_step(log, records[-1], cfg.mpc_steps)
         if record["broken"].all():

@@ -110,6 +110,11 @@ class PlannerConfig:
         check_reach(self.bound, self.reach, self.min_length, self.max_length)
 
 
+def reference_lr(bound: float) -> float:
+    """The reference's Adam step in our workspace (m): REFERENCE_LR_SHARE of the action range's width, 2 bound."""
+    return REFERENCE_LR_SHARE * 2.0 * bound
+
+
 def planner_config(env, **settings) -> PlannerConfig:
     """The planner's settings for pushes in ``env``'s bin (its action space: bound, reach, push lengths)."""
     push = env.config.push
@@ -295,4 +300,4 @@ def plan(dynamics_fn, cost_fn, positions, mask, key, config: PlannerConfig = Pla
                      jnp.asarray(adam_steps, jnp.int32), config=replace(config, seed=0))
 
 
-__all__ = ["PlanResult", "PlannerConfig", "plan", "sample_pushes"]
+__all__ = ["PlanResult", "PlannerConfig", "plan", "planner_config", "reference_lr", "sample_pushes"]
