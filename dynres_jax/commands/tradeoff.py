@@ -37,10 +37,17 @@ import jax.numpy as jnp
 import numpy as np
 
 from dynres_jax.commands import checks
-from dynres_jax.commands.task import check_pile, load_model, planner_config
+from dynres_jax.commands.task import (
+    add_reference_planner_args,
+    check_pile,
+    load_model,
+    planner_config,
+    planner_options,
+    resolve_planner_args,
+)
 from dynres_jax.config import CameraConfig, PileConfig, PushConfig, SceneConfig, SimConfig
 from dynres_jax.control import tasks
-from dynres_jax.control.budget import TimingTable, bucket_for
+from dynres_jax.control.budget import BUCKETS, TimingTable, bucket_for, reference_table
 from dynres_jax.control.decision import decide_batch, episode
 from dynres_jax.control.goals import make_goal, stack
 from dynres_jax.control.mpc import MPCConfig, measure_timing
@@ -82,7 +89,9 @@ def main(argv=None):
                         help="surface: C engine processes (default: every core)")
     parser.add_argument("--seed", type=checks.seed, default=0)
     parser.add_argument("--quick", action="store_true", help="surface: tiny sizes for a CPU smoke run")
+    add_reference_planner_args(parser)
     args = parser.parse_args(argv)
+    resolve_planner_args(parser, args)
     if sum(map(bool, (args.labels, args.surface, args.reliability))) != 1:
         parser.error("give exactly one of --labels (Fig. 4), --surface or --reliability")
     if args.surface:
@@ -212,8 +221,8 @@ def _surface_scenes(pool, starts, goals, keys, dynamics, cfg, omegas, steps, sce
     for i, omega in enumerate(omegas):
         for j, n in enumerate(steps):
             result = decide_batch(starts.obs, goals, keys, init, False, np.full(len(keys), omega),
-                                  np.full(len(keys), n), spec=cfg.spec(bucket_for(omega)), dynamics=dynamics,
-                                  camera=camera)[2]
+                                  np.full(len(keys), n), spec=cfg.spec(bucket_for(omega, cfg.buckets)),
+                                  dynamics=dynamics, camera=camera)[2]
             after = pool.push(starts, result.best[:, 0])
             c_star[i, j], predicted[i, j] = measure(after.obs, goals), result.best_cost
         print(f"  {scene_name}: ω = {omega:3d}: mean c* over N = {steps}: "
@@ -236,12 +245,16 @@ def surface(args, model: LoadedDynamics) -> dict:
                             pile=PileConfig(layout="spread") if kind == 0 else near_centre_blob,
                             camera=CameraConfig(width=64, height=64) if args.quick else CameraConfig())
             pool = WorldPool(sim, processes)
-            planner = planner_config(pool.env, samples=args.samples, adam_steps=max(steps))
-            cfg = MPCConfig(mpc_steps=1, max_points=1024 if args.quick else 4096, planner=planner)
+            planner = planner_config(pool.env, samples=args.samples, adam_steps=max(steps),
+                                     **planner_options(args, pool.env))
+            cfg = MPCConfig(mpc_steps=1, max_points=1024 if args.quick else 4096, planner=planner,
+                            buckets=args.buckets)
             path = os.path.join(args.out, f"surface_{kind}.npz")
             starts, masks = _scenes(kind, args, pool)
             goals = stack([make_goal(m, pool.camera) for m in masks])
-            if timing is None:
+            if timing is None and args.pricing == "reference":
+                timing = reference_table(cfg.buckets, cfg.planner.samples, cfg.planner.horizon)
+            elif timing is None:
                 timing = measure_timing(episode(starts.obs), episode(goals), dynamics, cfg, pool.camera)
             if os.path.exists(path):
                 raw[kind] = dict(np.load(path))
@@ -250,7 +263,7 @@ def surface(args, model: LoadedDynamics) -> dict:
             raw[kind] = _surface_scenes(pool, starts, goals, keys, dynamics, cfg, omegas, steps, scene_name)
             save_npz(path, raw[kind])
     summary = dict(dynamics=name, device=timing.device, scenes=args.scenes, samples=args.samples, omegas=omegas,
-                   steps=steps, timing=timing.to_json(), kinds={})
+                   steps=steps, buckets=list(cfg.buckets), timing=timing.to_json(), kinds={})
     for kind, scene_name in enumerate(SURFACE_SCENES):
         r = raw[kind]
         n = r["c_star"].shape[-1]
@@ -279,7 +292,8 @@ def _plot_surface(summary: dict, path: str) -> None:
         for i, omega in enumerate(summary["omegas"]):
             mean, ci = np.array(k["c_star"][i]), np.array(k["c_star_ci95"][i])
             steps = np.array(summary["steps"])
-            seconds = np.array([timing.seconds(bucket_for(omega), int(n)) for n in steps])
+            bucket = bucket_for(omega, summary.get("buckets", BUCKETS))
+            seconds = np.array([timing.seconds(bucket, int(n)) for n in steps])
             for row, x in enumerate((steps, seconds)):
                 ax = axes[row, col]
                 ax.errorbar(x, mean, yerr=ci, label=f"ω = {omega}", marker="o", ms=3, capsize=2)
