@@ -55,7 +55,7 @@ def main(argv=None) -> dict:
                      rank_weight=args.rank_weight, position_weight=args.position_weight, seed=args.seed)
     after = ranking.score_model(test, learned_dynamics(tuned))
     if args.save:
-        ckpt.save_module(args.save, args.steps, tuned, {**meta, "rank_finetune": vars(args)})
+        ckpt.save_module(args.save, args.steps, tuned, {**meta, "step": args.steps, "rank_finetune": vars(args)})
     results = {"before": before, "after": after, "settings": vars(args)}
     os.makedirs(args.out, exist_ok=True)
     with open(os.path.join(args.out, "rank_finetune.json"), "w") as f:

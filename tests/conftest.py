@@ -23,3 +23,22 @@ import pytest  # noqa: E402
 def _fresh_compile_caches():
     jax.clear_caches()
     yield
+
+
+@pytest.fixture(scope="session")
+def script():
+    """scripts/NAME.py loaded as a module: script(NAME), with scripts/ on the path as when it runs."""
+    import importlib.util
+    import sys
+
+    folder = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "scripts")
+
+    def load(name: str):
+        if folder not in sys.path:
+            sys.path.insert(0, folder)
+        spec = importlib.util.spec_from_file_location(name, os.path.join(folder, f"{name}.py"))
+        module = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(module)
+        return module
+
+    return load

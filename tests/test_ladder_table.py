@@ -1,21 +1,15 @@
 """scripts/ladder_table.py: the ladder's tables and failure split from evaluate's and sort's files, against counts by
 hand."""
 
-import importlib.util
 import json
 import os
 
 import pytest
 
-SCRIPT = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "scripts", "ladder_table.py")
-
 
 @pytest.fixture(scope="module")
-def ladder():
-    spec = importlib.util.spec_from_file_location("ladder_table", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+def ladder(script):
+    return script("ladder_table")
 
 
 def _method(folder, name, inside, distance):

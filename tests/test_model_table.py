@@ -1,23 +1,15 @@
 """scripts/model_table.py: models compared in closed loop on the episodes both ran, against counts by hand; runs of
 named checkpoints (gpu_ladder.sh's folder suffix) are told apart from the method alone."""
 
-import importlib.util
 import json
 import os
-import sys
 
 import pytest
 
-SCRIPTS = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "scripts")
-
 
 @pytest.fixture(scope="module")
-def table():
-    sys.path.insert(0, SCRIPTS)
-    spec = importlib.util.spec_from_file_location("model_table", os.path.join(SCRIPTS, "model_table.py"))
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+def table(script):
+    return script("model_table")
 
 
 def _run(folder, inside, distance):

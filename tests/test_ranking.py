@@ -6,8 +6,9 @@ import itertools
 import numpy as np
 import pytest
 
+from dynres_jax.io import ckpt
 from dynres_jax.learn import ranking
-from dynres_jax.models.registry import load_dynamics
+from dynres_jax.models.registry import build_model, load_dynamics
 
 
 def brute_kendall(p, t):
@@ -180,5 +181,7 @@ def test_rank_finetune_saves_a_checkpoint_the_planner_loads(tiny_set, tmp_path):
     tuned = ranking.predict(s, load_dynamics("learned", out, s.sim.scene.plate_half_width).dynamics)[1]
     source = ranking.predict(s, load_dynamics("learned", SHIPPED_DYNAMICS, s.sim.scene.plate_half_width).dynamics)[1]
     assert np.abs(tuned - source).max() > 1e-5
+    meta = ckpt.load_module(out, build_model)[1]
+    assert meta["step"] == 3 and meta["rank_finetune"]["steps"] == 3  # the folder's step, not the source's
     with pytest.raises(SystemExit):
         rank_finetune.main(["--train", tiny_set, "--test", tiny_set, "--out", str(tmp_path / "r"), "--save", out])

@@ -24,57 +24,50 @@ from dynres_jax.sim.env import PileEnv
 STEP = 0.025  # m, the tests' grid
 
 
-def bfs_steps(start, goal, radius_cells: float, n) -> int:
-    """Fewest 8-connected single-blob moves between grid nodes (i0, j0, i1, j1) within |i| <= n[0], |j| <= n[1]
-    keeping the blobs 2 radius_cells apart; -1 when unreachable."""
+def neighbours(node, radius_cells: float, n):
+    """The grid nodes (i0, j0, i1, j1) one 8-connected step of one blob away, within |i| <= n[0], |j| <= n[1], the
+    blobs 2 radius_cells apart (or, from overlapping blobs, strictly further apart): (blob moved, node) pairs."""
     far = (2 * radius_cells) ** 2 - 1e-9
+
+    def gap2(x):
+        return (x[0] - x[2]) ** 2 + (x[1] - x[3]) ** 2
+
+    for b in (0, 1):
+        for di in (-1, 0, 1):
+            for dj in (-1, 0, 1):
+                nxt = list(node)
+                nxt[2 * b] += di
+                nxt[2 * b + 1] += dj
+                nxt = tuple(nxt)
+                if (di, dj) == (0, 0) or abs(nxt[2 * b]) > n[0] or abs(nxt[2 * b + 1]) > n[1]:
+                    continue
+                if gap2(nxt) < far and not (gap2(node) < far and gap2(nxt) > gap2(node)):
+                    continue
+                yield b, nxt
+
+
+def bfs_steps(start, goal, radius_cells: float, n) -> int:
+    """Fewest single-blob moves (``neighbours``) between grid nodes; -1 when unreachable."""
     seen, queue = {start: 0}, deque([start])
     while queue:
         node = queue.popleft()
         if node == goal:
             return seen[node]
-        for b in (0, 1):
-            for di in (-1, 0, 1):
-                for dj in (-1, 0, 1):
-                    nxt = list(node)
-                    nxt[2 * b] += di
-                    nxt[2 * b + 1] += dj
-                    nxt = tuple(nxt)
-                    if (abs(nxt[0]) > n[0] or abs(nxt[2]) > n[0] or abs(nxt[1]) > n[1] or abs(nxt[3]) > n[1]
-                            or (nxt[0] - nxt[2]) ** 2 + (nxt[1] - nxt[3]) ** 2 < far or nxt in seen):
-                        continue
-                    seen[nxt] = seen[node] + 1
-                    queue.append(nxt)
+        for _, nxt in neighbours(node, radius_cells, n):
+            if nxt not in seen:
+                seen[nxt] = seen[node] + 1
+                queue.append(nxt)
     return -1
 
 
 def fewest_switches(start, goal, radius_cells: float, n) -> int:
     """Among the fewest-steps paths between grid nodes, the fewest switches of the moved blob: BFS layers from the
     start, then the least switches per (node, blob moved last) over each layer in turn."""
-    far = (2 * radius_cells) ** 2 - 1e-9
-
-    def gap2(node):
-        return (node[0] - node[2]) ** 2 + (node[1] - node[3]) ** 2
-
-    def moves(node):
-        for b in (0, 1):
-            for di in (-1, 0, 1):
-                for dj in (-1, 0, 1):
-                    nxt = list(node)
-                    nxt[2 * b] += di
-                    nxt[2 * b + 1] += dj
-                    nxt = tuple(nxt)
-                    if (di, dj) == (0, 0) or abs(nxt[2 * b]) > n[0] or abs(nxt[2 * b + 1]) > n[1]:
-                        continue
-                    if gap2(nxt) < far and not (gap2(node) < far and gap2(nxt) > gap2(node)):
-                        continue
-                    yield b, nxt
-
     best, layer, seen = {(start, -1): 0}, {start}, {start}
     while goal not in layer:
         nxt_layer, nxt_best = set(), {}
         for (node, last), switches in best.items():
-            for b, nxt in moves(node):
+            for b, nxt in neighbours(node, radius_cells, n):
                 if nxt in seen:
                     continue
                 nxt_layer.add(nxt)

@@ -1,20 +1,13 @@
 """scripts/sort_failures.py: each failure's flags from Sort's step records, against episodes built by hand."""
 
-import importlib.util
 import json
-import os
 
 import pytest
 
-SCRIPT = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "scripts", "sort_failures.py")
-
 
 @pytest.fixture(scope="module")
-def failures():
-    spec = importlib.util.spec_from_file_location("sort_failures", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+def failures(script):
+    return script("sort_failures")
 
 
 def _step(phase, kind, inside, mixing, left):
