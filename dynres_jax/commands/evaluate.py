@@ -68,8 +68,13 @@ from dynres_jax.control.mpc import SensorView, run
 from dynres_jax.errors import InputError
 from dynres_jax.io import ckpt, files
 from dynres_jax.io.draw import evaluation_plots
-from dynres_jax.models import registry
-from dynres_jax.models.registry import SHIPPED_CNN_DYNAMICS, SHIPPED_DYNAMICS, SHIPPED_REGRESSOR, describe
+from dynres_jax.models.registry import (
+    SHIPPED_CNN_DYNAMICS,
+    SHIPPED_DYNAMICS,
+    SHIPPED_REGRESSOR,
+    describe,
+    trained_n_max,
+)
 from dynres_jax.sim.camera import Camera
 from dynres_jax.sim.env import PileEnv
 from dynres_jax.sim.pool import make_pool, process_pool, resolve_backend
@@ -205,7 +210,7 @@ def check_cnn(parser, args) -> None:
     if meta.get("model_class", "gnn") != "cnn":
         parser.error(f"--cnn-ckpt {args.cnn_ckpt!r} holds {describe(meta)}, not a cnn dynamics model")
     try:
-        if args.cnn_omega > (n_max := registry.trained_n_max(meta, args.cnn_ckpt)):
+        if args.cnn_omega > (n_max := trained_n_max(meta, args.cnn_ckpt)):
             parser.error(f"--cnn-omega {args.cnn_omega} exceeds the CNN model's n_max = {n_max}")
     except ckpt.CheckpointError as e:
         parser.error(f"--cnn-ckpt: {e}")
