@@ -70,6 +70,15 @@ def test_simulate_demo_writes_its_files(tmp_path):
         assert (tmp_path / name).stat().st_size > 0
     record = json.loads((tmp_path / "actions.json").read_text())
     assert len(record["actions"]) == 1 and record["broken"] is False
+    # the last frame as a camera saves it: what the README's real-camera lines read
+    from dynres_jax.commands import goal
+    from dynres_jax.io.frames import load_frame
+
+    frame = tmp_path / "frame"
+    obs, camera = load_frame(str(frame / "depth.png"), str(frame / "rgb.png"), str(frame / "camera.json"))
+    assert obs.depth.shape == (48, 48) == (camera.height, camera.width) and float(obs.depth.min()) > 0
+    goal.main(["--disc", "0", "0", "0.05", "--camera", str(frame / "camera.json"), "--out", str(tmp_path / "g.png")])
+    assert (tmp_path / "g.png").stat().st_size > 0
 
 
 def test_the_dynres_command_runs_every_command(capsys):

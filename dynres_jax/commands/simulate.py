@@ -1,4 +1,6 @@
-"""Simulator demo: a random pile pushed a few times; writes a GIF of the pushes and the final RGB and depth images.
+"""Simulator demo: a random pile pushed a few times; writes a GIF of the pushes, the final RGB and depth images, and
+the final frame as a depth camera saves it (``frame/depth.png``, 16-bit millimetres; ``frame/rgb.png``;
+``frame/camera.json``), which ``goal --camera`` and ``plan`` read as a real camera's:
 
     python -m experiments.simulate --kind coffee --pieces 100 --pushes 5 --out out/sim
 """
@@ -16,6 +18,7 @@ from tqdm import tqdm
 from dynres_jax.commands import checks
 from dynres_jax.config import KINDS, CameraConfig, PileConfig, SceneConfig, SimConfig
 from dynres_jax.io import files
+from dynres_jax.io.frames import save_frame
 from dynres_jax.sim.camera import MAX_IMAGE, MIN_IMAGE, Observation
 from dynres_jax.sim.env import PileEnv
 from dynres_jax.sim.scene import check_room
@@ -87,7 +90,10 @@ def main(argv=None):
     files.write_image(os.path.join(args.out, "final_depth.png"), cv2.cvtColor(depth, cv2.COLOR_RGB2BGR))
     files.write_json(os.path.join(args.out, "actions.json"),
                      dict(config=repr(cfg), actions=actions, broken=bool(state.broken)))
-    print(f"wrote {len(frames)} frames to {args.out}/pushes.gif, final_rgb.png, final_depth.png, actions.json")
+    save_frame(os.path.join(args.out, "frame"), state.obs, env.camera)
+    shown = len(iio.imread(os.path.join(args.out, "pushes.gif"), index=None))  # the GIF merges repeated frames
+    print(f"wrote {args.out}/pushes.gif ({shown} frames), final_rgb.png, final_depth.png, actions.json and the last "
+          f"frame as a camera saves it: frame/depth.png, frame/rgb.png, frame/camera.json")
 
 
 if __name__ == "__main__":
