@@ -92,3 +92,19 @@ def test_a_new_task_is_one_registry_line(monkeypatch, tmp_path):
     result = evaluate.main(["--task", "everywhere", "--quick", "--episodes", "2", "--methods", "50", "--workers", "2",
                             *tiny, "--out", str(tmp_path / "eval")])
     assert result["task"] == "everywhere" and result["methods"]["50"]["success_share"] == 1.0
+
+
+def test_a_rerun_into_a_finished_folder_says_so_and_does_nothing(tmp_path, capsys):
+    """The same episode into its own finished --out: one line, the recorded summary back, no episode run; --fresh
+    runs it again."""
+    tiny = ["--pieces", "20", "--mpc-steps", "1", "--samples", "4", "--adam-steps", "1", "--dynamics", "sweep",
+            "--out", str(tmp_path)]
+    first = gather.main(tiny)
+    capsys.readouterr()
+    before = (tmp_path / "metrics.json").stat().st_mtime_ns
+    again = gather.main(tiny)
+    out = capsys.readouterr().out
+    assert "finished" in out and "--fresh" in out and "step" not in out
+    assert again["final_inside"] == first["final_inside"] and (tmp_path / "metrics.json").stat().st_mtime_ns == before
+    gather.main([*tiny, "--fresh"])
+    assert "step  1/1" in capsys.readouterr().out and (tmp_path / "metrics.json").stat().st_mtime_ns > before

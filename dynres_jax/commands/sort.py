@@ -25,7 +25,7 @@ import jax
 import numpy as np
 
 from dynres_jax.commands import checks
-from dynres_jax.commands.task import add_loop_args, build_loop, check_budget, check_pile, write_episode
+from dynres_jax.commands.task import add_loop_args, build_loop, check_budget, check_pile, finished, write_episode
 from dynres_jax.config import KINDS, CameraConfig, PileConfig, SceneConfig, SimConfig
 from dynres_jax.control.choosers import climb, on_ladder
 from dynres_jax.control.decision import batch
@@ -65,7 +65,9 @@ def main(argv=None):
         goals_xy, radius, masks = sort_goal(np.random.default_rng(args.seed), env)
     except ValueError as e:
         parser.error(str(e))
-    checks.claim(args.out, "sort", checks.settings(args), args.fresh)
+    done = finished(args.out, checks.claim(args.out, "sort", checks.settings(args), args.fresh), args.fresh)
+    if done is not None:
+        return done
     goals = [make_goal(m, env.camera) for m in masks]
     state = env.reset(jax.random.PRNGKey(args.seed))
     start_inside, start_mixing = sort_scores(state.pos, env.scene.kind, goals, env.camera)

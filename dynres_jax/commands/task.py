@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import json
 import os
 import time
 from collections.abc import Callable
@@ -196,6 +197,17 @@ def build_loop(args, sim: SimConfig, parser: argparse.ArgumentParser, task: str)
     return Loop(env, model, cfg, timing, None if regressor else int(omega), regressor)
 
 
+def finished(out: str, resumed: bool, fresh: bool) -> dict | None:
+    """The summary (metrics.json) of the same episode already finished in ``out`` (``resumed``: ``checks.claim``'s
+    answer), said in one line, so a rerun does nothing; None to run it (nothing there yet, or ``fresh``)."""
+    path = os.path.join(out, "metrics.json")
+    if not resumed or fresh or not os.path.isfile(path):
+        return None
+    print(f"{out} holds this episode, finished (metrics.json, episode.gif, final.png); --fresh runs it again")
+    with open(path) as f:
+        return json.load(f)
+
+
 def write_episode(out: str, frames: list) -> None:
     """The episode's ``episode.gif`` (every frame) and ``final.png`` (the last) in ``out``, atomically."""
     files.atomic_write(os.path.join(out, "episode.gif"),
@@ -227,7 +239,9 @@ def main(task: str, argv=None):
         goal_mask, goal_info = spec.goal(rng, env, args.letter if spec.letter else None)
     except ValueError as e:
         parser.error(f"--letter {args.letter!r}: {e}" if spec.letter else str(e))
-    checks.claim(args.out, task, checks.settings(args), args.fresh)
+    done = finished(args.out, checks.claim(args.out, task, checks.settings(args), args.fresh), args.fresh)
+    if done is not None:
+        return done
     goal = make_goal(goal_mask, env.camera)
     state = env.reset(jax.random.PRNGKey(args.seed))
     start_inside = float(inside_share(state.pos, np.ones(env.scene.n_pieces, bool), goal, env.camera))
