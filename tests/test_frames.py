@@ -42,7 +42,9 @@ def test_plan_command_prints_a_push_of_the_action_space(saved, tmp_path, capsys,
     out = plan.main(["--depth", paths["depth.png"], "--rgb", paths["rgb.png"], "--camera", paths["camera.json"],
                      "--goal", paths["goal.png"], "--resolution", "6", "--samples", "4", "--adam-steps", "5",
                      "--dynamics", "sweep", "--out", str(tmp_path / "push.png"), *camera_flags])
-    printed = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    said = capsys.readouterr()
+    printed = json.loads(said.out.strip())  # stdout is the JSON alone; the wait is announced on stderr
+    assert "planning at ω = 6" in said.err
     # a push ends within the bound and starts there or outside a wall (the closed loop's action space, sim.pushes)
     assert printed["push"] == out["push"] and np.all(np.abs(out["push"][2:]) <= 0.18 + 1e-6)
     assert np.all(np.abs(out["push"][:2]) <= 0.2 + 0.005 + 0.002 + 1e-6)

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 
 import cv2
 import jax
@@ -102,6 +103,8 @@ def main(argv=None):
                                reach=reach)
     except ValueError as e:
         parser.error(f"--bound {args.bound} with pushes from outside the walls (--no-wall-pushes to plan without): {e}")
+    print(f"planning at ω = {args.resolution}, {args.samples} samples x {args.adam_steps} Adam steps (compiling the "
+          "planner first: tens of seconds on a CPU)", file=sys.stderr, flush=True)  # stdout stays the JSON alone
     result = plan(dynamics(particles.radius), goal_cost(goal, camera, bucket), particles.positions, particles.mask,
                   key_plan, config)
     action = np.asarray(result.best[0], np.float64)
