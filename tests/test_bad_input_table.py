@@ -125,6 +125,7 @@ def fx(tmp_path_factory):
 
 G = [  # gather (and the flags every closed-loop task shares)
     (["--pieces", "0"], "--pieces"), (["--pieces", "-5"], "--pieces"), (["--pieces", "abc"], "--pieces"),
+    (["--pieces", "1"], "--pieces"), (["--pieces", "2", "--resolution", "100"], "--pieces"),  # too few points for ω
     (["--pieces", "100000"], "--pieces"), (["--kind", "almond", "--pieces", "100"], "--pieces"),
     (["--kind", "pebble"], "--kind"), (["--seed", "-1"], "--seed"), (["--seed", "1.5"], "--seed"),
     (["--seed", "99999999999"], "--seed"), (["--mpc-steps", "0"], "--mpc-steps"), (["--mpc-steps", "-3"], "--mpc-steps"),

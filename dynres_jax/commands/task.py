@@ -55,6 +55,7 @@ from dynres_jax.models.registry import (
     load_dynamics,
     shipped_dynamics,
 )
+from dynres_jax.perception import point_cloud
 from dynres_jax.sim.camera import Camera
 from dynres_jax.sim.env import PileEnv
 
@@ -197,6 +198,15 @@ def build_loop(args, sim: SimConfig, parser: argparse.ArgumentParser, task: str)
     return Loop(env, model, cfg, timing, None if regressor else int(omega), regressor)
 
 
+def check_visible(parser: argparse.ArgumentParser, obs, camera: Camera, omega: int, cfg: MPCConfig) -> None:
+    """parser.error naming --pieces, before any work, when the first frame shows fewer foreground points than the ω
+    particles perception must sample (a pile of one or two pieces at ω = 50)."""
+    points = int(np.sum(np.asarray(point_cloud(obs, camera, max_points=cfg.max_points)[1])))
+    if points < omega:
+        parser.error(f"--pieces: the pile shows {points} foreground points, fewer than the ω = {omega} particles to "
+                     "sample from them; use more pieces or a lower --resolution")
+
+
 def finished(out: str, resumed: bool, fresh: bool) -> dict | None:
     """The summary (metrics.json) of the same episode already finished in ``out`` (``resumed``: ``checks.claim``'s
     answer), said in one line, so a rerun does nothing; None to run it (nothing there yet, or ``fresh``)."""
@@ -239,11 +249,12 @@ def main(task: str, argv=None):
         goal_mask, goal_info = spec.goal(rng, env, args.letter if spec.letter else None)
     except ValueError as e:
         parser.error(f"--letter {args.letter!r}: {e}" if spec.letter else str(e))
+    state = env.reset(jax.random.PRNGKey(args.seed))
+    check_visible(parser, state.obs, env.camera, loop.omega or OMEGA_MIN, cfg)
     done = finished(args.out, checks.claim(args.out, task, checks.settings(args), args.fresh), args.fresh)
     if done is not None:
         return done
     goal = make_goal(goal_mask, env.camera)
-    state = env.reset(jax.random.PRNGKey(args.seed))
     start_inside = float(inside_share(state.pos, np.ones(env.scene.n_pieces, bool), goal, env.camera))
     budget_text = (f"{args.samples} samples, {args.adam_steps} Adam steps" if args.time_budget is None else
                    f"{args.samples} samples, {args.time_budget} s per decision (at most {args.adam_steps} Adam steps)")
