@@ -19,12 +19,12 @@ import re
 
 import numpy as np
 
+from dynres_jax.control.sort import sort_succeeded
 from dynres_jax.control.tasks import succeeded
 from dynres_jax.io import files
 from dynres_jax.stats import mcnemar, paired_bootstrap, wilson
 
 ORDER = ("50", "sim", "rerank", "best5", "oracle")  # the rungs, cheapest first
-SORT_INSIDE, SORT_MIXING = 0.8, 0.05  # Sort's target: each kind >= 80 % inside its goal, mixing below 5 %
 
 
 def _method(method: str, model: str | None) -> str:
@@ -69,7 +69,7 @@ def sort_runs(root: str) -> dict:
             with open(paths[seed]) as f:
                 m = json.load(f)
             inside, mixing = m["final_inside"], m["final_mixing"]
-            rows.append((seed, min(inside) >= SORT_INSIDE - 1e-6 and mixing < SORT_MIXING, 1 - min(inside),
+            rows.append((seed, sort_succeeded(inside, mixing), 1 - min(inside),
                          float(np.mean(inside)), mixing, m["seconds"]))
         seed, success, distance, inside, mixing, seconds = zip(*rows, strict=True)
         runs.setdefault(("sort", pair), {})[method] = dict(episode=list(seed), success=list(success),

@@ -25,9 +25,9 @@ import json
 import os
 import re
 
+from dynres_jax.control.sort import SORT_INSIDE, SORT_MIXING, sort_succeeded
 from dynres_jax.io import files
 
-SORT_INSIDE, SORT_MIXING = 0.8, 0.05  # Sort's target (scripts/ladder_table.py)
 STALLED_STEPS, UNFINISHED_STEPS = 5, 3
 FLAGS = ("stalled", "unfinished", "mixing", "short")
 
@@ -42,7 +42,7 @@ def trace(metrics: dict) -> dict:
     the start, left at the end), phases {phase: steps}, switches (changes of the moved kind)."""
     steps = [{k: _one(v) for k, v in s.items()} for s in metrics["steps"]]
     inside, mixing = steps[-1]["kind_inside"], steps[-1]["mixing"]
-    success = min(inside) >= SORT_INSIDE - 1e-6 and mixing < SORT_MIXING
+    success = sort_succeeded(inside, mixing)
     stalled = sum(s["phase"] == "path" and s["kind"] >= 0 and s["kind_inside"][s["kind"]] >= SORT_INSIDE
                   and s["kind_inside"][1 - s["kind"]] < SORT_INSIDE for s in steps)
     left = steps[-1]["astar_steps"]

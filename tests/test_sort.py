@@ -299,3 +299,10 @@ def test_a_step_against_kind_goals_is_scored_per_kind(env):
     assert records[0]["inside"] == pytest.approx((inside[0] * counts[0] + inside[1] * counts[1]) / counts.sum())
     d = [float(distribution_distance(final.obs, goals[k], env.camera, kind=k)) for k in (0, 1)]
     assert records[0]["distance"] == pytest.approx(np.mean(d), rel=1e-5)
+
+
+def test_sorts_target_by_hand():
+    """Both kinds at least 80 % inside (8 of 10 as float32 rounds it counts) and mixing below 5 %."""
+    eight_of_ten = float(np.float32(8) / np.float32(10))
+    assert sort.sort_succeeded([eight_of_ten, 1.0], 0.0) and sort.sort_succeeded([0.9, 0.95], 0.049)
+    assert not sort.sort_succeeded([0.79, 1.0], 0.0) and not sort.sort_succeeded([0.9, 0.9], 0.05)

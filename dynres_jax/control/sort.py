@@ -58,6 +58,7 @@ SAMPLE_TRIES = 10_000  # rejection-sampling tries for the goal centres
 WAYPOINT_EDGE = 0.005  # m: A*'s bound keeps waypoint discs of goal_radius this far inside the bin
 MOVES = [(di, dj) for di in (-1, 0, 1) for dj in (-1, 0, 1) if (di, dj) != (0, 0)]  # 8-connected grid steps
 ARRIVED = 0.9  # share of a pile's particles inside its goal disc at which it counts as there
+SORT_INSIDE, SORT_MIXING = 0.8, 0.05  # Sort's target: each kind >= 80 % inside its own goal, mixing below 5 %
 
 
 def astar_blobs(starts, goals, blob_radius: float, grid_step: float, bound) -> list[np.ndarray]:
@@ -157,6 +158,12 @@ def sort_scores(piece_pos, kinds, goals, camera) -> tuple[list[float], float]:
     inside = [float(inside_share(piece_pos, kinds == k, goals[k], camera)) for k in (0, 1)]
     wrong = sum(float(inside_share(piece_pos, kinds == k, goals[1 - k], camera)) * np.sum(kinds == k) for k in (0, 1))
     return inside, wrong / len(kinds)
+
+
+def sort_succeeded(inside, mixing: float) -> bool:
+    """Whether an episode meets Sort's target: both kinds' inside shares [2] at least SORT_INSIDE (float32 count
+    ratios, so with 1e-6 of rounding allowed) and mixing below SORT_MIXING."""
+    return bool(min(inside) >= SORT_INSIDE - 1e-6 and mixing < SORT_MIXING)
 
 
 def _kind_centres(obs, camera, omega: int, max_points: int | None, buckets, key, goals_xy,
