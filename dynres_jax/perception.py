@@ -118,6 +118,12 @@ def point_cloud(observation: Observation, camera: Camera, *, max_points: int | N
     return pack(*foreground(observation, camera, **foreground_kw), max_points)
 
 
+def visible_points(observation: Observation, camera: Camera, max_points: int | None) -> int:
+    """How many foreground points one concrete frame gives perception to sample from (``point_cloud``'s valid
+    count, at most max_points): the largest ω it can sample."""
+    return int(np.sum(np.asarray(point_cloud(observation, camera, max_points=max_points)[1])))
+
+
 def pack(points, valid, max_points: int | None):
     """The foreground (points [H*W, 3], valid [H*W]) in max_points slots: foreground pixels packed first, a uniform
     random subset (one fixed permutation, ``PERMUTATION_SEED``) when there are more than max_points; unchanged when

@@ -55,7 +55,7 @@ from dynres_jax.models.registry import (
     load_dynamics,
     shipped_dynamics,
 )
-from dynres_jax.perception import point_cloud
+from dynres_jax.perception import visible_points
 from dynres_jax.sim.camera import Camera
 from dynres_jax.sim.env import PileEnv
 
@@ -201,7 +201,7 @@ def build_loop(args, sim: SimConfig, parser: argparse.ArgumentParser, task: str)
 def check_visible(parser: argparse.ArgumentParser, obs, camera: Camera, omega: int, cfg: MPCConfig) -> None:
     """parser.error naming --pieces, before any work, when the first frame shows fewer foreground points than the ω
     particles perception must sample (a pile of one or two pieces at ω = 50)."""
-    points = int(np.sum(np.asarray(point_cloud(obs, camera, max_points=cfg.max_points)[1])))
+    points = visible_points(obs, camera, cfg.max_points)
     if points < omega:
         parser.error(f"--pieces: the pile shows {points} foreground points, fewer than the ω = {omega} particles to "
                      "sample from them; use more pieces or a lower --resolution")

@@ -29,7 +29,7 @@ from dynres_jax.control.goals import Goal, KindGoals
 from dynres_jax.control.objective import distribution_distance, inside_share
 from dynres_jax.control.planner import PlannerConfig
 from dynres_jax.errors import InputError
-from dynres_jax.perception import calibrate, point_cloud
+from dynres_jax.perception import calibrate, visible_points
 from dynres_jax.sim.env import PileEnv, State
 from dynres_jax.sim.pool import EnvWorlds, Worlds
 from dynres_jax.sim.sensor import DepthSensor
@@ -92,7 +92,7 @@ def measure_timing(obs, goal: Goal, dynamics, cfg: MPCConfig, camera, repeats: i
     (``budget.measure``; log: its progress lines)."""
     if cfg.planner.adam_steps < 1:
         raise ValueError("measuring a timing table needs PlannerConfig.adam_steps >= 1")
-    points = int(np.sum(np.asarray(point_cloud(obs, camera, max_points=cfg.max_points)[1])))
+    points = visible_points(obs, camera, cfg.max_points)
     key, init = batch(jax.random.fold_in(jax.random.PRNGKey(0), 0)), jnp.zeros((1, cfg.planner.horizon, 4))
 
     def run(bucket, steps):  # as ``run`` decides one episode: the first push of the best sequence
