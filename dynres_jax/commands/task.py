@@ -281,8 +281,9 @@ def main(task: str, argv=None):
     return summary
 
 
-PLANNER_OPTIONS = dict(starts="pile", resamples=1, vote=False, warm_start=True, lr=None, buckets=budget.BUCKETS,
-                       pricing="measured")  # ours (lr None: PlannerConfig's)
+PLANNER_OPTIONS = dict(starts=PlannerConfig.starts, resamples=PlannerConfig.resamples, vote=PlannerConfig.vote,
+                       warm_start=MPCConfig.warm_start, lr=PlannerConfig.lr, buckets=budget.BUCKETS,
+                       pricing="measured")  # ours: the configs' defaults
 REFERENCE_PLANNER = dict(starts="fixed", resamples=30, vote=True, warm_start=False, lr="reference",
                          buckets=(25, 50, 75, 100), pricing="reference")  # the authors' code's (issue 51)
 
@@ -321,7 +322,7 @@ def resolve_planner_args(parser: argparse.ArgumentParser, args) -> None:
             setattr(args, name, value)
     if args.vote and args.resamples < 2:
         parser.error(f"--vote needs --resamples of 2 or more, got {args.resamples}")
-    if args.lr is not None and args.lr != "reference":
+    if args.lr != "reference":
         try:
             args.lr = checks.positive(args.lr)
         except argparse.ArgumentTypeError as e:
@@ -337,7 +338,15 @@ def resolve_planner_args(parser: argparse.ArgumentParser, args) -> None:
 def planner_options(args, env) -> dict:
     """PlannerConfig's settings from the resolved options (``resolve_planner_args``) for pushes in ``env``."""
     lr = reference_lr(env.action_bound) if args.lr == "reference" else args.lr
-    return dict(starts=args.starts, resamples=args.resamples, vote=args.vote, **({} if lr is None else dict(lr=lr)))
+    return dict(starts=args.starts, resamples=args.resamples, vote=args.vote, lr=lr)
+
+
+def priced(args, cfg: MPCConfig, measure: Callable[[], budget.TimingTable]) -> budget.TimingTable:
+    """The timing table a --time-budget spends by, as --pricing says: the reference's fitted step prices for cfg's
+    buckets and planner batch, else ``measure()`` (a table measured here, or read from a file)."""
+    if args.pricing == "reference":
+        return budget.reference_table(cfg.buckets, cfg.planner.samples, cfg.planner.horizon)
+    return measure()
 
 
 def add_planner_args(parser) -> None:
@@ -373,12 +382,8 @@ def timing_table(args, out_dir: str, obs, goal, dynamics, cfg: MPCConfig, camera
 
     def make() -> budget.TimingTable:
         path = args.timing or (saved if os.path.exists(saved) else None)
-        if args.pricing == "reference":
-            table = budget.reference_table(cfg.buckets, cfg.planner.samples, cfg.planner.horizon)
-        elif path is not None:
-            table = budget.TimingTable.load(path)
-        else:
-            table = measure_timing(episode(obs), episode(goal), dynamics, cfg, camera)
+        table = priced(args, cfg, lambda: budget.TimingTable.load(path) if path is not None else
+                       measure_timing(episode(obs), episode(goal), dynamics, cfg, camera))
         table.save(saved)
         print(f"timing table ({table.device}, {'from ' + path if path else 'measured'}): Adam steps in "
               f"{cfg.time_budget} s: " + ", ".join(f"bucket {b}: {cfg.adam_steps(b, table)}" for b in cfg.buckets))

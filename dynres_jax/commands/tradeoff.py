@@ -30,6 +30,7 @@ higher, lower or equal, with 95 % Wilson intervals, and ``tradeoff.png`` with th
 
 from __future__ import annotations
 
+import functools
 import os
 
 import jax
@@ -43,11 +44,12 @@ from dynres_jax.commands.task import (
     load_model,
     planner_config,
     planner_options,
+    priced,
     resolve_planner_args,
 )
 from dynres_jax.config import CameraConfig, PileConfig, PushConfig, SceneConfig, SimConfig
 from dynres_jax.control import tasks
-from dynres_jax.control.budget import BUCKETS, TimingTable, bucket_for, reference_table
+from dynres_jax.control.budget import BUCKETS, TimingTable, bucket_for
 from dynres_jax.control.decision import decide_batch, episode
 from dynres_jax.control.goals import make_goal, stack
 from dynres_jax.control.mpc import MPCConfig, measure_timing
@@ -252,10 +254,9 @@ def surface(args, model: LoadedDynamics) -> dict:
             path = os.path.join(args.out, f"surface_{kind}.npz")
             starts, masks = _scenes(kind, args, pool)
             goals = stack([make_goal(m, pool.camera) for m in masks])
-            if timing is None and args.pricing == "reference":
-                timing = reference_table(cfg.buckets, cfg.planner.samples, cfg.planner.horizon)
-            elif timing is None:
-                timing = measure_timing(episode(starts.obs), episode(goals), dynamics, cfg, pool.camera)
+            if timing is None:
+                timing = priced(args, cfg, functools.partial(measure_timing, episode(starts.obs), episode(goals),
+                                                             dynamics, cfg, pool.camera))
             if os.path.exists(path):
                 raw[kind] = dict(np.load(path))
                 continue

@@ -21,6 +21,7 @@ import numpy as np
 
 from dynres_jax.config import SceneConfig
 from dynres_jax.control.goals import disc_goal, text_goal
+from dynres_jax.control.mpc import fold
 from dynres_jax.errors import InputError
 from dynres_jax.sim.env import PileEnv
 from dynres_jax.sim.scene import footprint
@@ -121,4 +122,4 @@ def episode_keys(seed: int, episodes) -> tuple[jax.Array, jax.Array]:
     ceiling on a subset is paired with its full run): the pile's key (``PileEnv.reset``) and the planner's. episodes
     [E] indices -> ([E] pile keys, [E] planner keys)."""
     piles = jax.vmap(lambda i: jax.random.fold_in(jax.random.PRNGKey(seed), i))(jnp.asarray(episodes))
-    return piles, jax.vmap(jax.random.fold_in, in_axes=(0, None))(piles, 1)
+    return piles, fold(piles, 1)
