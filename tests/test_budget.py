@@ -190,10 +190,13 @@ def test_reference_planner_flags_resolve_to_the_authors_options_and_a_flag_besid
     assert parsed("--reference-planner").pricing == "reference"
     cfg = mpc_config(env, parsed("--reference-planner", "--warm-start", "--resamples", "1", "--no-vote"))
     assert cfg.warm_start and cfg.planner.resamples == 1 and not cfg.planner.vote and cfg.planner.starts == "fixed"
+    one = mpc_config(env, parsed("--reference-planner", "--resamples", "1"))  # the preset's vote over one: no vote
+    assert one.planner.resamples == 1 and not one.planner.vote and one.planner.starts == "fixed"
     ours = mpc_config(env, parsed())
     assert (ours.planner.starts, ours.planner.resamples, ours.planner.vote, ours.warm_start) == ("pile", 1, False, True)
     assert ours.planner.lr == 0.02 and ours.buckets == (16, 32, 64, 100) and parsed().pricing == "measured"
     for bad, says in ((["--vote"], "--vote needs --resamples"), (["--lr", "-1"], "--lr"),
+                      (["--reference-planner", "--resamples", "1", "--vote"], "--vote needs --resamples"),
                       (["--buckets", "50", "25"], "--buckets"),
                       (["--pricing", "reference", "--time-budget", "1", "--timing", "t.json"], "--timing and")):
         with pytest.raises(SystemExit):

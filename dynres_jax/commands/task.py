@@ -317,9 +317,12 @@ def resolve_planner_args(parser: argparse.ArgumentParser, args) -> None:
     """Fill the reference-planner options left unset from --reference-planner's values, else ours; parser.error
     naming a bad combination, before any work."""
     preset = REFERENCE_PLANNER if args.reference_planner else PLANNER_OPTIONS
+    vote_given = args.vote is not None
     for name, value in preset.items():
         if getattr(args, name) is None:
             setattr(args, name, value)
+    if args.vote and args.resamples < 2 and not vote_given:  # a vote over one re-sampling is the plain plan
+        args.vote = False
     if args.vote and args.resamples < 2:
         parser.error(f"--vote needs --resamples of 2 or more, got {args.resamples}")
     if args.lr != "reference":
@@ -385,7 +388,8 @@ def timing_table(args, out_dir: str, obs, goal, dynamics, cfg: MPCConfig, camera
         table = priced(args, cfg, lambda: budget.TimingTable.load(path) if path is not None else
                        measure_timing(episode(obs), episode(goal), dynamics, cfg, camera))
         table.save(saved)
-        print(f"timing table ({table.device}, {'from ' + path if path else 'measured'}): Adam steps in "
+        source = "" if args.pricing == "reference" else ", from " + path if path else ", measured"
+        print(f"timing table ({table.device}{source}): Adam steps in "
               f"{cfg.time_budget} s: " + ", ".join(f"bucket {b}: {cfg.adam_steps(b, table)}" for b in cfg.buckets))
         return table
 
