@@ -5,8 +5,9 @@ import numpy as np
 import pytest
 
 from dynres_jax.config import PushConfig, SceneConfig, SimConfig
+from dynres_jax.sim import engines
 from dynres_jax.sim.env import PileEnv
-from dynres_jax.sim.pool import MJXPool, WorldPool, make_pool, process_pool, resolve_backend
+from dynres_jax.sim.pool import MJXPool, WorldPool, make_pool, process_pool
 
 SIM = SimConfig(scene=SceneConfig(pieces=(6,)), push=PushConfig(max_length=0.08, settle_time=0.04))
 
@@ -64,7 +65,22 @@ def test_mjx_pool_equals_one_mjx_world_at_a_time():
 
 def test_fast_engine_and_auto_choice():
     """"mjx-fast" simulates SceneConfig.fast's physics for the config's kinds; "auto" is C MuJoCo without a GPU."""
-    assert resolve_backend("auto") == ("mjx-fast" if jax.default_backend() == "gpu" else "mujoco")
+    assert engines.resolve("auto") == ("mjx-fast" if jax.default_backend() == "gpu" else "mujoco")
     fast = make_pool(SIM, "mjx-fast").config.scene
     assert fast == SceneConfig.fast(SIM.scene.kinds, SIM.scene.pieces) and fast != SIM.scene
     assert make_pool(SIM, "mjx").config.scene == SIM.scene
+    env = engines.make_env(SIM, "mjx-fast", render=False)  # one world: the same physics as the batch
+    assert env.backend == "mjx" and env.config.scene == fast
+    assert engines.make_env(SIM, "mujoco", render=False).config.scene == SIM.scene
+
+
+def test_every_command_offers_the_engine_table(capsys):
+    """One table of engines (``sim.engines``): every command's --backend offers each engine by the same name."""
+    from dynres_jax.commands import evaluate, gather, generate_data, label_resolution, simulate, sort
+
+    choices = "{" + ",".join(engines.NAMES) + "}"
+    for command in (evaluate, gather, generate_data, label_resolution, simulate, sort):
+        with pytest.raises(SystemExit):
+            command.main(["--backend", "flex"])
+        err = capsys.readouterr().err
+        assert "--backend" in err and choices in err.replace(" ", ""), (command.__name__, err)

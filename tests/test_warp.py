@@ -10,13 +10,14 @@ import jax
 import numpy as np
 import pytest
 
-from dynres_jax.commands import evaluate, generate_data
+from dynres_jax.commands import evaluate, gather, generate_data, label_resolution, simulate
 from dynres_jax.config import PushConfig, SceneConfig, SimConfig
 from dynres_jax.errors import InputError
 from dynres_jax.learn import data
 from dynres_jax.sim import warp
+from dynres_jax.sim.engines import resolve
 from dynres_jax.sim.env import PileEnv
-from dynres_jax.sim.pool import EnvWorlds, WarpPool, make_pool, resolve_backend
+from dynres_jax.sim.pool import EnvWorlds, WarpPool, make_pool
 
 SIM = SimConfig(scene=SceneConfig(kinds=("candy",), pieces=(8,)), push=PushConfig(max_length=0.08, settle_time=0.04))
 needs_warp = pytest.mark.skipif(not warp.mjx_warp.WARP_INSTALLED, reason="warp-lang is not installed")
@@ -28,13 +29,14 @@ def no_warp(monkeypatch):
 
 
 def test_asking_for_warp_without_the_extra_names_the_extra(no_warp, tmp_path, capsys):
-    for ask in (warp.check_installed, lambda: resolve_backend("warp"), lambda: make_pool(SIM, "warp"),
+    for ask in (warp.check_installed, lambda: resolve("warp"), lambda: make_pool(SIM, "warp"),
                 lambda: data.check_devices(data.quick_config(backend="warp"))):
         with pytest.raises(InputError, match=r'pip install "dynres-jax\[warp\]"'):
             ask()
-    for command, out in ((generate_data, "d"), (evaluate, "e")):
+    for command, out, quick in ((generate_data, "d", ["--quick"]), (evaluate, "e", ["--quick"]),
+                                (label_resolution, "l", ["--quick"]), (gather, "g", []), (simulate, "s", [])):
         with pytest.raises(SystemExit) as stop:
-            command.main(["--out", str(tmp_path / out), "--quick", "--backend", "warp"])
+            command.main(["--out", str(tmp_path / out), *quick, "--backend", "warp"])
         assert stop.value.code == 2
         assert 'dynres-jax[warp]' in capsys.readouterr().err
         assert not (tmp_path / out).exists()  # refused before any work

@@ -21,6 +21,7 @@ from dynres_jax import distributed
 from dynres_jax.config import OMEGA_MAX, OMEGA_MIN
 from dynres_jax.errors import InputError, JobError
 from dynres_jax.io import files
+from dynres_jax.sim import engines
 
 RUN = "run.json"
 
@@ -123,6 +124,19 @@ def quick_sets(parser: argparse.ArgumentParser, args: argparse.Namespace, names)
     if args.quick and given:
         parser.error(f"--quick sets {', '.join('--' + n.replace('_', '-') for n in given)} itself; give them without "
                      "--quick, or --quick alone")
+
+
+def add_engine(parser: argparse.ArgumentParser, default: str = "mujoco") -> None:
+    """--backend, its choices the engine table's (``sim.engines.NAMES``)."""
+    parser.add_argument("--backend", default=default, choices=engines.NAMES, help=engines.help_text(default))
+
+
+def engine(parser: argparse.ArgumentParser, name: str) -> str:
+    """The engine ``name`` made concrete (``engines.resolve``); parser.error naming a missing extra."""
+    try:
+        return engines.resolve(name)
+    except InputError as e:
+        parser.error(f"--backend: {e}")
 
 
 # The output folder's record.

@@ -65,7 +65,6 @@ from dynres_jax.control.choosers import (
 )
 from dynres_jax.control.goals import make_goal, stack
 from dynres_jax.control.mpc import SensorView, run
-from dynres_jax.errors import InputError
 from dynres_jax.io import ckpt, files
 from dynres_jax.io.draw import evaluation_plots
 from dynres_jax.models.registry import (
@@ -77,7 +76,7 @@ from dynres_jax.models.registry import (
 )
 from dynres_jax.sim.camera import Camera
 from dynres_jax.sim.env import PileEnv
-from dynres_jax.sim.pool import make_pool, process_pool, resolve_backend
+from dynres_jax.sim.pool import make_pool, process_pool
 from dynres_jax.sim.sensor import SENSORS
 from dynres_jax.stats import mcnemar, paired_bootstrap, wilson
 
@@ -247,9 +246,7 @@ def main(argv=None):
     parser.add_argument("--cnn-ckpt", default=SHIPPED_CNN_DYNAMICS, help="the CNN-dynamics checkpoint of method 'cnn'")
     parser.add_argument("--cnn-omega", type=checks.omega, default=50, help="ω of method 'cnn'")
     parser.add_argument("--workers", type=checks.count(1, 1024), default=None)
-    parser.add_argument("--backend", choices=["mujoco", "warp"], default="mujoco",
-                        help="the worlds' engine: C MuJoCo in --workers processes, or MuJoCo Warp on the GPU "
-                             '(pip install ".[warp]")')
+    checks.add_engine(parser)
     parser.add_argument("--seed", type=checks.seed, default=0)
     parser.add_argument("--out", required=True)
     checks.add_fresh(parser)
@@ -283,10 +280,7 @@ def main(argv=None):
     if args.episodes < size:
         parser.error(f"--episodes must be at least the {size} processes of the job, got {args.episodes}")
     resolve_pieces(parser, args)
-    try:
-        resolve_backend(args.backend)
-    except InputError as e:
-        parser.error(f"--backend: {e}")
+    args.backend = checks.engine(parser, args.backend)
     camera = CameraConfig(width=64, height=64) if args.quick else CameraConfig()
     sim = SimConfig(scene=SceneConfig(kinds=(args.kind,), pieces=(args.pieces,)), camera=camera,
                     pile=PileConfig(layout=tasks.TASKS[args.task].layout))

@@ -29,6 +29,7 @@ from dynres_jax.commands import checks
 from dynres_jax.config import SceneConfig
 from dynres_jax.io import ckpt
 from dynres_jax.learn import data, on_policy
+from dynres_jax.sim import engines
 from dynres_jax.sim.scene import check_room
 
 TYPES = {int: checks.count(0), float: checks.number()}  # a field's flag type by its default's type
@@ -47,6 +48,8 @@ def _add_field_flags(parser: argparse.ArgumentParser) -> list[str]:
             parser.add_argument(flag, action=argparse.BooleanOptionalAction, default=None, help=help_)
         elif isinstance(default, tuple):
             parser.add_argument(flag, nargs="+", type=TYPES.get(type(default[0]), str), default=None, help=help_)
+        elif f.name == "backend":
+            parser.add_argument(flag, choices=engines.NAMES, default=None, help=engines.help_text(default))
         else:
             parser.add_argument(flag, type=TYPES.get(type(default), str), default=None, help=help_)
         names.append(f.name)

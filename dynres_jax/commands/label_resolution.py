@@ -52,7 +52,7 @@ from dynres_jax.io.shards import complete_shards, read_shard, save_npz, shard_pa
 from dynres_jax.learn.data import shards_todo
 from dynres_jax.learn.labels import MID_EPISODE_OMEGA, LabelConfig, label_shard, scene_config, shard_scenes
 from dynres_jax.models.registry import SHIPPED_DYNAMICS
-from dynres_jax.sim.pool import BACKENDS, make_pool, process_pool, resolve_backend
+from dynres_jax.sim.pool import make_pool, process_pool
 
 
 @checks.guarded("label_resolution")
@@ -79,13 +79,12 @@ def main(argv=None):
     parser.add_argument("--mid-episode", type=checks.count(0, 100), default=0, metavar="K",
                         help=f"label mid-episode states: each scene first runs K MPC steps towards its goal at "
                              f"ω = {MID_EPISODE_OMEGA} under the same budget (default 0: fresh piles, Fig. 4's pairs)")
-    parser.add_argument("--backend", default="mujoco", choices=BACKENDS,
-                        help="engine of the planned pushes (auto: mjx-fast with a GPU, else mujoco)")
+    checks.add_engine(parser)
     parser.add_argument("--quick", action="store_true", help="tiny sizes for a CPU smoke run")
     distributed.add_args(parser)
     args = parser.parse_args(argv)
     distributed.from_args(parser, args)
-    args.backend = resolve_backend(args.backend)
+    args.backend = checks.engine(parser, args.backend)
     checks.quick_sets(parser, args, ("scenes", "batch", "evals", "repeats", "pieces", "samples", "adam_steps"))
     if args.quick:
         args.scenes, args.batch, args.evals, args.repeats, args.pieces = 8, 4, 6, 1, 60  # 60: points for ω = 100

@@ -19,8 +19,8 @@ from dynres_jax.commands import checks
 from dynres_jax.config import KINDS, CameraConfig, PileConfig, SceneConfig, SimConfig
 from dynres_jax.io import files
 from dynres_jax.io.frames import save_frame
+from dynres_jax.sim import engines
 from dynres_jax.sim.camera import MAX_IMAGE, MIN_IMAGE, Observation
-from dynres_jax.sim.env import PileEnv
 from dynres_jax.sim.scene import check_room
 
 
@@ -44,8 +44,7 @@ def main(argv=None):
     parser.add_argument("--pushes", type=checks.count(1, 10_000), default=5)
     parser.add_argument("--layout", default="blob", choices=["blob", "two_blobs", "spread"])
     parser.add_argument("--joints", default="planar", choices=["planar", "free"])
-    parser.add_argument("--backend", default="mujoco", choices=["mujoco", "mjx"],
-                        help="mujoco (C, one world) draws the plate moving; mjx shows one frame per push")
+    checks.add_engine(parser)  # mujoco (C) draws the plate moving; the others show one frame per push
     parser.add_argument("--resolution", type=checks.count(MIN_IMAGE, MAX_IMAGE), default=256,
                         help="image width and height, pixels")
     parser.add_argument("--seed", type=checks.seed, default=0)
@@ -63,15 +62,16 @@ def main(argv=None):
         check_room(cfg.scene)
     except ValueError as e:
         parser.error(str(e))
+    engine = checks.engine(parser, args.backend)
     checks.claim(args.out, "simulate", checks.settings(args), args.fresh)
-    env = PileEnv(cfg, backend=args.backend)
+    env = engines.make_env(cfg, engine)
     key = jax.random.PRNGKey(args.seed)
     state = env.reset(key)
     frames, actions = [frame(state.obs)], []
     for i in tqdm(range(args.pushes), desc="pushes"):
         action = np.asarray(env.sample_push(jax.random.fold_in(key, i + 1), state.pos))
         actions.append(action.tolist())
-        if args.backend == "mujoco":
+        if env.backend == "mujoco":  # the C engine draws the plate moving
             state, shots = env.push_frames(state, action)
             frames += [frame(o) for o in shots]
         else:

@@ -56,6 +56,7 @@ from dynres_jax.models.registry import (
     shipped_dynamics,
 )
 from dynres_jax.perception import visible_points
+from dynres_jax.sim import engines
 from dynres_jax.sim.camera import Camera
 from dynres_jax.sim.env import PileEnv
 
@@ -74,7 +75,7 @@ def add_loop_args(parser: argparse.ArgumentParser, task: str, adaptive: bool = T
                                  "and beats it on Redistribute, docs/budget/README.md)")
         parser.add_argument("--regressor", default=None,
                             help=f"regressor checkpoint for --resolution adaptive (default {SHIPPED_REGRESSOR})")
-    parser.add_argument("--backend", default="mujoco", choices=["mujoco", "mjx"])
+    checks.add_engine(parser)
     parser.add_argument("--samples", type=checks.count(1), default=50, help="action sequences optimised at once (M)")
     parser.add_argument("--adam-steps", type=checks.count(1), default=100,
                         help="Adam steps per plan (N; the most a plan may run under --time-budget)")
@@ -188,7 +189,7 @@ def build_loop(args, sim: SimConfig, parser: argparse.ArgumentParser, task: str)
             regressor = load_regressor(args.regressor or SHIPPED_REGRESSOR, Camera.top_down(sim.camera))
         except CheckpointError as e:
             parser.error(f"--regressor: {e}")
-    env = PileEnv(sim, backend=args.backend)
+    env = engines.make_env(sim, checks.engine(parser, args.backend))
     try:
         planner = planner_config(env, samples=args.samples, adam_steps=args.adam_steps, seed=args.seed)
         cfg = MPCConfig(mpc_steps=args.mpc_steps, planner=planner, time_budget=args.time_budget)

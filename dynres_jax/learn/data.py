@@ -64,8 +64,8 @@ from dynres_jax.config import (
 from dynres_jax.io.files import TMP_PREFIX, write_json, write_text
 from dynres_jax.io.shards import SHARD_GLOB, read_shard, save_npz, shard_path
 from dynres_jax.learn import on_policy
+from dynres_jax.sim import engines, warp
 from dynres_jax.sim import pool as pools
-from dynres_jax.sim import warp
 from dynres_jax.sim.env import PileEnv
 from dynres_jax.sim.pool import WorldPool, process_pool, random_episode
 
@@ -143,8 +143,8 @@ class DataConfig:
         if not 0.0 <= self.two_kinds <= 1.0 or (self.two_kinds > 0 and len(set(self.kinds)) < 2):
             raise ValueError(f"DataConfig.two_kinds must be in [0, 1], and 0 unless two distinct kinds are given; "
                              f"got {self.two_kinds} with kinds {self.kinds}")
-        if self.backend not in pools.BACKENDS:
-            raise ValueError(f"DataConfig.backend must be one of {', '.join(pools.BACKENDS)}, got {self.backend!r}")
+        if self.backend not in engines.NAMES:
+            raise ValueError(f"DataConfig.backend must be one of {', '.join(engines.NAMES)}, got {self.backend!r}")
         if not 0.0 <= self.planned <= 1.0:
             raise ValueError(f"DataConfig.planned must be a share in [0, 1], got {self.planned}")
         if self.image_size < 8:
@@ -169,15 +169,15 @@ def quick_config(**overrides) -> DataConfig:
 
 
 def concrete(config: DataConfig) -> DataConfig:
-    """``config`` with its engine made concrete (``pool.resolve_backend``: "auto" is "mjx-fast" on a GPU, else
+    """``config`` with its engine made concrete (``engines.resolve``: "auto" is "mjx-fast" on a GPU, else
     "mujoco")."""
-    return replace(config, backend=pools.resolve_backend(config.backend))
+    return replace(config, backend=engines.resolve(config.backend))
 
 
 def shard_sim_config(config: DataConfig, shard: int) -> SimConfig:
     """The scene of shard ``shard``: kind(s), piece count and layout drawn from ``np.random.default_rng((seed,
     shard))``; image size from the DataConfig, everything else from ``config.sim``, as the run's engine simulates it
-    (``pool.engine_config``: the fast scene's physics for "mjx-fast")."""
+    (``engines.sim_config``: the fast scene's physics for "mjx-fast")."""
     rng = np.random.default_rng((config.seed, shard))
     lo, hi = config.pieces
     n = int(rng.choice(np.arange(lo, hi + 1, config.pieces_step)))
@@ -190,7 +190,7 @@ def shard_sim_config(config: DataConfig, shard: int) -> SimConfig:
     sim = config.sim
     drawn = replace(sim, scene=replace(sim.scene, kinds=kinds, pieces=pieces), pile=replace(sim.pile, layout=layout),
                     camera=replace(sim.camera, width=config.image_size, height=config.image_size))
-    return pools.engine_config(drawn, config.backend)
+    return engines.sim_config(drawn, config.backend)
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -221,7 +221,7 @@ def frame_record(s) -> dict:
 def _episode_fn(sim: SimConfig, pushes: int, devices: tuple, backend: str, worlds: int):
     """(env, fn, sharding): jitted fn keys [W, 2] -> per-world episode arrays (leading axis W), the worlds axis
     sharded over ``devices``; MuJoCo Warp's adds ``overflow`` [W, F]. Cached, so shards of one scene compile once."""
-    engine = "warp" if backend == "warp" else "mjx"
+    engine = engines.physics(backend)
     env = PileEnv(sim, backend=engine, worlds=worlds)
     record = (lambda s: dict(frame_record(s), overflow=s.overflow)) if engine == "warp" else frame_record
 

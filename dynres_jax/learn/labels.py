@@ -18,8 +18,9 @@ from dynres_jax.control import budget, mpc, resolution, tasks
 from dynres_jax.control.choosers import FixedOmega
 from dynres_jax.control.goals import make_goal, stack
 from dynres_jax.control.objective import distribution_distance
+from dynres_jax.sim import engines
 from dynres_jax.sim.env import PileEnv
-from dynres_jax.sim.pool import BACKENDS, make_pool
+from dynres_jax.sim.pool import make_pool
 
 FIRST = (2, 25, 50, 75, 100)  # the reference's initial ω
 MID_EPISODE_OMEGA = 50  # the resolution of the closed loop that brings scenes mid-episode (--mid-episode)
@@ -36,7 +37,7 @@ class LabelConfig:
     (the first ``len(FIRST)`` at FIRST, the rest by Expected Improvement); repeats: plans averaged per evaluation;
     seed: the scenes; plan_seed: the plans and the BO's draws (default seed + 1); mid_episode: closed-loop steps at
     ω = MID_EPISODE_OMEGA before labelling (0: fresh piles); quick: tiny camera and pushes for CPU tests; backend:
-    the engine that executes the plans' pushes (``pool.BACKENDS``; "mjx-fast" labels c*(ω) in the fast scene's
+    the engine that executes the plans' pushes (``engines.NAMES``; "mjx-fast" labels c*(ω) in the fast scene's
     physics)."""
 
     kind: str = "coffee"
@@ -58,8 +59,8 @@ class LabelConfig:
             raise ValueError(f"evals must exceed the {len(FIRST)} initial evaluations, got {self.evals}")
         if self.mid_episode < 0 or self.repeats < 1:
             raise ValueError("mid_episode must be >= 0 and repeats >= 1")
-        if self.backend not in BACKENDS:
-            raise ValueError(f"backend must be one of {', '.join(BACKENDS)}, got {self.backend!r}")
+        if self.backend not in engines.NAMES:
+            raise ValueError(f"backend must be one of {', '.join(engines.NAMES)}, got {self.backend!r}")
 
 
 def scene_config(cfg: LabelConfig, shard: int) -> SimConfig:

@@ -1,7 +1,7 @@
 """Many worlds at once, with ``PileEnv``'s batched State: ``WorldPool`` steps C MuJoCo worlds in host worker
 processes, one world per core, and renders their observations on the JAX device; ``MJXPool`` steps them as one batch
 in MJX on the device, ``WarpPool`` in MuJoCo Warp on the GPU. All have ``reset(keys)``, ``push(states, actions)``,
-``env``, ``camera`` and ``scene``; ``make_pool`` picks one by engine name (``BACKENDS``).
+``env``, ``camera`` and ``scene``; ``make_pool`` picks one by engine name (``sim.engines``).
 
 Why: with the default Newton solver, C MuJoCo on every host core outruns MJX on one GPU several times over
 (docs/performance.md, "Speed"), so data generation and evaluation at scale push through this pool while perception and
@@ -11,7 +11,6 @@ push sampling are small JAX functions); it builds each scene once, from the SimC
 
 from __future__ import annotations
 
-import dataclasses
 import functools
 import multiprocessing
 import os
@@ -21,16 +20,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from dynres_jax.config import CameraConfig, SceneConfig, SimConfig, fast_fields
-from dynres_jax.sim import warp
+from dynres_jax.config import CameraConfig, SceneConfig, SimConfig
+from dynres_jax.sim import engines, warp
 from dynres_jax.sim.camera import Camera, Renderer
 from dynres_jax.sim.env import PileEnv, State
 from dynres_jax.sim.scene import build_scene
-
-# Engines of batched worlds: MJX on the fast scene (SceneConfig.fast's physics), MJX on the scene as given, MuJoCo
-# Warp on the scene as given (the extra "warp"), the C engine in worker processes, and "auto" (the first on a GPU, the
-# last elsewhere).
-BACKENDS = ("auto", "mjx-fast", "mjx", "warp", "mujoco")
 
 
 def python_scan(step, carry, xs):
@@ -254,33 +248,12 @@ class Worlds(Protocol):
     def push(self, states: State, actions) -> State: ...
 
 
-def resolve_backend(backend: str) -> str:
-    """An engine name of ``BACKENDS`` made concrete: "auto" is "mjx-fast" where JAX's default backend is a GPU,
-    else "mujoco" (C worker processes). ValueError for a name not in BACKENDS; InputError naming the extra for
-    "warp" without MuJoCo Warp installed."""
-    if backend not in BACKENDS:
-        raise ValueError(f"backend must be one of {', '.join(BACKENDS)}, got {backend!r}")
-    if backend == "warp":
-        warp.check_installed()
-    if backend == "auto":
-        return "mjx-fast" if jax.default_backend() == "gpu" else "mujoco"
-    return backend
-
-
-def engine_config(config: SimConfig, backend: str) -> SimConfig:
-    """``config`` as the engine ``backend`` simulates it: with ``SceneConfig.fast``'s physics for its kinds under
-    "mjx-fast" (or "auto" on a GPU), else unchanged."""
-    if resolve_backend(backend) != "mjx-fast":
-        return config
-    return dataclasses.replace(config, scene=dataclasses.replace(config.scene, **fast_fields(config.scene.kinds)))
-
-
 def make_pool(config: SimConfig, backend: str, processes=None) -> WorldPool | MJXPool | WarpPool:
-    """Worlds of ``config`` in the engine ``backend`` (``BACKENDS``): "mujoco" (``WorldPool`` on ``processes``),
-    "warp" (``WarpPool``), "mjx" (``MJXPool``) or "mjx-fast" (``MJXPool`` on ``engine_config``'s fast physics)."""
-    backend = resolve_backend(backend)
+    """Worlds of ``config`` in the engine ``backend`` (``engines.NAMES``): "mujoco" (``WorldPool`` on ``processes``),
+    "warp" (``WarpPool``), "mjx" (``MJXPool``) or "mjx-fast" (``MJXPool`` on the fast scene's physics)."""
+    backend = engines.resolve(backend)
     if backend == "mujoco":
         return WorldPool(config, processes)
     if backend == "warp":
         return WarpPool(config)
-    return MJXPool(engine_config(config, backend))
+    return MJXPool(engines.sim_config(config, backend))

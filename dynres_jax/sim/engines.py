@@ -1,0 +1,75 @@
+"""The engines that push piles, in one table: every command's ``--backend`` choices and every engine name come from
+``ENGINES`` (and "auto"). Adding an engine is one row here, plus its world type in ``sim.pool.make_pool`` and its
+``PileEnv`` backend.
+
+An engine is a physics implementation (``PileEnv``'s backend: the C engine, MJX, or MuJoCo Warp) with the scene's
+physics as given or as ``SceneConfig.fast``'s. Where the pushes run is ``sim.pool``'s business: the C engine in worker
+processes (one world a core), MJX and Warp as one batch on the JAX devices.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+
+from dynres_jax.config import SimConfig, fast_fields
+from dynres_jax.sim import warp
+from dynres_jax.sim.env import PileEnv
+
+
+@dataclasses.dataclass(frozen=True)
+class Engine:
+    """One row of the table. physics: ``PileEnv``'s backend ("mujoco": C, "mjx", "warp"); fast: the scene runs on
+    ``SceneConfig.fast``'s physics; extra: the pip extra it needs (None: none); about: one line for --help."""
+    name: str
+    physics: str
+    fast: bool
+    extra: str | None
+    about: str
+
+
+ENGINES = {e.name: e for e in (
+    Engine("mujoco", "mujoco", False, None, "C MuJoCo in worker processes, one world a host core (the reference)"),
+    Engine("mjx", "mjx", False, None, "MuJoCo XLA, the worlds as one batch on the JAX devices"),
+    Engine("mjx-fast", "mjx", True, None, "MJX on the fast scene's physics (SceneConfig.fast; not C's)"),
+    Engine("warp", "warp", False, "warp", "MuJoCo Warp on one GPU: C's physics ('pip install \"dynres-jax[warp]\"')"),
+)}
+AUTO = "auto"  # "mjx-fast" where JAX's default backend is a GPU, else "mujoco"
+NAMES = (AUTO, *ENGINES)  # every --backend's choices
+
+
+def resolve(name: str) -> str:
+    """An engine name of ``NAMES`` made concrete: "auto" is "mjx-fast" where JAX's default backend is a GPU, else
+    "mujoco". ValueError for a name not in NAMES; InputError naming the extra for an engine whose extra is missing."""
+    if name not in NAMES:
+        raise ValueError(f"backend must be one of {', '.join(NAMES)}, got {name!r}")
+    if name == AUTO:
+        return "mjx-fast" if jax.default_backend() == "gpu" else "mujoco"
+    if ENGINES[name].extra == "warp":
+        warp.check_installed()
+    return name
+
+
+def sim_config(config: SimConfig, name: str) -> SimConfig:
+    """``config`` as the engine ``name`` simulates it: with ``SceneConfig.fast``'s physics for its kinds where the
+    engine is fast, else unchanged."""
+    if not ENGINES[resolve(name)].fast:
+        return config
+    return dataclasses.replace(config, scene=dataclasses.replace(config.scene, **fast_fields(config.scene.kinds)))
+
+
+def physics(name: str) -> str:
+    """``PileEnv``'s backend for the engine ``name``."""
+    return ENGINES[resolve(name)].physics
+
+
+def make_env(config: SimConfig, name: str, **kwargs) -> PileEnv:
+    """One ``PileEnv`` of ``config`` in the engine ``name`` (kwargs: PileEnv's, e.g. render, worlds)."""
+    return PileEnv(sim_config(config, name), backend=physics(name), **kwargs)
+
+
+def help_text(default: str) -> str:
+    """The --backend help: every engine of the table, one line each, and the default."""
+    rows = "; ".join(f"{e.name}: {e.about}" for e in ENGINES.values())
+    return f"the engine that pushes the piles ({AUTO}: mjx-fast with a GPU, else mujoco; {rows}; default {default})"
