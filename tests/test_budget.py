@@ -171,7 +171,7 @@ def test_reference_planner_flags_resolve_to_the_authors_options_and_a_flag_besid
     import argparse
     from types import SimpleNamespace
 
-    from dynres_jax.commands.task import add_planner_args, mpc_config, resolve_planner_args
+    from dynres_jax.commands.planner_args import add_planner_args, mpc_config, resolve_planner_args
     from dynres_jax.config import PushConfig
 
     def parsed(*flags):

@@ -40,16 +40,15 @@ from jax._src import xla_bridge  # whether the backends have started: XLA reads 
 
 from dynres_jax import distributed
 from dynres_jax.commands import checks
-from dynres_jax.commands.task import (
+from dynres_jax.commands.planner_args import (
     add_planner_args,
     check_budget,
-    load_model,
     load_timing,
     mpc_config,
-    resolve_pieces,
     resolve_planner_args,
     timing_table,
 )
+from dynres_jax.commands.task import load_model, resolve_pieces
 from dynres_jax.config import KINDS, OMEGA_MAX, OMEGA_MIN, CameraConfig, PileConfig, SceneConfig, SimConfig
 from dynres_jax.control import resolution, tasks
 from dynres_jax.control.choosers import (

@@ -37,15 +37,14 @@ from tqdm import tqdm
 
 from dynres_jax import distributed
 from dynres_jax.commands import checks
-from dynres_jax.commands.task import (
+from dynres_jax.commands.planner_args import (
     add_planner_args,
-    check_pile,
-    load_model,
     load_timing,
     mpc_config,
     resolve_planner_args,
     timing_table,
 )
+from dynres_jax.commands.task import check_pile, load_model
 from dynres_jax.config import KINDS, OMEGA_MAX, OMEGA_MIN, SceneConfig
 from dynres_jax.io import files
 from dynres_jax.io.shards import complete_shards, read_shard, save_npz, shard_path

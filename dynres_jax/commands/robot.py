@@ -24,11 +24,12 @@ import jax
 import numpy as np
 
 from dynres_jax.commands import checks
-from dynres_jax.commands.task import load_model, planner_config, resolve_pieces, write_episode
+from dynres_jax.commands.task import load_model, resolve_pieces, write_episode
 from dynres_jax.config import KINDS, CameraConfig, PileConfig, SceneConfig, SimConfig
 from dynres_jax.control.goals import disc_goal, make_goal
 from dynres_jax.control.mpc import MPCConfig
 from dynres_jax.control.objective import inside_share
+from dynres_jax.control.planner import planner_config
 from dynres_jax.control.robot import STOP_SHARE, DryRun, ReplaySource, SimulatedRobot, Workspace, run_robot
 from dynres_jax.io import files
 from dynres_jax.io.draw import caption, overlay

@@ -25,7 +25,8 @@ import jax
 import numpy as np
 
 from dynres_jax.commands import checks
-from dynres_jax.commands.task import add_loop_args, build_loop, check_budget, check_pile, finished, write_episode
+from dynres_jax.commands.planner_args import check_budget
+from dynres_jax.commands.task import add_loop_args, build_loop, check_pile, finished, write_episode
 from dynres_jax.config import KINDS, CameraConfig, PileConfig, SceneConfig, SimConfig
 from dynres_jax.control.choosers import climb, on_ladder
 from dynres_jax.control.decision import batch

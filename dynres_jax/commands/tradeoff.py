@@ -38,15 +38,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from dynres_jax.commands import checks
-from dynres_jax.commands.task import (
-    add_reference_planner_args,
-    check_pile,
-    load_model,
-    planner_config,
-    planner_options,
-    priced,
-    resolve_planner_args,
-)
+from dynres_jax.commands.planner_args import add_reference_planner_args, planner_options, priced, resolve_planner_args
+from dynres_jax.commands.task import check_pile, load_model
 from dynres_jax.config import CameraConfig, PileConfig, PushConfig, SceneConfig, SimConfig
 from dynres_jax.control import tasks
 from dynres_jax.control.budget import BUCKETS, TimingTable, bucket_for
@@ -54,6 +47,7 @@ from dynres_jax.control.decision import decide_batch, episode
 from dynres_jax.control.goals import make_goal, stack
 from dynres_jax.control.mpc import MPCConfig, measure_timing
 from dynres_jax.control.objective import distribution_distance
+from dynres_jax.control.planner import planner_config
 from dynres_jax.control.resolution import CANDIDATES
 from dynres_jax.io import files
 from dynres_jax.io.shards import complete_shards, read_shard, save_npz
