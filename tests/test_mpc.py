@@ -13,6 +13,7 @@ from dynres_jax.control.budget import TimingTable
 from dynres_jax.control.choosers import (
     AdaptiveOmega,
     BestOfK,
+    Candidate,
     Chooser,
     FixedOmega,
     OracleOmega,
@@ -226,7 +227,7 @@ def test_best_of_k_keeps_the_best_of_independent_plans(three):
             self.d = d
 
         def __call__(self, t, obs):
-            return Orders(goals, (np.full(3, 6, np.int32),), draws=(self.d,))
+            return Orders(goals, (Candidate(np.full(3, 6, np.int32), draw=self.d),))
 
     one = {d: run(pool, starts, Draw(d), sweep_dynamics(0.04), cfg, keys, log=lambda s: None).records[0]
            for d in (0, 1)}
@@ -238,9 +239,9 @@ def test_best_of_k_keeps_the_best_of_independent_plans(three):
     np.testing.assert_allclose(best["distance"], np.minimum(one[0]["distance"], one[1]["distance"]), rtol=1e-6)
     with pytest.raises(ValueError, match="K >= 1"):
         BestOfK(FixedOmega(goals, 6), 0)
-    with pytest.raises(ValueError, match="one plan per step, got 5 candidate"):  # the oracle already chooses
+    with pytest.raises(ValueError, match="one plan per step, got 5 candidates$"):  # the oracle already chooses
         BestOfK(OracleOmega(goals), 2)(0, starts.obs)
-    with pytest.raises(ValueError, match="one plan per step, got 2 candidate ω, drawn"):
+    with pytest.raises(ValueError, match="one plan per step, got 2 candidates, drawn$"):
         SimulatorScored(BestOfK(FixedOmega(goals, 6), 2))(0, starts.obs)
     assert isinstance(climb(FixedOmega(goals, 6), "best3"), BestOfK) and climb(FixedOmega(goals, 6), "best3").k == 3
     assert climb(FixedOmega(goals, 6), "rerank").refine and not climb(FixedOmega(goals, 6), "sim").refine
@@ -300,7 +301,7 @@ def test_a_chooser_that_repeats_the_goals_changes_nothing(episode):
 
     class Repeat(Chooser):
         def __call__(self, t, obs):
-            return Orders(batch(goal), (np.array([6]),), None, {"order": [t]})
+            return Orders(batch(goal), (Candidate(np.array([6])),), None, {"order": [t]})
 
         def score(self, states):
             return {"pieces_x": [float(np.mean(np.asarray(states.pos[0])[:, 0]))]}

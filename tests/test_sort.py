@@ -9,7 +9,7 @@ import pytest
 
 from dynres_jax.config import CameraConfig, PileConfig, PushConfig, SceneConfig, SimConfig
 from dynres_jax.control import sort
-from dynres_jax.control.choosers import BestOfK, Chooser, Orders, SimulatorScored
+from dynres_jax.control.choosers import BestOfK, Candidate, Chooser, Orders, SimulatorScored
 from dynres_jax.control.decision import batch, goal_cost
 from dynres_jax.control.goals import BIN_HALF_WIDTH, make_goal, stack_goals
 from dynres_jax.control.mpc import MPCConfig, run_episode
@@ -284,7 +284,7 @@ class FixedKindGoals(Chooser):
         self.goals = goals
 
     def __call__(self, t, obs):
-        return Orders(batch(stack_goals(self.goals)), (np.array([12]),))
+        return Orders(batch(stack_goals(self.goals)), (Candidate(np.array([12])),))
 
 
 def test_a_step_against_kind_goals_is_scored_per_kind(env):

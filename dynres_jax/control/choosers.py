@@ -1,10 +1,10 @@
 """Choosers: what the closed loop plans for at each MPC step (``mpc.run``). A chooser is called with the step and
-the frames the planner sees, and answers with ``Orders``: the goals, the resolution ω of every episode (or several
-candidate ω, of which the loop keeps per episode the one whose push left the lowest d, or the one the model rates
-best), and which piece kinds to perceive. Fixed ω, the regressor g (adaptive ω, paper Sec. IV-C), a probe of several
-ω judged by the model (no labels), the oracle over ω, the best of K plans at one ω, the simulator as the model (the
-``sim`` ceiling) and Sort's A* waypoints (``sort.SortPolicy``) are choosers; a new way of choosing is a new chooser,
-not a new parameter of the loop.
+the frames the planner sees, and answers with ``Orders``: the goals, the plans to make (``Candidate``: ω of every
+episode, plan draw, budget share, what is put forward), how the loop keeps one per episode (the lowest d after a push,
+or the one the model rates best), and which piece kinds to perceive; the loop (``mpc.run``) has one path for all.
+Fixed ω, the regressor g (adaptive ω, paper Sec. IV-C), a probe of several ω judged by the model (no labels), the
+oracle over ω, the best of K plans at one ω, the simulator as the model (the ``sim`` ceiling) and Sort's A* waypoints
+(``sort.SortPolicy``) are choosers; a new way of choosing is a new chooser, not a new parameter of the loop.
 """
 
 from __future__ import annotations
@@ -21,26 +21,37 @@ ORACLE_OMEGAS = (10, 25, 50, 75, 100)  # the oracle's candidates at every step
 PROBE_OMEGAS = (25, 50, 100)  # the probe's candidates: one in each bucket above 16
 
 
+class Candidate(NamedTuple):
+    """One plan the loop makes at an MPC step (``mpc.propose``). omega [B]: its ω per episode; draw: which independent
+    plan (0: the step's own keys, the same for every ω; d > 0: keys of their own, ``mpc.PLAN_DRAWS``); share: its share
+    of the decision's time budget; proposals: what it puts forward to be kept: "plan" (the model's best plan),
+    "samples" (the planner's M first samples: no Adam step, no model) or "plans" (its M candidates after the Adam
+    steps with the model, and its best)."""
+
+    omega: np.ndarray
+    draw: int = 0
+    share: float = 1.0
+    proposals: str = "plan"
+
+
 class Orders(NamedTuple):
     """A chooser's orders for one MPC step, arrays with a leading axis [B]. goals: this step's goal of each
-    decision (a batched Goal or KindGoals; the step's d and inside share are scored against it); omegas: one or more
-    candidate ω [B] each; kinds [B]: the piece kind each decision perceives (None: every piece); record: extra
-    record fields, arrays [B]; draws: per candidate, which independent plan it is (0: the step's own keys, the same
-    for every ω; d > 0: keys of their own, ``mpc.PLAN_DRAWS``); None: every candidate draw 0. simulated: None (the
-    model's best plan is pushed), "samples" (no model, no Adam step: the planner's M first samples are each pushed on
-    a copy of the worlds and the one that left the lowest d kept) or "plans" (the planner's M candidates after its
-    Adam steps with the model, chosen among the same way) (``mpc.act_simulated``). keep: how the loop chooses among
-    several candidates: "distance" (each pushed on a copy of the worlds, the lowest d kept) or "rate" (each planned
-    with an equal share of the decision's time budget, the one whose model predicts the largest fall of c per second
-    of planning kept and pushed; nothing simulated, ``mpc.act_by_rate``)."""
+    decision (a batched Goal or KindGoals; the step's d and inside share are scored against it); candidates: the
+    plans to make (``Candidate``); kinds [B]: the piece kind each decision perceives (None: every piece); record:
+    extra record fields, arrays [B]; keep: how the loop keeps one proposal per episode (``mpc.KEEPS``): "distance"
+    (each pushed on a copy of the worlds, the lowest d kept; one proposal is simply pushed) or "rate" (the plan whose
+    model predicts the largest fall of c per second of planning, pushed; nothing simulated)."""
 
     goals: Goal | KindGoals
-    omegas: tuple[np.ndarray, ...]
+    candidates: tuple[Candidate, ...]
     kinds: np.ndarray | None = None
     record: dict = {}
-    draws: tuple[int, ...] | None = None
-    simulated: str | None = None
     keep: str = "distance"
+
+
+def at(omegas: tuple[int, ...], b: int, **kwargs) -> tuple[Candidate, ...]:
+    """One candidate per ω of ``omegas``, the same for all b episodes (kwargs: ``Candidate``'s draw, share)."""
+    return tuple(Candidate(np.full(b, w, np.int32), **kwargs) for w in omegas)
 
 
 class Chooser:
@@ -61,7 +72,7 @@ class FixedOmega(Chooser):
         self.goals, self.omega = goals, check_omega(omega)
 
     def __call__(self, t, obs) -> Orders:
-        return Orders(self.goals, (np.full(len(obs.depth), self.omega, np.int32),))
+        return Orders(self.goals, at((self.omega,), len(obs.depth)))
 
 
 class AdaptiveOmega(Chooser):
@@ -72,7 +83,7 @@ class AdaptiveOmega(Chooser):
         self.goals, self.regressor = goals, regressor
 
     def __call__(self, t, obs) -> Orders:
-        return Orders(self.goals, (np.asarray(self.regressor(obs, self.goals), np.int32),))
+        return Orders(self.goals, (Candidate(np.asarray(self.regressor(obs, self.goals), np.int32)),))
 
 
 class OracleOmega(Chooser):
@@ -85,7 +96,7 @@ class OracleOmega(Chooser):
         self.goals, self.omegas = goals, tuple(check_omega(w, "an oracle candidate") for w in omegas)
 
     def __call__(self, t, obs) -> Orders:
-        return Orders(self.goals, tuple(np.full(len(obs.depth), w, np.int32) for w in self.omegas))
+        return Orders(self.goals, at(self.omegas, len(obs.depth)))
 
 
 class ProbeOmega(Chooser):
@@ -100,7 +111,7 @@ class ProbeOmega(Chooser):
         self.goals, self.omegas = goals, tuple(check_omega(w, "a probe candidate") for w in omegas)
 
     def __call__(self, t, obs) -> Orders:
-        return Orders(self.goals, tuple(np.full(len(obs.depth), w, np.int32) for w in self.omegas), keep="rate")
+        return Orders(self.goals, at(self.omegas, len(obs.depth), share=1 / len(self.omegas)), keep="rate")
 
 
 class BestOfK(Chooser):
@@ -115,7 +126,7 @@ class BestOfK(Chooser):
 
     def __call__(self, t, obs) -> Orders:
         orders = _one_plan(self.chooser(t, obs), "best-of-K")
-        return orders._replace(omegas=orders.omegas * self.k, draws=tuple(range(self.k)))
+        return orders._replace(candidates=tuple(orders.candidates[0]._replace(draw=d) for d in range(self.k)))
 
     def score(self, states) -> dict:
         return self.chooser.score(states)
@@ -134,18 +145,23 @@ class SimulatorScored(Chooser):
 
     def __call__(self, t, obs) -> Orders:
         orders = _one_plan(self.chooser(t, obs), "the simulator's choice")
-        return orders._replace(simulated="plans" if self.refine else "samples")
+        return orders._replace(candidates=(orders.candidates[0]._replace(proposals="plans" if self.refine else
+                                                                         "samples"),))
 
     def score(self, states) -> dict:
         return self.chooser.score(states)
 
 
 def _one_plan(orders: Orders, what: str) -> Orders:
-    """orders, checked to hold one plain candidate (one ω, draw 0, a model's plan): what ``what`` builds on."""
-    if len(orders.omegas) != 1 or orders.draws not in (None, (0,)) or orders.simulated is not None:
-        raise ValueError(f"{what} builds on a chooser of one plan per step, got {len(orders.omegas)} candidate ω"
-                         f"{', drawn' if orders.draws not in (None, (0,)) else ''}"
-                         f"{', simulated' if orders.simulated is not None else ''}")
+    """orders, checked to hold one plain candidate (one ω, draw 0, the whole budget, the model's plan): what
+    ``what`` builds on."""
+    c = orders.candidates
+    off = [name for name, odd in (("drawn", any(x.draw for x in c)),
+                                  ("a share of the budget", any(x.share != 1 for x in c)),
+                                  ("simulated", any(x.proposals != "plan" for x in c))) if odd]
+    if len(c) != 1 or off:
+        raise ValueError(f"{what} builds on a chooser of one plan per step, got {len(c)} candidate"
+                         f"{'s' if len(c) > 1 else ''}{''.join(', ' + o for o in off)}")
     return orders
 
 

@@ -23,7 +23,7 @@ import numpy as np
 
 from dynres_jax.config import check_fields
 from dynres_jax.control import budget
-from dynres_jax.control.choosers import Chooser
+from dynres_jax.control.choosers import Candidate, Chooser
 from dynres_jax.control.decision import DecisionSpec, batch, decide_batch, episode, per_episode
 from dynres_jax.control.goals import Goal, KindGoals
 from dynres_jax.control.objective import distribution_distance, inside_share
@@ -35,7 +35,7 @@ from dynres_jax.sim.pool import EnvWorlds, Worlds
 from dynres_jax.sim.sensor import DepthSensor
 
 PLAN_DRAWS = 1 << 20  # plan draw d > 0 folds PLAN_DRAWS + d into a step's keys (away from the sensor's fold 1)
-SIMULATED_WORLDS = 512  # worlds per push call when the simulator scores candidates (``act_simulated``)
+SIMULATED_WORLDS = 512  # worlds per push call when the simulator scores proposals (``keep_lowest_distance``)
 
 
 @dataclass(frozen=True)
@@ -151,80 +151,79 @@ class Situation(NamedTuple):
     warm: bool
 
 
-def plan_only(now: Situation, omega, *, cfg: MPCConfig, timing: budget.TimingTable | None, dynamics,
-              share: float = 1.0) -> dict:
-    """Allot (``share`` of the budget) and decide: one decision per episode at omega [B] from ``now``. Returns arrays
-    [B]: omega, bucket, adam_steps, objective (c before), predicted_objective, best (the plan), particles, action
-    (its first push) and wall (the decision's seconds)."""
-    buckets, steps = cfg.allot(omega, timing, share)
+def propose(now: Situation, candidate: Candidate, *, cfg: MPCConfig, timing: budget.TimingTable | None,
+            dynamics) -> dict:
+    """One candidate's decision (``choosers.Candidate``: its ω [B], plan draw and share of the budget) from ``now``,
+    and what it puts forward. Returns arrays [B]: omega, bucket, adam_steps, objective (c before),
+    predicted_objective (NaN for proposals the simulator scores), particles, proposals [B, K, T, 4] (the model's best
+    plan, K = 1; the planner's M first samples, no Adam step; or its M candidates after the Adam steps and its best)
+    and wall (the decision's seconds)."""
+    now = _drawn(now, candidate.draw)
+    buckets, steps = cfg.allot(candidate.omega, timing, candidate.share)
+    if candidate.proposals == "samples":
+        steps = np.zeros(len(buckets), np.int32)
     t0 = time.perf_counter()
-    particles, c_now, result = decide_batch(now.seen, now.goals, now.keys, now.init, now.warm, omega, steps, now.kinds,
-                                            spec=cfg.spec(int(buckets.max())), dynamics=dynamics, camera=now.camera)
-    action = np.asarray(jax.block_until_ready(result.best[:, 0]))
-    return dict(omega=np.asarray(omega), bucket=buckets, adam_steps=steps, objective=c_now,
-                predicted_objective=result.best_cost, best=result.best, particles=particles, action=action,
-                wall=np.full(len(action), time.perf_counter() - t0))
+    particles, c_now, result = decide_batch(now.seen, now.goals, now.keys, now.init, now.warm, candidate.omega, steps,
+                                            now.kinds, spec=cfg.spec(int(buckets.max())), dynamics=dynamics,
+                                            camera=now.camera)
+    predicted = np.full(len(buckets), np.nan, np.float32)
+    if candidate.proposals == "plan":
+        proposals, predicted = result.best[:, None], result.best_cost
+    elif candidate.proposals == "samples":
+        proposals = result.actions
+    else:  # the model's best (kept from any step) as candidate M + 1
+        proposals = jnp.concatenate([result.actions, result.best[:, None]], axis=1)
+    proposals = np.asarray(jax.block_until_ready(proposals))
+    return dict(omega=np.asarray(candidate.omega), bucket=buckets, adam_steps=steps, objective=c_now,
+                predicted_objective=predicted, particles=particles, proposals=proposals,
+                wall=np.full(len(buckets), time.perf_counter() - t0))
+
+
+def keep_lowest_distance(worlds: Worlds, now: Situation, plans: list[dict], score: Callable,
+                         timing: budget.TimingTable | None = None) -> dict:
+    """Keep rule "distance": every proposal of every plan (``propose``) pushed on a copy of the worlds (a plan's
+    proposals SIMULATED_WORLDS // B to a call, so every core works; one proposal: the worlds themselves), per episode
+    the one whose push left the lowest d kept, the first on ties. Returns the kept plan's arrays [B] with best (its
+    action sequence), action (its first push), states (after) and ``score(states, goals)``'s."""
+    b, kept = len(now.keys), None
+    for plan in plans:
+        samples, common = plan["proposals"], {k: v for k, v in plan.items() if k != "proposals"}
+        per_call = max(1, SIMULATED_WORLDS // b)
+        for first in range(0, samples.shape[1], per_call):
+            k = min(per_call, samples.shape[1] - first)
+            tile = (lambda x: x) if k == 1 else lambda x, k=k: jnp.concatenate([jnp.asarray(x)] * k)  # [k * B, ...]
+            actions = samples[:, first:first + k, 0].transpose(1, 0, 2).reshape(k * b, 4)
+            after = worlds.push(jax.tree.map(tile, now.states), actions)
+            scores = score(after, jax.tree.map(tile, now.goals))
+            for j in range(k):
+                rows = (lambda x: x) if k == 1 else lambda x, j=j: x[j * b:(j + 1) * b]
+                outcome = dict(common, best=jnp.asarray(samples[:, first + j]), action=samples[:, first + j, 0],
+                               states=jax.tree.map(rows, after), **{key: rows(v) for key, v in scores.items()})
+                kept = outcome if kept is None else _lowest_distance([kept, outcome])
+    return kept
+
+
+def keep_best_rate(worlds: Worlds, now: Situation, plans: list[dict], score: Callable,
+                   timing: budget.TimingTable | None = None) -> dict:
+    """Keep rule "rate": per episode the plan whose model predicts the largest fall of c per second of planning (the
+    table's price of its bucket and steps; without a table, its wall time); only its push is executed, nothing is
+    simulated. Returns ``keep_lowest_distance``'s arrays [B]."""
+    if any(p["proposals"].shape[1] != 1 for p in plans):
+        raise ValueError("keep rule 'rate' judges the model's plans: every candidate must propose its best plan")
+    rates = np.stack([(np.asarray(p["objective"]) - np.asarray(p["predicted_objective"])) / _seconds(p, timing)
+                      for p in plans])
+    return keep_lowest_distance(worlds, now, [_pick(plans, np.argmax(rates, axis=0))], score)
+
+
+KEEPS = {"distance": keep_lowest_distance, "rate": keep_best_rate}  # Orders.keep -> how the loop keeps a candidate
 
 
 def act(worlds: Worlds, now: Situation, omega, *, cfg: MPCConfig, timing: budget.TimingTable | None, dynamics,
         score: Callable) -> dict:
-    """Allot, decide, push, score: ``plan_only``'s decision at omega [B], its first push executed in ``worlds`` and
-    the result scored by ``score(states, goals) -> dict``. Returns ``plan_only``'s arrays [B], states (after) and the
-    scores."""
-    planned = plan_only(now, omega, cfg=cfg, timing=timing, dynamics=dynamics)
-    after = worlds.push(now.states, planned["action"])
-    return dict(planned, states=after, **score(after, now.goals))
-
-
-def act_by_rate(worlds: Worlds, now: Situation, omegas, *, cfg: MPCConfig, timing: budget.TimingTable | None,
-                dynamics, score: Callable) -> dict:
-    """One decision per candidate ω (omegas: a tuple of [B]), each with an equal share of the budget, and per episode
-    the one whose model predicts the largest fall of c per second of planning (the table's price of its bucket and
-    steps; without a table, its wall time) kept; only its push is executed. Returns ``act``'s arrays [B]."""
-    plans = [plan_only(now, omega, cfg=cfg, timing=timing, dynamics=dynamics, share=1 / len(omegas))
-             for omega in omegas]
-    rates = np.stack([(np.asarray(p["objective"]) - np.asarray(p["predicted_objective"])) / _seconds(p, timing)
-                      for p in plans])
-    planned = _pick(plans, np.argmax(rates, axis=0))
-    after = worlds.push(now.states, np.asarray(planned["action"]))
-    return dict(planned, states=after, **score(after, now.goals))
-
-
-def act_simulated(worlds: Worlds, now: Situation, omega, *, cfg: MPCConfig, timing, dynamics, score,
-                  refine: bool = False) -> dict:
-    """``act`` with the simulator choosing (``choosers.SimulatorScored``): the planner's M candidates at omega [B]
-    (its first samples, no Adam step; refine: after the Adam steps ``act`` would run, and the model's best plan,
-    ``act``'s push), each pushed on a copy of the worlds, per episode the one that left the lowest d kept. Returns
-    ``act``'s arrays [B]; predicted_objective is NaN (no model predicted the kept push), wall the planning's
-    seconds."""
-    buckets, steps = cfg.allot(omega, timing)
-    if not refine:
-        steps = np.zeros(len(buckets), np.int32)
-    t0 = time.perf_counter()
-    particles, c_now, result = decide_batch(now.seen, now.goals, now.keys, now.init, now.warm, omega, steps, now.kinds,
-                                            spec=cfg.spec(int(buckets.max())), dynamics=dynamics, camera=now.camera)
-    samples = result.actions  # [B, M, T, 4]; refined: with the model's best (kept from any step) as candidate M + 1
-    if refine:
-        samples = jnp.concatenate([samples, result.best[:, None]], axis=1)
-    samples = np.asarray(jax.block_until_ready(samples))
-    common = dict(omega=np.asarray(omega), bucket=buckets, adam_steps=steps, objective=c_now, particles=particles,
-                  predicted_objective=np.full(len(buckets), np.nan, np.float32),
-                  wall=np.full(len(buckets), time.perf_counter() - t0))
-    b, m = samples.shape[:2]
-    per_call = max(1, SIMULATED_WORLDS // b)  # candidates pushed in one call of the worlds, so every core works
-    kept = None
-    for first in range(0, m, per_call):
-        k = min(per_call, m - first)
-        tile = lambda x, k=k: jnp.concatenate([jnp.asarray(x)] * k)  # noqa: E731  (candidate-major: [k * B, ...])
-        actions = samples[:, first:first + k, 0].transpose(1, 0, 2).reshape(k * b, 4)
-        after = worlds.push(jax.tree.map(tile, now.states), actions)
-        scores = score(after, jax.tree.map(tile, now.goals))
-        for j in range(k):
-            rows = lambda x, j=j: x[j * b:(j + 1) * b]  # noqa: E731
-            outcome = dict(common, best=jnp.asarray(samples[:, first + j]), action=samples[:, first + j, 0],
-                           states=jax.tree.map(rows, after), **{key: rows(v) for key, v in scores.items()})
-            kept = outcome if kept is None else _lowest_distance([kept, outcome])
-    return kept
+    """Allot, decide, push, score: the model's plan at omega [B] from ``now``, its first push executed in ``worlds``
+    and the result scored by ``score(states, goals) -> dict`` (``keep_lowest_distance``'s arrays [B])."""
+    plan = propose(now, Candidate(omega), cfg=cfg, timing=timing, dynamics=dynamics)
+    return keep_lowest_distance(worlds, now, [plan], score)
 
 
 class Episodes(NamedTuple):
@@ -258,16 +257,10 @@ def run(worlds: Worlds, states: State, chooser: Chooser, dynamics, cfg: MPCConfi
         seen, camera = view(t, states, step_keys)
         orders = chooser(t, seen)
         now = Situation(states, seen, camera, orders.goals, orders.kinds, step_keys, init, warm)
-        for omega in orders.omegas:
-            announce(cfg, omega, log)
-        if orders.keep == "rate":
-            kept = act_by_rate(worlds, now, orders.omegas, cfg=cfg, timing=timing, dynamics=dynamics, score=score)
-        else:
-            draws = orders.draws or (0,) * len(orders.omegas)
-            decide = act if orders.simulated is None else functools.partial(act_simulated,
-                                                                             refine=orders.simulated == "plans")
-            kept = _lowest_distance([decide(worlds, _drawn(now, d), omega, cfg=cfg, timing=timing, dynamics=dynamics,
-                                            score=score) for omega, d in zip(orders.omegas, draws, strict=True)])
+        for candidate in orders.candidates:
+            announce(cfg, candidate.omega, log)
+        plans = [propose(now, c, cfg=cfg, timing=timing, dynamics=dynamics) for c in orders.candidates]
+        kept = KEEPS[orders.keep](worlds, now, plans, score, timing)
         record = dict(step=t, **{k: np.asarray(kept[k]) for k in ("omega", "bucket", "adam_steps", "objective",
                                                                   "predicted_objective", "distance", "inside",
                                                                   "action")})

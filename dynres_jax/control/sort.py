@@ -43,7 +43,7 @@ import numpy as np
 
 from dynres_jax.config import check_omega
 from dynres_jax.control.budget import bucket_for
-from dynres_jax.control.choosers import Chooser, Orders
+from dynres_jax.control.choosers import Candidate, Chooser, Orders
 from dynres_jax.control.decision import batch, episode
 from dynres_jax.control.goals import disc_goal, make_goal, sort_goals, stack_goals
 from dynres_jax.control.mpc import MPCConfig
@@ -266,7 +266,7 @@ class SortPolicy(Chooser):
         record = dict(phase=[self.phase], kind=[kind], waypoint=[targets[max(kind, 0)]], centres=[centres],
                       perceived_inside=[inside], astar_steps=[steps_left], astar_s=[astar_s])
         goals = stack_goals([make_goal(m, self.camera) for m in masks], hold)
-        return Orders(batch(goals), (np.array([max(min(self.omega, points), 1)]),), None, record)
+        return Orders(batch(goals), (Candidate(np.array([max(min(self.omega, points), 1)])),), None, record)
 
     def score(self, states) -> dict:
         inside, mixing = sort_scores(states.pos[0], self.piece_kinds, self.goals, self.camera)
