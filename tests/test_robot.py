@@ -10,10 +10,12 @@ import pytest
 
 from dynres_jax.commands import robot
 from dynres_jax.config import CameraConfig, PileConfig, SceneConfig, SimConfig
+from dynres_jax.control.choosers import FixedOmega, OracleOmega, ProbeOmega
 from dynres_jax.control.goals import disc_goal
 from dynres_jax.control.mpc import MPCConfig
 from dynres_jax.control.planner import PlannerConfig
 from dynres_jax.control.robot import DryRun, SimulatedRobot, UnsafePush, Workspace, run_robot
+from dynres_jax.errors import InputError
 from dynres_jax.models.registry import sweep_dynamics
 from dynres_jax.sim.env import PileEnv
 
@@ -73,3 +75,27 @@ def test_the_workspace_check_refuses_pushes_outside_and_a_dry_run_moves_nothing(
         64, dtype=bool), sweep_dynamics(0.04), cfg, 12, jax.random.PRNGKey(2), workspace=workspace, success=0.5,
         log=lambda s: None)
     assert len(done) == 1 and "action" not in done[0]  # already at the goal: stops before any push
+
+
+def test_the_robot_loop_takes_any_chooser_that_keeps_by_the_model():
+    """A chooser as a function of the goal: FixedOmega the same pushes as the int ω; the probe plans at each of its
+    ω and pushes the one it keeps; the oracle (copies of the world) is refused before any push."""
+    sim = SimConfig(scene=SceneConfig(pieces=(30,)), camera=CameraConfig(width=64, height=64))
+    env = PileEnv(sim, backend="mujoco")
+    planner = PlannerConfig(samples=4, adam_steps=3, bound=env.action_bound, reach=env.reach,
+                            max_length=sim.push.max_length)
+    cfg = MPCConfig(mpc_steps=2, buckets=(16, 32), max_points=1024, planner=planner)
+    goal = disc_goal(env.camera, np.zeros(2), 0.08)
+
+    def episode(chooser):
+        pusher = DryRun()
+        steps = run_robot(SimulatedRobot(env, jax.random.PRNGKey(1)), pusher, goal, sweep_dynamics(0.04), cfg,
+                          chooser, jax.random.PRNGKey(2), workspace=Workspace.of(env), log=lambda s: None)
+        return [{k: v for k, v in s.items() if k != "planning_s"} for s in steps], pusher.pushes
+
+    fixed, pushed = episode(12)
+    assert episode(lambda g: FixedOmega(g, 12)) == (fixed, pushed) and [s["omega"] for s in fixed[:2]] == [12, 12]
+    probe, pushed = episode(lambda g: ProbeOmega(g, (12, 25)))
+    assert len(pushed) == 2 and {s["omega"] for s in probe[:2]} <= {12, 25}
+    with pytest.raises(InputError, match="a robot has one world"):
+        episode(lambda g: OracleOmega(g, (12, 25)))

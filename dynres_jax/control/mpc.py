@@ -208,11 +208,19 @@ def keep_best_rate(worlds: Worlds, now: Situation, plans: list[dict], score: Cal
     """Keep rule "rate": per episode the plan whose model predicts the largest fall of c per second of planning (the
     table's price of its bucket and steps; without a table, its wall time); only its push is executed, nothing is
     simulated. Returns ``keep_lowest_distance``'s arrays [B]."""
+    return keep_lowest_distance(worlds, now, [best_rate(plans, timing)], score)
+
+
+def best_rate(plans: list[dict], timing: budget.TimingTable | None) -> dict:
+    """Per episode the plan (``propose``'s, proposing the model's best) whose model predicts the largest fall of c per
+    second of planning; one plan is its own best."""
     if any(p["proposals"].shape[1] != 1 for p in plans):
         raise ValueError("keep rule 'rate' judges the model's plans: every candidate must propose its best plan")
+    if len(plans) == 1:
+        return plans[0]
     rates = np.stack([(np.asarray(p["objective"]) - np.asarray(p["predicted_objective"])) / _seconds(p, timing)
                       for p in plans])
-    return keep_lowest_distance(worlds, now, [_pick(plans, np.argmax(rates, axis=0))], score)
+    return _pick(plans, np.argmax(rates, axis=0))
 
 
 KEEPS = {"distance": keep_lowest_distance, "rate": keep_best_rate}  # Orders.keep -> how the loop keeps a candidate

@@ -21,7 +21,8 @@ through a depth camera's profile) and ``DryRun`` (a pusher that moves nothing). 
             x0, y0, x1, y1 = action; arm.move_to(x0, y0, z_up); arm.move_to(x0, y0, z_push); ...
 
 ``run_robot`` perceives each frame (as a real camera's with ``MPCConfig.real_depth``), plans one push with
-the dynamics model (``decision.decide_batch``, warm-started from the last plan), checks it against the workspace
+the dynamics model as a chooser orders (fixed ω, the regressor g, the probe: ``mpc.propose``, warm-started from the
+last plan), checks it against the workspace
 before sending it (``Workspace.check``), and stops when the share of foreground pixels inside the goal reaches
 ``success`` or after ``MPCConfig.mpc_steps`` pushes. What the robot sees is all it knows: d and the share inside are
 measured on its frames.
@@ -39,10 +40,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from dynres_jax.control.budget import bucket_for
-from dynres_jax.control.decision import batch, decide_batch
+from dynres_jax.control.budget import TimingTable
+from dynres_jax.control.choosers import Chooser, FixedOmega
+from dynres_jax.control.decision import batch
 from dynres_jax.control.goals import Goal, make_goal
-from dynres_jax.control.mpc import MPCConfig, announce, shift
+from dynres_jax.control.mpc import MPCConfig, Situation, announce, best_rate, propose, shift
 from dynres_jax.control.objective import distribution_distance
 from dynres_jax.errors import InputError
 from dynres_jax.io.frames import load_camera, load_frame
@@ -163,15 +165,19 @@ def seen_scores(obs: Observation, goal: Goal, camera: Camera, real_depth: bool) 
     return float(distribution_distance(valid, goal, camera)), inside
 
 
-def run_robot(source: FrameSource, pusher: Pusher, goal_mask, dynamics, cfg: MPCConfig, omega: int, key, *,
-              workspace: Workspace, bin_size: tuple[float, float] | None = None, success: float = STOP_SHARE,
-              on_step: Callable | None = None, log=print) -> list[dict]:
+def run_robot(source: FrameSource, pusher: Pusher, goal_mask, dynamics, cfg: MPCConfig,
+              chooser: int | Callable[[Goal], Chooser], key, *, workspace: Workspace,
+              bin_size: tuple[float, float] | None = None, success: float = STOP_SHARE,
+              timing: TimingTable | None = None, on_step: Callable | None = None, log=print) -> list[dict]:
     """The loop: read a frame, stop if ``success`` of its foreground is inside the goal (or after cfg.mpc_steps
-    pushes), else plan at ω, check the push against ``workspace`` and send it. bin_size: (bin_half_width,
-    wall_height) m to refine the camera's pose from the first frame (``perception.calibrate``), None to trust it.
+    pushes), else plan as the chooser orders, check the push against ``workspace`` and send it. chooser: ω (an int,
+    ``FixedOmega``) or a function of the goal (a Goal batched [1]) returning any chooser that keeps by the model
+    (``AdaptiveOmega``, ``ProbeOmega``); one whose orders need the simulator (the oracle, best of K) is refused at
+    the first frame, before any push. bin_size: (bin_half_width, wall_height) m to refine the camera's pose from the
+    first frame (``perception.calibrate``), None to trust it. timing: the table cfg.time_budget is spent by.
     on_step(t, obs, particles [n, 3] or None, record): per frame (GIF, saving). Returns one record per frame: step,
     distance (d on the frame, px), inside (share of foreground on the goal), and for a frame that was acted on:
-    action [4] m, predicted_objective, planning_s."""
+    omega, action [4] m, predicted_objective, planning_s."""
     camera = source.camera
     obs = source.read()
     if bin_size is not None:
@@ -179,7 +185,7 @@ def run_robot(source: FrameSource, pusher: Pusher, goal_mask, dynamics, cfg: MPC
         moved = 1000 * np.linalg.norm(np.asarray(camera.centre) - np.asarray(source.camera.centre))
         log(f"camera pose refined from the first frame: moved {moved:.1f} mm")
     goal = make_goal(np.asarray(goal_mask, bool), camera)
-    spec = cfg.spec(bucket_for(omega, cfg.buckets))
+    chooser = FixedOmega(batch(goal), int(chooser)) if isinstance(chooser, int | np.integer) else chooser(batch(goal))
     init, warm, records = jnp.zeros((1, cfg.planner.horizon, 4), jnp.float32), False, []
     for t in range(cfg.mpc_steps + 1):
         distance, inside = seen_scores(obs, goal, camera, cfg.real_depth)
@@ -191,20 +197,28 @@ def run_robot(source: FrameSource, pusher: Pusher, goal_mask, dynamics, cfg: MPC
             log(f"frame {t}: d={record['distance']:.2f}  inside={record['inside']:.0%}: "
                 f"{'at the goal' if record['inside'] >= success else 'out of steps'}, stopping")
             return records
-        announce(cfg, [omega], log)
+        orders = chooser(t, batch(obs))
+        if orders.keep != "rate" and (len(orders.candidates) > 1 or orders.candidates[0].proposals != "plan"):
+            raise InputError(f"{type(chooser).__name__} keeps a push by pushing copies of the world; a robot has one "
+                             "world: give a chooser that keeps by the model (fixed ω, AdaptiveOmega, ProbeOmega)")
+        for candidate in orders.candidates:
+            announce(cfg, candidate.omega, log)
         t0 = time.perf_counter()
-        particles, _, result = decide_batch(batch(obs), batch(goal), batch(jax.random.fold_in(key, t)), init, warm,
-                                            [omega], [cfg.planner.adam_steps], spec=spec, dynamics=dynamics,
-                                            camera=camera)
-        action = workspace.check(np.asarray(result.best[0, 0]))
-        record.update(action=action.tolist(), predicted_objective=float(result.best_cost[0]),
-                      planning_s=time.perf_counter() - t0)
+        now = Situation(None, batch(obs), camera, orders.goals, orders.kinds, batch(jax.random.fold_in(key, t)),
+                        init, warm)
+        plan = best_rate([propose(now, c, cfg=cfg, timing=timing, dynamics=dynamics) for c in orders.candidates],
+                         timing)
+        best = jnp.asarray(plan["proposals"][:, 0])
+        action = workspace.check(np.asarray(best[0, 0]))
+        record.update(omega=int(plan["omega"][0]), action=action.tolist(),
+                      predicted_objective=float(plan["predicted_objective"][0]), planning_s=time.perf_counter() - t0)
         if on_step:
+            particles = plan["particles"]
             on_step(t, obs, np.asarray(particles.positions[0])[np.asarray(particles.mask[0])], record)
-        log(f"frame {t}: d={record['distance']:.2f}  inside={record['inside']:.0%}  push "
+        log(f"frame {t}: d={record['distance']:.2f}  inside={record['inside']:.0%}  ω={record['omega']}  push "
             f"{np.round(action.astype(np.float64), 3).tolist()}  plan {record['planning_s']:.2f}s")
         pusher.push(action)
         records.append(record)
-        init, warm = shift(result.best), True
+        init, warm = shift(best), True
         obs = source.read()
     return records
