@@ -3,6 +3,7 @@
 import dataclasses
 import os
 import re
+import shutil
 
 import jax
 import jax.numpy as jnp
@@ -49,9 +50,13 @@ def test_restoring_is_quiet(saved, capsys, caplog):
     assert "read only" not in capsys.readouterr().err
 
 
-def test_missing_checkpoint_is_a_clear_error(tmp_path):
+def test_missing_checkpoint_is_a_clear_error(saved, tmp_path):
     with pytest.raises(FileNotFoundError, match="no checkpoint"):
         ckpt.load_module(tmp_path / "nowhere", build)
+    shutil.copytree(saved[1], tmp_path / "run" / "ckpt")  # a training run's --out: the checkpoint one folder down
+    says = r"no checkpoint in .*run' .*; a training run's --out keeps it in ckpt/: give .*run/ckpt'"
+    with pytest.raises(FileNotFoundError, match=says):
+        ckpt.load_module(tmp_path / "run", build)
 
 
 def test_checkpoint_of_another_model_is_a_clear_error(saved, tmp_path):

@@ -103,3 +103,27 @@ def test_a_missing_reading_round_trips_as_missing(saved, tmp_path):
     back, _ = frames.load_frame(paths["depth.png"], paths["rgb.png"], paths["camera.json"])
     assert np.all(np.asarray(back.depth)[:5, :5] == NO_READING)
     np.testing.assert_allclose(np.asarray(back.depth)[5:], depth[5:], atol=6e-4)
+
+
+def test_implausible_frames_are_refused_before_planning(saved, tmp_path):
+    """A frame must show a table where its camera says the table is: a depth scaled by 2, uniform noise around the
+    table's depth, or a camera file whose pose sits 1 mm above the table are each refused naming the files; the true
+    frame and a frame 1 cm off (a calibration error) are read."""
+    env, _, paths = saved
+    depth = cv2.imread(paths["depth.png"], cv2.IMREAD_UNCHANGED)
+    camera = json.load(open(paths["camera.json"]))
+
+    def load(depth_mm=depth, **camera_changes):
+        cv2.imwrite(str(tmp_path / "d.png"), np.asarray(depth_mm, np.uint16))
+        json.dump(dict(camera, **camera_changes), open(tmp_path / "c.json", "w"))
+        return frames.load_frame(str(tmp_path / "d.png"), paths["rgb.png"], str(tmp_path / "c.json"))
+
+    load()
+    load(depth + 10)  # 1 cm further: a calibration error, not a wrong frame
+    table = np.median(depth[depth > 0])
+    noise = np.random.default_rng(0).uniform(table - 300, table + 300, depth.shape)  # around the table, not on it
+    low = dict(centre=[*camera["centre"][:2], 0.001])
+    for depth_mm, changes, says in ((depth * 2, {}, "median point lies"), (noise, {}, "of the readings lie within"),
+                                    (depth, low, "median point lies")):
+        with pytest.raises(frames.FrameError, match=says):
+            load(depth_mm, **changes)

@@ -143,6 +143,8 @@ def _step_or_latest(directory, step: int | None) -> int:
         unsealed = [n for n in os.listdir(directory) if n.isdigit()] if os.path.isdir(directory) else []
         hint = (f"; step {max(unsealed, key=int)} has no {MANIFEST}: its save was killed, or it predates manifests "
                 "(if you trust it: dynres_jax.io.ckpt.seal(DIR, STEP))" if unsealed else "")
+        if not unsealed and latest_step(os.path.join(directory, "ckpt")) is not None:
+            hint = f"; a training run's --out keeps it in ckpt/: give {os.path.join(str(directory), 'ckpt')!r}"
         raise MissingCheckpoint(f"no checkpoint in {str(directory)!r} (missing, empty, or only unfinished saves){hint}")
     step = found if step is None else step
     verify(directory, step)

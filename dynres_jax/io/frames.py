@@ -15,6 +15,8 @@ from dynres_jax.sim.camera import Camera, Observation
 from dynres_jax.sim.sensor import NO_READING
 
 MIN_DEPTH, MAX_DEPTH = 0.1, 5.0  # m: a depth camera's median reading over a table top
+TABLE_OFFSET = 0.03  # m: the frame's median point may lie this far from the table plane (z = 0) the camera implies
+TABLE_BAND, TABLE_SHARE = 0.02, 0.25  # that share of the readings lies within this band of the median: a table
 
 
 def save_frame(folder: str, obs: Observation, camera: Camera) -> dict[str, str]:
@@ -82,8 +84,28 @@ def load_frame(depth_path: str, rgb_path: str, camera_path: str) -> tuple[Observ
         raise FrameError(f"depth file {depth_path!r}: its median reading is {median:g} m; a table-top camera sees "
                          f"[{MIN_DEPTH}, {MAX_DEPTH}] m (depth must be saved in millimetres)")
     metres = np.where(depth > 0, depth.astype(np.float32) / 1000, NO_READING).astype(np.float32)
+    check_table(metres, camera, f"depth file {depth_path!r} with camera {camera_path!r}")
     unknown = np.full(depth.shape, -1, np.int32)
     return Observation(metres, unknown, unknown, rgb), camera
+
+
+def check_table(depth, camera: Camera, what: str) -> None:
+    """FrameError naming ``what`` unless the frame shows a table where the camera says it is: its readings as world
+    points (through the camera's intrinsics and pose) have a median height within TABLE_OFFSET of z = 0, and
+    TABLE_SHARE of them lie within TABLE_BAND of that median (a flat table, not noise). Catches a depth scaled by
+    mistake, a camera file of another camera or pose, and frames of no table."""
+    seen = np.asarray(depth) < NO_READING
+    uv = camera.pixel_centres()[seen]
+    z = np.asarray(camera.pixel_to_world(uv, np.asarray(depth)[seen]))[:, 2].astype(np.float64)
+    median = float(np.median(z)) if z.size else np.nan
+    if not np.isfinite(median) or abs(median) > TABLE_OFFSET:
+        raise FrameError(f"{what}: the frame's median point lies {median:+.3f} m from the table plane the camera "
+                         f"implies (at most {TABLE_OFFSET} m): the depth is scaled, or the camera's intrinsics or pose "
+                         "are another camera's")
+    flat = float(np.mean(np.abs(z - median) < TABLE_BAND))
+    if flat < TABLE_SHARE:
+        raise FrameError(f"{what}: only {flat:.0%} of the readings lie within {TABLE_BAND} m of the table's height "
+                         f"(a table top gives at least {TABLE_SHARE:.0%}): the depth is noise, or not of a table top")
 
 
 def save_goal(path: str, mask) -> str:

@@ -1,0 +1,58 @@
+#!/usr/bin/env bash
+# Issue 51 item 3's next step, where Fig. 5 in the authors' setting showed an ω effect (1 s, Gather;
+# docs/reference_planner): BO labels made in that setting, the regressor g trained on them, and adaptive ω against
+# the fixed ω, the oracle and best-of-5 on fresh seeds, on every GPU of one host:
+#   OUT=/root/refadapt bash scripts/gpu_reference_adaptive.sh
+# Stages (STAGES, each skipped when done, each resumable): labels (a jax.distributed job of PER_GPU processes a GPU,
+# time-boxed by LABEL_SECONDS), regressor (one process on every GPU), evaluate (scripts/gpu_fig5_reference.sh with
+# METHODS and the new regressor). $OUT/results.tar.gz (no labels) after every stage.
+# Env: OUT, BUDGET (1), PER_GPU (2), LABEL_SECONDS (600), LABEL_FLAGS ("--scenes 1024 --batch 32 --repeats 2
+# --samples 50 --adam-steps 200"),
+# LABEL_SEED (61000), REGRESSOR_FLAGS (""), EPISODES (256), SEED (52000: fresh), TASKS ("gather redistribute"),
+# METHODS ("adaptive oracle best5 25 50"), PLANNER ("--resamples 1"), STAGES ("labels regressor evaluate").
+# A CPU dry run: GPUS=1 PER_GPU=1 LABEL_FLAGS="--quick" REGRESSOR_FLAGS="--steps 5 --batch 4 --width 4"
+# EPISODES=2 TASKS=gather METHODS="adaptive 25" EVAL_FLAGS="--quick --mpc-steps 1".
+set -uo pipefail
+OUT=${OUT:-/root/refadapt}; BUDGET=${BUDGET:-1}; PER_GPU=${PER_GPU:-2}; LABEL_SECONDS=${LABEL_SECONDS:-600}
+LABEL_FLAGS=${LABEL_FLAGS:-"--scenes 1024 --batch 32 --repeats 2 --samples 50 --adam-steps 200"}; LABEL_SEED=${LABEL_SEED:-61000}
+STAGES=${STAGES:-"labels regressor evaluate"}; PLANNER=${PLANNER:-"--resamples 1"}
+gpus=${GPUS:-$(nvidia-smi -L 2>/dev/null | grep -c "^GPU" || true)}
+n=$((gpus * PER_GPU)); workers=$(( $(nproc) / n )); [ "$workers" -ge 1 ] || workers=1
+fraction=$(python -c "print(round(0.9 / $PER_GPU, 2))")
+export JAX_COMPILATION_CACHE_DIR=${JAX_COMPILATION_CACHE_DIR:-/tmp/jax_cache}
+mkdir -p "$OUT/logs"
+stage() { [[ " $STAGES " == *" $1 "* ]]; }
+pack() { tar -czf "$OUT/results.tmp" -C "$OUT" --exclude results.tar.gz --exclude results.tmp --exclude labels \
+           --exclude parts . 2>/dev/null; mv "$OUT/results.tmp" "$OUT/results.tar.gz"; }
+if stage labels && [ ! -f "$OUT/labels/summary.json" ]; then
+  echo "$(date +%T) labels: $n processes on $gpus GPUs, at most $LABEL_SECONDS s"
+  port=$((20000 + RANDOM % 20000)); pids=()
+  for ((i = 0; i < n; i++)); do
+    # shellcheck disable=SC2086
+    CUDA_VISIBLE_DEVICES=$((i % gpus)) XLA_PYTHON_CLIENT_MEM_FRACTION=$fraction timeout "$LABEL_SECONDS" \
+      python -m experiments.label_resolution --out "$OUT/labels" --reference-planner $PLANNER \
+      --time-budget "$BUDGET" --seed "$LABEL_SEED" --workers "$workers" $LABEL_FLAGS \
+      --coordinator "localhost:$port" --num-processes "$n" --process-id "$i" > "$OUT/logs/labels.$i" 2>&1 &
+    pids+=($!)
+  done
+  for p in "${pids[@]}"; do wait "$p"; done
+  shards=$(ls "$OUT"/labels/shard_*.npz 2>/dev/null | wc -l)
+  echo "$(date +%T) labels: $shards shards"; pack
+  [ "$shards" -gt 0 ] || { echo "no label shard: see $OUT/logs/labels.0"; exit 1; }
+fi
+if stage regressor && [ ! -f "$OUT/regressor/done" ]; then
+  # shellcheck disable=SC2086
+  python -m experiments.train_regressor --labels "$OUT/labels" --out "$OUT/regressor" ${REGRESSOR_FLAGS:-} \
+    > "$OUT/logs/regressor" 2>&1 && touch "$OUT/regressor/done"
+  echo "$(date +%T) regressor: $(tail -1 "$OUT/logs/regressor")"; pack
+  [ -f "$OUT/regressor/done" ] || { echo "the regressor failed: see $OUT/logs/regressor"; exit 1; }
+fi
+if stage evaluate; then
+  regressor=$OUT/regressor/ckpt
+  OUT="$OUT/eval" BUDGETS="$BUDGET" EPISODES="${EPISODES:-256}" SEED="${SEED:-52000}" \
+    TASKS="${TASKS:-gather redistribute}" METHODS="${METHODS:-adaptive oracle best5 25 50}" \
+    FLAGS="$PLANNER --regressor $regressor ${EVAL_FLAGS:-}" GPUS=$gpus PER_GPU=$PER_GPU \
+    bash "$(dirname "$0")/gpu_fig5_reference.sh"
+  pack
+fi
+echo "$(date +%T) done"; touch "$OUT/done"
