@@ -1,4 +1,5 @@
-"""The dynamics f(z, u, ω) of the paper: one PropNet-style graph network for every resolution ω.
+"""The dynamics f(z, u, ω) of the paper: one PropNet-style graph network for every resolution ω, as encode (steps
+1-3 below), process (4) and decode (5): ``Dynamics.encode``, ``process``, ``decode``.
 
 A state z is a padded particle set: positions [N, 3] (metres, world frame) with a mask [N]; an action u is a push
 (x_start, y_start, x_end, y_end) in metres. One call predicts the positions after the push:
@@ -25,10 +26,7 @@ once per plan, "Pair table" below). ``residual``: the network predicts a correct
 predictor's last layer starts at zero, so an untrained model is exactly the sweep heuristic. ``bin_position``: the
 node input also holds where the particle is in the bin, before and after the sweep's guess (x, y of each over
 ``bin_half_width``: 4 more inputs), so the model can learn where the walls stop a pile; the push frame alone does not
-say where the walls are. Options studied and
-dropped (the particle's height, a pooled global context, edges reaching with the FPS radius, a push stepped in
-sub-pushes: none moved the error by more than a few per cent, ``docs/results.md``) are in the history before
-2026-11-24.
+say where the walls are. Options studied and dropped: ``docs/results.md``.
 
 Processor ``"gns"`` (``DynamicsConfig.processor``; default ``"propnet"``, steps 3-4 above): the encode-process-decode
 network of GNS (Sanchez-Gonzalez et al. 2020) on the same graph and inputs. Encoders: node input -> MLP -> LayerNorm;
@@ -93,7 +91,7 @@ from flax import nnx
 
 from dynres_jax.config import SceneConfig, check_fields
 from dynres_jax.models.graph import K_NEIGHBOURS, R_EDGE, build_edges, push_geometry, sweep_displacement
-from dynres_jax.models.propagation import incoming_effects
+from dynres_jax.models.propagation import GNSStep, incoming_effects, mlp
 
 LENGTH_SCALE = 0.05  # m: displacements and relative positions are divided by this inside the model
 R_REF = 0.02  # m: covering radius whose resolution code is 0
@@ -183,38 +181,6 @@ def _cast(module: nnx.Module, dtype) -> nnx.Module:
     return nnx.merge(graphdef, jax.tree.map(lambda x: x.astype(dtype), state))
 
 
-def _mlp(sizes, rngs, *, final_relu):
-    """Linear layers of the given sizes with ReLU between them (and after the last when final_relu)."""
-    layers = []
-    for i, (n_in, n_out) in enumerate(zip(sizes[:-1], sizes[1:], strict=True)):
-        layers.append(nnx.Linear(n_in, n_out, rngs=rngs))
-        if final_relu or i < len(sizes) - 2:
-            layers.append(nnx.relu)
-    return nnx.Sequential(*layers)
-
-
-class _GNSStep(nnx.Module):
-    """One GNS message-passing step with weights of its own (module docstring, "Processor")."""
-
-    def __init__(self, h: int, rngs: nnx.Rngs):
-        self.edge_in = nnx.Linear(3 * h, h, rngs=rngs)  # [edge, receiver, sender]: split when applied
-        self.edge_out = nnx.Linear(h, h, rngs=rngs)
-        self.edge_norm = nnx.LayerNorm(h, rngs=rngs)
-        self.node_mlp = _mlp((2 * h, h, h), rngs, final_relu=False)  # [node, summed messages]
-        self.node_norm = nnx.LayerNorm(h, rngs=rngs)
-
-    def __call__(self, nodes, edges, neighbours, valid):
-        """nodes [N, H], edges [N, k, H], neighbours [N, k], valid [N, k, 1] -> (nodes, edges) after the step."""
-        h = nodes.shape[-1]
-        w = self.edge_in.kernel[...]
-        terms = nodes @ jnp.concatenate([w[h:2 * h], w[2 * h:]], axis=1)  # [N, 2H]: receiver | sender
-        hidden = edges @ w[:h] + terms[:, None, :h] + terms[neighbours, h:] + self.edge_in.bias[...]
-        message = jnp.where(valid, self.edge_norm(self.edge_out(nnx.relu(hidden))), 0.0)
-        summed = jnp.sum(message, axis=1)
-        nodes = nodes + self.node_norm(self.node_mlp(jnp.concatenate([nodes, summed], -1)))
-        return nodes, edges + message
-
-
 class Dynamics(nnx.Module):
     """f(z, u, ω) as a flax NNX module; see the module docstring for the architecture."""
 
@@ -222,18 +188,18 @@ class Dynamics(nnx.Module):
         h = config.hidden
         self.config = config
         if config.processor == "gns":
-            self.node_encoder = nnx.Sequential(_mlp((config.node_inputs, h, h), rngs, final_relu=False),
+            self.node_encoder = nnx.Sequential(mlp((config.node_inputs, h, h), rngs, final_relu=False),
                                                nnx.LayerNorm(h, rngs=rngs))
-            self.edge_encoder = nnx.Sequential(_mlp((GNS_EDGE_IN, h, h), rngs, final_relu=False),
+            self.edge_encoder = nnx.Sequential(mlp((GNS_EDGE_IN, h, h), rngs, final_relu=False),
                                                nnx.LayerNorm(h, rngs=rngs))
-            # one _GNSStep per message-passing step; a Sequential only holds them (``_gns`` calls each by hand)
-            self.steps = nnx.Sequential(*(_GNSStep(h, rngs) for _ in range(config.propagation_steps)))
+            # one GNSStep per message-passing step; a Sequential only holds them (``_gns`` calls each by hand)
+            self.steps = nnx.Sequential(*(GNSStep(h, rngs) for _ in range(config.propagation_steps)))
         else:
-            self.node_encoder = _mlp((config.node_inputs, h, h), rngs, final_relu=True)
-            self.edge_encoder = _mlp((EDGE_IN, h, h, h), rngs, final_relu=True)
+            self.node_encoder = mlp((config.node_inputs, h, h), rngs, final_relu=True)
+            self.edge_encoder = mlp((EDGE_IN, h, h, h), rngs, final_relu=True)
             self.edge_propagator = nnx.Linear(3 * h + 1, h, rngs=rngs)  # [edge code, receiver, sender, code]
             self.node_propagator = nnx.Linear(2 * h + 1, h, rngs=rngs)  # [node code, summed edge effects, code]
-        self.predictor = _mlp((h, h, 3), rngs, final_relu=False)
+        self.predictor = mlp((h, h, 3), rngs, final_relu=False)
         if config.residual:  # the correction starts at zero: an untrained model is the sweep heuristic
             last = self.predictor.layers[-1]
             last.kernel[...] = jnp.zeros_like(last.kernel[...])
@@ -247,17 +213,21 @@ class Dynamics(nnx.Module):
         table, already built by ``edge_table`` for these positions, mask, code and edge_dtype (implies pair_table)."""
         if pair_table or table is not None:
             self._check_pair_table()
-        positions = jnp.asarray(positions, jnp.float32)
-        mask = jnp.asarray(mask, bool)
-        code = jnp.asarray(code, jnp.float32)
-        action = jnp.asarray(action, jnp.float32)
-        dt = jnp.dtype(edge_dtype)
-        cfg, n = self.config, positions.shape[0]
+        positions, mask = jnp.asarray(positions, jnp.float32), jnp.asarray(mask, bool)
+        code, action = jnp.asarray(code, jnp.float32), jnp.asarray(action, jnp.float32)
         clean = jnp.where(mask[:, None], positions, 0.0)
+        node_code, guess, frame, graph = self.encode(clean, mask, action, code, table is None and not pair_table)
+        effect = self.process(node_code, graph, clean, mask, code, table, pair_table, jnp.dtype(edge_dtype))
+        return self.decode(effect, guess, frame, positions, mask)
+
+    def encode(self, clean, mask, action, code, relative: bool = True):
+        """Steps 1-3 on masked positions clean [N, 3] m (zeros where masked): (node codes [N, H], the sweep's guess
+        [N, 3] m, the push frame [3, 3] or None, the graph: neighbours [N, k], edge mask [N, k] and p_r - p_s
+        [N, k, 3] in length units, in the push frame where the config says; None unless ``relative``)."""
+        cfg, n = self.config, clean.shape[0]
         guess = sweep_displacement(clean, mask, action, cfg.plate_half_width)
         neighbours, edge_mask = build_edges(clean + guess, mask, cfg.edge_radius, cfg.k)
-
-        attr = mask.astype(jnp.float32)[:, None]  # [N, 1]: 1 for a particle
+        attr, frame = mask.astype(jnp.float32)[:, None], None  # attr [N, 1]: 1 for a particle
         if cfg.push_frame:
             frame, start, length = _push_frame(action)  # frame [3, 3]: rows along, side, up
             local = (clean - jnp.concatenate([start, jnp.zeros(1)])) @ frame.T / cfg.length_scale  # [N, 3]
@@ -270,16 +240,24 @@ class Dynamics(nnx.Module):
         if cfg.bin_position:
             node_in += [xy[:, :2] / cfg.bin_half_width for xy in (clean, clean + guess)]  # 0 where masked, as both are
         node_code = self.node_encoder(jnp.concatenate(node_in + [attr, jnp.broadcast_to(code, (n, 1))], axis=-1))
-        rel = None if table is not None or pair_table else (clean[:, None, :] - clean[neighbours]) / cfg.length_scale
+        rel = (clean[:, None, :] - clean[neighbours]) / cfg.length_scale if relative else None
         if rel is not None and cfg.edges_in_push_frame:
             rel = rel @ frame.T
-        if cfg.processor == "gns":
+        return node_code, guess, frame, (neighbours, edge_mask, rel)
+
+    def process(self, node_code, graph, clean, mask, code, table, pair_table: bool, dt):
+        """Step 4: the node codes [N, H] after message passing on ``encode``'s graph, by the config's processor."""
+        neighbours, edge_mask, rel = graph
+        if self.config.processor == "gns":
             if dt != jnp.float32:
                 raise ValueError("the gns processor computes in float32 only (edge_dtype)")
-            effect = self._gns(node_code, rel, code, neighbours, edge_mask)
-        else:
-            effect = self._propnet(node_code, rel, attr, code, neighbours, edge_mask, clean, table, pair_table, dt)
+            return self._gns(node_code, rel, code, neighbours, edge_mask)
+        attr = mask.astype(jnp.float32)[:, None]
+        return self._propnet(node_code, rel, attr, code, neighbours, edge_mask, clean, table, pair_table, dt)
 
+    def decode(self, effect, guess, frame, positions, mask):
+        """Step 5: node effects [N, H] -> positions after the push [N, 3] m, masked rows unchanged."""
+        cfg = self.config
         displacement = self.predictor(effect) * cfg.length_scale
         if cfg.push_frame:
             displacement = displacement @ frame  # push frame -> world frame

@@ -1,6 +1,7 @@
 """PropNet's propagation step over a particle graph, with a hand-written gradient (``dynamics.Dynamics``, steps 3-4
 of its module docstring): the summed edge effects Σ_j ReLU(c_ij + r_i + s_j) of every receiver i, where c_ij is the
-edge's constant term (per edge, or a row of the pair table) and r_i, s_j the receiver and sender terms of the nodes."""
+edge's constant term (per edge, or a row of the pair table) and r_i, s_j the receiver and sender terms of the nodes;
+and GNS's message-passing step (``GNSStep``) with the MLPs both build (``mlp``)."""
 
 from __future__ import annotations
 
@@ -8,6 +9,7 @@ import functools
 
 import jax
 import jax.numpy as jnp
+from flax import nnx
 
 
 def _edge_input(pair, constant, neighbours, node_terms):
@@ -62,3 +64,35 @@ def _incoming_bwd(pair, residuals, grad):
 
 
 incoming_effects.defvjp(_incoming_fwd, _incoming_bwd)
+
+
+def mlp(sizes, rngs, *, final_relu):
+    """Linear layers of the given sizes with ReLU between them (and after the last when final_relu)."""
+    layers = []
+    for i, (n_in, n_out) in enumerate(zip(sizes[:-1], sizes[1:], strict=True)):
+        layers.append(nnx.Linear(n_in, n_out, rngs=rngs))
+        if final_relu or i < len(sizes) - 2:
+            layers.append(nnx.relu)
+    return nnx.Sequential(*layers)
+
+
+class GNSStep(nnx.Module):
+    """One GNS message-passing step with weights of its own (``dynamics`` module docstring, "Processor")."""
+
+    def __init__(self, h: int, rngs: nnx.Rngs):
+        self.edge_in = nnx.Linear(3 * h, h, rngs=rngs)  # [edge, receiver, sender]: split when applied
+        self.edge_out = nnx.Linear(h, h, rngs=rngs)
+        self.edge_norm = nnx.LayerNorm(h, rngs=rngs)
+        self.node_mlp = mlp((2 * h, h, h), rngs, final_relu=False)  # [node, summed messages]
+        self.node_norm = nnx.LayerNorm(h, rngs=rngs)
+
+    def __call__(self, nodes, edges, neighbours, valid):
+        """nodes [N, H], edges [N, k, H], neighbours [N, k], valid [N, k, 1] -> (nodes, edges) after the step."""
+        h = nodes.shape[-1]
+        w = self.edge_in.kernel[...]
+        terms = nodes @ jnp.concatenate([w[h:2 * h], w[2 * h:]], axis=1)  # [N, 2H]: receiver | sender
+        hidden = edges @ w[:h] + terms[:, None, :h] + terms[neighbours, h:] + self.edge_in.bias[...]
+        message = jnp.where(valid, self.edge_norm(self.edge_out(nnx.relu(hidden))), 0.0)
+        summed = jnp.sum(message, axis=1)
+        nodes = nodes + self.node_norm(self.node_mlp(jnp.concatenate([nodes, summed], -1)))
+        return nodes, edges + message
