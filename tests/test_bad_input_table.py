@@ -183,7 +183,6 @@ P = [  # plan: one frame of a real camera
     (["--goal", "/nonexistent"], "goal file"), (["--goal", "{empty_goal}"], "goal file"),
     (["--goal", "{small_goal}"], "goal file"), (["--goal", "{corner_goal}"], "--goal"), (["--goal", "{text}"], "goal file"),
     (["--resolution", "0"], "--resolution"), (["--resolution", "101"], "--resolution"), (["--resolution", "x"], "--resolution"),
-    (["--workspace", "0"], "--workspace"), (["--workspace", "-1"], "--workspace"), (["--workspace", "nan"], "--workspace"),
     (["--bound", "0"], "--bound"), (["--bound", "nan"], "--bound"), (["--plate-half-width", "0"], "--plate-half-width"),
     (["--plate-half-width", "1"], "--plate-half-width"), (["--samples", "0"], "--samples"),
     (["--plate-half-width", "0.05"], "--plate-half-width is the sweep heuristic's"), (["--ckpt", ""], "--ckpt"),

@@ -13,15 +13,17 @@ from flax import nnx
 
 from dynres_jax import export as ex
 from dynres_jax.commands import export as export_cli
-from dynres_jax.config import CameraConfig
+from dynres_jax.commands import plan as plan_cli
+from dynres_jax.config import CameraConfig, SceneConfig
 from dynres_jax.control.decision import DecisionSpec
 from dynres_jax.control.goals import disc_goal, make_goal
 from dynres_jax.control.planner import PlannerConfig
-from dynres_jax.io import ckpt
+from dynres_jax.io import ckpt, frames
 from dynres_jax.models.dynamics import Dynamics, DynamicsConfig
 from dynres_jax.models.registry import load_dynamics
 from dynres_jax.perception import BAD_OMEGA, NAN_DEPTH
 from dynres_jax.sim.camera import Camera, Observation
+from dynres_jax.sim.pushes import wall_reach
 from dynres_jax.sim.sensor import NO_READING
 from studies import export_check
 
@@ -193,3 +195,23 @@ def test_cli_refuses_before_work(tiny_ckpt, tmp_path, capsys):
     with pytest.raises(SystemExit) as exit_info:
         export_cli.main(["--help"])
     assert exit_info.value.code == 0 and "pip install jax flatbuffers" in capsys.readouterr().out
+
+
+def test_plan_gives_the_exported_files_push(tiny_ckpt, tmp_path, capsys):
+    """``dynres plan`` on a saved frame and the exported decision on the same frame, goal, key, ω and Adam steps: the
+    same push (both decide through ``decision.perceive_and_decide``; the planner's defaults the export's)."""
+    paths = frames.save_frame(str(tmp_path), frame(3), CAMERA)
+    mask = disc_goal(CAMERA, np.array([0.03, -0.02]), 0.06)
+    goal = frames.save_goal(str(tmp_path / "goal.png"), mask)
+    shown = plan_cli.main(["--depth", paths["depth.png"], "--rgb", paths["rgb.png"], "--camera", paths["camera.json"],
+                           "--goal", goal, "--ckpt", tiny_ckpt, "--dynamics", "learned", "--resolution", "12",
+                           "--samples", "4", "--adam-steps", "3", "--seed", "5", "--out", str(tmp_path / "push.png")])
+    capsys.readouterr()
+    spec = DecisionSpec(16, PlannerConfig(samples=4, adam_steps=3, reach=wall_reach(SceneConfig.bin_half_width,
+                                                                                    SceneConfig.plate_thickness)),
+                        real_depth=True)
+    exported, _ = ex.export_checkpoint(tiny_ckpt, spec, CAMERA, platforms=("cpu",))
+    obs, _ = frames.load_frame(paths["depth.png"], paths["rgb.png"], paths["camera.json"])
+    filed = ex.call(exported, obs.depth, frames.load_goal(goal, CAMERA), jax.random.PRNGKey(5), 12, 3)
+    assert int(filed["error"]) == 0
+    np.testing.assert_array_equal(np.asarray(filed["push"], np.float64), shown["push"])

@@ -21,13 +21,13 @@ from dynres_jax.commands import checks
 from dynres_jax.commands.task import load_model
 from dynres_jax.config import SceneConfig
 from dynres_jax.control.budget import bucket_for
-from dynres_jax.control.decision import goal_cost
+from dynres_jax.control.decision import DecisionSpec, batch, decide_batch, episode
 from dynres_jax.control.goals import check_within, make_goal
-from dynres_jax.control.planner import PlannerConfig, plan
+from dynres_jax.control.planner import PlannerConfig
 from dynres_jax.io import files, frames
 from dynres_jax.io.draw import overlay
 from dynres_jax.models.registry import SHIPPED_DYNAMICS, SWEEP_NAME
-from dynres_jax.perception import WORKSPACE_HALF_WIDTH, calibrate, sample_particles
+from dynres_jax.perception import WORKSPACE_HALF_WIDTH, calibrate
 from dynres_jax.sim.pushes import wall_reach
 from dynres_jax.sim.sensor import SENSORS
 
@@ -40,10 +40,8 @@ def main(argv=None):
     parser.add_argument("--camera", required=True)
     parser.add_argument("--goal", required=True)
     parser.add_argument("--resolution", type=checks.omega, default=50, help="ω")
-    parser.add_argument("--workspace", type=checks.number(0.0, 2.0, above=True), default=WORKSPACE_HALF_WIDTH,
-                        help="half-width (m) of the square where pieces can be; outside it nothing is foreground")
-    parser.add_argument("--bound", type=checks.number(0.0, 2.0, above=True), default=0.18,
-                        help="pushes stay within ±bound m")
+    parser.add_argument("--bound", type=checks.number(0.0, 2.0, above=True), default=PlannerConfig.bound,
+                        help="pushes stay within ±bound m (default: the coffee bin's, as the export's)")
     parser.add_argument("--plate-half-width", type=checks.number(0.005, 0.5), default=None,
                         help=f"m: the sweep heuristic's plate (default {SceneConfig.plate_half_width}; a learned "
                              "model has its own)")
@@ -73,7 +71,7 @@ def main(argv=None):
     obs, camera = frames.load_frame(args.depth, args.rgb, args.camera)
     goal_mask = frames.load_goal(args.goal, camera)
     try:
-        check_within(goal_mask, camera, args.workspace)
+        check_within(goal_mask, camera, WORKSPACE_HALF_WIDTH)
         goal = make_goal(goal_mask, camera)
     except ValueError as e:
         parser.error(f"--goal {args.goal}: {e}")
@@ -93,10 +91,6 @@ def main(argv=None):
         parser.error("--plate-half-width is the sweep heuristic's (--dynamics sweep); a learned model has its own")
     if args.resolution > n_max:
         parser.error(f"--resolution {args.resolution} exceeds the model's n_max = {n_max}")
-    key_h, key_plan = jax.random.split(jax.random.PRNGKey(args.seed))
-    bucket = bucket_for(args.resolution)
-    particles = sample_particles(obs, camera, args.resolution, key_h, bucket, workspace=args.workspace,
-                                 real_depth=args.real_depth)
     reach = wall_reach(args.bin_half_width, SceneConfig().plate_thickness) if args.wall_pushes else None
     try:
         config = PlannerConfig(samples=args.samples, adam_steps=args.adam_steps, bound=args.bound, seed=args.seed,
@@ -105,8 +99,16 @@ def main(argv=None):
         parser.error(f"--bound {args.bound} with pushes from outside the walls (--no-wall-pushes to plan without): {e}")
     print(f"planning at ω = {args.resolution}, {args.samples} samples x {args.adam_steps} Adam steps (compiling the "
           "planner first: tens of seconds on a CPU)", file=sys.stderr, flush=True)  # stdout stays the JSON alone
-    result = plan(dynamics(particles.radius), goal_cost(goal, camera, bucket), particles.positions, particles.mask,
-                  key_plan, config)
+    # the decision the closed loop and the exported file make (decision.perceive_and_decide): the same push for the
+    # same frame, goal and key
+    spec = DecisionSpec(bucket_for(args.resolution), config, real_depth=args.real_depth)
+    try:
+        particles, _, result = decide_batch(batch(obs), batch(goal), batch(jax.random.PRNGKey(args.seed)),
+                                            np.zeros((1, config.horizon, 4), np.float32), False, [args.resolution],
+                                            [args.adam_steps], spec=spec, dynamics=dynamics, camera=camera)
+    except ValueError as e:
+        parser.error(f"--depth {args.depth}: {e}")
+    particles, result = episode(particles), episode(result)
     action = np.asarray(result.best[0], np.float64)
     image = overlay(np.asarray(obs.rgb), goal_mask, np.asarray(particles.positions)[np.asarray(particles.mask)],
                     camera, push=action)
