@@ -214,8 +214,8 @@ def check_cnn(parser, args) -> None:
         parser.error(f"--cnn-ckpt: {e}")
 
 
-@checks.guarded("evaluate")
-def main(argv=None):
+def build_parser():
+    """``evaluate``'s flags."""
     parser = checks.parser("evaluate", __doc__)
     parser.add_argument("--task", default="gather", choices=sorted(tasks.TASKS))
     parser.add_argument("--episodes", type=checks.count(1), default=64)
@@ -256,7 +256,12 @@ def main(argv=None):
                         help="GPU: XLA's deterministic kernels (scatters without atomics), so a rerun of the same "
                              "seeds repeats bit for bit; slower (docs/results.md, 'Repeatable numbers')")
     distributed.add_args(parser)
-    args = parser.parse_args(argv)
+    return parser
+
+
+def check_args(parser, args):
+    """Resolve and check the flags before any work (parser.error naming the problem). Returns (rank, size, sim,
+    main_model, cnn_model): this process in the job, the worlds' SimConfig and the loaded models."""
     for name, value in QUICK.items() if args.quick else ():
         if getattr(args, name) == parser.get_default(name):
             setattr(args, name, value)
@@ -298,7 +303,12 @@ def main(argv=None):
     if table is not None:  # a given table must afford every method a step, before the first method runs
         cfg = mpc_config(PileEnv(sim, backend="mujoco", render=False), args, args.mpc_steps)
         check_budget(cfg, table, method_omegas(args))
-    checks.claim(args.out, "evaluate", checks.settings(args, ignore=("methods",)), args.fresh)
+    return rank, size, sim, main_model, cnn_model
+
+
+def run_methods(args, rank: int, size: int, sim, main_model, cnn_model) -> dict:
+    """Every method of --methods on this process's share of the episodes (resuming finished methods and parts), merged
+    over the job's processes. Returns {method: results}."""
     os.makedirs(os.path.join(args.out, "parts"), exist_ok=True)
     mine = np.arange(rank, args.episodes, size)  # this process's episodes
     results = {}
@@ -345,15 +355,11 @@ def main(argv=None):
             results[method] = merge(parts)
             if distributed.is_writer():
                 files.write_json(path, results[method])
-    devices = sorted({r.get("device", "unrecorded") for r in results.values()})  # where the methods ran
-    summary = dict(task=args.task, kind=args.kind, pieces=args.pieces, sensor=args.sensor, dynamics=main_model.name,
-                   device=", ".join(devices),
-                   time_budget=args.time_budget, samples=args.samples, adam_steps=args.adam_steps,
-                   deterministic=args.deterministic,
-                   mpc_steps=args.mpc_steps, **summarise(results))
-    if distributed.is_writer():
-        files.write_json(os.path.join(args.out, "summary.json"), summary)
-        evaluation_plots(results, args.task, args.out, {m: label(m, r) for m, r in results.items()})
+    return results
+
+
+def report(summary: dict) -> None:
+    """Each method's line and each paired comparison's."""
     for method, s in summary["methods"].items():
         print(f"{method:>8}: final d {s['final_distance']:8.2f} ± {s['final_distance_ci95']:.2f}  inside "
               f"{s['final_inside']:.1%}  ≥{tasks.SUCCESS:.0%} inside in {s['success_share']:.0%} of episodes  "
@@ -363,6 +369,25 @@ def main(argv=None):
         m = p["success"]
         print(f"{method:>8} - {summary['reference']}: Δd {p['delta_d']['mean']:+.2f} [{lo:+.2f}, {hi:+.2f}]  "
               f"successes only here {m['first_only']}, only there {m['second_only']} (McNemar p = {m['p']:.3f})")
+
+
+@checks.guarded("evaluate")
+def main(argv=None):
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    rank, size, sim, main_model, cnn_model = check_args(parser, args)
+    checks.claim(args.out, "evaluate", checks.settings(args, ignore=("methods",)), args.fresh)
+    results = run_methods(args, rank, size, sim, main_model, cnn_model)
+    devices = sorted({r.get("device", "unrecorded") for r in results.values()})  # where the methods ran
+    summary = dict(task=args.task, kind=args.kind, pieces=args.pieces, sensor=args.sensor, dynamics=main_model.name,
+                   device=", ".join(devices),
+                   time_budget=args.time_budget, samples=args.samples, adam_steps=args.adam_steps,
+                   deterministic=args.deterministic,
+                   mpc_steps=args.mpc_steps, **summarise(results))
+    if distributed.is_writer():
+        files.write_json(os.path.join(args.out, "summary.json"), summary)
+        evaluation_plots(results, args.task, args.out, {m: label(m, r) for m, r in results.items()})
+    report(summary)
     return summary
 
 
