@@ -54,8 +54,8 @@ from dynres_jax.models.registry import SHIPPED_DYNAMICS
 from dynres_jax.sim.pool import make_pool, process_pool
 
 
-@checks.guarded("label_resolution")
-def main(argv=None):
+def build_parser():
+    """``label_resolution``'s flags."""
     parser = checks.parser("label_resolution", __doc__)
     parser.add_argument("--out", required=True)
     checks.add_fresh(parser)
@@ -81,6 +81,12 @@ def main(argv=None):
     checks.add_engine(parser)
     parser.add_argument("--quick", action="store_true", help="tiny sizes for a CPU smoke run")
     distributed.add_args(parser)
+    return parser
+
+
+@checks.guarded("label_resolution")
+def main(argv=None):
+    parser = build_parser()
     args = parser.parse_args(argv)
     distributed.from_args(parser, args)
     args.backend = checks.engine(parser, args.backend)

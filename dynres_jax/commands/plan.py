@@ -32,8 +32,8 @@ from dynres_jax.sim.pushes import wall_reach
 from dynres_jax.sim.sensor import SENSORS
 
 
-@checks.guarded("plan")
-def main(argv=None):
+def build_parser():
+    """``plan``'s flags."""
     parser = checks.parser("plan", __doc__)
     parser.add_argument("--depth", required=True)
     parser.add_argument("--rgb", required=True)
@@ -66,6 +66,12 @@ def main(argv=None):
                         help="pushes may start outside a wall of a bin of --bin-half-width, as the closed loop's do "
                              "(PileEnv.reach), to sweep pieces off the walls")
     parser.add_argument("--wall-height", type=checks.number(0.005, 1.0), default=SceneConfig().wall_height, help="m")
+    return parser
+
+
+@checks.guarded("plan")
+def main(argv=None):
+    parser = build_parser()
     args = parser.parse_args(argv)
 
     obs, camera = frames.load_frame(args.depth, args.rgb, args.camera)

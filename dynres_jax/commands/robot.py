@@ -39,8 +39,8 @@ from dynres_jax.sim.env import PileEnv
 from dynres_jax.sim.sensor import SENSORS
 
 
-@checks.guarded("robot")
-def main(argv=None):
+def build_parser():
+    """``robot``'s flags."""
     parser = checks.parser("robot", __doc__)
     parser.add_argument("--replay", default=None, metavar="DIR", help="recorded frames instead of the simulator")
     parser.add_argument("--dry-run", action="store_true", help="plan and record, push nothing")
@@ -61,6 +61,12 @@ def main(argv=None):
     parser.add_argument("--seed", type=checks.seed, default=0)
     parser.add_argument("--out", default="out/robot")
     checks.add_fresh(parser)
+    return parser
+
+
+@checks.guarded("robot")
+def main(argv=None):
+    parser = build_parser()
     args = parser.parse_args(argv)
     resolve_pieces(parser, args)
     sim = SimConfig(scene=SceneConfig(kinds=(args.kind,), pieces=(args.pieces,)), pile=PileConfig(layout="spread"),

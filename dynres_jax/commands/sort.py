@@ -37,8 +37,8 @@ from dynres_jax.io import files
 from dynres_jax.io.draw import sort_frames
 
 
-@checks.guarded("sort")
-def main(argv=None):
+def build_parser():
+    """``sort``'s flags."""
     parser = checks.parser("sort", __doc__)
     add_loop_args(parser, "sort", adaptive=False)
     parser.add_argument("--kinds", nargs=2, default=["coffee", "candy"], choices=sorted(KINDS), metavar="KIND",
@@ -50,6 +50,12 @@ def main(argv=None):
                         help="model: the planner with the dynamics model (default); bestK (e.g. best5): the best of "
                              "K plans by their simulated pushes; sim: the simulator chooses among the planner's first "
                              "samples; rerank: among its plans after the model's Adam steps")
+    return parser
+
+
+@checks.guarded("sort")
+def main(argv=None):
+    parser = build_parser()
     args = parser.parse_args(argv)
     if args.method != "model" and not on_ladder(args.method):
         parser.error(f"--method takes 'model', 'sim', 'rerank' or 'bestK' (K >= 1), got {args.method!r}")

@@ -41,8 +41,9 @@ GNN_ONLY = ("hidden", "propagation_steps", "push_frame", "world_edges", "bin_pos
 CNN_ONLY = ("grid", "channels")
 
 
-@checks.guarded("train_dynamics")
-def main(argv=None):
+def build_parser(argv=None):
+    """``train_dynamics``'s flags, their defaults the --recipe's in argv (if any). Returns (parser, the recipe's
+    TrainConfig or the default one)."""
     parser = checks.parser("train_dynamics", __doc__)
     recipe = argparse.ArgumentParser(add_help=False)
     recipe.add_argument("--recipe", choices=sorted(RECIPES), default=None,
@@ -55,10 +56,9 @@ def main(argv=None):
                         help="folder(s) of shards from experiments.generate_data (several: one data set)")
     parser.add_argument("--out", required=True, help="run folder: ckpt/, metrics.jsonl, curves.png")
     checks.add_fresh(parser)
-    defaults = base
     for f in dataclasses.fields(TrainConfig):
         if f.name not in ("model", "held_out_kinds"):
-            value = getattr(defaults, f.name)
+            value = getattr(base, f.name)
             flag, help_ = "--" + f.name.replace("_", "-"), f"TrainConfig.{f.name} (default {value})"
             if isinstance(value, bool):
                 parser.add_argument(flag, action=argparse.BooleanOptionalAction, default=value, help=help_)
@@ -95,6 +95,12 @@ def main(argv=None):
                         help="stop after this much wall time, with a checkpoint (run again to go on)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     distributed.add_args(parser)
+    return parser, base
+
+
+@checks.guarded("train_dynamics")
+def main(argv=None):
+    parser, base = build_parser(argv)
     args = parser.parse_args(argv)
     distributed.from_args(parser, args)
     fields = {f.name: getattr(args, f.name) for f in dataclasses.fields(TrainConfig) if f.name != "model"}
