@@ -31,7 +31,7 @@ sort_job() {  # FOLDER PAIR METHOD SEEDS [MODEL FLAGS]: one process per episode,
   local folder=$1 a=${2%-*} b=${2#*-} method=$3 n=$4 flags=${5:-} na nb
   na=$(half "$a"); nb=$(half "$b")
   seq "$SEED" $((SEED + n - 1)) | XLA_PYTHON_CLIENT_PREALLOCATE=false xargs -P "$share" -I{} sh -c \
-    "[ -f '$folder/{}/metrics.json' ] || python -m experiments.sort --kinds $a $b --pieces $na $nb --seed {} \
+    "[ -f '$folder/{}/metrics.json' ] || python -m experiments.sort --kind $a $b --pieces $na $nb --seed {} \
      --mpc-steps $STEPS --method $method $flags ${SORT_FLAGS:-} --out '$folder/{}' > '$folder.{}.log' 2>&1 \
      || echo 'sort $a-$b $method seed {} failed'; rm -f '$folder/{}/episode.gif'"
 }

@@ -15,7 +15,7 @@ pair() {  # KIND_A KIND_B LANE
   for s in $SEEDS; do
     i=$((i + 1)); [ $(((i - 1) % LANES)) -eq "$lane" ] || continue
     # shellcheck disable=SC2086
-    python -m experiments.sort --kinds "$a" "$b" --pieces "$na" "$nb" --seed "$s" --mpc-steps "$STEPS" ${FLAGS:-} \
+    python -m experiments.sort --kind "$a" "$b" --pieces "$na" "$nb" --seed "$s" --mpc-steps "$STEPS" ${FLAGS:-} \
       --out "/tmp/sort/$a-$b/$s" > "/tmp/sort/$a-$b.$s.log" 2>&1 || echo "$a-$b seed $s failed"
     mkdir -p "$OUT/sort/$a-$b/$s"
     cp "/tmp/sort/$a-$b/$s/metrics.json" "/tmp/sort/$a-$b.$s.log" "$OUT/sort/$a-$b/$s/" 2>/dev/null

@@ -159,8 +159,8 @@ R = [
     (["--seed", "-2"], "--seed"), (["--mpc-steps", "0"], "--mpc-steps"), (["--out", "{other_run}"], "--out"),
 ]
 S = [
-    (["--kinds", "coffee", "coffee"], "--kinds"), (["--kinds", "coffee"], "--kinds"),
-    (["--kinds", "coffee", "pebble"], "--kinds"), (["--pieces", "40"], "--pieces"), (["--pieces", "0", "20"], "--pieces"),
+    (["--kind", "coffee", "coffee"], "--kind"), (["--kind", "coffee"], "--kind"),
+    (["--kind", "coffee", "pebble"], "--kind"), (["--pieces", "40"], "--pieces"), (["--pieces", "0", "20"], "--pieces"),
     (["--pieces", "40", "x"], "--pieces"), (["--pieces", "5000", "5000"], "--pieces"), (["--grid-step", "0"], "--grid-step"),
     (["--grid-step", "-0.02"], "--grid-step"), (["--grid-step", "nan"], "--grid-step"), (["--grid-step", "5"], "--grid-step"),
     (["--resolution", "adaptive"], "--resolution"), (["--resolution", "0"], "--resolution"),
@@ -274,7 +274,7 @@ SI = [  # simulate
     (["--kind", "pebble"], "--kind"), (["--kind", "coffee", "candy", "almond"], "--kind"), (["--pieces", "0"], "--pieces"),
     (["--pieces", "1", "2"], "--pieces"), (["--pieces", "100000"], "pieces"), (["--pushes", "0"], "--pushes"),
     (["--pushes", "-1"], "--pushes"), (["--layout", "x"], "--layout"), (["--joints", "x"], "--joints"),
-    (["--backend", "x"], "--backend"), (["--resolution", "4"], "--resolution"), (["--resolution", "100000"], "--resolution"),
+    (["--backend", "x"], "--backend"), (["--image-size", "4"], "--image-size"), (["--image-size", "100000"], "--image-size"),
     (["--seed", "-1"], "--seed"), (["--out", "{file}"], "--out"), (["--out", "{other_run}"], "--out"),
 ]
 ED = [  # eval_dynamics

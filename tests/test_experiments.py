@@ -64,7 +64,7 @@ def test_readme_command_parses(module, args, monkeypatch, capsys):
 
 
 def test_simulate_demo_writes_its_files(tmp_path):
-    simulate.main(["--kind", "coffee", "candy", "--pieces", "3", "2", "--pushes", "1", "--resolution", "48",
+    simulate.main(["--kind", "coffee", "candy", "--pieces", "3", "2", "--pushes", "1", "--image-size", "48",
                    "--layout", "two_blobs", "--out", str(tmp_path)])
     for name in ("pushes.gif", "final_rgb.png", "final_depth.png", "actions.json"):
         assert (tmp_path / name).stat().st_size > 0

@@ -63,7 +63,7 @@ def test_gather_runs_on_every_kind_at_its_default_count(kind, tmp_path):
 
 @pytest.mark.parametrize("pair", [("almond", "mnm"), ("rice", "granola")])
 def test_sort_runs_on_the_issues_pairs(pair, tmp_path):
-    sort.main(["--kinds", *pair, "--pieces", "15", "15", "--mpc-steps", "1", "--samples", "4", "--adam-steps", "1",
+    sort.main(["--kind", *pair, "--pieces", "15", "15", "--mpc-steps", "1", "--samples", "4", "--adam-steps", "1",
                "--dynamics", "sweep", "--out", str(tmp_path)])
     assert json.loads((tmp_path / "metrics.json").read_text())["kinds"] == list(pair)
 

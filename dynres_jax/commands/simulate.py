@@ -45,7 +45,7 @@ def main(argv=None):
     parser.add_argument("--layout", default="blob", choices=["blob", "two_blobs", "spread"])
     parser.add_argument("--joints", default="planar", choices=["planar", "free"])
     checks.add_engine(parser)  # mujoco (C) draws the plate moving; the others show one frame per push
-    parser.add_argument("--resolution", type=checks.count(MIN_IMAGE, MAX_IMAGE), default=256,
+    parser.add_argument("--image-size", type=checks.count(MIN_IMAGE, MAX_IMAGE), default=256,
                         help="image width and height, pixels")
     parser.add_argument("--seed", type=checks.seed, default=0)
     parser.add_argument("--out", default="out/simulate")
@@ -58,7 +58,7 @@ def main(argv=None):
     try:
         cfg = SimConfig(scene=SceneConfig(kinds=tuple(args.kind), pieces=tuple(pieces), joints=args.joints),
                         pile=PileConfig(layout=args.layout),
-                        camera=CameraConfig(width=args.resolution, height=args.resolution))
+                        camera=CameraConfig(width=args.image_size, height=args.image_size))
         check_room(cfg.scene)
     except ValueError as e:
         parser.error(str(e))

@@ -2,7 +2,7 @@
 over blob centres choosing which pile moves where (``dynres_jax.control.sort``):
 
     python -m experiments.sort --out out/sort
-    python -m experiments.sort --kinds coffee candy --pieces 40 20 --mpc-steps 30
+    python -m experiments.sort --kind coffee candy --pieces 40 20 --mpc-steps 30
 
 Writes ``episode.gif`` (observation; goal of kind 0 blue, of kind 1 orange; the current waypoint disc green; the
 moved kind's particles red), ``final.png`` and ``metrics.json`` (a record per MPC step, the start and final share
@@ -41,7 +41,8 @@ def build_parser():
     """``sort``'s flags."""
     parser = checks.parser("sort", __doc__)
     add_loop_args(parser, "sort", adaptive=False)
-    parser.add_argument("--kinds", nargs=2, default=["coffee", "candy"], choices=sorted(KINDS), metavar="KIND",
+    parser.add_argument("--kind", nargs=2, dest="kinds", default=["coffee", "candy"], choices=sorted(KINDS),
+                        metavar="KIND",
                         help=f"the two piece kinds, one a pile (from {', '.join(sorted(KINDS))})")
     parser.add_argument("--pieces", nargs=2, type=checks.count(1), default=[40, 20], metavar="N",
                         help="pieces of each kind")
@@ -60,7 +61,7 @@ def main(argv=None):
     if args.method != "model" and not on_ladder(args.method):
         parser.error(f"--method takes 'model', 'sim', 'rerank' or 'bestK' (K >= 1), got {args.method!r}")
     if args.kinds[0] == args.kinds[1]:
-        parser.error(f"--kinds must name two different kinds, got {args.kinds[0]} twice")
+        parser.error(f"--kind must name two different kinds, got {args.kinds[0]} twice")
     check_pile(parser, args.kinds, args.pieces)
 
     sim = SimConfig(scene=SceneConfig(kinds=tuple(args.kinds), pieces=tuple(args.pieces)),
