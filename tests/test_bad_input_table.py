@@ -206,6 +206,7 @@ E = [  # evaluate
     (["--methods", "adaptive", "--regressor", "{flipped_regressor}"], "--regressor"), (["--kind", "x"], "--kind"),
     (["--sensor", "x"], "--sensor"), (["--task", "sort"], "--task"), (["--pieces", "0"], "--pieces"),
     (["--pieces", "100000"], "--pieces"), (["--samples", "0"], "--samples"), (["--adam-steps", "0"], "--adam-steps"),
+    (["--pieces", "3", "--methods", "50"], "foreground points"), (["--pieces", "5", "--methods", "10", "oracle"], "ω = 100"),
     (["--horizon", "0"], "--horizon"), (["--horizon", "11"], "--horizon"), (["--time-budget", "0"], "--time-budget"),
     (["--time-budget", "1e-6", "--timing", "{timing20}"], "--time-budget"),
     (["--time-budget", "0.25", "--timing", "{timing}"], "timing table"), (["--timing", "{timing20}"], "--timing"),

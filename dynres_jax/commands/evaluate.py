@@ -48,11 +48,12 @@ from dynres_jax.commands.planner_args import (
     resolve_planner_args,
     timing_table,
 )
-from dynres_jax.commands.task import load_model, resolve_pieces
+from dynres_jax.commands.task import check_visible, load_model, resolve_pieces
 from dynres_jax.config import KINDS, OMEGA_MAX, OMEGA_MIN, CameraConfig, PileConfig, SceneConfig, SimConfig
 from dynres_jax.control import resolution, tasks
 from dynres_jax.control.choosers import (
     ORACLE_OMEGAS,
+    PROBE_OMEGAS,
     AdaptiveOmega,
     Chooser,
     FixedOmega,
@@ -300,9 +301,13 @@ def check_args(parser, args):
             resolution.load_regressor(args.regressor, Camera.top_down(camera))
         except ckpt.CheckpointError as e:
             parser.error(f"--regressor (method adaptive): {e}")
+    env = PileEnv(sim, backend="mujoco")
+    cfg = mpc_config(env, args, args.mpc_steps)
     if table is not None:  # a given table must afford every method a step, before the first method runs
-        cfg = mpc_config(PileEnv(sim, backend="mujoco", render=False), args, args.mpc_steps)
         check_budget(cfg, table, method_omegas(args))
+    finest = max(max(ORACLE_OMEGAS) if m == "oracle" else max(PROBE_OMEGAS) if m == "probe" else w
+                 for m, w in zip(args.methods, method_omegas(args), strict=True))  # adaptive: at least OMEGA_MIN
+    check_visible(parser, env.reset(tasks.episode_keys(args.seed, [0])[0][0]).obs, env.camera, finest, cfg)
     return rank, size, sim, main_model, cnn_model
 
 

@@ -168,7 +168,7 @@ def check_visible(parser: argparse.ArgumentParser, obs, camera: Camera, omega: i
     points = visible_points(obs, camera, cfg.max_points)
     if points < omega:
         parser.error(f"--pieces: the pile shows {points} foreground points, fewer than the ω = {omega} particles to "
-                     "sample from them; use more pieces or a lower --resolution")
+                     "sample from them; use more pieces or a lower ω")
 
 
 def finished(out: str, resumed: bool, fresh: bool) -> dict | None:
