@@ -1,12 +1,12 @@
 """Closed loop (model-predictive control): observe -> h(y, ω) -> plan -> push, repeated, for many episodes at once.
 
 Three parts meet here. Worlds (``sim.pool.Worlds``: ``EnvWorlds``, ``WorldPool``, ``MJXPool``) push a batch of
-simulated piles. A chooser (``choosers``; Sort's ``sort.SortPolicy``) says at each MPC step which goals, ω and piece
-kinds to plan for. The decision (``decision.decide_batch``) perceives every frame once and plans, compiled once per
-resolution bucket. ``run`` joins them: each MPC step gives every episode's decision the Adam steps its own bucket
-affords (``MPCConfig.allot``: a plain count, or a time budget through a ``budget.TimingTable``), executes the first
-push of the best sequence, scores the step on the true state and warm-starts the next step with the plan shifted.
-What a real camera sees is a view (``SensorView``); GIF frames and other per-step work are ``on_step`` callbacks.
+simulated piles. A chooser (``choosers``; Sort's ``sort.SortPolicy``) orders at each MPC step the goals, candidate
+plans and piece kinds, and how to keep one. The decision (``decision.decide_batch``) perceives every frame once and
+plans, compiled once per resolution bucket. ``run`` joins them: each decision gets the Adam steps its bucket affords
+(``MPCConfig.allot``: a count, or a time budget through a ``budget.TimingTable``), the kept plan's first push is
+executed, the step scored on the true state and the next step warm-started with the plan shifted. What a real camera
+sees is a view (``SensorView``); GIF frames and other per-step work are ``on_step`` callbacks.
 """
 
 from __future__ import annotations
@@ -228,8 +228,7 @@ KEEPS = {"distance": keep_lowest_distance, "rate": keep_best_rate}  # Orders.kee
 
 def act(worlds: Worlds, now: Situation, omega, *, cfg: MPCConfig, timing: budget.TimingTable | None, dynamics,
         score: Callable) -> dict:
-    """Allot, decide, push, score: the model's plan at omega [B] from ``now``, its first push executed in ``worlds``
-    and the result scored by ``score(states, goals) -> dict`` (``keep_lowest_distance``'s arrays [B])."""
+    """The model's plan at omega [B] from ``now``, pushed in ``worlds``, scored (``keep_lowest_distance``'s [B])."""
     plan = propose(now, Candidate(omega), cfg=cfg, timing=timing, dynamics=dynamics)
     return keep_lowest_distance(worlds, now, [plan], score)
 
@@ -244,10 +243,10 @@ class Episodes(NamedTuple):
 def run(worlds: Worlds, states: State, chooser: Chooser, dynamics, cfg: MPCConfig, keys, *,
         timing: budget.TimingTable | None = None, view=None, on_step: Sequence[Callable] = (), log=print) -> Episodes:
     """The closed loop over a batch of episodes: states [B] in ``worlds``, keys [B]; every MPC step the chooser's
-    orders (``choosers.Orders``), one compiled decision over all episodes per candidate ω (``act``) and, per episode,
-    the candidate whose push left the lowest d. dynamics: ``registry`` (radius -> the planner's model); timing: the
-    table a time budget is spent by (required with cfg.time_budget; a batch of one refines it from its decisions'
-    wall times unless frozen); view: what the planner sees (default ``ExactView``; ``SensorView``); on_step:
+    orders (``choosers.Orders``), one compiled decision over all episodes per candidate (``propose``) and, per
+    episode, the proposal the orders' keep rule keeps (``KEEPS``). dynamics: ``registry`` (radius -> the planner's
+    model); timing: the table a time budget is spent by (required with cfg.time_budget; a batch of one refines it
+    from its decisions' wall times unless frozen); view: what the planner sees (``ExactView``; ``SensorView``); on_step:
     callbacks ``(t, states before the push, kept Particles [B], record)`` (GIF frames: ``io.draw.Frames``); log: one
     line per step. Stops early when every world broke. A record holds arrays [B]: omega, bucket, adam_steps,
     planning_s (B = 1: the decision's wall time; else the table's price of it, NaN without a budget), objective (c
@@ -329,7 +328,8 @@ def shift(best):
 
 
 def _lowest_distance(outcomes: list[dict]) -> dict:
-    """Per episode b, leaf [b] of the outcome whose push left the lowest d (``act``'s dicts, arrays [B])."""
+    """Per episode b, leaf [b] of the outcome whose push left the lowest d (``keep_lowest_distance``'s dicts,
+    arrays [B])."""
     return _pick(outcomes, np.argmin(np.stack([np.asarray(o["distance"]) for o in outcomes]), axis=0))
 
 
