@@ -95,10 +95,10 @@ def resolve_planner_args(parser: argparse.ArgumentParser, args) -> None:
     for name, value in preset.items():
         if getattr(args, name) is None:
             setattr(args, name, value)
-    if args.vote and args.resamples < 2 and not vote_given:  # a vote over one re-sampling is the plain plan
-        args.vote = False
     if args.vote and args.resamples < 2:
-        parser.error(f"--vote needs --resamples of 2 or more, got {args.resamples}")
+        if vote_given:
+            parser.error(f"--vote needs --resamples of 2 or more, got {args.resamples}")
+        args.vote = False  # the preset's vote over one re-sampling is the plain plan
     if args.lr != "reference":
         try:
             args.lr = checks.positive(args.lr)
@@ -162,7 +162,10 @@ def timing_table(args, out_dir: str, obs, goal, dynamics, cfg: MPCConfig, camera
         table = priced(args, cfg, lambda: budget.TimingTable.load(path) if path is not None else
                        measure_timing(episode(obs), episode(goal), dynamics, cfg, camera))
         table.save(saved)
-        source = "" if args.pricing == "reference" else ", from " + path if path else ", measured"
+        if args.pricing == "reference":
+            source = ""  # the table's device already names the reference's prices
+        else:
+            source = f", from {path}" if path else ", measured"
         print(f"timing table ({table.device}{source}): Adam steps in "
               f"{cfg.time_budget} s: " + ", ".join(f"bucket {b}: {cfg.adam_steps(b, table)}" for b in cfg.buckets))
         return table

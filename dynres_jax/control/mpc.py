@@ -186,9 +186,9 @@ def keep_lowest_distance(worlds: Worlds, now: Situation, plans: list[dict], scor
     the one whose push left the lowest d kept, the first on ties. Returns the kept plan's arrays [B] with best (its
     action sequence), action (its first push), states (after) and ``score(states, goals)``'s."""
     b, kept = len(now.keys), None
+    per_call = max(1, SIMULATED_WORLDS // b)
     for plan in plans:
         samples, common = plan["proposals"], {k: v for k, v in plan.items() if k != "proposals"}
-        per_call = max(1, SIMULATED_WORLDS // b)
         for first in range(0, samples.shape[1], per_call):
             k = min(per_call, samples.shape[1] - first)
             tile = (lambda x: x) if k == 1 else lambda x, k=k: jnp.concatenate([jnp.asarray(x)] * k)  # [k * B, ...]
