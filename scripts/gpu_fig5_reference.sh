@@ -12,11 +12,9 @@
 # EPISODES=2 FLAGS="--quick --mpc-steps 1").
 set -uo pipefail
 OUT=${OUT:-/root/fig5ref}; EPISODES=${EPISODES:-256}; SEED=${SEED:-50000}; BUDGETS=${BUDGETS:-2}
-TASKS=${TASKS:-"gather redistribute"}; METHODS=${METHODS:-"oracle best5 50 25 100 75"}; PER_GPU=${PER_GPU:-2}
-gpus=${GPUS:-$(nvidia-smi -L 2>/dev/null | grep -c "^GPU" || true)}
-n=$((gpus * PER_GPU)); workers=$(( $(nproc) / n )); [ "$workers" -ge 1 ] || workers=1
-fraction=$(python -c "print(round(0.9 / $PER_GPU, 2))")
-export JAX_COMPILATION_CACHE_DIR=${JAX_COMPILATION_CACHE_DIR:-/tmp/jax_cache}  # the second stage reuses compiles
+TASKS=${TASKS:-"gather redistribute"}; METHODS=${METHODS:-"oracle best5 50 25 100 75"}
+# shellcheck source=scripts/gpu_job.sh
+. "$(dirname "$0")/gpu_job.sh"
 mkdir -p "$OUT"
 pack() { tar -czf "$OUT/results.tmp" -C "$OUT" --exclude results.tar.gz --exclude results.tmp . 2>/dev/null
          mv "$OUT/results.tmp" "$OUT/results.tar.gz"; }
@@ -25,16 +23,10 @@ for budget in $BUDGETS; do
     name=${task}_${budget}s
     [ -f "$OUT/$name/summary.json" ] && continue
     echo "$(date +%T) $name: $n processes on $gpus GPUs, $workers workers each"
-    port=$((20000 + RANDOM % 20000)); pids=()
-    for ((i = 0; i < n; i++)); do
-      # shellcheck disable=SC2086
-      CUDA_VISIBLE_DEVICES=$((i % gpus)) XLA_PYTHON_CLIENT_MEM_FRACTION=$fraction python -m experiments.evaluate \
-        --task "$task" --episodes "$EPISODES" --samples 50 --adam-steps 200 --time-budget "$budget" \
-        --reference-planner --seed "$SEED" --methods $METHODS --workers "$workers" --out "$OUT/$name" \
-        --coordinator "localhost:$port" --num-processes "$n" --process-id "$i" ${FLAGS:-} > "$OUT/$name.log.$i" 2>&1 &
-      pids+=($!)
-    done
-    for p in "${pids[@]}"; do wait "$p"; done
+    # shellcheck disable=SC2086
+    job "$OUT/$name.log" python -m experiments.evaluate --task "$task" --episodes "$EPISODES" --samples 50 \
+      --adam-steps 200 --time-budget "$budget" --reference-planner --seed "$SEED" --methods $METHODS \
+      --workers "$workers" --out "$OUT/$name" ${FLAGS:-}
     echo "$(date +%T) $name: $(grep -c 'final d' "$OUT/$name.log.0") methods"; pack
   done
 done

@@ -16,26 +16,17 @@ set -uo pipefail
 OUT=${OUT:-/root/refadapt}; BUDGET=${BUDGET:-1}; PER_GPU=${PER_GPU:-2}; LABEL_SECONDS=${LABEL_SECONDS:-600}
 LABEL_FLAGS=${LABEL_FLAGS:-"--scenes 1024 --batch 32 --repeats 2 --samples 50 --adam-steps 200"}; LABEL_SEED=${LABEL_SEED:-61000}
 STAGES=${STAGES:-"labels regressor evaluate"}; PLANNER=${PLANNER:-"--resamples 1"}
-gpus=${GPUS:-$(nvidia-smi -L 2>/dev/null | grep -c "^GPU" || true)}
-n=$((gpus * PER_GPU)); workers=$(( $(nproc) / n )); [ "$workers" -ge 1 ] || workers=1
-fraction=$(python -c "print(round(0.9 / $PER_GPU, 2))")
-export JAX_COMPILATION_CACHE_DIR=${JAX_COMPILATION_CACHE_DIR:-/tmp/jax_cache}
+# shellcheck source=scripts/gpu_job.sh
+. "$(dirname "$0")/gpu_job.sh"
 mkdir -p "$OUT/logs"
 stage() { [[ " $STAGES " == *" $1 "* ]]; }
 pack() { tar -czf "$OUT/results.tmp" -C "$OUT" --exclude results.tar.gz --exclude results.tmp --exclude labels \
            --exclude parts . 2>/dev/null; mv "$OUT/results.tmp" "$OUT/results.tar.gz"; }
 if stage labels && [ ! -f "$OUT/labels/summary.json" ]; then
   echo "$(date +%T) labels: $n processes on $gpus GPUs, at most $LABEL_SECONDS s"
-  port=$((20000 + RANDOM % 20000)); pids=()
-  for ((i = 0; i < n; i++)); do
-    # shellcheck disable=SC2086
-    CUDA_VISIBLE_DEVICES=$((i % gpus)) XLA_PYTHON_CLIENT_MEM_FRACTION=$fraction timeout "$LABEL_SECONDS" \
-      python -m experiments.label_resolution --out "$OUT/labels" --reference-planner $PLANNER \
-      --time-budget "$BUDGET" --seed "$LABEL_SEED" --workers "$workers" $LABEL_FLAGS \
-      --coordinator "localhost:$port" --num-processes "$n" --process-id "$i" > "$OUT/logs/labels.$i" 2>&1 &
-    pids+=($!)
-  done
-  for p in "${pids[@]}"; do wait "$p"; done
+  # shellcheck disable=SC2086
+  job "$OUT/logs/labels" timeout "$LABEL_SECONDS" python -m experiments.label_resolution --out "$OUT/labels" \
+    --reference-planner $PLANNER --time-budget "$BUDGET" --seed "$LABEL_SEED" --workers "$workers" $LABEL_FLAGS
   shards=$(ls "$OUT"/labels/shard_*.npz 2>/dev/null | wc -l)
   echo "$(date +%T) labels: $shards shards"; pack
   [ "$shards" -gt 0 ] || { echo "no label shard: see $OUT/logs/labels.0"; exit 1; }
