@@ -12,8 +12,8 @@
 # LABEL_SEED (61000), RETEST_SCENES (512), RETEST_PLAN_SEED (62000), REGRESSOR_FLAGS (""), EPISODES (256),
 # SEED (52000: fresh), TASKS ("gather redistribute"), METHODS ("adaptive oracle best5 25 50"),
 # PLANNER ("--resamples 1"), STAGES ("labels retest regressor evaluate").
-# A CPU dry run: GPUS=1 PER_GPU=1 LABEL_FLAGS="--scenes 4 --batch 2 --evals 6 --repeats 1 --pieces 60 --samples 4
-# --adam-steps 4" RETEST_SCENES=2 REGRESSOR_FLAGS="--steps 5 --batch 4 --width 4"
+# A CPU dry run: GPUS=1 PER_GPU=1 LABEL_FLAGS="--scenes 8 --batch 4 --evals 6 --repeats 1 --pieces 60 --samples 4
+# --adam-steps 4" RETEST_SCENES=4 REGRESSOR_FLAGS="--steps 5 --batch 4 --width 4"
 # EPISODES=2 TASKS=gather METHODS="adaptive 25" EVAL_FLAGS="--quick --mpc-steps 1".
 set -uo pipefail
 OUT=${OUT:-/root/refadapt}; BUDGET=${BUDGET:-1}; PER_GPU=${PER_GPU:-2}; LABEL_SECONDS=${LABEL_SECONDS:-600}

@@ -157,11 +157,31 @@ def test_the_reference_pricing_by_hand():
 
     assert [budget.reference_step_s(w) for w in (25, 50, 75, 100)] == [0.011, 0.02, 0.04, 0.072]
     table = budget.reference_table((25, 50, 75, 100), samples=50, horizon=1)
-    assert table.frozen and table.fixed_s == {25: 0.0, 50: 0.0, 75: 0.0, 100: 0.0}
+    assert table.frozen and table.by_omega and set(table.fixed_s) == set(range(1, 101))
+    assert set(table.fixed_s.values()) == {0.0}
     assert table.steps(100, 1.0, 200) == 13 and table.steps(100, 2.0, 200) == 27
     assert table.steps(25, 2.0, 200) == 181 and table.steps(25, 3.0, 200) == 200
     table.refine(100, 10, 5.0)  # frozen: a run's own times do not move it
     assert table.step_s[100] == 0.072
+
+
+def test_the_reference_prices_each_omega_by_its_own_step_time_not_its_bucket():
+    """The reference has no buckets: a decision at ω = 34 runs in bucket 50 but is priced at t(34) = int((2969.3971 -
+    69.923244 · 34 + 1.8509846 · 34²) / 200) = 13 ms, so 1 s buys 76 Adam steps, not bucket 50's 50; a measured table
+    prices the same decision by its bucket."""
+    from dynres_jax.control import budget
+    from dynres_jax.control.mpc import MPCConfig
+    from dynres_jax.control.planner import PlannerConfig
+
+    cfg = MPCConfig(planner=PlannerConfig(samples=50, adam_steps=200), buckets=(25, 50, 75, 100), time_budget=1.0)
+    t34 = int((2969.3971 - 69.923244 * 34 + 1.8509846 * 34**2) / 200) / 1000
+    assert t34 == 0.013 and budget.reference_step_s(34) == t34
+    reference = budget.reference_table(cfg.buckets, 50, 1)
+    buckets, steps = cfg.allot([34, 50, 10, 100], reference)
+    assert buckets.tolist() == [50, 50, 25, 100]
+    assert steps.tolist() == [int(1.0 / t34), 50, int(1.0 / budget.reference_step_s(10)), 13] == [76, 50, 83, 13]
+    measured = budget.TimingTable("x", 50, 1, {b: 0.0 for b in cfg.buckets}, {b: 0.02 for b in cfg.buckets})
+    assert cfg.allot([34, 50], measured)[1].tolist() == [50, 50]
 
 
 def test_reference_planner_flags_resolve_to_the_authors_options_and_a_flag_beside_wins(capsys):

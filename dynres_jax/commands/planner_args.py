@@ -48,11 +48,11 @@ def check_budget(cfg: MPCConfig, table: budget.TimingTable | None, omegas) -> No
     if cfg.time_budget is None or table is None:
         return
     for omega in sorted(set(omegas)):
-        bucket = budget.bucket_for(omega, cfg.buckets)
-        if cfg.adam_steps(bucket, table) < 1:
+        key = table.key(omega, budget.bucket_for(omega, cfg.buckets))
+        if cfg.adam_steps(omega, table) < 1:
             raise InputError(f"--time-budget {cfg.time_budget} s affords no Adam step at ω = {omega} on "
-                             f"{table.device}: a decision's fixed part takes {table.fixed_s[bucket]:.3g} s and each "
-                             f"step {table.step_s[bucket]:.3g} s; give a larger budget")
+                             f"{table.device}: a decision's fixed part takes {table.fixed_s[key]:.3g} s and each "
+                             f"step {table.step_s[key]:.3g} s; give a larger budget")
 
 
 PLANNER_OPTIONS = dict(starts=PlannerConfig.starts, resamples=PlannerConfig.resamples, vote=PlannerConfig.vote,
@@ -84,7 +84,7 @@ def add_reference_planner_args(parser) -> None:
                         "smallest bucket holding it")
     g.add_argument("--pricing", choices=["measured", "reference"], default=None,
                    help="the price of an Adam step under --time-budget: a timing table measured here (default), or "
-                        "the authors' fitted step time per bucket (no measuring)")
+                        "the authors' fitted step time at each ω, whatever its bucket (no measuring)")
 
 
 def resolve_planner_args(parser: argparse.ArgumentParser, args) -> None:

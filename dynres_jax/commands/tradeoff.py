@@ -288,7 +288,7 @@ def _plot_surface(summary: dict, path: str) -> None:
             mean, ci = np.array(k["c_star"][i]), np.array(k["c_star_ci95"][i])
             steps = np.array(summary["steps"])
             bucket = bucket_for(omega, summary.get("buckets", BUCKETS))
-            seconds = np.array([timing.seconds(bucket, int(n)) for n in steps])
+            seconds = np.array([timing.seconds(timing.key(omega, bucket), int(n)) for n in steps])
             for row, x in enumerate((steps, seconds)):
                 ax = axes[row, col]
                 ax.errorbar(x, mean, yerr=ci, label=f"ω = {omega}", marker="o", ms=3, capsize=2)

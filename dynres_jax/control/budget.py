@@ -59,7 +59,8 @@ class TimingTable:
 
     device: where it was measured (``jax.devices()[0]``); samples, horizon: the planner batch (M, T) it holds for;
     fixed_s, step_s: {bucket: s}, a decision takes fixed_s + steps × step_s; refined: decisions it was refined from;
-    frozen: loaded from a file to reproduce a run, so ``refine`` leaves it as it is."""
+    frozen: loaded from a file to reproduce a run, so ``refine`` leaves it as it is; by_omega: the keys are ω, not
+    buckets, so each ω has its own price whatever bucket it runs in (the reference's pricing)."""
 
     device: str
     samples: int
@@ -68,6 +69,7 @@ class TimingTable:
     step_s: dict[int, float]
     refined: dict[int, int] = field(default_factory=dict)
     frozen: bool = False
+    by_omega: bool = False
 
     def __post_init__(self):
         self.fixed_s = {int(b): float(s) for b, s in self.fixed_s.items()}
@@ -79,6 +81,10 @@ class TimingTable:
         bad |= {b: s for b, s in self.fixed_s.items() if not (math.isfinite(s) and s >= 0)}
         if bad:
             raise ValueError(f"timing table: times must be finite, step_s > 0 and fixed_s >= 0; got {bad}")
+
+    def key(self, omega: int, bucket: int) -> int:
+        """The key a decision at ``omega`` in ``bucket`` is priced by: ω where the table prices by ω, else bucket."""
+        return int(omega) if self.by_omega else int(bucket)
 
     def seconds(self, bucket: int, steps: int) -> float:
         """The predicted wall time (s) of a decision of ``steps`` Adam steps at ``bucket``."""
@@ -136,22 +142,23 @@ def reference_step_s(omega: int) -> float:
 
 
 def reference_table(buckets: Sequence[int], samples: int, horizon: int) -> TimingTable:
-    """A timing table in the reference's pricing: no fixed part, each bucket's Adam step priced at
-    ``reference_step_s`` of its capacity; frozen, so no run refines it. With buckets (25, 50, 75, 100) every ω of
-    the paper's Fig. 5 gets its own price."""
-    buckets = check_buckets(buckets)
-    return TimingTable("reference (the authors' fitted step time)", samples, horizon, {b: 0.0 for b in buckets},
-                       {b: reference_step_s(b) for b in buckets}, frozen=True)
+    """A timing table in the reference's pricing: no fixed part, the Adam step of a decision at ω priced at
+    ``reference_step_s(ω)`` whatever bucket it runs in (the reference has no buckets), for every ω up to the largest
+    bucket; frozen, so no run refines it."""
+    omegas = range(1, max(check_buckets(buckets)) + 1)
+    return TimingTable("reference (the authors' fitted step time)", samples, horizon, {w: 0.0 for w in omegas},
+                       {w: reference_step_s(w) for w in omegas}, frozen=True, by_omega=True)
 
 
-def adam_steps(bucket: int, max_steps: int, seconds: float | None = None, table: TimingTable | None = None) -> int:
-    """The one budget function: the Adam steps a decision at ``bucket`` runs. No budget (seconds None): max_steps.
-    A budget of ``seconds`` per decision: as many steps as ``table`` says fit, at most max_steps."""
+def adam_steps(key: int, max_steps: int, seconds: float | None = None, table: TimingTable | None = None) -> int:
+    """The one budget function: the Adam steps a decision priced by ``key`` (``TimingTable.key``: its bucket, or its ω)
+    runs. No budget (seconds None): max_steps. A budget of ``seconds`` per decision: as many steps as ``table`` says
+    fit, at most max_steps."""
     if seconds is None:
         return int(max_steps)
     if table is None:
         raise ValueError("a time budget needs a timing table (budget.measure, or --timing FILE)")
-    return table.steps(bucket, seconds, max_steps)
+    return table.steps(key, seconds, max_steps)
 
 
 def measure(decide: Callable[[int, int], object], buckets: Sequence[int], *, samples: int, horizon: int,

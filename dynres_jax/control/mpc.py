@@ -67,22 +67,26 @@ class MPCConfig:
         """The compiled decision's settings at particle capacity ``capacity``."""
         return DecisionSpec(capacity, self.planner, self.max_points, self.real_depth)
 
-    def adam_steps(self, bucket: int, table: budget.TimingTable | None = None, share: float = 1.0) -> int:
-        """The Adam steps of a decision at ``bucket`` (``budget.adam_steps`` with ``share`` of this config's budget).
-        ValueError when the table was measured for another planner batch (samples, horizon)."""
+    def adam_steps(self, omega: int, table: budget.TimingTable | None = None, share: float = 1.0) -> int:
+        """The Adam steps of a decision at ``omega`` (``budget.adam_steps`` with ``share`` of this config's budget,
+        priced by its bucket or, where ``table`` prices by ω, by ω). ValueError when the table was measured for another
+        planner batch (samples, horizon)."""
         if self.time_budget is not None and table is not None and (table.samples, table.horizon) != (
                 self.planner.samples, self.planner.horizon):
             raise InputError(f"the timing table was measured for {table.samples} samples x horizon {table.horizon}, "
                              f"the planner has {self.planner.samples} x {self.planner.horizon}: measure it again")
         seconds = None if self.time_budget is None else self.time_budget * share
-        return budget.adam_steps(bucket, self.planner.adam_steps, seconds, table)
+        bucket = budget.bucket_for(int(omega), self.buckets)
+        return budget.adam_steps(bucket if table is None else table.key(omega, bucket), self.planner.adam_steps,
+                                 seconds, table)
 
     def allot(self, omegas, table: budget.TimingTable | None = None, share: float = 1.0
               ) -> tuple[np.ndarray, np.ndarray]:
         """Per decision of a batch at omegas [B]: its bucket [B] and the Adam steps [B] it runs (``adam_steps``, with
         ``share`` of the budget)."""
-        buckets = np.array([budget.bucket_for(int(w), self.buckets) for w in np.asarray(omegas)])
-        return buckets, np.array([self.adam_steps(int(b), table, share) for b in buckets], np.int32)
+        omegas = [int(w) for w in np.asarray(omegas)]
+        return (np.array([budget.bucket_for(w, self.buckets) for w in omegas]),
+                np.array([self.adam_steps(w, table, share) for w in omegas], np.int32))
 
 
 def measure_timing(obs, goal: Goal, dynamics, cfg: MPCConfig, camera, repeats: int = 3,
