@@ -151,6 +151,8 @@ G = [  # gather (and the flags every closed-loop task shares)
     (["--ckpt", ""], "--ckpt: no checkpoint"),
     (["--out", "{file}/run"], "--out"), (["--out", "{file}"], "--out"), (["--out", "{other_run}"], "--out"),
     (["--out", "{foreign}"], "--out"), (["--out", "{gather_run}"], "--out"), (["--no-such-flag"], "unrecognized"),
+    (["--samples", "100000000"], "--samples"), (["--adam-steps", "10000000"], "--adam-steps"),  # bounds from sense
+    (["--time-budget", "1e308"], "--time-budget"),
 ]
 R = [
     (["--letter", ""], "--letter"), (["--letter", "é"], "--letter"), (["--letter", "   "], "--letter"),
@@ -196,6 +198,7 @@ E = [  # evaluate
     (["--episodes", "0"], "--episodes"), (["--episodes", "x"], "--episodes"), (["--mpc-steps", "0"], "--mpc-steps"),
     (["--methods", "0"], "--methods"), (["--methods", "101"], "--methods"), (["--methods", "foo"], "--methods"),
     (["--methods", "best0"], "--methods"), (["--methods", "50", "50"], "--methods"), (["--methods", "sim", "sim"], "--methods"),
+    (["--methods", "50", "050"], "names a method twice"), (["--lr", "1e308"], "--lr"),
     (["--methods", "reranked"], "--methods"),
     (["--task", "redistribute", "--letters", "A B"], "--letters"), (["--letters", ""], "--letters"),
     (["--methods", "cnn", "--cnn-ckpt", "/nonexistent"], "--cnn-ckpt"),
@@ -229,7 +232,8 @@ L = [  # label_resolution
 ]
 D = [  # generate_data
     (["--episodes", "0"], "episodes"), (["--episodes", "-1"], "--episodes"), (["--episodes", "x"], "--episodes"),
-    (["--pushes", "0"], "pushes"), (["--worlds", "0"], "worlds"), (["--kinds", "pebble"], "kinds"),
+    (["--pushes", "0"], "pushes"), (["--pushes", "1000000"], "GiB in memory"), (["--image-size", "100000"], "image_size"),
+    (["--worlds", "0"], "worlds"), (["--kinds", "pebble"], "kinds"),
     (["--pieces", "5"], "pieces"), (["--pieces", "10", "5"], "pieces"), (["--pieces", "0", "5"], "pieces"),
     (["--pieces", "100000", "100000"], "pieces"), (["--layouts", "square"], "layouts"), (["--two-kinds", "2"], "two_kinds"),
     (["--two-kinds", "nan"], "--two-kinds"), (["--two-kinds", "0.5", "--kinds", "coffee"], "two_kinds"),
@@ -243,7 +247,7 @@ T = [  # train_dynamics (the data folder is checked after the flags)
     (["--data", "{data_ok}", "/nonexistent"], "/nonexistent"), (["--data", "{data_damaged}"], "shard"),
     (["--data", "{labels}"], "--data"), (["--data", "{no_config}"], "--data"), (["--data", "{data_short}"], "--data"),
     (["--data", "{data_few}"], "--data"), (["--steps", "0"], "steps"), (["--batch", "0"], "batch"),
-    (["--horizon", "0"], "horizon"), (["--lr", "nan"], "--lr"), (["--lr", "0"], "lr"), (["--lr", "-1"], "lr"),
+    (["--horizon", "0"], "horizon"), (["--lr", "nan"], "--lr"), (["--lr", "1e308"], "lr"), (["--lr", "0"], "lr"), (["--lr", "-1"], "lr"),
     (["--lr-final", "2"], "lr_final"), (["--eval-every", "0"], "eval_every"), (["--ckpt-every", "0"], "ckpt_every"),
     (["--val-batches", "0"], "val_batches"), (["--n-max", "0"], "n_max"), (["--omega-min", "0"], "omega_min"),
     (["--omega-min", "500"], "omega_min"), (["--loss", "huber"], "loss"), (["--held-out-kinds", "pebble"], "held_out_kinds"),
@@ -258,7 +262,7 @@ TR = [  # train_regressor
     (["--labels", "/nonexistent"], "--labels"), (["--labels", "{labels_missing}"], "--labels"),
     (["--labels", "{labels_damaged}"], "shard"), (["--labels", "{data_few}"], "--labels"),
     (["--labels", "{labels}", "{labels}"], "--labels"), (["--steps", "0"], "--steps"), (["--batch", "0"], "--batch"),
-    (["--lr", "nan"], "--lr"), (["--lr", "0"], "--lr"), (["--width", "0"], "--width"), (["--val-every", "0"], "--val-every"),
+    (["--lr", "nan"], "--lr"), (["--lr", "0"], "--lr"), (["--lr", "1e308"], "--lr"), (["--width", "0"], "--width"), (["--val-every", "0"], "--val-every"),
     (["--seed", "-1"], "--seed"), (["--out", "{other_run}"], "--out"),
 ]
 TO = [  # tradeoff
@@ -287,7 +291,7 @@ ED = [  # eval_dynamics
 X = [  # export
     (["--samples", "0"], "--samples"), (["--adam-steps", "0"], "--adam-steps"), (["--horizon", "0"], "--horizon"),
     (["--bound", "0"], "--bound"), (["--bound", "nan"], "--bound"), (["--min-length", "0"], "--min-length"),
-    (["--min-length", "0.2", "--max-length", "0.1"], "min_length"), (["--lr", "0"], "--lr"), (["--lr", "nan"], "--lr"),
+    (["--min-length", "0.2", "--max-length", "0.1"], "min_length"), (["--lr", "0"], "--lr"), (["--lr", "nan"], "--lr"), (["--lr", "1e308"], "--lr"),
     (["--goal-samples", "0"], "--goal-samples"), (["--camera", "/nonexistent"], "camera file"),
     (["--camera", "{cam_negative_f}"], "camera file"), (["--platforms", "x"], "--platforms"),
     (["--ckpt", "/nonexistent"], "--ckpt"), (["--ckpt", "{flipped_dynamics}"], "damaged"), (["--ckpt", "{regressor}"], "--ckpt"),

@@ -161,6 +161,7 @@ def test_the_reference_pricing_by_hand():
     assert set(table.fixed_s.values()) == {0.0}
     assert table.steps(100, 1.0, 200) == 13 and table.steps(100, 2.0, 200) == 27
     assert table.steps(25, 2.0, 200) == 181 and table.steps(25, 3.0, 200) == 200
+    assert table.steps(25, 1e308, 200) == 200  # no OverflowError from floor(huge / step)
     table.refine(100, 10, 5.0)  # frozen: a run's own times do not move it
     assert table.step_s[100] == 0.072
 

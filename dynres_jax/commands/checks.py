@@ -96,6 +96,11 @@ def number(low: float = -math.inf, high: float = math.inf, *, above: bool = Fals
 seed = count(0, 2**32 - 1)  # NumPy's and JAX's seeds are unsigned 32-bit words
 positive = number(0.0, above=True)
 omega = count(OMEGA_MIN, OMEGA_MAX)
+# Upper bounds from sense, checked before any work: past them a run fails by memory or time, not by a message.
+samples = count(1, 2**16)  # action sequences optimised at once: 2^16 x 100 particles is 6.5 M particles a step
+adam_steps = count(1, 100_000)  # Adam steps a plan
+time_budget = number(0.0, 3600.0, above=True)  # seconds a decision
+lr = number(0.0, 1.0, above=True)  # an Adam step: metres for the planner, a learning rate for training
 
 
 def text(value: str) -> str:

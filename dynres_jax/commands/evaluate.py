@@ -276,6 +276,7 @@ def check_args(parser, args):
         if m not in ("adaptive", "probe", "oracle", "cnn") and not fixed and not on_ladder(m):
             parser.error(f"--methods takes 'adaptive', 'probe', 'oracle', 'cnn', 'sim', 'rerank', 'bestK' (K >= 1) or "
                          f"integers in [{OMEGA_MIN}, {OMEGA_MAX}], got {m!r}")
+    args.methods = [str(int(m)) if m.isdigit() else m for m in args.methods]  # "050" is ω = 50
     if len(set(args.methods)) < len(args.methods):
         parser.error(f"--methods names a method twice: {' '.join(args.methods)}")
     if " " in args.letters:

@@ -54,14 +54,14 @@ def main(argv=None):
     parser.add_argument("--real-depth", action=argparse.BooleanOptionalAction, default=True,
                         help="perception for a real camera's depth (a 3 x 3 median, the table plane fitted from the "
                              "frame); --no-real-depth for a simulator's exact depth")
-    parser.add_argument("--samples", type=checks.count(1), default=50, help="action sequences optimised at once (M)")
-    parser.add_argument("--adam-steps", type=checks.count(1), default=100, help="Adam steps per plan (N)")
+    parser.add_argument("--samples", type=checks.samples, default=50, help="action sequences optimised at once (M)")
+    parser.add_argument("--adam-steps", type=checks.adam_steps, default=100, help="Adam steps per plan (N)")
     parser.add_argument("--horizon", type=checks.count(1, 10), default=defaults.horizon, help="pushes per sequence (T)")
     parser.add_argument("--bound", type=checks.positive, default=defaults.bound,
                         help="pushes stay within ±bound m (default: the coffee bin's PileEnv.action_bound)")
     parser.add_argument("--min-length", type=checks.positive, default=PushConfig.min_length, help="shortest push, m")
     parser.add_argument("--max-length", type=checks.positive, default=PushConfig.max_length, help="longest push, m")
-    parser.add_argument("--lr", type=checks.positive, default=defaults.lr, help="Adam learning rate, m")
+    parser.add_argument("--lr", type=checks.lr, default=defaults.lr, help="Adam learning rate, m")
     parser.add_argument("--wall-pushes", action=argparse.BooleanOptionalAction, default=True,
                         help="pushes may start outside a wall of the default bin, as the closed loop's do "
                              "(PileEnv.reach), to sweep pieces off the walls")

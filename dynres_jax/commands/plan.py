@@ -45,8 +45,8 @@ def build_parser():
     parser.add_argument("--plate-half-width", type=checks.number(0.005, 0.5), default=None,
                         help=f"m: the sweep heuristic's plate (default {SceneConfig.plate_half_width}; a learned "
                              "model has its own)")
-    parser.add_argument("--samples", type=checks.count(1), default=50)
-    parser.add_argument("--adam-steps", type=checks.count(1), default=100)
+    parser.add_argument("--samples", type=checks.samples, default=50)
+    parser.add_argument("--adam-steps", type=checks.adam_steps, default=100)
     parser.add_argument("--dynamics", default="auto", choices=["auto", "learned", "sweep"])
     parser.add_argument("--ckpt", default=None, help=f"dynamics checkpoint (default {SHIPPED_DYNAMICS})")
     parser.add_argument("--seed", type=checks.seed, default=0)

@@ -20,7 +20,7 @@ from dynres_jax.errors import InputError
 
 def add_budget_args(parser: argparse.ArgumentParser) -> None:
     """--time-budget and --timing: every closed-loop command's, labelling's and evaluation's."""
-    parser.add_argument("--time-budget", type=checks.positive, default=None, metavar="S",
+    parser.add_argument("--time-budget", type=checks.time_budget, default=None, metavar="S",
                         help="seconds per decision on this device: each decision runs the Adam steps that fit, at most "
                              "--adam-steps, from a timing table measured once per resolution bucket (refined from the "
                              "decisions a single episode makes) and saved as timing.json (default: none, --adam-steps "
@@ -101,7 +101,7 @@ def resolve_planner_args(parser: argparse.ArgumentParser, args) -> None:
         args.vote = False  # the preset's vote over one re-sampling is the plain plan
     if args.lr != "reference":
         try:
-            args.lr = checks.positive(args.lr)
+            args.lr = checks.lr(args.lr)
         except argparse.ArgumentTypeError as e:
             parser.error(f"--lr: {e} (or 'reference')")
     try:
@@ -130,8 +130,8 @@ def add_planner_args(parser) -> None:
     """The planner flags of ``experiments.evaluate`` and ``experiments.label_resolution``."""
     add_budget_args(parser)
     add_reference_planner_args(parser)
-    parser.add_argument("--samples", type=checks.count(1), default=20, help="action sequences per plan (paper M = 20)")
-    parser.add_argument("--adam-steps", type=checks.count(1), default=100,
+    parser.add_argument("--samples", type=checks.samples, default=20, help="action sequences per plan (paper M = 20)")
+    parser.add_argument("--adam-steps", type=checks.adam_steps, default=100,
                         help="Adam steps per plan (the most, under a budget)")
     parser.add_argument("--horizon", type=checks.count(1, 10), default=1,
                         help="pushes per planned sequence (paper T = 1)")

@@ -54,8 +54,8 @@ def build_parser():
     parser.add_argument("--success", type=checks.number(0.01, 1.0), default=STOP_SHARE,
                         help="stop when this share of the foreground lies inside the goal")
     parser.add_argument("--resolution", type=checks.omega, default=50, help="ω")
-    parser.add_argument("--samples", type=checks.count(1), default=50)
-    parser.add_argument("--adam-steps", type=checks.count(1), default=100)
+    parser.add_argument("--samples", type=checks.samples, default=50)
+    parser.add_argument("--adam-steps", type=checks.adam_steps, default=100)
     parser.add_argument("--ckpt", default=SHIPPED_DYNAMICS)
     parser.add_argument("--dynamics", default="auto", choices=["auto", "learned", "sweep"])
     parser.add_argument("--seed", type=checks.seed, default=0)

@@ -76,8 +76,8 @@ def add_loop_args(parser: argparse.ArgumentParser, task: str, adaptive: bool = T
         parser.add_argument("--regressor", default=None,
                             help=f"regressor checkpoint for --resolution adaptive (default {SHIPPED_REGRESSOR})")
     checks.add_engine(parser)
-    parser.add_argument("--samples", type=checks.count(1), default=50, help="action sequences optimised at once (M)")
-    parser.add_argument("--adam-steps", type=checks.count(1), default=100,
+    parser.add_argument("--samples", type=checks.samples, default=50, help="action sequences optimised at once (M)")
+    parser.add_argument("--adam-steps", type=checks.adam_steps, default=100,
                         help="Adam steps per plan (N; the most a plan may run under --time-budget)")
     add_budget_args(parser)
     parser.add_argument("--ckpt", default=None,

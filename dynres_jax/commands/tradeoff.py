@@ -78,7 +78,7 @@ def main(argv=None):
     parser.add_argument("--surface", action="store_true", help="measure the anytime surface instead")
     parser.add_argument("--reliability", nargs=2, metavar="LABELS", help="two label runs of the same scenes")
     parser.add_argument("--scenes", type=checks.count(2), default=128, help="surface: scenes of each kind")
-    parser.add_argument("--samples", type=checks.count(1), default=50, help="surface: pushes optimised at once (M)")
+    parser.add_argument("--samples", type=checks.samples, default=50, help="surface: pushes optimised at once (M)")
     parser.add_argument("--pieces", type=checks.count(1), default=100, help="surface: pieces in a pile")
     parser.add_argument("--ckpt", default=None, help="surface: dynamics checkpoint (default: the shipped one)")
     parser.add_argument("--workers", type=checks.count(1, 1024), default=None,

@@ -31,7 +31,7 @@ def main(argv=None):
     checks.add_fresh(parser)
     parser.add_argument("--steps", type=checks.count(1), default=3000)
     parser.add_argument("--batch", type=checks.count(1), default=64)
-    parser.add_argument("--lr", type=checks.positive, default=1e-3)
+    parser.add_argument("--lr", type=checks.lr, default=1e-3)
     parser.add_argument("--width", type=checks.count(1), default=16)
     parser.add_argument("--val-every", type=checks.count(1), default=100, help="steps between validation scores")
     parser.add_argument("--seed", type=checks.seed, default=0)

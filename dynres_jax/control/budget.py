@@ -95,8 +95,8 @@ class TimingTable:
         """The Adam steps that fit a decision at ``bucket`` into ``seconds``: floor((seconds - fixed) / step), clipped
         to [0, max_steps]."""
         self._check(bucket)
-        fit = math.floor((seconds - self.fixed_s[bucket]) / self.step_s[bucket])
-        return int(min(max(fit, 0), max_steps))
+        fit = (seconds - self.fixed_s[bucket]) / self.step_s[bucket]
+        return int(max_steps) if fit >= max_steps else max(math.floor(fit), 0)
 
     def refine(self, bucket: int, steps: int, seconds: float) -> None:
         """Update ``bucket``'s step time from a decision of ``steps`` steps that took ``seconds`` (no-op when frozen,

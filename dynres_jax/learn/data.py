@@ -66,12 +66,14 @@ from dynres_jax.io.shards import SHARD_GLOB, read_shard, save_npz, shard_path
 from dynres_jax.learn import on_policy
 from dynres_jax.sim import engines, warp
 from dynres_jax.sim import pool as pools
+from dynres_jax.sim.camera import MAX_IMAGE, MIN_IMAGE
 from dynres_jax.sim.env import PileEnv
 from dynres_jax.sim.pool import WorldPool, process_pool, random_episode
 
 KIND_NAMES = tuple(KINDS)  # global kind index used by Dataset.kind and Sample.kind
 LAYOUTS = ("blob", "two_blobs", "spread")
 PER_EPISODE = ("depth", "piece", "pos", "mat", "action", "broken", "episode")  # shard members with an episode axis
+MAX_SHARD_BYTES = 16 * 2**30  # one shard is gathered in host memory before it is written
 
 
 def check_kind_names(kinds, field: str) -> None:
@@ -147,8 +149,20 @@ class DataConfig:
             raise ValueError(f"DataConfig.backend must be one of {', '.join(engines.NAMES)}, got {self.backend!r}")
         if not 0.0 <= self.planned <= 1.0:
             raise ValueError(f"DataConfig.planned must be a share in [0, 1], got {self.planned}")
-        if self.image_size < 8:
-            raise ValueError(f"DataConfig.image_size must be at least 8 pixels, got {self.image_size}")
+        if not MIN_IMAGE <= self.image_size <= MAX_IMAGE:
+            raise ValueError(f"DataConfig.image_size must be in [{MIN_IMAGE}, {MAX_IMAGE}] pixels, "
+                             f"got {self.image_size}")
+        if self.shard_bytes > MAX_SHARD_BYTES:
+            raise ValueError(f"DataConfig: a shard ({self.worlds} worlds x {self.pushes + 1} frames of "
+                             f"{self.image_size}² pixels and {self.pieces[1]} pieces) takes "
+                             f"{self.shard_bytes / 2**30:.0f} GiB in memory, over {MAX_SHARD_BYTES // 2**30} GiB: "
+                             "fewer pushes, worlds or pixels")
+
+    @property
+    def shard_bytes(self) -> int:
+        """The bytes one shard's members take in memory (the table above: depth, piece, pos, mat per frame)."""
+        per_frame = self.image_size**2 * (2 + 2) + self.pieces[1] * (3 + 9) * 4
+        return self.worlds * (self.pushes + 1) * per_frame
 
     @property
     def n_shards(self) -> int:

@@ -104,8 +104,9 @@ class TrainConfig:
         if not 0 <= self.warmup < self.steps or not 0 <= self.noise < 0.05:
             raise ValueError(f"TrainConfig: warmup must lie in [0, steps) and noise in [0, 0.05) m, got {self.warmup}, "
                              f"{self.noise}")
-        if not self.lr > 0 or not 0 <= self.lr_final <= 1:
-            raise ValueError(f"TrainConfig: lr must be > 0 and lr_final in [0, 1], got {self.lr}, {self.lr_final}")
+        if not 0 < self.lr <= 1 or not 0 <= self.lr_final <= 1:
+            raise ValueError(f"TrainConfig: lr must be in (0, 1] and lr_final in [0, 1], got {self.lr}, "
+                             f"{self.lr_final}")
 
 
 RECIPES = {  # named training configs; the checkpoints' cards name theirs (``experiments.train_dynamics --recipe``)
