@@ -152,3 +152,40 @@ def test_absurd_image_sizes_are_refused_with_the_limit():
 def test_the_python_api_names_a_field_of_the_wrong_type(make, message):
     with pytest.raises((TypeError, ValueError), match=message):
         make()
+
+
+@pytest.mark.parametrize("platforms, message", [("bogus", "Unable to initialize backend 'bogus'"),
+                                                ("cuda" if jax.default_backend() == "cpu" else "tpu",
+                                                 "cannot start")])
+def test_a_platform_jax_cannot_start_is_one_line_naming_jax_platforms(tmp_path, platforms, message):
+    """JAX_PLATFORMS naming an unknown platform, or one with no plugin here, was a raw RuntimeError or a bare
+    AssertionError from JAX's backend setup; now one line naming the variable, exit status 2, no folder made."""
+    import subprocess
+    import sys
+
+    out = tmp_path / "run"
+    done = subprocess.run([sys.executable, "-m", "experiments.gather", "--mpc-steps", "1", "--out", str(out)],
+                          env={**os.environ, "JAX_PLATFORMS": platforms}, capture_output=True, text=True, timeout=300,
+                          cwd=os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+    lines = [line for line in done.stderr.splitlines() if line.strip()]
+    assert done.returncode == 2, done.stderr[-2000:]
+    assert len(lines) == 1 and f"error: JAX_PLATFORMS='{platforms}'" in lines[0] and message in lines[0], lines
+    assert not out.exists()
+
+
+def test_a_closed_standard_output_ends_a_command_quietly():
+    """`... | head -c 0`: a command whose stdout closes ends with status 1 and nothing on stderr (was a BrokenPipeError
+    traceback), as Unix tools do."""
+    import subprocess
+    import sys
+
+    code = ("from dynres_jax.commands import checks\n"
+            "@checks.guarded('x')\n"
+            "def main(argv):\n"
+            "    for _ in range(100000):\n"
+            "        print('step ' * 20, flush=True)\n"
+            "main()\n")
+    done = subprocess.run(f"{sys.executable} -c \"{code}\" | head -c 10", shell=True, capture_output=True, text=True,
+                          timeout=120)
+    assert done.stdout == "step step ", done.stdout
+    assert done.stderr == "", done.stderr[-2000:]

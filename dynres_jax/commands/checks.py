@@ -16,6 +16,7 @@ import math
 import os
 import shutil
 import sys
+import traceback
 
 from dynres_jax import distributed
 from dynres_jax.config import OMEGA_MAX, OMEGA_MIN
@@ -41,7 +42,9 @@ def parser(name: str, doc: str | None) -> argparse.ArgumentParser:
 def guarded(name: str):
     """Decorator of a command's ``main(argv)``: an ``InputError`` raised anywhere in it (a damaged file found while
     reading, a folder of another run) is printed as one line naming the input, exit status 2, as argparse does; a
-    ``JobError`` (a peer that never joined) the same way with status 1."""
+    ``JobError`` (a peer that never joined) the same way with status 1; a JAX platform that cannot start
+    (``JAX_PLATFORMS`` naming a missing or unknown one) the same way with status 2; a closed standard output
+    (``| head``) ends the command quietly, as Unix tools do, status 1."""
 
     def wrap(main):
         @functools.wraps(main)
@@ -51,10 +54,29 @@ def guarded(name: str):
             except (InputError, JobError) as e:
                 print(f"{prog(name)}: error: {' '.join(str(e).split())}", file=sys.stderr)
                 raise SystemExit(2 if isinstance(e, InputError) else 1) from None
+            except (RuntimeError, AssertionError) as e:
+                if not _platform_failed(e):
+                    raise
+                why = str(e).splitlines()[0] if str(e) else "JAX cannot start that platform here (no plugin or device)"
+                print(f"{prog(name)}: error: JAX_PLATFORMS={os.environ.get('JAX_PLATFORMS', '')!r}: {why}",
+                      file=sys.stderr)
+                raise SystemExit(2) from None
+            except BrokenPipeError:
+                os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # no second error at exit's flush
+                raise SystemExit(1) from None
 
         return run
 
     return wrap
+
+
+def _platform_failed(e: BaseException) -> bool:
+    """Whether ``e`` is JAX failing to start the platforms JAX_PLATFORMS names: its "Unable to initialize backend", or
+    the bare assertion its backend setup raises for a platform without a plugin (``JAX_PLATFORMS=cuda`` on a CPU)."""
+    frames = traceback.extract_tb(e.__traceback__)
+    from_bridge = bool(frames) and frames[-1].filename.endswith("xla_bridge.py")
+    return "Unable to initialize backend" in str(e) or (isinstance(e, AssertionError) and from_bridge
+                                                          and bool(os.environ.get("JAX_PLATFORMS")))
 
 
 # argparse types: a bad value is reported by argparse as "argument --FLAG: <message>", exit status 2.
