@@ -3,6 +3,7 @@ control/ never asks what kind of worlds it pushes, and no module of the library 
 
 import ast
 import pathlib
+import re
 
 import pytest
 
@@ -63,3 +64,13 @@ def test_the_package_face_is_light_and_complete():
         assert getattr(dynres_jax, name) is getattr(importlib.import_module(f"dynres_jax.{_HOMES[name]}"), name)
     with pytest.raises(AttributeError, match="no attribute 'nothing'"):
         dynres_jax.nothing  # noqa: B018
+
+
+def test_engines_are_known_by_their_row_not_their_name():
+    """Outside ``sim/`` no code compares a run's engine name (``args.backend == "mujoco"``): what a caller needs to
+    know of an engine (host workers, one device) is a field of its row in ``sim/engines.py``, so a new engine is a
+    row, not a hunt for string comparisons."""
+    pattern = re.compile(r"(args|config|cfg)\.backend\s*(==|!=)|backend\s*(==|!=)\s*\"(mujoco|mjx|mjx-fast|warp)\"")
+    found = [f"{p.relative_to(PACKAGE)}:{i}" for p in PACKAGE.rglob("*.py") if p.parent.name != "sim"
+             for i, line in enumerate(p.read_text().splitlines(), 1) if pattern.search(line)]
+    assert not found, found

@@ -84,3 +84,21 @@ def test_every_command_offers_the_engine_table(capsys):
             command.main(["--backend", "flex"])
         err = capsys.readouterr().err
         assert "--backend" in err and choices in err.replace(" ", ""), (command.__name__, err)
+
+
+def test_an_engine_on_an_existing_physics_is_one_row(monkeypatch):
+    """A new engine on a physics the package has (here the C engine on the fast scene's physics) is one row of
+    ``engines.ENGINES``: worlds, commands' process pools and data's device checks read the row, not the name."""
+    from dynres_jax.learn import data
+
+    row = engines.Engine("mujoco-fast", "mujoco", True, None, "C MuJoCo on the fast scene's physics", workers=True)
+    monkeypatch.setitem(engines.ENGINES, row.name, row)
+    monkeypatch.setattr(engines, "NAMES", (*engines.NAMES, row.name))
+    pool = make_pool(SIM, "mujoco-fast")
+    assert isinstance(pool, WorldPool) and pool.config.scene == SceneConfig.fast(SIM.scene.kinds, SIM.scene.pieces)
+    assert engines.uses_workers("mujoco-fast") and not engines.uses_workers("mjx")
+    config = data.DataConfig(backend="mujoco-fast", worlds=3)
+    cpu = jax.devices()[0]
+    assert data.check_devices(config, [cpu, cpu]) == [cpu, cpu]  # host workers: worlds need not divide the devices
+    with pytest.raises(ValueError, match="multiple of the device count"):
+        data.check_devices(data.DataConfig(backend="mjx", worlds=3), [cpu, cpu])

@@ -5,11 +5,10 @@ Redistribute, many episodes at once.
     python -m experiments.evaluate --task gather --methods 50 --adam-steps 100 --out runs/gather50
 
 Episode i of a task has the same pile, goal and planner keys for every method and any --episodes (seeded by (--seed,
-i)). Each method runs all episodes together: perception and planning vmapped on the JAX device, pushes in C worker
-processes (``WorldPool``), or in MuJoCo Warp on the GPU with ``--backend warp`` (``WarpPool``: C's physics,
-docs/warp). With ``--time-budget S`` every method plans under the same budget of S seconds per decision, spent by
-one timing table (``timing.json``, measured once per resolution bucket on this device or given by ``--timing``): a
-coarse ω affords more Adam steps. Without it every decision runs ``--adam-steps``. Methods (``--methods``): fixed ω;
+i)). Each method runs all episodes together: perception and planning vmapped on the JAX device, pushes in the engine
+of ``--backend``. With ``--time-budget S`` every method plans under the same budget of S seconds a decision, spent by
+one timing table (``timing.json``, measured here or given by ``--timing``): a coarse ω affords more Adam steps.
+Without it every decision runs ``--adam-steps``. Methods (``--methods``): fixed ω;
 "adaptive", the regressor g picks ω every step; "probe", no labels: each step plans at each ω of PROBE_OMEGAS on an
 equal share of the budget and keeps the plan whose model predicts the largest fall of c per second; "oracle" (an
 upper bound) plans at each ω of ORACLE_OMEGAS and keeps the push that left the lowest d on copies of the worlds (the
@@ -19,9 +18,8 @@ candidates at ``--best-omega`` (``choosers.BestOfK``, ``SimulatorScored``): "bes
 independent keys, the oracle's control; "sim" among the M first samples, no model; "rerank" among the M plans after
 the model's Adam steps. Redistribute's episode i draws the letter i modulo ``--letters``. Writes per method
 ``METHOD.json`` (final d and inside share per episode, means per step; finished methods are skipped on a rerun),
-``summary.json`` (means with 95 % intervals, success rates, every method paired with adaptive or the first method: Δ
-final d with a paired-bootstrap interval, McNemar's test on success), ``score.png`` (share of episodes with final d
-below τ) and ``steps.png`` (mean d over the MPC steps).
+``summary.json`` (means with 95 % intervals, success rates, every method paired with adaptive or the first: Δ final d
+with a paired-bootstrap interval, McNemar's test), ``score.png`` and ``steps.png`` (mean d over the MPC steps).
 
 Several processes share the episodes through jax.distributed (a launcher, or --coordinator, --num-processes,
 --process-id): process I runs episodes I, I + K, ... of every method and writes ``parts/METHOD.I-of-K.json``;
@@ -74,6 +72,7 @@ from dynres_jax.models.registry import (
     describe,
     trained_n_max,
 )
+from dynres_jax.sim import engines
 from dynres_jax.sim.camera import Camera
 from dynres_jax.sim.env import PileEnv
 from dynres_jax.sim.pool import make_pool, process_pool
@@ -318,7 +317,7 @@ def run_methods(args, rank: int, size: int, sim, main_model, cnn_model) -> dict:
     os.makedirs(os.path.join(args.out, "parts"), exist_ok=True)
     mine = np.arange(rank, args.episodes, size)  # this process's episodes
     results = {}
-    with process_pool(args.workers) if args.backend == "mujoco" else contextlib.nullcontext() as processes:
+    with process_pool(args.workers) if engines.uses_workers(args.backend) else contextlib.nullcontext() as processes:
         pool = make_pool(sim, args.backend, processes)
         masks = [tasks.episode_goal(args.task, i, args.seed, pool.env, args.letters)
                  for i in range(args.episodes)]

@@ -51,6 +51,7 @@ from dynres_jax.io.shards import complete_shards, read_shard, save_npz, shard_pa
 from dynres_jax.learn.data import shards_todo
 from dynres_jax.learn.labels import MID_EPISODE_OMEGA, LabelConfig, label_shard, scene_config, shard_scenes
 from dynres_jax.models.registry import SHIPPED_DYNAMICS
+from dynres_jax.sim import engines
 from dynres_jax.sim.pool import make_pool, process_pool
 
 
@@ -113,7 +114,7 @@ def main(argv=None):
     todo = shards_todo(args.out, n_shards)
     t0 = time.perf_counter()
     planner = functools.partial(mpc_config, args=args)
-    workers = process_pool(args.workers) if args.backend == "mujoco" else None
+    workers = process_pool(args.workers) if engines.uses_workers(args.backend) else None
     with workers or contextlib.nullcontext() as processes:
         timing = None
         # One table for the run, measured on the first scene to do if not given; in a job every process takes part

@@ -71,7 +71,7 @@ def main(argv=None):
     for i in tqdm(range(args.pushes), desc="pushes"):
         action = np.asarray(env.sample_push(jax.random.fold_in(key, i + 1), state.pos))
         actions.append(action.tolist())
-        if env.backend == "mujoco":  # the C engine draws the plate moving
+        if env.draws_pushes:  # the C engine draws the plate moving
             state, shots = env.push_frames(state, action)
             frames += [frame(o) for o in shots]
         else:

@@ -1,12 +1,11 @@
 """Closed loop (model-predictive control): observe -> h(y, ω) -> plan -> push, repeated, for many episodes at once.
 
-Three parts meet here. Worlds (``sim.pool.Worlds``: ``EnvWorlds``, ``WorldPool``, ``MJXPool``) push a batch of
-simulated piles. A chooser (``choosers``; Sort's ``sort.SortPolicy``) orders at each MPC step the goals, candidate
-plans and piece kinds, and how to keep one. The decision (``decision.decide_batch``) perceives every frame once and
-plans, compiled once per resolution bucket. ``run`` joins them: each decision gets the Adam steps its bucket affords
-(``MPCConfig.allot``: a count, or a time budget through a ``budget.TimingTable``), the kept plan's first push is
-executed, the step scored on the true state and the next step warm-started with the plan shifted. What a real camera
-sees is a view (``SensorView``); GIF frames and other per-step work are ``on_step`` callbacks.
+Worlds (``sim.pool.Worlds``) push a batch of simulated piles. A chooser (``choosers``; ``sort.SortPolicy``) orders at
+each MPC step the goals, candidate plans and piece kinds, and how to keep one. The decision (``decision.decide_batch``)
+perceives every frame once and plans, compiled once per resolution bucket. ``run`` joins them: each decision gets the
+Adam steps its ω affords (``MPCConfig.allot``: a count, or a time budget through a ``budget.TimingTable``), the kept
+plan's first push is executed, the step scored on the true state and the next warm-started with the plan shifted. A
+real camera's view is a ``SensorView``; GIF frames and other per-step work are ``on_step`` callbacks.
 """
 
 from __future__ import annotations
@@ -44,8 +43,7 @@ class MPCConfig:
     max_points: perception's point cap; planner: the shooting optimiser's settings (its steps: the Adam steps of a
     decision without a time budget, and the most with one); time_budget: seconds per decision on the planning device
     (None: planner.adam_steps every decision); real_depth: perception treats the depth as a real camera's
-    (``perception.foreground``: a median filter, the table plane fitted; ``sim.sensor``); warm_start: each step's plan
-    starts from the previous one, shifted (False: from fresh samples every step, as the reference's planner)."""
+    (``sim.sensor``); warm_start: each plan starts from the last, shifted (False: fresh samples, as the reference)."""
 
     mpc_steps: int = 20
     buckets: tuple[int, ...] = budget.BUCKETS
@@ -68,25 +66,23 @@ class MPCConfig:
         return DecisionSpec(capacity, self.planner, self.max_points, self.real_depth)
 
     def adam_steps(self, omega: int, table: budget.TimingTable | None = None, share: float = 1.0) -> int:
-        """The Adam steps of a decision at ``omega`` (``budget.adam_steps`` with ``share`` of this config's budget,
-        priced by its bucket or, where ``table`` prices by ω, by ω). ValueError when the table was measured for another
-        planner batch (samples, horizon)."""
+        """The Adam steps of a decision at ``omega``: ``budget.adam_steps`` with ``share`` of the budget, priced by
+        ``table`` (by bucket, or by ω). ValueError when the table was measured for another planner batch."""
         if self.time_budget is not None and table is not None and (table.samples, table.horizon) != (
                 self.planner.samples, self.planner.horizon):
             raise InputError(f"the timing table was measured for {table.samples} samples x horizon {table.horizon}, "
                              f"the planner has {self.planner.samples} x {self.planner.horizon}: measure it again")
         seconds = None if self.time_budget is None else self.time_budget * share
         bucket = budget.bucket_for(int(omega), self.buckets)
-        return budget.adam_steps(bucket if table is None else table.key(omega, bucket), self.planner.adam_steps,
-                                 seconds, table)
+        key = bucket if table is None else table.key(omega, bucket)
+        return budget.adam_steps(key, self.planner.adam_steps, seconds, table)
 
     def allot(self, omegas, table: budget.TimingTable | None = None, share: float = 1.0
               ) -> tuple[np.ndarray, np.ndarray]:
         """Per decision of a batch at omegas [B]: its bucket [B] and the Adam steps [B] it runs (``adam_steps``, with
         ``share`` of the budget)."""
-        omegas = [int(w) for w in np.asarray(omegas)]
-        return (np.array([budget.bucket_for(w, self.buckets) for w in omegas]),
-                np.array([self.adam_steps(w, table, share) for w in omegas], np.int32))
+        buckets = np.array([budget.bucket_for(int(w), self.buckets) for w in np.asarray(omegas)])
+        return buckets, np.array([self.adam_steps(int(w), table, share) for w in np.asarray(omegas)], np.int32)
 
 
 def measure_timing(obs, goal: Goal, dynamics, cfg: MPCConfig, camera, repeats: int = 3,

@@ -68,7 +68,7 @@ from dynres_jax.sim import engines, warp
 from dynres_jax.sim import pool as pools
 from dynres_jax.sim.camera import MAX_IMAGE, MIN_IMAGE
 from dynres_jax.sim.env import PileEnv
-from dynres_jax.sim.pool import WorldPool, process_pool, random_episode
+from dynres_jax.sim.pool import process_pool, random_episode
 
 KIND_NAMES = tuple(KINDS)  # global kind index used by Dataset.kind and Sample.kind
 LAYOUTS = ("blob", "two_blobs", "spread")
@@ -213,11 +213,11 @@ def shard_sim_config(config: DataConfig, shard: int) -> SimConfig:
 def check_devices(config: DataConfig, devices=None) -> list:
     """The devices a run shards its worlds over (default this process's); ValueError unless worlds divides (MJX;
     "mujoco" simulates on host processes and renders on the first device)."""
-    devices, backend = list(devices or jax.local_devices()), concrete(config).backend
-    if backend == "warp" and len(devices) > 1:
-        raise ValueError(f"backend 'warp' simulates a shard on one device, but {len(devices)} are visible; pick one "
-                         "(CUDA_VISIBLE_DEVICES=0) or run one process per GPU (--coordinator)")
-    if backend != "mujoco" and config.worlds % len(devices):
+    devices, engine = list(devices or jax.local_devices()), engines.ENGINES[concrete(config).backend]
+    if engine.one_device and len(devices) > 1:
+        raise ValueError(f"backend {engine.name!r} simulates a shard on one device, but {len(devices)} are visible; "
+                         "pick one (CUDA_VISIBLE_DEVICES=0) or run one process per GPU (--coordinator)")
+    if not engine.workers and config.worlds % len(devices):
         raise ValueError(f"DataConfig.worlds={config.worlds} must be a multiple of the device count "
                          f"{len(devices)} (worlds are split evenly over devices); use e.g. worlds="
                          f"{math.ceil(config.worlds / len(devices)) * len(devices)}")
@@ -235,9 +235,10 @@ def frame_record(s) -> dict:
 def _episode_fn(sim: SimConfig, pushes: int, devices: tuple, backend: str, worlds: int):
     """(env, fn, sharding): jitted fn keys [W, 2] -> per-world episode arrays (leading axis W), the worlds axis
     sharded over ``devices``; MuJoCo Warp's adds ``overflow`` [W, F]. Cached, so shards of one scene compile once."""
-    engine = engines.physics(backend)
-    env = PileEnv(sim, backend=engine, worlds=worlds)
-    record = (lambda s: dict(frame_record(s), overflow=s.overflow)) if engine == "warp" else frame_record
+    env = PileEnv(sim, backend=engines.physics(backend), worlds=worlds)
+
+    def record(s):  # MuJoCo Warp's States carry capacity bits (``overflow``); the other engines' None
+        return frame_record(s) if s.overflow is None else dict(frame_record(s), overflow=s.overflow)
 
     def episode(key):
         frames, actions = random_episode(env, key, pushes, record)
@@ -261,8 +262,8 @@ def simulate_shard(config: DataConfig, shard: int, devices=None, pool=None) -> d
         out = on_policy.planned_episodes(worlds, keys, config.pushes, config.planned, on_policy.policy_dynamics(
             config.policy, sim.scene.plate_half_width), on_policy.OMEGAS[shard % len(on_policy.OMEGAS)],
                                          frame_record)
-    elif config.backend == "mujoco":
-        worlds = WorldPool(sim, pool)
+    elif engines.uses_workers(config.backend):
+        worlds = pools.make_pool(sim, config.backend, pool)
         env, out = worlds.env, worlds.random_episodes(keys, config.pushes)
     else:
         env, fn, sharding = _episode_fn(sim, config.pushes, tuple(devices), config.backend, config.worlds)
@@ -329,7 +330,7 @@ def generate(config: DataConfig, out_dir: str, devices=None, progress: bool = Tr
     start, written_frames = time.perf_counter(), 0
     bar = tqdm(total=mine, initial=mine - len(todo), unit="shard", desc="generate",
                disable=not progress)
-    pool = process_pool(workers) if config.backend == "mujoco" and todo else None
+    pool = process_pool(workers) if engines.uses_workers(config.backend) and todo else None
     with ThreadPoolExecutor(1) as writer, pool or contextlib.nullcontext():  # write shard i while i + 1 simulates
         pending = None
         for i in todo:

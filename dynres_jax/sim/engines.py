@@ -1,6 +1,7 @@
 """The engines that push piles, in one table: every command's ``--backend`` choices and every engine name come from
-``ENGINES`` (and "auto"). Adding an engine is one row here, plus its world type in ``sim.pool.make_pool`` and its
-``PileEnv`` backend.
+``ENGINES`` (and "auto"), and what callers need to know of an engine (host workers, one device) is read from its row,
+never from its name. An engine on an existing physics (another fast variant) is one row here; a new physics also needs
+its ``PileEnv`` backend and its batch of worlds in ``sim.pool.POOLS``.
 
 An engine is a physics implementation (``PileEnv``'s backend: the C engine, MJX, or MuJoCo Warp) with the scene's
 physics as given or as ``SceneConfig.fast``'s. Where the pushes run is ``sim.pool``'s business: the C engine in worker
@@ -21,19 +22,25 @@ from dynres_jax.sim.env import PileEnv
 @dataclasses.dataclass(frozen=True)
 class Engine:
     """One row of the table. physics: ``PileEnv``'s backend ("mujoco": C, "mjx", "warp"); fast: the scene runs on
-    ``SceneConfig.fast``'s physics; extra: the pip extra it needs (None: none); about: one line for --help."""
+    ``SceneConfig.fast``'s physics; extra: the pip extra it needs (None: none); about: one line for --help; workers:
+    its worlds step in host worker processes, one a core (``sim.pool.process_pool``), not on the JAX devices;
+    one_device: a batch of worlds runs on one device (not sharded over several)."""
     name: str
     physics: str
     fast: bool
     extra: str | None
     about: str
+    workers: bool = False
+    one_device: bool = False
 
 
 ENGINES = {e.name: e for e in (
-    Engine("mujoco", "mujoco", False, None, "C MuJoCo in worker processes, one world a host core (the reference)"),
+    Engine("mujoco", "mujoco", False, None, "C MuJoCo in worker processes, one world a host core (the reference)",
+           workers=True),
     Engine("mjx", "mjx", False, None, "MuJoCo XLA, the worlds as one batch on the JAX devices"),
     Engine("mjx-fast", "mjx", True, None, "MJX on the fast scene's physics (SceneConfig.fast; not C's)"),
-    Engine("warp", "warp", False, "warp", "MuJoCo Warp on one GPU: C's physics ('pip install \"dynres-jax[warp]\"')"),
+    Engine("warp", "warp", False, "warp", "MuJoCo Warp on one GPU: C's physics ('pip install \"dynres-jax[warp]\"')",
+           one_device=True),
 )}
 AUTO = "auto"  # "mjx-fast" where JAX's default backend is a GPU, else "mujoco"
 NAMES = (AUTO, *ENGINES)  # every --backend's choices
@@ -62,6 +69,11 @@ def sim_config(config: SimConfig, name: str) -> SimConfig:
 def physics(name: str) -> str:
     """``PileEnv``'s backend for the engine ``name``."""
     return ENGINES[resolve(name)].physics
+
+
+def uses_workers(name: str) -> bool:
+    """Whether the engine ``name`` steps its worlds in host worker processes (a command starts a process pool)."""
+    return ENGINES[resolve(name)].workers
 
 
 def make_env(config: SimConfig, name: str, **kwargs) -> PileEnv:

@@ -369,9 +369,14 @@ class PileEnv:
         arrays, _ = self._run_c(state.qpos, state.qvel, plate_pos, plate_quat)
         return self._finish_jit(*arrays, state.broken)
 
+    @property
+    def draws_pushes(self) -> bool:
+        """Whether ``push_frames`` can draw a push as it moves (the C engine; MJX pushes run as one compiled scan)."""
+        return self.backend == "mujoco"
+
     def push_frames(self, state: State, action, n_frames: int = 12) -> tuple[State, list[Observation]]:
-        """Like ``push`` (backend "mujoco" only) but also renders ``n_frames`` frames with the plate drawn."""
-        if self.backend != "mujoco":
+        """Like ``push`` (``draws_pushes`` only) but also renders ``n_frames`` frames with the plate drawn."""
+        if not self.draws_pushes:
             raise ValueError("push_frames needs backend='mujoco' (MJX pushes run as one compiled scan)")
         action = jnp.asarray(self.check_action(action))
         every = max(1, (self.steps_per_push - self.n_settle) // n_frames)

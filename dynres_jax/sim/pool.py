@@ -248,12 +248,15 @@ class Worlds(Protocol):
     def push(self, states: State, actions) -> State: ...
 
 
+POOLS = {  # a physics (``engines.Engine.physics``) -> its batch of worlds of a SimConfig, on host ``processes``
+    "mujoco": lambda config, processes: WorldPool(config, processes),
+    "mjx": lambda config, processes: MJXPool(config),
+    "warp": lambda config, processes: WarpPool(config),
+}
+
+
 def make_pool(config: SimConfig, backend: str, processes=None) -> WorldPool | MJXPool | WarpPool:
-    """Worlds of ``config`` in the engine ``backend`` (``engines.NAMES``): "mujoco" (``WorldPool`` on ``processes``),
-    "warp" (``WarpPool``), "mjx" (``MJXPool``) or "mjx-fast" (``MJXPool`` on the fast scene's physics)."""
-    backend = engines.resolve(backend)
-    if backend == "mujoco":
-        return WorldPool(config, processes)
-    if backend == "warp":
-        return WarpPool(config)
-    return MJXPool(engines.sim_config(config, backend))
+    """Worlds of ``config`` in the engine ``backend`` (``engines.NAMES``), as that engine simulates the scene:
+    ``WorldPool`` on ``processes`` (C MuJoCo), ``MJXPool`` (MJX, on the fast scene's physics for "mjx-fast") or
+    ``WarpPool``."""
+    return POOLS[engines.physics(backend)](engines.sim_config(config, backend), processes)
