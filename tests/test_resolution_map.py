@@ -1,0 +1,65 @@
+"""scripts/resolution_map.py: surfaces priced at a budget and the best fixed ω's regret, against sums by hand."""
+
+import json
+import os
+
+import numpy as np
+
+from dynres_jax.control.budget import TimingTable, reference_table
+
+
+def _surface(folder, c_star, d0, timing: TimingTable, omegas=(25, 50), steps=(1, 10)):
+    """A tradeoff --surface folder of two scene kinds, splitting the scenes of c_star [ω, N, S] in halves."""
+    os.makedirs(folder)
+    half = c_star.shape[-1] // 2
+    for k, cols in enumerate((slice(0, half), slice(half, None))):
+        np.savez(os.path.join(folder, f"surface_{k}.npz"), c_star=c_star[..., cols], d0=d0[cols])
+    summary = dict(omegas=list(omegas), steps=list(steps), buckets=[25, 50], samples=4, device="test",
+                   timing=timing.to_json(), kinds={"a": {}, "b": {}})
+    with open(os.path.join(folder, "surface.json"), "w") as f:
+        json.dump(summary, f)
+    return str(folder)
+
+
+C_STAR = np.array([[[3, 3, 3, 3], [1, 2, 1, 2]],    # ω = 25 at N = 1, 10
+                   [[2, 4, 2, 4], [0, 0, 0, 0]]], float)  # ω = 50
+D0 = np.full(4, 5.0)
+TABLE = TimingTable("test", 4, 1, {25: 0.0, 50: 0.0}, {25: 0.01, 50: 0.02})
+
+
+def test_each_omega_gets_the_most_steps_its_price_affords(script, tmp_path):
+    m = script("resolution_map")
+    run = m.load(_surface(tmp_path / "run", C_STAR, D0, TABLE))
+    np.testing.assert_array_equal(m.priced(run, 0.05), C_STAR[:, 0])  # 10 steps cost 0.1 and 0.2 s: N = 1 for both
+    np.testing.assert_array_equal(m.priced(run, 0.15), [C_STAR[0, 1], C_STAR[1, 0]])  # ω = 25 affords N = 10
+    np.testing.assert_array_equal(m.priced(run, 0.005), [D0, D0])  # no step fits: no push
+    np.testing.assert_array_equal(m.priced(run, 1.0), C_STAR[:, 1])
+
+
+def test_the_regret_of_the_best_fixed_omega_by_hand(script, tmp_path):
+    """At 0.05 s both ω average 3 px (ω = 25 kept, the first); the per-scene best averages (2 + 3 + 2 + 3) / 4 = 2.5:
+    regret 0.5. At 0.15 s ω = 25 is best on every scene: regret 0, as it is when nothing fits."""
+    m = script("resolution_map")
+    run = m.load(_surface(tmp_path / "run", C_STAR, D0, TABLE))
+    rng = np.random.default_rng(0)
+    at = {b: m.regret(m.priced(run, b), rng) for b in (0.05, 0.15, 0.005)}
+    assert at[0.05]["best"] == 0 and at[0.05]["regret"] == 0.5 and at[0.05]["ci95"][0] >= 0
+    assert at[0.15]["best"] == 0 and at[0.15]["regret"] == 0 and at[0.15]["ci95"] == [0, 0]
+    assert at[0.005]["regret"] == 0
+
+
+def test_the_reference_pricing_prices_each_omega_and_the_map_is_written(script, tmp_path):
+    """A run priced by the reference's t(ω) (11 and 20 ms at ω = 25, 50): at 0.1 s ω = 25 affords N = 1 (10 steps
+    cost 0.11 s); at 0.19 s ω = 25 affords 10 steps and ω = 50 one (10 cost 0.2 s). main writes map.json, map.md
+    and map.png."""
+    m = script("resolution_map")
+    folder = _surface(tmp_path / "ref", C_STAR, D0, reference_table((25, 50), 4, 1))
+    run = m.load(folder)
+    np.testing.assert_array_equal(m.priced(run, 0.1), C_STAR[:, 0])
+    np.testing.assert_array_equal(m.priced(run, 0.19), [C_STAR[0, 1], C_STAR[1, 0]])
+    m.main([folder, _surface(tmp_path / "ours", C_STAR, D0, TABLE), "--out", str(tmp_path / "map"),
+            "--budgets", "0.05", "0.15"])
+    result = json.load(open(tmp_path / "map" / "map.json"))
+    assert len(result) == 2 and [r["regret"] for r in result["ours (M = 4, test)"]] == [0.5, 0.0]
+    assert (tmp_path / "map" / "map.png").stat().st_size > 0
+    assert "| 0.05 | 25 |" in open(tmp_path / "map" / "map.md").read()
