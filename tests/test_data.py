@@ -11,6 +11,7 @@ import shutil
 import subprocess
 import sys
 import textwrap
+import time
 
 import jax
 import jax.numpy as jnp
@@ -21,6 +22,7 @@ from dynres_jax.config import CameraConfig, SceneConfig, SimConfig
 from dynres_jax.io import files, shards
 from dynres_jax.learn import data, targets
 from dynres_jax.perception import sample_particles
+from dynres_jax.sim import engines
 from dynres_jax.sim.camera import Observation
 from dynres_jax.sim.env import PileEnv
 from dynres_jax.sim.pool import process_pool
@@ -74,7 +76,9 @@ def test_generation_writes_shards_and_summary(generated):
     out, summary = generated
     assert sorted(os.listdir(out)) == ["config.json", "shard_00000.npz", "shard_00001.npz", "summary.json"]
     with open(os.path.join(out, "summary.json")) as f:
-        assert json.load(f) == pytest.approx(summary)
+        written = json.load(f)
+    assert written.pop("shards_by_engine") == summary["shards_by_engine"] == {"mjx": 2}
+    assert written == pytest.approx({k: v for k, v in summary.items() if k != "shards_by_engine"})
     assert summary["shards"] == 2 and summary["episodes"] == 7 and summary["frames"] == 7 * 3
     assert summary["broken_dropped"] == 0 and summary["shards_written"] == 2 and summary["samples_per_s"] > 0
     env = PileEnv(data.shard_sim_config(QUICK, 0), backend="mujoco", render=False)
@@ -430,3 +434,37 @@ def test_engines_of_a_run():
         plain = data.shard_sim_config(data.replace(cfg, backend="mujoco"), shard)
         assert fast.scene == SceneConfig.fast(plain.scene.kinds, plain.scene.pieces)
         assert (fast.pile, fast.camera) == (plain.pile, plain.camera)
+
+
+def test_c_workers_fill_shards_beside_a_jax_engine_of_c_physics(generated, tmp_path, monkeypatch):
+    """``cpu_workers``: C workers take shards from the same list as the JAX engine (here MJX, its row marked as of C's
+    physics, as Warp's is). Each engine makes one of the two shards; each shard is what its engine makes alone (the
+    MJX one bit for bit the plain run's, the C one the C engine's in this process), records its engine, and both
+    carry the same scene. An engine of another physics is refused."""
+    original, _ = generated
+    monkeypatch.setitem(engines.ENGINES, "mjx", dataclasses.replace(engines.ENGINES["mjx"], c_physics=True))
+    simulate = data.simulate_shard
+
+    def slow(cfg, *args, **kwargs):  # every shard takes a second, so each producer takes one before the other ends
+        time.sleep(1.0)
+        return simulate(cfg, *args, **kwargs)
+
+    monkeypatch.setattr(data, "simulate_shard", slow)
+    out = str(tmp_path / "mixed")
+    summary = data.generate(QUICK, out, progress=False, cpu_workers=1)
+    assert summary["shards_by_engine"] == {"mjx": 1, "mujoco": 1} and summary["episodes"] == 7
+    c_config = data.replace(QUICK, backend="mujoco")
+    for i in range(2):
+        made = read(shards.shard_path(out, i))
+        plain = read(shards.shard_path(original, i))
+        assert made["sim_config"] == plain["sim_config"]
+        if str(made["engine"]) == "mjx":
+            for name, value in plain.items():
+                np.testing.assert_array_equal(made[name], value, err_msg=name)
+        else:
+            assert str(made["engine"]) == "mujoco"
+            alone = data.finish_shard(simulate(c_config, i), len(made["episode"]), QUICK.drop_broken)
+            for name in ("pos", "depth", "action", "episode"):
+                np.testing.assert_array_equal(made[name], alone[name], err_msg=name)
+    with pytest.raises(ValueError, match="C's physics"):
+        data.generate(data.replace(QUICK, backend="mjx-fast"), str(tmp_path / "fast"), progress=False, cpu_workers=1)

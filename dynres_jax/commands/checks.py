@@ -177,8 +177,8 @@ def add_fresh(parser: argparse.ArgumentParser) -> None:
 def settings(args: argparse.Namespace, ignore=()) -> dict:
     """The settings of a run worth recording: every argument but where it writes, how many processes it uses, its
     progress display and ``ignore`` (settings a resumed run may change)."""
-    skip = {"out", "fresh", "workers", "quiet", "no_progress", "coordinator", "num_processes", "process_id",
-            *ignore}
+    skip = {"out", "fresh", "workers", "cpu_workers", "quiet", "no_progress", "coordinator", "num_processes",
+            "process_id", *ignore}
     return {k: v for k, v in sorted(vars(args).items()) if k not in skip}
 
 

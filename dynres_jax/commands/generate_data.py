@@ -65,6 +65,9 @@ def main(argv=None) -> dict:
                         help="tiny sizes (6 coffee beans, 48x48, 2 short pushes, 8 episodes of 4 worlds)")
     parser.add_argument("--workers", type=checks.count(1, 1024), default=None,
                         help="C engine processes for --backend mujoco (default: every host core)")
+    parser.add_argument("--cpu-workers", type=checks.count(0, 1024), default=0,
+                        help="C MuJoCo processes filling shards beside --backend warp, whichever engine is free "
+                             "(default 0: the engine alone)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     names = _add_field_flags(parser)
     distributed.add_args(parser)
@@ -74,6 +77,7 @@ def main(argv=None) -> dict:
     try:
         config = data.quick_config(**overrides) if args.quick else data.DataConfig(**overrides)
         data.check_devices(config)
+        data.check_helpers(data.concrete(config), args.cpu_workers)
         for scene in (SceneConfig(kinds=(kind,), pieces=(config.pieces[1],)) for kind in config.kinds):
             check_room(scene)
     except (ValueError, TypeError) as e:
@@ -83,7 +87,8 @@ def main(argv=None) -> dict:
     if config.planned > 0 and ckpt.latest_step(on_policy.policy_dir(config.policy)) is None:
         parser.error(f"--policy {config.policy}: no checkpoint there (a folder with a finished step, RUN/ckpt)")
     checks.claim(args.out, "generate_data", checks.settings(args), args.fresh)
-    summary = data.generate(config, args.out, progress=not args.no_progress, workers=args.workers)
+    summary = data.generate(config, args.out, progress=not args.no_progress, workers=args.workers,
+                            cpu_workers=args.cpu_workers)
     print(json.dumps(summary, indent=1, sort_keys=True))
     return summary
 

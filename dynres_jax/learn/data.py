@@ -26,7 +26,8 @@ members, with E kept episodes, F = pushes + 1 frames, N pieces, H x W pixels:
     broken  [E, F] bool            the world broke (NaN, a piece through the table or out of the bin); sticky
     episode [E] int64              global episode id, shard * worlds + world
     kind    [N] int16              each piece's kind, an index into kind_names
-    kind_names [K] str; sim_config [] str (the shard's SimConfig as JSON); shard, simulated, dropped [] int64
+    kind_names [K] str; sim_config [] str (the shard's SimConfig as JSON); engine [] str (the engine that made it);
+    shard, simulated, dropped [] int64
 
 Colour images are not stored: ``Renderer`` redraws them from the poses. Broken episodes are dropped by default
 (``DataConfig.drop_broken``): ``dropped`` counts them per shard and the summary in total.
@@ -43,6 +44,7 @@ import glob
 import json
 import math
 import os
+import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -275,6 +277,7 @@ def simulate_shard(config: DataConfig, shard: int, devices=None, pool=None) -> d
     out["kind_names"] = np.array(sim.scene.kinds)
     out["sim_config"] = np.array(sim.to_json())
     out["shard"] = np.int64(shard)
+    out["engine"] = np.array(config.backend)
     return out
 
 
@@ -291,6 +294,18 @@ def finish_shard(arrays: dict, n_keep: int, drop_broken: bool) -> dict:
     return out
 
 
+def check_helpers(config: DataConfig, cpu_workers: int) -> DataConfig | None:
+    """The C engine's DataConfig for ``cpu_workers`` helper processes beside ``config``'s engine (None for none);
+    ValueError unless that engine is a JAX engine of C's physics and the data are random pushes."""
+    if cpu_workers == 0:
+        return None
+    engine = engines.ENGINES[config.backend]
+    if cpu_workers < 0 or engine.workers or not engine.c_physics or config.planned > 0:
+        raise ValueError(f"C workers ({cpu_workers}) fill shards beside a JAX engine of C's physics (warp), on random "
+                         f"pushes only; got backend {config.backend!r}, planned {config.planned}")
+    return replace(config, backend="mujoco")
+
+
 def shards_todo(out_dir: str, n_shards: int, part: tuple[int, int] | None = None) -> list[int]:
     """This process's shard indices whose files are not written yet (a rerun resumes where a killed one stopped).
     part (I, K): shards I, I + K, ... (default ``distributed.part()``: this process of the job)."""
@@ -299,7 +314,7 @@ def shards_todo(out_dir: str, n_shards: int, part: tuple[int, int] | None = None
 
 
 def generate(config: DataConfig, out_dir: str, devices=None, progress: bool = True, workers: int | None = None,
-             part: tuple[int, int] | None = None) -> dict:
+             part: tuple[int, int] | None = None, cpu_workers: int = 0) -> dict:
     """Simulate ``config`` into ``out_dir`` (shards, config.json, summary.json), resuming a killed run: shard files
     that exist are kept, the missing ones simulated. Returns the summary (also written to summary.json): totals over
     all shards, and this run's shards written, seconds and ``samples_per_s`` (frames written per second of this
@@ -307,9 +322,12 @@ def generate(config: DataConfig, out_dir: str, devices=None, progress: bool = Tr
     divide by the device count. ``workers``: C processes for backend "mujoco" (default every host core).
     ``part`` (I, K): make only the shards with index I modulo K (default ``distributed.part()``: process I of a job
     of K; they share the folder). In a job, every process waits for the others before the summary, which process 0
-    writes; each returns it with its own shards' counts and speed."""
+    writes; each returns it with its own shards' counts and speed. ``cpu_workers`` K > 0: C MuJoCo on K worker
+    processes fills shards beside a JAX engine of C's physics (``engines.Engine.c_physics``: Warp), each shard taken
+    by whichever engine is free; a shard depends on (seed, shard) alone and records its ``engine``."""
     config = concrete(config)
     devices = check_devices(config, devices)
+    helper = check_helpers(config, cpu_workers)
     part = part or distributed.part()
     os.makedirs(out_dir, exist_ok=True)
     for shard in range(part[0], config.n_shards, part[1]):  # half-written shards of a killed run of this part
@@ -327,24 +345,40 @@ def generate(config: DataConfig, out_dir: str, devices=None, progress: bool = Tr
 
     todo = shards_todo(out_dir, config.n_shards, part)
     mine = len(range(part[0], config.n_shards, part[1]))
-    start, written_frames = time.perf_counter(), 0
-    bar = tqdm(total=mine, initial=mine - len(todo), unit="shard", desc="generate",
-               disable=not progress)
-    pool = process_pool(workers) if engines.uses_workers(config.backend) and todo else None
-    with ThreadPoolExecutor(1) as writer, pool or contextlib.nullcontext():  # write shard i while i + 1 simulates
+    start, queue, lock, frames = time.perf_counter(), list(reversed(todo)), threading.Lock(), []
+    made = {config.backend: 0, **({helper.backend: 0} if helper else {})}
+    bar = tqdm(total=mine, initial=mine - len(todo), unit="shard", desc="generate", disable=not progress)
+
+    def produce(cfg: DataConfig, pool) -> None:  # shards from the shared queue until it is empty
         pending = None
-        for i in todo:
-            arrays = finish_shard(simulate_shard(config, i, devices, pool), min(config.worlds, config.episodes -
-                                                                          i * config.worlds), config.drop_broken)
+        while True:
+            with lock:
+                if not queue:
+                    break
+                i = queue.pop()
+            arrays = finish_shard(simulate_shard(cfg, i, devices, pool), min(cfg.worlds, cfg.episodes - i * cfg.worlds),
+                                  cfg.drop_broken)
             if pending is not None:
                 pending.result()
             pending = writer.submit(save_npz, shard_path(out_dir, i), arrays)
-            written_frames += arrays["broken"].size
-            bar.update()
-            bar.set_postfix(kinds="+".join(arrays["kind_names"]), pieces=len(arrays["kind"]))
+            with lock:
+                frames.append(arrays["broken"].size)
+                made[cfg.backend] += 1
+                bar.update()
+                bar.set_postfix(kinds="+".join(arrays["kind_names"]), pieces=len(arrays["kind"]), **made)
         if pending is not None:
             pending.result()
+
+    pool = process_pool(workers) if engines.uses_workers(config.backend) and todo else None
+    helpers = process_pool(cpu_workers) if helper and todo else None
+    with (ThreadPoolExecutor(1) as writer, ThreadPoolExecutor(1) as beside, pool or contextlib.nullcontext(),
+          helpers or contextlib.nullcontext()):  # write shard i while i + 1 simulates
+        side = beside.submit(produce, helper, helpers) if helpers else None
+        produce(config, pool)
+        if side is not None:
+            side.result()
     bar.close()
+    written_frames = sum(frames)
     seconds = time.perf_counter() - start
     distributed.barrier(f"generate {os.path.abspath(out_dir)}")
 
@@ -360,7 +394,7 @@ def generate(config: DataConfig, out_dir: str, devices=None, progress: bool = Tr
                    shards_skipped=mine - len(todo), seconds=seconds,
                    samples_per_s=written_frames / seconds if todo else 0.0,
                    devices=len(devices), device_kind=devices[0].device_kind, backend=config.backend,
-                   process=part[0], processes=part[1])
+                   shards_by_engine=made, process=part[0], processes=part[1])
     if distributed.is_writer():
         write_json(os.path.join(out_dir, "summary.json"), summary)
     return summary

@@ -24,7 +24,8 @@ class Engine:
     """One row of the table. physics: ``PileEnv``'s backend ("mujoco": C, "mjx", "warp"); fast: the scene runs on
     ``SceneConfig.fast``'s physics; extra: the pip extra it needs (None: none); about: one line for --help; workers:
     its worlds step in host worker processes, one a core (``sim.pool.process_pool``), not on the JAX devices;
-    one_device: a batch of worlds runs on one device (not sharded over several)."""
+    one_device: a batch of worlds runs on one device (not sharded over several); c_physics: its pushes match the C
+    engine's (so C workers may fill shards of one data set beside it)."""
     name: str
     physics: str
     fast: bool
@@ -32,15 +33,16 @@ class Engine:
     about: str
     workers: bool = False
     one_device: bool = False
+    c_physics: bool = False
 
 
 ENGINES = {e.name: e for e in (
     Engine("mujoco", "mujoco", False, None, "C MuJoCo in worker processes, one world a host core (the reference)",
-           workers=True),
+           workers=True, c_physics=True),
     Engine("mjx", "mjx", False, None, "MuJoCo XLA, the worlds as one batch on the JAX devices"),
     Engine("mjx-fast", "mjx", True, None, "MJX on the fast scene's physics (SceneConfig.fast; not C's)"),
     Engine("warp", "warp", False, "warp", "MuJoCo Warp on one GPU: C's physics ('pip install \"dynres-jax[warp]\"')",
-           one_device=True),
+           one_device=True, c_physics=True),
 )}
 AUTO = "auto"  # "mjx-fast" where JAX's default backend is a GPU, else "mujoco"
 NAMES = (AUTO, *ENGINES)  # every --backend's choices
