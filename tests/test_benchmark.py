@@ -93,3 +93,36 @@ def test_warp_without_the_extra_is_one_line(capsys):
         benchmark.main(["warp", "--quick"])
     err = capsys.readouterr().err
     assert stop.value.code == 2 and 'pip install "dynres-jax[warp]"' in err and "Traceback" not in err
+
+
+def test_the_warp_benchmark_reports_a_failing_graph_mode_as_a_row(monkeypatch):
+    """A graph mode that raises (JAX's died with CUDA_ERROR_NOT_SUPPORTED on an H200) is a row naming the error, C is
+    measured first whatever Warp does, and the table is written; when no Warp row ran, both-at-once says so."""
+    from benchmarks import bench_warp
+
+    order = []
+    monkeypatch.setattr(bench_warp.warp, "check_installed", lambda: None)
+    monkeypatch.setattr(bench_warp, "c_reference", lambda cfg, s: order.append("C") or dict(pushes_per_s=100.0,
+                                                                                           cores=2))
+
+    def rate(cfg, w, mode):
+        order.append(mode)
+        if mode == "JAX":
+            raise RuntimeError("CUDA_ERROR_NOT_SUPPORTED: operation not supported\nmore lines")
+        return dict(graph_mode=mode, worlds=w, pushes_per_s=2.0 * w, seconds=1.0, compile_s=0.0, overflowed_worlds=0)
+
+    monkeypatch.setattr(bench_warp, "mode_rate", rate)
+    monkeypatch.setattr(bench_warp, "together", lambda cfg, w, mode, s, cores: dict(
+        worlds=w, graph_mode=mode, c_cores=cores, warp_pushes_per_s=1.0, c_pushes_per_s=1.0, pushes_per_s=2.0 * w))
+    out = bench_warp.run(worlds=[100, 200], graph_modes=["WARP", "JAX"])
+    assert order == ["C", "WARP", "WARP", "JAX", "JAX"]
+    assert [r.get("failed") for r in out["warp"]] == [None, None, *["RuntimeError: CUDA_ERROR_NOT_SUPPORTED: "
+                                                                   "operation not supported"] * 2]
+    assert out["best"]["worlds"] == 200 and out["warp_over_c"] == 4.0 and out["together_over_c"] == 4.0
+    table = bench_warp.table(out)
+    assert table.count("failed: RuntimeError") == 2 and "| 400.0 | 4.00x |" in table
+
+    monkeypatch.setattr(bench_warp, "mode_rate", lambda cfg, w, mode: 1 / 0)
+    out = bench_warp.run(worlds=[100], graph_modes=["NONE"])
+    assert out["best"] is None and out["together"] == dict(failed="no Warp row ran") and out["warp_over_c"] is None
+    assert "| Warp + C at once | - | - | failed: no Warp row ran | - |" in bench_warp.table(out)
