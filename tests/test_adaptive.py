@@ -178,6 +178,9 @@ def test_label_reliability_by_hand(tmp_path):
     os.remove(b / "shard_00001.npz")
     with pytest.raises(ValueError, match="1 of its 2 shards are missing"):
         tradeoff.reliability(str(a), str(b), str(tmp_path / "out"))
+    (b / "config.json").write_text(json.dumps({"scenes": 4, "batch": 2, "seed": 5}))  # other piles behind (shard, i)
+    with pytest.raises(ValueError, match="label different scenes .seed None vs 5"):
+        tradeoff.reliability(str(a), str(b), str(tmp_path / "out"))
 
 
 def test_label_folders_pool_with_distinct_shard_numbers(labels):

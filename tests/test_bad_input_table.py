@@ -110,6 +110,7 @@ def fx(tmp_path_factory):
     p["labels_damaged"] = _shard_set(str(root / "labels_damaged"), labels, {0: b"garbage", 1: b"garbage"})
     p["labels"] = _shard_set(str(root / "labels"), labels, {i: dict(label=np.arange(4), shard=np.asarray(i), pile=np.arange(4), inputs=np.zeros((4, 8, 8, 6), np.float32))
                                                             for i in range(2)})
+    p["labels_other_seed"] = _shard_set(str(root / "labels_other_seed"), dict(labels, seed=7), {i: dict(label=np.arange(4), shard=np.asarray(i)) for i in range(2)})
     p["file"] = str(root / "a_file")
     open(p["file"], "w").write("x")
     p["other_run"] = _run_json(str(root / "other_run"), "train_regressor", {"steps": 3000})
@@ -269,6 +270,7 @@ TO = [  # tradeoff
     ([], "--labels"), (["--labels", "{labels}", "--surface"], "--labels"), (["--labels", "/nonexistent"], "--labels"),
     (["--labels", "{labels_missing}"], "--labels"), (["--labels", "{data_few}"], "--labels"),
     (["--reliability", "{labels}", "{labels}"], "--reliability"), (["--reliability", "{labels}", "/nonexistent"], "--reliability"),
+    (["--reliability", "{labels}", "{labels_other_seed}"], "label different scenes"),
     (["--surface", "--scenes", "1"], "--scenes"), (["--surface", "--samples", "0"], "--samples"),
     (["--surface", "--pieces", "0"], "--pieces"), (["--surface", "--pieces", "100000"], "--pieces"),
     (["--surface", "--quick", "--scenes", "4"], "--quick"), (["--surface", "--ckpt", "/nonexistent"], "--ckpt"),

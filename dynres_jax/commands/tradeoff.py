@@ -31,6 +31,7 @@ higher, lower or equal, with 95 % Wilson intervals, and ``tradeoff.png`` with th
 from __future__ import annotations
 
 import functools
+import json
 import os
 
 import jax
@@ -102,6 +103,10 @@ def main(argv=None):
             parser.error(f"--reliability needs two label runs of the same scenes, got {first} twice")
         for folder in (first, second):
             complete_shards(folder, "--reliability", "labels")
+        try:
+            check_same_scenes(first, second)
+        except ValueError as e:
+            parser.error(f"--reliability: {e}")
         checks.claim(args.out, "tradeoff", checks.settings(args), args.fresh)
         return reliability(first, second, args.out)
     paths = complete_shards(args.labels, "--labels", "labels")
@@ -170,9 +175,28 @@ def _labels_by_scene(folder: str) -> dict:
     return out
 
 
+SCENE_SETTINGS = ("seed", "batch", "kind", "pieces", "mid_episode", "quick")  # what makes label_resolution's scene
+
+
+def check_same_scenes(first: str, second: str) -> None:
+    """ValueError when two label runs' settings that make the scenes (SCENE_SETTINGS) differ: scene (shard, i) of one
+    would be another pile than (shard, i) of the other."""
+    settings = []
+    for folder in (first, second):
+        with open(os.path.join(folder, "config.json")) as f:
+            config = json.load(f)
+        settings.append({k: config.get(k) for k in SCENE_SETTINGS})
+    differ = {k: (settings[0][k], settings[1][k]) for k in SCENE_SETTINGS if settings[0][k] != settings[1][k]}
+    if differ:
+        what = ", ".join(f"{k} {x} vs {y}" for k, (x, y) in differ.items())
+        raise ValueError(f"{first} and {second} label different scenes ({what}); relabel with the same --seed and "
+                         "another --plan-seed")
+
+
 def reliability(first: str, second: str, out_dir: str) -> dict:
-    """Label reliability of two runs over the same scenes (module docstring) -> the summary written to
-    reliability.json."""
+    """Label reliability of two runs over the same scenes (module docstring; ``check_same_scenes``) -> the summary
+    written to reliability.json."""
+    check_same_scenes(first, second)
     a, b = _labels_by_scene(first), _labels_by_scene(second)
     scenes = sorted(set(a) & set(b))
     if len(scenes) < 3:
