@@ -20,7 +20,7 @@ import os
 
 import numpy as np
 
-from dynres_jax.control.budget import TimingTable, bucket_for
+from dynres_jax.control.budget import TimingTable
 from dynres_jax.io import files
 
 BUDGETS = tuple(float(b) for b in np.round(np.geomspace(0.03, 2.0, 10), 3))
@@ -42,7 +42,7 @@ def priced(run: dict, budget: float) -> np.ndarray:
     timing = TimingTable(**s["timing"])
     out = np.empty((len(s["omegas"]), run["d0"].shape[0]))
     for i, omega in enumerate(s["omegas"]):
-        key = timing.key(omega, bucket_for(omega, s["buckets"]))
+        key = timing.key(omega, s["buckets"])
         fits = [j for j, n in enumerate(s["steps"]) if timing.seconds(key, n) <= budget]
         out[i] = run["c_star"][i, max(fits)] if fits else run["d0"]
     return out

@@ -48,7 +48,7 @@ def check_budget(cfg: MPCConfig, table: budget.TimingTable | None, omegas) -> No
     if cfg.time_budget is None or table is None:
         return
     for omega in sorted(set(omegas)):
-        key = table.key(omega, budget.bucket_for(omega, cfg.buckets))
+        key = table.key(omega, cfg.buckets)
         if cfg.adam_steps(omega, table) < 1:
             raise InputError(f"--time-budget {cfg.time_budget} s affords no Adam step at ω = {omega} on "
                              f"{table.device}: a decision's fixed part takes {table.fixed_s[key]:.3g} s and each "

@@ -311,8 +311,8 @@ def _plot_surface(summary: dict, path: str) -> None:
         for i, omega in enumerate(summary["omegas"]):
             mean, ci = np.array(k["c_star"][i]), np.array(k["c_star_ci95"][i])
             steps = np.array(summary["steps"])
-            bucket = bucket_for(omega, summary.get("buckets", BUCKETS))
-            seconds = np.array([timing.seconds(timing.key(omega, bucket), int(n)) for n in steps])
+            key = timing.key(omega, summary.get("buckets", BUCKETS))
+            seconds = np.array([timing.seconds(key, int(n)) for n in steps])
             for row, x in enumerate((steps, seconds)):
                 ax = axes[row, col]
                 ax.errorbar(x, mean, yerr=ci, label=f"ω = {omega}", marker="o", ms=3, capsize=2)

@@ -82,9 +82,9 @@ class TimingTable:
         if bad:
             raise ValueError(f"timing table: times must be finite, step_s > 0 and fixed_s >= 0; got {bad}")
 
-    def key(self, omega: int, bucket: int) -> int:
-        """The key a decision at ``omega`` in ``bucket`` is priced by: ω where the table prices by ω, else bucket."""
-        return int(omega) if self.by_omega else int(bucket)
+    def key(self, omega: int, buckets: Sequence[int]) -> int:
+        """What a decision at ``omega`` is priced by: ω where the table prices by ω, else its bucket in ``buckets``."""
+        return int(omega) if self.by_omega else bucket_for(int(omega), buckets)
 
     def seconds(self, bucket: int, steps: int) -> float:
         """The predicted wall time (s) of a decision of ``steps`` Adam steps at ``bucket``."""

@@ -73,8 +73,7 @@ class MPCConfig:
             raise InputError(f"the timing table was measured for {table.samples} samples x horizon {table.horizon}, "
                              f"the planner has {self.planner.samples} x {self.planner.horizon}: measure it again")
         seconds = None if self.time_budget is None else self.time_budget * share
-        bucket = budget.bucket_for(int(omega), self.buckets)
-        key = bucket if table is None else table.key(omega, bucket)
+        key = budget.bucket_for(int(omega), self.buckets) if table is None else table.key(omega, self.buckets)
         return budget.adam_steps(key, self.planner.adam_steps, seconds, table)
 
     def allot(self, omegas, table: budget.TimingTable | None = None, share: float = 1.0
