@@ -91,7 +91,7 @@ from flax import nnx
 
 from dynres_jax.config import SceneConfig, check_fields
 from dynres_jax.models.graph import K_NEIGHBOURS, R_EDGE, build_edges, push_geometry, sweep_displacement
-from dynres_jax.models.propagation import GNSStep, incoming_effects, mlp
+from dynres_jax.models.propagation import GNSStep, gather_rows, incoming_effects, mlp
 
 LENGTH_SCALE = 0.05  # m: displacements and relative positions are divided by this inside the model
 R_REF = 0.02  # m: covering radius whose resolution code is 0
@@ -240,7 +240,7 @@ class Dynamics(nnx.Module):
         if cfg.bin_position:
             node_in += [xy[:, :2] / cfg.bin_half_width for xy in (clean, clean + guess)]  # 0 where masked, as both are
         node_code = self.node_encoder(jnp.concatenate(node_in + [attr, jnp.broadcast_to(code, (n, 1))], axis=-1))
-        rel = (clean[:, None, :] - clean[neighbours]) / cfg.length_scale if relative else None
+        rel = (clean[:, None, :] - gather_rows(clean, neighbours)) / cfg.length_scale if relative else None
         if rel is not None and cfg.edges_in_push_frame:
             rel = rel @ frame.T
         return node_code, guess, frame, (neighbours, edge_mask, rel)

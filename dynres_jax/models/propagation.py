@@ -1,7 +1,12 @@
 """PropNet's propagation step over a particle graph, with a hand-written gradient (``dynamics.Dynamics``, steps 3-4
 of its module docstring): the summed edge effects Σ_j ReLU(c_ij + r_i + s_j) of every receiver i, where c_ij is the
 edge's constant term (per edge, or a row of the pair table) and r_i, s_j the receiver and sender terms of the nodes;
-and GNS's message-passing step (``GNSStep``) with the MLPs both build (``mlp``)."""
+and GNS's message-passing step (``GNSStep``) with the MLPs both build (``mlp``).
+
+Repeatable sums. A gather's gradient adds each row's cotangents back into its source row; as a float scatter-add
+on a GPU that sum is done by atomics in whatever order they land, so two runs of the same inputs differ in the last
+bits, and a planner's argmin, then a whole closed-loop episode, with them (docs/repeat). Every such sum here is
+``exact_scatter_add``: in fixed point, where integer addition gives the same bits in any order."""
 
 from __future__ import annotations
 
@@ -10,6 +15,48 @@ import functools
 import jax
 import jax.numpy as jnp
 from flax import nnx
+
+FIXED_POINT_BITS = 30  # each word's sum stays below 2^30 in magnitude, so no int32 partial sum overflows
+
+
+def exact_scatter_add(index, values, n: int):
+    """Σ of values [..., C] into n rows by index [...] (int, in [0, n)) -> [n, C] float32, bit for bit the same
+    whatever order the additions run in (GPU atomics included). Each channel is scaled by a power of two so its total
+    |value| is below 2^30, and each term is split into two int32 words: the integer part, and the fraction in
+    30 - log2(terms) bits (so the fractions' sum cannot overflow either). The words are summed as integers, whose sums
+    do not depend on the order, and scaled back. Each term is rounded to 2^-(60 - log2(terms)) of its channel's total
+    |value|: for a scene's edges (about 2^10 terms) that is 2^-50, finer than float32's own rounding of the sum."""
+    values = jnp.asarray(values, jnp.float32)
+    flat, index = values.reshape(-1, values.shape[-1]), jnp.asarray(index).reshape(-1)
+    fraction_bits = FIXED_POINT_BITS - max(flat.shape[0] - 1, 1).bit_length()  # terms x 2^(bits - 1) < 2^30
+    total = jnp.sum(jnp.abs(flat), axis=0)  # [C]
+    exponent = FIXED_POINT_BITS - jnp.frexp(total)[1]  # total < 2^e (frexp), so total x 2^(30 - e) < 2^30
+    scaled = jnp.ldexp(flat, exponent)  # exact: a power of two
+    whole = jnp.round(scaled)
+    words = jnp.stack([whole, jnp.round(jnp.ldexp(scaled - whole, fraction_bits))], -1).astype(jnp.int32)
+    summed = jnp.zeros((n, flat.shape[-1], 2), jnp.int32).at[index].add(words).astype(jnp.float32)
+    result = jnp.ldexp(summed[..., 0], -exponent) + jnp.ldexp(summed[..., 1], -exponent - fraction_bits)
+    # a NaN or inf has no fixed point: its channel is NaN, as a float sum would be (never finite garbage)
+    return jnp.where(jnp.isfinite(total), result, jnp.nan)
+
+
+@jax.custom_vjp
+def gather_rows(x, index):
+    """x [N, C] float32, index [...] int in [0, N) -> x[index] [..., C], whose gradient w.r.t. x sums by
+    ``exact_scatter_add`` (repeatable on GPUs) instead of a float scatter-add."""
+    return x[index]
+
+
+def _gather_fwd(x, index):
+    return x[index], (index, x.shape[0])
+
+
+def _gather_bwd(residuals, grad):
+    index, n = residuals
+    return exact_scatter_add(index, grad, n).astype(grad.dtype), None
+
+
+gather_rows.defvjp(_gather_fwd, _gather_bwd)
 
 
 def _edge_input(pair, constant, neighbours, node_terms):
@@ -33,8 +80,7 @@ def incoming_effects(pair, constant, neighbours, edge_mask, node_terms):
     k <= 127: a quarter of a float32 count's memory traffic), so the gradient w.r.t. r is the incoming gradient times
     that count, with no pass over the edges. The only per-edge work of the backward pass is the senders' sum: it
     recomputes which edges are active (XLA fuses that into the scatter-add) instead of storing them, and adds the
-    per-edge gradients up in float32, straight into the odd rows of the gradient's [2N, H] view (the even rows
-    start as r's gradient), so no zeroed buffer is copied in and no concatenation follows."""
+    per-edge gradients up by sender (``exact_scatter_add``, so GPU runs repeat)."""
     return _incoming_fwd(pair, constant, neighbours, edge_mask, node_terms)[0]
 
 
@@ -52,12 +98,10 @@ def _incoming_bwd(pair, residuals, grad):
     constant, neighbours, edge_mask, node_terms, count = residuals
     active = edge_mask[..., None] & (_edge_input(pair, constant, neighbours, node_terms) > 0)
     per_edge = jnp.where(active, grad[:, None, :], 0.0)  # [N, k, H] float32
-    n, h = grad.shape
-    grad_receivers = grad * count.astype(jnp.float32)
-    start = jnp.stack([grad_receivers, jnp.zeros_like(grad)], axis=1).reshape(2 * n, h)  # rows: r_0, s_0, r_1, ...
-    grad_terms = start.at[2 * neighbours + 1].add(per_edge).reshape(n, 2 * h)  # the senders' sum into rows 2j + 1
+    grad_senders = exact_scatter_add(neighbours, per_edge, grad.shape[0])
+    grad_terms = jnp.concatenate([grad * count.astype(jnp.float32), grad_senders], axis=1)  # [N, 2H]: r | s
     grad_constant = per_edge.astype(constant.dtype)
-    if pair:
+    if pair:  # each (receiver, sender) pair has one real edge (repeats are masked, adding 0): the same in any order
         rows = jnp.arange(neighbours.shape[0])[:, None]
         grad_constant = jnp.zeros_like(constant).at[rows, neighbours].add(grad_constant)
     return grad_constant, None, None, grad_terms.astype(node_terms.dtype)
@@ -91,7 +135,7 @@ class GNSStep(nnx.Module):
         h = nodes.shape[-1]
         w = self.edge_in.kernel[...]
         terms = nodes @ jnp.concatenate([w[h:2 * h], w[2 * h:]], axis=1)  # [N, 2H]: receiver | sender
-        hidden = edges @ w[:h] + terms[:, None, :h] + terms[neighbours, h:] + self.edge_in.bias[...]
+        hidden = edges @ w[:h] + terms[:, None, :h] + gather_rows(terms[:, h:], neighbours) + self.edge_in.bias[...]
         message = jnp.where(valid, self.edge_norm(self.edge_out(nnx.relu(hidden))), 0.0)
         summed = jnp.sum(message, axis=1)
         nodes = nodes + self.node_norm(self.node_mlp(jnp.concatenate([nodes, summed], -1)))
