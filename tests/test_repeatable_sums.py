@@ -28,9 +28,8 @@ def test_sum_is_within_float32_error_of_a_numpy_loop(seed):
     ours = np.asarray(exact_scatter_add(index, values, 6))
     total = np.abs(values.astype(np.float64)).sum(axis=0)
     counts = np.bincount(index, minlength=6)[:, None]
-    # each term rounded to 2^-(60 - log2(terms)) of twice the channel's total, then the sum rounded to float32
-    step = 2.0 ** -(2 * FIXED_POINT_BITS - int(len(index) - 1).bit_length()) * 2 * total
-    bound = counts * step + np.abs(reference) * 2.0 ** -23
+    # each term rounded to 2^-31 of twice the channel's total, then the sum rounded to float32
+    bound = counts * 2.0 ** -FIXED_POINT_BITS * total + np.abs(reference) * 2.0 ** -23
     assert np.all(np.abs(ours - reference) <= bound)
 
 

@@ -28,6 +28,7 @@ import jax
 import jax.numpy as jnp
 
 from dynres_jax.control.goals import Goal, KindGoals, squared_distance_to
+from dynres_jax.models.propagation import gather_rows
 from dynres_jax.perception import foreground
 from dynres_jax.sim.camera import Camera, Observation
 
@@ -81,13 +82,14 @@ def _cost(pixels, valid, goal: Goal):
     active = goal.sample_mask & (jnp.arange(Q) < SAMPLES_PER_PARTICLE * omega)
 
     def nearest(q):
-        """|p - q| to the nearest valid p: found without gradients, then differentiated through that one p (so the
-        backward pass touches one point per goal sample, not all P; a tie sends the gradient to the lower index)."""
+        """The index of the valid p nearest to q, found without gradients (a tie goes to the lower index)."""
         u, v = jax.lax.stop_gradient(pixels).T  # [P] each: a sum of two squares, not a reduction over an axis of 2
-        d2 = jnp.where(valid, jnp.square(u - q[0]) + jnp.square(v - q[1]), jnp.inf)
-        return _root(jnp.sum(jnp.square(pixels[_argmin_nonnegative(d2)] - q)))
+        return _argmin_nonnegative(jnp.where(valid, jnp.square(u - q[0]) + jnp.square(v - q[1]), jnp.inf))
 
-    nearest_distance = jax.lax.map(nearest, goal.samples, batch_size=max(1, min(Q, MAX_PAIRS // P)))
+    index = jax.lax.map(nearest, goal.samples, batch_size=max(1, min(Q, MAX_PAIRS // P)))  # [Q]
+    # differentiated through the one nearest p of each goal sample (the backward pass touches Q points, not Q x P),
+    # its gradients summed repeatably (``gather_rows``)
+    nearest_distance = _root(jnp.sum(jnp.square(gather_rows(pixels, index) - goal.samples), axis=-1))
     coverage_term = jnp.sum(jnp.where(active, nearest_distance, 0.0))
     return (sdf_term + coverage_term) / jnp.maximum(omega, 1)
 
