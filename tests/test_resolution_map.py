@@ -8,13 +8,13 @@ import numpy as np
 from dynres_jax.control.budget import TimingTable, reference_table
 
 
-def _surface(folder, c_star, d0, timing: TimingTable, omegas=(25, 50), steps=(1, 10)):
+def _surface(folder, c_star, d0, timing: TimingTable, omegas=(25, 50), steps=(1, 10), samples=4):
     """A tradeoff --surface folder of two scene kinds, splitting the scenes of c_star [ω, N, S] in halves."""
     os.makedirs(folder)
     half = c_star.shape[-1] // 2
     for k, cols in enumerate((slice(0, half), slice(half, None))):
         np.savez(os.path.join(folder, f"surface_{k}.npz"), c_star=c_star[..., cols], d0=d0[cols])
-    summary = dict(omegas=list(omegas), steps=list(steps), buckets=[25, 50], samples=4, device="test",
+    summary = dict(omegas=list(omegas), steps=list(steps), buckets=[25, 50], samples=samples, device="test",
                    timing=timing.to_json(), kinds={"a": {}, "b": {}})
     with open(os.path.join(folder, "surface.json"), "w") as f:
         json.dump(summary, f)
@@ -63,3 +63,19 @@ def test_the_reference_pricing_prices_each_omega_and_the_map_is_written(script, 
     assert len(result) == 2 and [r["regret"] for r in result["ours (M = 4, test)"]] == [0.5, 0.0]
     assert (tmp_path / "map" / "map.png").stat().st_size > 0
     assert "| 0.05 | 25 |" in open(tmp_path / "map" / "map.md").read()
+
+
+def test_samples_or_steps_pairs_equal_work_by_hand(script, tmp_path):
+    """Surfaces at M = 2 and 4 with N = 1 and 2: only the work 4 is reached twice, by 2 x 2 and 4 x 1; the difference
+    is c*(4 x 1) - c*(2 x 2) per scene, by hand."""
+    m = script("samples_or_steps")
+    small = C_STAR  # M = 2: [ω, N, S]
+    large = C_STAR[:, ::-1] + 1.0  # M = 4: c*(N = 1) is small's c*(N = 2) + 1
+    runs = {2: m.load(_surface(tmp_path / "m2", small, D0, TABLE, steps=(1, 2), samples=2)),
+            4: m.load(_surface(tmp_path / "m4", large, D0, TABLE, steps=(1, 2), samples=4))}
+    assert m.pairs_by_work(runs) == {4: [(2, 1), (4, 0)]}
+    rows = m.compare(runs, np.random.default_rng(0))
+    assert [(r["omega"], r["work"]) for r in rows] == [(25, 4), (50, 4)]
+    for r, omega in zip(rows, range(2), strict=True):
+        assert r["samples_minus_steps"] == 1.0 and r["ci95"] == [1.0, 1.0]
+        assert r["means"] == {"2x2": small[omega, 1].mean(), "4x1": small[omega, 1].mean() + 1.0}
