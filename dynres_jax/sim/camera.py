@@ -51,17 +51,27 @@ def check_image_size(width: int, height: int) -> None:
         raise ValueError(f"image size {width} x {height} pixels is outside [{MIN_IMAGE}, {MAX_IMAGE}] per side")
 
 
+MIN_FOV_DEG, MAX_FOV_DEG = 1.0, 170.0  # fields of view (each axis) that real cameras have
+
+
 def check_geometry(K: np.ndarray, rotation: np.ndarray, centre: np.ndarray, width: int, height: int) -> None:
     """ValueError naming what no real camera over the table has: a rotation that is not a rotation (orthonormal
-    within 1e-3, determinant +1), non-positive focal lengths, a K whose last row is not (0, 0, 1) or whose principal
-    point lies outside the image, a camera below the table (centre z <= 0) or one that does not look down at it."""
+    within 1e-3, determinant +1), non-positive focal lengths or ones that give a field of view outside
+    [MIN_FOV_DEG, MAX_FOV_DEG], a K with skew or whose last row is not (0, 0, 1) or whose principal point lies outside
+    the image, a camera below the table (centre z <= 0) or one that does not look down at it."""
     if not np.allclose(rotation.T @ rotation, np.eye(3), atol=1e-3) or np.linalg.det(rotation) < 0:
         raise ValueError(f"camera: rotation must be a rotation matrix (orthonormal, determinant +1), got "
                          f"{np.round(rotation, 4).tolist()}")
     if not (K[0, 0] > 0 and K[1, 1] > 0):
         raise ValueError(f"camera: K's focal lengths must be positive pixels, got fx = {K[0, 0]:g}, fy = {K[1, 1]:g}")
-    if not np.allclose(K[2], [0, 0, 1]) or K[1, 0] != 0:
-        raise ValueError(f"camera: K must be [[fx, s, cx], [0, fy, cy], [0, 0, 1]], got {K.tolist()}")
+    if not np.allclose(K[2], [0, 0, 1]) or K[1, 0] != 0 or K[0, 1] != 0:
+        raise ValueError(f"camera: K must be [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] (a pinhole without skew: the "
+                         f"projection uses fx, fy, cx and cy only), got {K.tolist()}")
+    fov = np.degrees(2 * np.arctan2([width / 2, height / 2], [K[0, 0], K[1, 1]]))
+    if not np.all((MIN_FOV_DEG <= fov) & (fov <= MAX_FOV_DEG)):
+        raise ValueError(f"camera: K's focal lengths fx = {K[0, 0]:g}, fy = {K[1, 1]:g} px give a {fov[0]:.3g} x "
+                         f"{fov[1]:.3g} degree field of view on a {width} x {height} image; a real camera's lies in "
+                         f"[{MIN_FOV_DEG:g}, {MAX_FOV_DEG:g}] (are they in pixels?)")
     if not (0 <= K[0, 2] <= width and 0 <= K[1, 2] <= height):
         raise ValueError(f"camera: K's principal point ({K[0, 2]:g}, {K[1, 2]:g}) lies outside the {width} x {height} "
                          "image")
