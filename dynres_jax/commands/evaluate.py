@@ -253,9 +253,8 @@ def build_parser():
                         help="a CPU smoke run: 64 x 64 images; unless given, " + ", ".join(
                             f"--{k.replace('_', '-')} {v}" for k, v in QUICK.items()))
     parser.add_argument("--deterministic", action="store_true",
-                        help="GPU: XLA's deterministic kernels for every op (scatters without atomics); the "
-                             "planner repeats bit for bit without it, this covers the rest (MJX engines); slower "
-                             "(docs/repeat)")
+                        help="GPU: XLA's deterministic kernels for every op; the planner repeats without it, "
+                             "this covers the rest (MJX engines); slower (docs/repeat)")
     distributed.add_args(parser)
     return parser
 
