@@ -42,14 +42,3 @@ def script():
         return module
 
     return load
-
-
-# Files that take a minute or more on the 2-core CPU (serial seconds, 2026-11-27), run first: the two workers take
-# whole files (pyproject's addopts), so a long file started last would leave one worker idle at the end.
-LONG_FILES = ("test_distributed.py", "test_mpc.py", "test_loop_reference.py", "test_adaptive.py",
-              "test_task_commands.py", "test_notebooks.py")
-
-
-def pytest_collection_modifyitems(items):
-    rank = {name: i for i, name in enumerate(LONG_FILES)}
-    items.sort(key=lambda item: rank.get(item.path.name, len(rank)))  # stable: every file keeps its own order
