@@ -10,6 +10,8 @@
 # 3. experiments.benchmark warp alone on the machine: whole pushes/s against C MuJoCo on every host core.
 # 4. Closed-loop Gather in the C scene with w and with c (scripts/gpu_ladder.sh: ω = 50, 50 x 100, seeds from 5000):
 #    M&M COUNT episodes and almond 64, paired (episode i is the same pile and goal for both models).
+# 5. mix (issue 50, not in the default STAGES): the same DataConfig (seed 12, EPISODES episodes) end to end, start-up
+#    and compiles included, by C workers on every host core alone, then by Warp with C workers on the other cores.
 # $WORK/results.tar.gz (logs, runs: the study, the benchmark, the models, closed-loop folders) after every stage;
 # $WORK/done at the end; a stage whose output exists is skipped. Env: WORK, EPISODES (1024), STEPS (14000), COUNT
 # (256), C_WORKERS (6), BENCH_FLAGS (--worlds 2048 8192 --graph-modes WARP JAX), DATA_FLAGS, STAGES (engine data
@@ -56,6 +58,17 @@ if stage loop; then
     "2 gather almond 50 64 $WORK/runs/c/ckpt" "3 gather almond 50 64 $WORK/runs/w/ckpt" > "$jobs"
   OUT=$WORK/runs/loop WORK=$WORK/ladder JOBS=$jobs bash scripts/gpu_ladder.sh > "$WORK/logs/loop.log" 2>&1
   log "closed loop: $(grep -c done "$WORK/logs/loop.log") jobs done"
+  pack
+fi
+if stage mix; then
+  for name in Calone WC; do
+    [ -f "$WORK/data/$name/summary.json" ] && continue
+    t0=$(date +%s.%N)
+    if [ $name = Calone ]; then gen Calone 12 128 "$(nproc)" --backend mujoco
+    else gen WC 12 128 1 --backend warp --cpu-workers $(($(nproc) - 1)); fi
+    log "mix $name: $(python -c "print(round($(date +%s.%N) - $t0, 1))") s end to end," \
+      "$(python -c "import json; print(json.load(open('$WORK/data/$name/summary.json'))['shards_by_engine'])")"
+  done
   pack
 fi
 log "done"

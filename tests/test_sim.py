@@ -8,7 +8,7 @@ import pytest
 
 from dynres_jax.config import KINDS, CameraConfig, PileConfig, PushConfig, SceneConfig, SimConfig
 from dynres_jax.sim.camera import Camera
-from dynres_jax.sim.env import PileEnv
+from dynres_jax.sim.env import PileEnv, traced_template
 from dynres_jax.sim.scene import GROUP_PIECES, build_scene
 
 SMALL_PUSH = PushConfig(max_length=0.1, settle_time=0.06)
@@ -158,6 +158,16 @@ def test_traced_nan_action_flags_the_world_broken(envs, pushed):
     s = jax.jit(env.push)(pushed["mjx"][0], jnp.array([0.0, 0.0, jnp.nan, 0.0]))
     assert bool(s.broken)
     assert np.all(np.isfinite(np.asarray(s.pos)))
+
+
+def test_traced_template_rebuilds_zeros_inside_the_trace_not_as_constants():
+    data0 = {"contacts": jnp.zeros((4096, 8)), "qpos0": jnp.arange(3.0), "mixed": jnp.array([0.0, 1.0])}
+    template = traced_template(data0)
+    jax.tree.map(np.testing.assert_array_equal, jax.jit(template)(), data0)  # equal values
+    captured = jax.make_jaxpr(lambda: data0)().consts  # the plain closure: every array is a constant
+    rebuilt = jax.make_jaxpr(template)().consts
+    assert max(c.size for c in captured) == 4096 * 8
+    assert max((np.size(c) for c in rebuilt), default=0) == 3  # only the non-zero arrays stay constants
 
 
 def test_unknown_backend():
