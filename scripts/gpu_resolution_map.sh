@@ -4,8 +4,11 @@
 # PLANNERS and sample count of SAMPLES, all at once, one process each on GPU i mod the GPU count, each with its share
 # of the host's cores; then scripts/resolution_map.py prices every surface at budgets of 0.03-2 s and writes the map.
 #   OUT=/root/map bash scripts/gpu_resolution_map.sh
-# Env: OUT, SCENES (128), SEED (63000: fresh), SAMPLES ("20 50 200"), PLANNERS ("ours reference"), FLAGS (more
-# tradeoff flags). A CPU dry run: GPUS=1 SCENES=quick SAMPLES=4 (tradeoff's --quick sizes). A finished surface is
+# Env: OUT, SCENES (128), SEED (63000: fresh), SAMPLES ("20 50 200"), PLANNERS ("ours reference"; also
+# reference-starts, reference-lr, reference-pricing: the authors' planner with that one option ours, for the
+# attribution), FLAGS (more tradeoff flags). The attribution (issue 51), 4 surfaces at M = 50 on fresh scenes:
+#   OUT=/root/attr SAMPLES=50 SEED=65000 PLANNERS="reference reference-starts reference-lr reference-pricing" \
+#     bash scripts/gpu_resolution_map.sh A CPU dry run: GPUS=1 SCENES=quick SAMPLES=4 (tradeoff's --quick sizes). A finished surface is
 # kept on a rerun.
 # $OUT/results.tar.gz after every surface.
 set -uo pipefail
@@ -23,7 +26,14 @@ for planner in "${planners[@]}"; do
   for m in "${samples[@]}"; do
     name=${planner}_M${m}; runs+=("$OUT/$name")
     flags="--scenes $SCENES --samples $m"; [ "$SCENES" = quick ] && flags="--quick"
-    [ "$planner" = reference ] && flags="$flags --reference-planner --resamples 1"
+    case $planner in  # each reverted option takes our planner's value (planner_args.PLANNER_OPTIONS)
+      ours) ;;
+      reference) flags="$flags --reference-planner --resamples 1" ;;
+      reference-starts) flags="$flags --reference-planner --resamples 1 --starts pile" ;;
+      reference-lr) flags="$flags --reference-planner --resamples 1 --lr 0.02" ;;
+      reference-pricing) flags="$flags --reference-planner --resamples 1 --pricing measured --buckets 16 32 64 100" ;;
+      *) echo "unknown planner $planner"; exit 2 ;;
+    esac
     echo "$(date +%T) $name on GPU $((i % gpus)), $workers workers"
     # shellcheck disable=SC2086
     ( CUDA_VISIBLE_DEVICES=$((i % gpus)) XLA_PYTHON_CLIENT_MEM_FRACTION=$fraction python -m experiments.tradeoff \

@@ -2,6 +2,7 @@
 
 import json
 import os
+import time
 
 import numpy as np
 import pytest
@@ -12,6 +13,7 @@ from dynres_jax.control.budget import TimingTable, bucket_for
 from dynres_jax.control.choosers import best_of
 from dynres_jax.learn import labels as labels_lib
 from dynres_jax.learn import regressor as g_training
+from dynres_jax.sim import engines
 
 QUICK = ["--quick", "--dynamics", "sweep", "--workers", "2"]
 # A hand-made timing table: under a 20 ms budget, buckets 16, 32, 64, 100 afford 10, 5, 2 and 1 Adam steps
@@ -73,6 +75,37 @@ def test_labels_follow_the_bo_recipe_and_resume(labels, timing, capsys):
     with pytest.raises(SystemExit):  # other settings are refused, naming what differs, never mixed into the set
         label_resolution.main(["--out", out, *QUICK, *timing, "--seed", "5"])
     assert "--seed 0 there, 5 here" in capsys.readouterr().err
+
+
+def test_c_workers_label_shards_beside_an_engine_of_c_physics(labels, timing, tmp_path, monkeypatch, capsys):
+    """``--cpu-workers``: C workers label shards from the same list as a JAX engine of C's physics (Warp; here a
+    stand-in row: C MuJoCo in this process). Each engine labels one of the two shards and records it, and every shard
+    equals the one-engine run's (the same physics, scenes and keys). Beside an engine of another physics: refused."""
+    row = engines.Engine("c-here", "mujoco", False, None, "C MuJoCo in this process, for Warp", c_physics=True)
+    monkeypatch.setitem(engines.ENGINES, row.name, row)
+    monkeypatch.setattr(engines, "NAMES", (*engines.NAMES, row.name))
+    label_shard = labels_lib.label_shard
+
+    def slow(*args, **kwargs):  # a shard takes a second more, so each producer takes one before the other ends
+        time.sleep(1.0)
+        return label_shard(*args, **kwargs)
+
+    monkeypatch.setattr(label_resolution, "label_shard", slow)
+    out = str(tmp_path / "mixed")
+    label_resolution.main(["--out", out, *QUICK, *timing, "--backend", "c-here", "--cpu-workers", "1"])
+    made_by = set()
+    for shard in ("shard_00000.npz", "shard_00001.npz"):
+        made, alone = np.load(os.path.join(out, shard)), np.load(os.path.join(labels[0], shard))
+        made_by.add(str(made["engine"]))
+        assert set(made.files) == set(alone.files)
+        for name in alone.files:
+            if name != "engine":
+                np.testing.assert_array_equal(made[name], alone[name], err_msg=name)
+    assert made_by == {"c-here", "mujoco"}
+    with pytest.raises(SystemExit):
+        label_resolution.main(["--out", str(tmp_path / "c"), *QUICK, *timing, "--cpu-workers", "1"])
+    assert "C's physics" in capsys.readouterr().err
+    assert not (tmp_path / "c").exists()  # refused before any work
 
 
 def test_every_omega_of_a_scene_is_planned_from_the_same_keys(labels):

@@ -11,6 +11,7 @@ import shutil
 import subprocess
 import sys
 import textwrap
+import threading
 import time
 
 import jax
@@ -434,6 +435,26 @@ def test_engines_of_a_run():
         plain = data.shard_sim_config(data.replace(cfg, backend="mujoco"), shard)
         assert fast.scene == SceneConfig.fast(plain.scene.kinds, plain.scene.pieces)
         assert (fast.pile, fast.camera) == (plain.pile, plain.camera)
+
+
+def test_fill_makes_each_shard_once_and_stops_on_an_error():
+    made, lock = [], threading.Lock()
+
+    def producer(name, fail_at=None):
+        def produce(i):
+            time.sleep(0.01)
+            if i == fail_at:
+                raise RuntimeError(f"shard {i}")
+            with lock:
+                made.append((name, i))
+        return produce
+
+    shards.fill(list(range(12)), [producer("a"), producer("b")])
+    assert sorted(i for _, i in made) == list(range(12)) and {n for n, _ in made} == {"a", "b"}
+    made.clear()
+    with pytest.raises(RuntimeError, match="shard 3"):
+        shards.fill(list(range(40)), [producer("a", fail_at=3), producer("b", fail_at=3)])
+    assert len(made) < 10  # the other producer stopped taking shards
 
 
 def test_c_workers_fill_shards_beside_a_jax_engine_of_c_physics(generated, tmp_path, monkeypatch):

@@ -19,7 +19,9 @@ shards 2s and 2s + 1 share their goals and differ in the pile (spread over the b
 so near the goal). With ``--mid-episode K`` each scene first runs K steps of the closed loop towards its goal, so the
 labels cover the states adaptive ω meets mid-episode (the pairs then no longer share their piles).
 Each shard is written atomically (``shard_NNNNN.npz``) and a rerun skips finished shards. --backend: the engine that
-executes the planned pushes (default "mujoco", C worker processes; "mjx-fast" and "auto" as in generate_data). Several
+executes the planned pushes (default "mujoco", C worker processes; "mjx-fast" and "auto" as in generate_data); with
+--backend warp, ``--cpu-workers K`` C processes label shards beside it, whichever engine is free taking the next (each
+shard records its ``engine``). Several
 processes share a run through jax.distributed (a launcher, or --coordinator, --num-processes, --process-id): process
 I labels shards I, I + K, ... into the same --out.
 """
@@ -27,6 +29,7 @@ I labels shards I, I + K, ... into the same --out.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import functools
 import os
 import time
@@ -47,7 +50,7 @@ from dynres_jax.commands.planner_args import (
 from dynres_jax.commands.task import check_pile, load_model
 from dynres_jax.config import KINDS, OMEGA_MAX, OMEGA_MIN, SceneConfig
 from dynres_jax.io import files
-from dynres_jax.io.shards import complete_shards, read_shard, save_npz, shard_path
+from dynres_jax.io.shards import complete_shards, fill, read_shard, save_npz, shard_path
 from dynres_jax.learn.data import shards_todo
 from dynres_jax.learn.labels import MID_EPISODE_OMEGA, LabelConfig, label_shard, scene_config, shard_scenes
 from dynres_jax.models.registry import SHIPPED_DYNAMICS
@@ -72,6 +75,9 @@ def build_parser():
     parser.add_argument("--dynamics", default="auto", choices=["auto", "learned", "sweep"])
     parser.add_argument("--workers", type=checks.count(1, 1024), default=None,
                         help="C engine processes (default: every core)")
+    parser.add_argument("--cpu-workers", type=checks.count(0, 1024), default=0,
+                        help="C MuJoCo processes labelling shards beside --backend warp, whichever engine is free "
+                             "(default 0: the engine alone)")
     parser.add_argument("--seed", type=checks.seed, default=0, help="the scenes (piles and goals)")
     parser.add_argument("--plan-seed", type=checks.seed, default=None,
                         help="the plans and the BO's random draws (default: --seed + 1); the same --seed with another "
@@ -99,6 +105,7 @@ def main(argv=None):
     load_timing(parser, args)
     check_pile(parser, (args.kind,), (args.pieces,))
     try:
+        engines.check_beside(args.backend, args.cpu_workers)
         cfg = LabelConfig(kind=args.kind, pieces=args.pieces, batch=args.batch, evals=args.evals, repeats=args.repeats,
                           seed=args.seed, plan_seed=args.plan_seed, mid_episode=args.mid_episode, quick=args.quick,
                           backend=args.backend)
@@ -115,7 +122,8 @@ def main(argv=None):
     t0 = time.perf_counter()
     planner = functools.partial(mpc_config, args=args)
     workers = process_pool(args.workers) if engines.uses_workers(args.backend) else None
-    with workers or contextlib.nullcontext() as processes:
+    helpers = process_pool(args.cpu_workers) if args.cpu_workers and todo else None
+    with workers or contextlib.nullcontext() as processes, helpers or contextlib.nullcontext():
         timing = None
         # One table for the run, measured on the first scene to do if not given; in a job every process takes part
         # (process 0 measures, the rest wait for its table), whether or not it has shards left.
@@ -125,8 +133,18 @@ def main(argv=None):
             start, _, goals, _ = shard_scenes(cfg, first, pool)
             timing = timing_table(args, args.out, start.obs, goals, dynamics, planner(pool.env), pool.camera,
                                   [OMEGA_MIN])
-        for s in tqdm(todo, desc="label shards", unit="shard"):
-            save_npz(shard_path(args.out, s), label_shard(cfg, s, dynamics, planner, processes, timing))
+        bar = tqdm(total=len(todo), desc="label shards", unit="shard")
+
+        def producer(engine_cfg: LabelConfig, pool_processes):
+            def produce(s: int) -> None:
+                save_npz(shard_path(args.out, s), label_shard(engine_cfg, s, dynamics, planner, pool_processes, timing))
+                bar.update()
+
+            return produce
+
+        fill(todo, [producer(cfg, processes)]
+             + ([producer(dataclasses.replace(cfg, backend="mujoco"), helpers)] if helpers else []))
+        bar.close()
     minutes = (time.perf_counter() - t0) / 60
     distributed.barrier(f"label {os.path.abspath(args.out)}")
     labels = np.concatenate([read_shard(p, ("label",))["label"] for p in complete_shards(args.out, "--out", "labels")])

@@ -8,8 +8,10 @@ import glob
 import json
 import math
 import os
+import threading
 import zipfile
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
@@ -36,6 +38,30 @@ def save_npz(path: str, arrays: dict) -> None:
 
 def shard_path(out_dir: str, shard: int) -> str:
     return os.path.join(out_dir, f"shard_{shard:05d}.npz")
+
+
+def fill(todo: list[int], producers: list[Callable[[int], None]]) -> None:
+    """Make every shard of ``todo`` once, in order, each by whichever producer (shard index -> None, e.g. the GPU
+    engine and the C workers beside it) is free: each runs on its own thread, taking the next index from one list.
+    A producer that raises stops every producer taking more, and its error is raised once the others finish."""
+    queue, lock = list(reversed(todo)), threading.Lock()
+
+    def run(produce: Callable[[int], None]) -> None:
+        while True:
+            with lock:
+                if not queue:
+                    return
+                i = queue.pop()
+            try:
+                produce(i)
+            except BaseException:
+                with lock:
+                    queue.clear()
+                raise
+
+    with ThreadPoolExecutor(len(producers)) as threads:
+        for done in [threads.submit(run, p) for p in producers]:
+            done.result()
 
 
 def complete_shards(folder: str, flag: str = "--data", kind: str = "data") -> list[str]:

@@ -64,7 +64,7 @@ from dynres_jax.config import (
     replace,
 )
 from dynres_jax.io.files import TMP_PREFIX, write_json, write_text
-from dynres_jax.io.shards import SHARD_GLOB, read_shard, save_npz, shard_path
+from dynres_jax.io.shards import SHARD_GLOB, fill, read_shard, save_npz, shard_path
 from dynres_jax.learn import on_policy
 from dynres_jax.sim import engines, warp
 from dynres_jax.sim import pool as pools
@@ -297,12 +297,11 @@ def finish_shard(arrays: dict, n_keep: int, drop_broken: bool) -> dict:
 def check_helpers(config: DataConfig, cpu_workers: int) -> DataConfig | None:
     """The C engine's DataConfig for ``cpu_workers`` helper processes beside ``config``'s engine (None for none);
     ValueError unless that engine is a JAX engine of C's physics and the data are random pushes."""
+    engines.check_beside(config.backend, cpu_workers)
     if cpu_workers == 0:
         return None
-    engine = engines.ENGINES[config.backend]
-    if cpu_workers < 0 or engine.workers or not engine.c_physics or config.planned > 0:
-        raise ValueError(f"C workers ({cpu_workers}) fill shards beside a JAX engine of C's physics (warp), on random "
-                         f"pushes only; got backend {config.backend!r}, planned {config.planned}")
+    if config.planned > 0:
+        raise ValueError(f"C workers ({cpu_workers}) fill shards of random pushes only; got planned {config.planned}")
     return replace(config, backend="mujoco")
 
 
@@ -345,38 +344,37 @@ def generate(config: DataConfig, out_dir: str, devices=None, progress: bool = Tr
 
     todo = shards_todo(out_dir, config.n_shards, part)
     mine = len(range(part[0], config.n_shards, part[1]))
-    start, queue, lock, frames = time.perf_counter(), list(reversed(todo)), threading.Lock(), []
+    start, lock, frames = time.perf_counter(), threading.Lock(), []
     made = {config.backend: 0, **({helper.backend: 0} if helper else {})}
     bar = tqdm(total=mine, initial=mine - len(todo), unit="shard", desc="generate", disable=not progress)
 
-    def produce(cfg: DataConfig, pool) -> None:  # shards from the shared queue until it is empty
-        pending = None
-        while True:
-            with lock:
-                if not queue:
-                    break
-                i = queue.pop()
+    def producer(cfg: DataConfig, pool):  # an engine's shards, each written while its next one simulates
+        pending = []
+
+        def produce(i: int) -> None:
             arrays = finish_shard(simulate_shard(cfg, i, devices, pool), min(cfg.worlds, cfg.episodes - i * cfg.worlds),
                                   cfg.drop_broken)
-            if pending is not None:
-                pending.result()
-            pending = writer.submit(save_npz, shard_path(out_dir, i), arrays)
+            while pending:
+                pending.pop().result()
+            pending.append(writer.submit(save_npz, shard_path(out_dir, i), arrays))
             with lock:
                 frames.append(arrays["broken"].size)
                 made[cfg.backend] += 1
                 bar.update()
                 bar.set_postfix(kinds="+".join(arrays["kind_names"]), pieces=len(arrays["kind"]), **made)
-        if pending is not None:
-            pending.result()
+
+        return produce, pending
 
     pool = process_pool(workers) if engines.uses_workers(config.backend) and todo else None
     helpers = process_pool(cpu_workers) if helper and todo else None
-    with (ThreadPoolExecutor(1) as writer, ThreadPoolExecutor(1) as beside, pool or contextlib.nullcontext(),
-          helpers or contextlib.nullcontext()):  # write shard i while i + 1 simulates
-        side = beside.submit(produce, helper, helpers) if helpers else None
-        produce(config, pool)
-        if side is not None:
-            side.result()
+    with (ThreadPoolExecutor(2) as writer, pool or contextlib.nullcontext(), helpers or contextlib.nullcontext()):
+        producers = [producer(config, pool)] + ([producer(helper, helpers)] if helpers else [])
+        try:
+            fill(todo, [produce for produce, _ in producers])
+        finally:
+            for _, pending in producers:
+                for write in pending:
+                    write.result()
     bar.close()
     written_frames = sum(frames)
     seconds = time.perf_counter() - start

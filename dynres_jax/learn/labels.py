@@ -151,4 +151,4 @@ def label_shard(cfg: LabelConfig, shard: int, dynamics, planner: Callable[[PileE
                 omega=np.asarray(omega), c_plus=np.asarray(target), c_star=np.asarray(c_stars), d0=np.asarray(d0),
                 adam_steps=adam_steps, repeat_var=repeat_var,
                 goal_shape=shapes, layout=np.full(b, shard % 2), pile=np.arange(b) // 2, shard=np.int64(shard),
-                mid_episode=np.int64(cfg.mid_episode))
+                mid_episode=np.int64(cfg.mid_episode), engine=np.array(cfg.backend))

@@ -68,6 +68,15 @@ def sim_config(config: SimConfig, name: str) -> SimConfig:
     return dataclasses.replace(config, scene=dataclasses.replace(config.scene, **fast_fields(config.scene.kinds)))
 
 
+def check_beside(name: str, cpu_workers: int) -> None:
+    """ValueError unless ``cpu_workers`` C MuJoCo worker processes may fill shards beside the engine ``name``: none,
+    or any number beside a JAX engine of C's physics (``Engine.c_physics``, not ``workers``: Warp)."""
+    engine = ENGINES[resolve(name)]
+    if cpu_workers < 0 or (cpu_workers > 0 and (engine.workers or not engine.c_physics)):
+        raise ValueError(f"C workers ({cpu_workers}) fill shards beside a JAX engine of C's physics (warp); got "
+                         f"backend {name!r}")
+
+
 def physics(name: str) -> str:
     """``PileEnv``'s backend for the engine ``name``."""
     return ENGINES[resolve(name)].physics
