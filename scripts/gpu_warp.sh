@@ -12,6 +12,10 @@
 #    M&M COUNT episodes and almond 64, paired (episode i is the same pile and goal for both models).
 # 5. mix (issue 50, not in the default STAGES): the same DataConfig (seed 12, EPISODES episodes) end to end, start-up
 #    and compiles included, by C workers on every host core alone, then by Warp with C workers on the other cores.
+# 6. gpus (issue 50 item 4, not in the default STAGES): Warp data alone on 1, 2 and 4 GPUs of the host, one process
+#    a GPU (a jax.distributed job, scripts/gpu_job.sh), the same DataConfig (seed 13, EPISODES episodes in shards of
+#    GPU_WORLDS worlds, default 256), end to end.
+# Stages run in the order engine, data, train, loop, mix, gpus, bench (the benchmark, the longest call, last).
 # $WORK/results.tar.gz (logs, runs: the study, the benchmark, the models, closed-loop folders) after every stage;
 # $WORK/done at the end; a stage whose output exists is skipped. Env: WORK, EPISODES (1024), STEPS (14000), COUNT
 # (256), C_WORKERS (6), BENCH_FLAGS (--worlds 2048 8192 --graph-modes WARP JAX), DATA_FLAGS, STAGES (engine data
@@ -44,14 +48,6 @@ if stage data; then
   pack
 fi
 stage train && { train w W & train c C & wait; pack; }
-if stage bench && [ ! -f "$WORK/runs/bench_warp.json" ]; then
-  log "benchmark"
-  # shellcheck disable=SC2086
-  python -m experiments.benchmark warp $BENCH_FLAGS --json "$WORK/runs/bench_warp.json" \
-    > "$WORK/logs/bench.log" 2>&1
-  log "benchmark: $(grep -o 'Warp / C MuJoCo.*' "$WORK/logs/bench.log")"
-  pack
-fi
 if stage loop; then
   jobs=$WORK/loop.jobs
   printf '%s\n' "0 gather mnm 50 $COUNT $WORK/runs/c/ckpt" "1 gather mnm 50 $COUNT $WORK/runs/w/ckpt" \
@@ -69,6 +65,26 @@ if stage mix; then
     log "mix $name: $(python -c "print(round($(date +%s.%N) - $t0, 1))") s end to end," \
       "$(python -c "import json; print(json.load(open('$WORK/data/$name/summary.json'))['shards_by_engine'])")"
   done
+  pack
+fi
+if stage gpus; then
+  for g in 1 2 4; do
+    [ "$g" -le "$(nvidia-smi -L 2>/dev/null | grep -c '^GPU')" ] && [ ! -f "$WORK/data/G$g/summary.json" ] || continue
+    t0=$(date +%s.%N)
+    # shellcheck disable=SC2086
+    ( GPUS=$g PER_GPU=1; . "$(dirname "$0")/gpu_job.sh"
+      job "$WORK/logs/data_G$g.log" python -m experiments.generate_data --out "$WORK/data/G$g" --episodes "$EPISODES" \
+        --pushes 10 --worlds "${GPU_WORLDS:-256}" --seed 13 --backend warp --no-progress ${DATA_FLAGS:-} )
+    log "gpus $g: $(python -c "print(round($(date +%s.%N) - $t0, 1))") s end to end"
+  done
+  pack
+fi
+if stage bench && [ ! -f "$WORK/runs/bench_warp.json" ]; then
+  log "benchmark"
+  # shellcheck disable=SC2086
+  python -m experiments.benchmark warp $BENCH_FLAGS --json "$WORK/runs/bench_warp.json" \
+    > "$WORK/logs/bench.log" 2>&1
+  log "benchmark: $(grep -o 'Warp / C MuJoCo.*' "$WORK/logs/bench.log")"
   pack
 fi
 log "done"
