@@ -15,7 +15,10 @@
 # 6. gpus (issue 50 item 4, not in the default STAGES): Warp data alone on 1, 2 and 4 GPUs of the host, one process
 #    a GPU (a jax.distributed job, scripts/gpu_job.sh), the same DataConfig (seed 13, EPISODES episodes in shards of
 #    GPU_WORLDS worlds, default 256), end to end.
-# Stages run in the order engine, data, train, loop, mix, gpus, bench (the benchmark, the longest call, last).
+# 7. planned (issue 50 item 3, not in the default STAGES): on-policy data (--planned 0.5, the shipped policy) as made
+#    today (C workers, shards of 64 worlds: 27 frames/s in docs/model_at_scale) and by Warp in shards of PLANNED_WORLDS
+#    (default 2048) worlds, each decision batched over the whole shard; PLANNED_EPISODES (2048) episodes each.
+# Stages run in the order engine, data, train, loop, mix, gpus, planned, bench (the benchmark, the longest, last).
 # $WORK/results.tar.gz (logs, runs: the study, the benchmark, the models, closed-loop folders) after every stage;
 # $WORK/done at the end; a stage whose output exists is skipped. Env: WORK, EPISODES (1024), STEPS (14000), COUNT
 # (256), C_WORKERS (6), BENCH_FLAGS (--worlds 2048 8192 --graph-modes WARP JAX), DATA_FLAGS, STAGES (engine data
@@ -76,6 +79,17 @@ if stage gpus; then
       job "$WORK/logs/data_G$g.log" python -m experiments.generate_data --out "$WORK/data/G$g" --episodes "$EPISODES" \
         --pushes 10 --worlds "${GPU_WORLDS:-256}" --seed 13 --backend warp --no-progress ${DATA_FLAGS:-} )
     log "gpus $g: $(python -c "print(round($(date +%s.%N) - $t0, 1))") s end to end"
+  done
+  pack
+fi
+if stage planned; then
+  for name in Pc Pw; do
+    [ -f "$WORK/data/$name/summary.json" ] && continue
+    t0=$(date +%s.%N)
+    if [ $name = Pc ]; then EPISODES=${PLANNED_EPISODES:-2048} gen Pc 14 64 "$(nproc)" --backend mujoco --planned 0.5
+    else EPISODES=${PLANNED_EPISODES:-2048} gen Pw 14 "${PLANNED_WORLDS:-2048}" 1 --backend warp --planned 0.5; fi
+    log "planned $name: $(python -c "print(round($(date +%s.%N) - $t0, 1))") s end to end," \
+      "$(python -c "import json; s = json.load(open('$WORK/data/$name/summary.json')); print(s['frames'], 'frames,', round(s['samples_per_s'], 1), 'frames/s')")"
   done
   pack
 fi
