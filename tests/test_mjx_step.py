@@ -32,7 +32,7 @@ def _squeezed_world(env: PileEnv):
     qpos = env._qpos_from(jnp.asarray(xy, jnp.float32), jnp.asarray(yaw, jnp.float32))
     qvel = 0.05 * jax.random.normal(jax.random.PRNGKey(0), (env.scene.model.nv,))
     plate = jnp.array([[xy[0, 0] - half - env.config.scene.plate_thickness / 2 + 0.001, 0.0, env.plate_z]])
-    return env._data0.replace(qpos=qpos, qvel=qvel, mocap_pos=plate, mocap_quat=jnp.array([[1.0, 0, 0, 0]]))
+    return env._data0().replace(qpos=qpos, qvel=qvel, mocap_pos=plate, mocap_quat=jnp.array([[1.0, 0, 0, 0]]))
 
 
 @pytest.mark.parametrize("name", list(SCENES))

@@ -52,18 +52,6 @@ def c_rollout(model, data, plate, nthread_data=None):
     return states
 
 
-def traced_template(data0):
-    """A function returning ``data0`` (an MJX Data, or any pytree of arrays) with each all-zero array rebuilt by
-    ``jnp.zeros`` where it is called: inside ``jax.jit`` those are ops, not constants captured in the program
-    (MuJoCo Warp's contact buffers grow with the batch: 2 GB of constants at 8,192 worlds). Equal values."""
-    zero = jax.tree.map(lambda x: not bool(jnp.any(x)), data0)
-
-    def template():
-        return jax.tree.map(lambda x, z: jnp.zeros(x.shape, x.dtype) if z else x, data0, zero)
-
-    return template
-
-
 class State(NamedTuple):
     """One world. qpos [nq], qvel [nv]: MuJoCo state; pos [N, 3], mat [N, 3, 3]: piece geom poses (world, metres);
     obs: the top-down Observation (None when the env renders nothing); broken []: True once a step produced NaN,
@@ -125,7 +113,7 @@ class PileEnv:
         model = self.scene.model
         if backend == "mjx":
             self.mx = mjx.put_model(model, device=jax.local_devices()[0], impl="jax")
-            self._data0 = traced_template(mjx.make_data(self.mx, device=jax.local_devices()[0], impl="jax"))
+            self._data0 = mjx_step.traced_template(mjx.make_data(self.mx, device=jax.local_devices()[0], impl="jax"))
             if contact_jacobian == "sparse":
                 mjx_step.check_version()
                 mjx_step.check_supported(model)
@@ -135,7 +123,7 @@ class PileEnv:
             self._simulate = jax.jit(self._simulate_mjx)
         elif backend == "warp":
             self.mx, data0 = warp.put(model, self.scene.n_pieces, worlds)
-            self._data0 = traced_template(data0)
+            self._data0 = mjx_step.traced_template(data0)
             warp.warm_up(model, self.scene.n_pieces)
             self._step, self._simulate = mjx.step, jax.jit(self._simulate_mjx)
         else:

@@ -10,7 +10,8 @@ rounding (tested).
 
 ``step(m, d, dofs)`` supports what the pile scenes use: dof friction loss, contacts of dimension 1 or 3 (pyramidal or
 elliptic), the Euler integrator, no equality constraints, limits, tendons, actuators or sensors.
-``check_supported`` names whatever else a model has.
+``check_supported`` names whatever else a model has. ``traced_template``: a Data template (MJX's or MuJoCo Warp's)
+whose zero arrays are built inside the trace, not captured in the program.
 """
 
 from __future__ import annotations
@@ -129,3 +130,15 @@ def step(m, d, dofs: np.ndarray):
     d = mjx_forward.fwd_acceleration(m, d)
     d = solver.solve(m, d)
     return mjx_forward.euler(m, d)
+
+
+def traced_template(data0):
+    """A function returning ``data0`` (an MJX Data, or any pytree of arrays) with each all-zero array rebuilt by
+    ``jnp.zeros`` where it is called: inside ``jax.jit`` those are ops, not constants captured in the program
+    (MuJoCo Warp's contact buffers grow with the batch: 2 GB of constants at 8,192 worlds). Equal values."""
+    zero = jax.tree.map(lambda x: not bool(jnp.any(x)), data0)
+
+    def template():
+        return jax.tree.map(lambda x, z: jnp.zeros(x.shape, x.dtype) if z else x, data0, zero)
+
+    return template
