@@ -105,10 +105,11 @@ def test_omega_out_of_range_is_named():
 
 
 def test_batched_episodes_equal_one_at_a_time():
-    """run over EnvWorlds (MJX, vmapped over episodes) makes the same first decision as run_episode on each episode."""
+    """run over EnvWorlds (a batch of episodes; C MuJoCo here, so that no MJX compile is paid: MJX's batch equals its
+    worlds in test_pool) makes the same first decision as run_episode on each episode."""
     sim = SimConfig(scene=SceneConfig(pieces=(6,)), pile=PileConfig(layout="spread"),
                     push=PushConfig(max_length=0.1, settle_time=0.04), camera=CameraConfig(width=48, height=48))
-    env = PileEnv(sim, backend="mjx")
+    env = PileEnv(sim, backend="mujoco")
     masks = [disc_goal(env.camera, np.array(c), 0.06) for c in ([0.0, 0.0], [0.05, -0.03])]
     goals = [make_goal(m, env.camera, n_samples=32) for m in masks]
     planner = PlannerConfig(samples=4, adam_steps=5, bound=env.action_bound, max_length=0.1)

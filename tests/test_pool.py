@@ -45,7 +45,9 @@ def test_pool_names_a_bad_action():
 
 def test_mjx_pool_equals_one_mjx_world_at_a_time():
     """MJXPool: one vmapped reset and push of 2 worlds equal PileEnv's MJX backend world by world (to float32 rounding
-    of a batched program), and the pushes moved pieces; make_pool names an unknown engine."""
+    of a batched program: 590 contact steps amplify it to tens of micrometres; a world mixed up with another would be
+    centimetres off), poses and rendered observations, and the pushes moved pieces; make_pool names an unknown
+    engine."""
     pool, env = make_pool(SIM, "mjx"), PileEnv(SIM, backend="mjx")
     assert isinstance(pool, MJXPool)
     keys = jax.random.split(jax.random.PRNGKey(3), 2)
@@ -56,6 +58,9 @@ def test_mjx_pool_equals_one_mjx_world_at_a_time():
     for i, key in enumerate(keys):
         one = env.push(env.reset(key), actions[i])
         np.testing.assert_allclose(np.asarray(pushed.pos[i]), np.asarray(one.pos), atol=1e-4)
+        same = np.asarray(pushed.obs.piece[i]) == np.asarray(one.obs.piece)
+        assert same.mean() > 0.99
+        np.testing.assert_allclose(np.asarray(pushed.obs.depth[i])[same], np.asarray(one.obs.depth)[same], atol=1e-3)
     assert np.abs(np.asarray(pushed.pos) - np.asarray(states.pos)).max() > 0.005
     with pytest.raises(ValueError, match="outside the workspace"):
         pool.push(states, np.full((2, 4), 1.0, np.float32))

@@ -98,22 +98,6 @@ def test_backends_agree(pushed):
     assert np.max(np.linalg.norm(a - b, axis=1)) < 0.003
 
 
-def test_vmap_over_worlds_equals_a_loop(envs):
-    env = envs["mjx"]
-    keys = jax.random.split(jax.random.PRNGKey(3), 2)
-    states = jax.vmap(env.reset)(keys)
-    actions = jax.vmap(env.sample_push)(keys, states.pos)
-    batched = jax.vmap(env.push)(states, actions)
-    for i in range(2):
-        one = env.push(env.reset(keys[i]), actions[i])
-        # float32 reductions run in another order under vmap; 590 contact steps amplify that to tens of
-        # micrometres. A world mixed up with another would be centimetres off.
-        np.testing.assert_allclose(np.asarray(batched.pos[i]), np.asarray(one.pos), atol=5e-4)
-        same = np.asarray(batched.obs.piece[i]) == np.asarray(one.obs.piece)
-        assert same.mean() > 0.99
-        np.testing.assert_allclose(np.asarray(batched.obs.depth[i])[same], np.asarray(one.obs.depth)[same], atol=1e-3)
-
-
 def test_reset_is_reproducible_and_settled(envs):
     env = envs["mujoco"]
     a, b = env.reset(jax.random.PRNGKey(7)), env.reset(jax.random.PRNGKey(7))
