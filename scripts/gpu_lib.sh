@@ -3,6 +3,9 @@
 # DATA_FLAGS (more generate_data flags).
 mkdir -p "$WORK/runs" "$WORK/logs"
 log() { echo "$(date +%T) $*" | tee -a "$WORK/logs/stages.log"; }
+now() { date +%s.%N; }
+since() { python -c "print(round($(now) - $1, 1))"; }  # T0 (from now): seconds since, one decimal
+summary() { python -c "import json; s = json.load(open('$1/summary.json')); print($2)"; }  # DIR EXPR of s, its summary
 
 pack() {  # logs and runs (no data) into $WORK/results.tar.gz, atomically
   tar -czf "$WORK/results.tmp" -C "$WORK" logs runs 2>/dev/null

@@ -62,34 +62,34 @@ fi
 if stage mix; then
   for name in Calone WC; do
     [ -f "$WORK/data/$name/summary.json" ] && continue
-    t0=$(date +%s.%N)
+    t0=$(now)
     if [ $name = Calone ]; then gen Calone 12 128 "$(nproc)" --backend mujoco
     else gen WC 12 128 1 --backend warp --cpu-workers $(($(nproc) - 1)); fi
-    log "mix $name: $(python -c "print(round($(date +%s.%N) - $t0, 1))") s end to end," \
-      "$(python -c "import json; print(json.load(open('$WORK/data/$name/summary.json'))['shards_by_engine'])")"
+    log "mix $name: $(since "$t0") s end to end," \
+      "$(summary "$WORK/data/$name" "s['shards_by_engine']")"
   done
   pack
 fi
 if stage gpus; then
   for g in 1 2 4; do
     [ "$g" -le "$(nvidia-smi -L 2>/dev/null | grep -c '^GPU')" ] && [ ! -f "$WORK/data/G$g/summary.json" ] || continue
-    t0=$(date +%s.%N)
+    t0=$(now)
     # shellcheck disable=SC2086
     ( GPUS=$g PER_GPU=1; . "$(dirname "$0")/gpu_job.sh"
       job "$WORK/logs/data_G$g.log" python -m experiments.generate_data --out "$WORK/data/G$g" --episodes "$EPISODES" \
         --pushes 10 --worlds "${GPU_WORLDS:-256}" --seed 13 --backend warp --no-progress ${DATA_FLAGS:-} )
-    log "gpus $g: $(python -c "print(round($(date +%s.%N) - $t0, 1))") s end to end"
+    log "gpus $g: $(since "$t0") s end to end"
   done
   pack
 fi
 if stage planned; then
   for name in Pc Pw; do
     [ -f "$WORK/data/$name/summary.json" ] && continue
-    t0=$(date +%s.%N)
+    t0=$(now)
     if [ $name = Pc ]; then EPISODES=${PLANNED_EPISODES:-2048} gen Pc 14 64 "$(nproc)" --backend mujoco --planned 0.5
     else EPISODES=${PLANNED_EPISODES:-2048} gen Pw 14 "${PLANNED_WORLDS:-2048}" 1 --backend warp --planned 0.5; fi
-    log "planned $name: $(python -c "print(round($(date +%s.%N) - $t0, 1))") s end to end," \
-      "$(python -c "import json; s = json.load(open('$WORK/data/$name/summary.json')); print(s['frames'], 'frames,', round(s['samples_per_s'], 1), 'frames/s')")"
+    log "planned $name: $(since "$t0") s end to end," \
+      "$(summary "$WORK/data/$name" "s['frames'], 'frames,', round(s['samples_per_s'], 1), 'frames/s'")"
   done
   pack
 fi

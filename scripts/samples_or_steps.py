@@ -21,6 +21,7 @@ sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from resolution_map import load  # noqa: E402
 
 from dynres_jax.io import files  # noqa: E402
+from dynres_jax.stats import bootstrap_mean  # noqa: E402
 
 RESAMPLES = 2000
 
@@ -41,11 +42,9 @@ def compare(runs: dict, rng: np.random.Generator) -> list[dict]:
     for work, pairs in pairs_by_work(runs).items():
         for i, omega in enumerate(omegas):
             c = [(m, runs[m]["summary"]["steps"][j], runs[m]["c_star"][i, j]) for m, j in pairs]  # c* [S] each
-            diff = c[-1][2] - c[0][2]  # the most samples' pair - the most steps' pair
-            boot = [diff[rng.integers(0, len(diff), len(diff))].mean() for _ in range(RESAMPLES)]
+            diff = bootstrap_mean(c[-1][2] - c[0][2], rng, RESAMPLES)  # the most samples' pair - the most steps'
             rows.append(dict(omega=omega, work=work, means={f"{m}x{n}": float(v.mean()) for m, n, v in c},
-                             samples_minus_steps=float(diff.mean()),
-                             ci95=[float(np.percentile(boot, 2.5)), float(np.percentile(boot, 97.5))]))
+                             samples_minus_steps=diff["mean"], ci95=list(diff["ci95"])))
     return rows
 
 
