@@ -29,7 +29,7 @@ def warp_engine(cfg: SimConfig, worlds: int, graph_mode: str) -> PileEnv:
     from warp import JaxCallableGraphMode
 
     env = PileEnv(cfg, backend="warp", render=False, worlds=worlds)
-    if graph_mode != "WARP":  # MJX's default; replace the model before the first call traces it
+    if graph_mode != "NONE":  # the engine's default; replace the model before the first call traces it
         env.mx = warp.put(env.scene.model, env.scene.n_pieces, worlds,
                           graph_mode=JaxCallableGraphMode[graph_mode])[0]
     return env

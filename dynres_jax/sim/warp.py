@@ -66,9 +66,14 @@ def capacities(n_pieces: int, worlds: int) -> tuple[int, int]:
 
 def put(model: mujoco.MjModel, n_pieces: int, worlds: int, device=None, graph_mode=None):
     """(mx, data0): ``model`` on ``device`` as MuJoCo Warp runs it, overflow prints off, and a Data template sized
-    by ``capacities`` for ``worlds`` worlds. graph_mode: a ``warp.JaxCallableGraphMode`` (default MJX's: Warp
-    captures CUDA graphs on a GPU)."""
+    by ``capacities`` for ``worlds`` worlds. graph_mode: a ``warp.JaxCallableGraphMode``; default NONE, no CUDA
+    graphs (docs/warp: on an H200 faster than Warp's own graphs, and a graph captured while a new scene's kernels
+    load fails with Warp CUDA error 904)."""
     check_installed()
+    if graph_mode is None:
+        from warp import JaxCallableGraphMode  # only once installed
+
+        graph_mode = JaxCallableGraphMode.NONE
     device = device or jax.local_devices()[0]
     naconmax, njmax = capacities(n_pieces, worlds)
     mx = mjx.put_model(model, device=device, impl="warp", graph_mode=graph_mode)
