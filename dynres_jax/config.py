@@ -90,6 +90,15 @@ KINDS: dict[str, PieceKind] = {
         PieceKind("candy", "box", (0.011, 0.011, 0.006), 0.005, 0.6, 1e-5, (0.20, 0.45, 0.85)),
     )
 }
+
+
+def check_kind_names(kinds, field: str) -> None:
+    """A ValueError naming ``field`` and the entries of ``kinds`` that are not piece kinds (``KINDS``)."""
+    unknown = [k for k in kinds if k not in KINDS]
+    if unknown:
+        raise ValueError(f"{field}: unknown piece kind(s) {unknown}; known: {', '.join(KINDS)}")
+
+
 # Pieces per kind for piles of comparable area (the paper's piles): 100 coffee beans' footprint (the discs that hold
 # the pieces seen from above), about 0.015 m², in every kind (tests/test_tasks.py checks it on the built scenes).
 DEFAULT_PIECES: dict[str, int] = {"coffee": 100, "almond": 25, "rice": 49, "mnm": 87, "granola": 69, "candy": 20}

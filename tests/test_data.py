@@ -374,7 +374,7 @@ def test_load_pads_shards_with_fewer_pieces(generated, tmp_path):
     (dict(episodes=0), "episodes"), (dict(episodes=-3), "episodes"), (dict(worlds=0), "worlds"),
     (dict(pushes=0), "pushes"), (dict(pieces=(50, 40)), "pieces"), (dict(kinds=("pebble",)), "kinds"),
     (dict(layouts=("heap",)), "layouts"), (dict(kinds=("coffee",), two_kinds=0.5), "two_kinds"),
-    (dict(image_size=4), "image_size"),
+    (dict(image_size=4), "image_size"), (dict(scenes=-1), "scenes"),
 ])
 def test_bad_config_names_the_field(bad, message):
     with pytest.raises(ValueError, match=message):
@@ -435,6 +435,31 @@ def test_engines_of_a_run():
         plain = data.shard_sim_config(data.replace(cfg, backend="mujoco"), shard)
         assert fast.scene == SceneConfig.fast(plain.scene.kinds, plain.scene.pieces)
         assert (fast.pile, fast.camera) == (plain.pile, plain.camera)
+
+
+def test_a_run_of_few_scenes_cycles_them_and_meets_each_in_one_stretch(generated, tmp_path, monkeypatch):
+    """DataConfig.scenes = S: shard i takes scene i mod S (S of at least the shard count draws what a scene per shard
+    draws); generate hands its engine the shards grouped by scene, in shard order within a scene, so a JAX engine
+    builds and compiles each scene once."""
+    cfg = data.DataConfig(episodes=48, worlds=4, scenes=3)
+    drawn = [data.shard_sim_config(cfg, i) for i in range(12)]
+    assert all(drawn[i] == drawn[i % 3] for i in range(12)) and len({s.to_json() for s in drawn}) == 3
+    per_shard = [data.shard_sim_config(data.replace(cfg, scenes=0), i) for i in range(12)]
+    assert per_shard == [data.shard_sim_config(data.replace(cfg, scenes=12), i) for i in range(12)]
+    assert len({s.to_json() for s in per_shard}) > 3
+    assert data.by_scene(cfg, [1, 2, 3, 4, 5, 7, 9]) == [1, 4, 7, 2, 5, 3, 9]  # scenes 1, 2, 0 by first shard
+
+    order, canned = [], read(shards.shard_path(generated[0], 0))
+
+    def simulate(config, i, *args, **kwargs):  # the order shards are made in; every one the same four worlds
+        order.append(i)
+        return dict(canned)
+
+    monkeypatch.setattr(data, "simulate_shard", simulate)
+    two = data.quick_config(episodes=24, kinds=("coffee", "almond"), pieces=(6, 12), pieces_step=6, scenes=2, seed=1)
+    assert data.shard_sim_config(two, 0) != data.shard_sim_config(two, 1)
+    data.generate(two, str(tmp_path / "two"), progress=False)
+    assert order == [0, 2, 4, 1, 3, 5]
 
 
 def test_fill_makes_each_shard_once_and_stops_on_an_error():

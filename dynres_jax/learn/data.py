@@ -56,13 +56,7 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from tqdm import tqdm
 
 from dynres_jax import distributed
-from dynres_jax.config import (
-    KINDS,
-    PushConfig,
-    SimConfig,
-    check_fields,
-    replace,
-)
+from dynres_jax.config import KINDS, PushConfig, SimConfig, check_fields, check_kind_names, replace
 from dynres_jax.io.files import TMP_PREFIX, write_json, write_text
 from dynres_jax.io.shards import SHARD_GLOB, fill, read_shard, save_npz, shard_path
 from dynres_jax.learn import on_policy
@@ -78,13 +72,6 @@ PER_EPISODE = ("depth", "piece", "pos", "mat", "action", "broken", "episode")  #
 MAX_SHARD_BYTES = 16 * 2**30  # one shard is gathered in host memory before it is written
 
 
-def check_kind_names(kinds, field: str) -> None:
-    """A ValueError naming ``field`` and the entries of ``kinds`` that are not piece kinds (KIND_NAMES)."""
-    unknown = [k for k in kinds if k not in KIND_NAMES]
-    if unknown:
-        raise ValueError(f"{field}: unknown piece kind(s) {unknown}; known: {', '.join(KIND_NAMES)}")
-
-
 @dataclass(frozen=True)
 class DataConfig:
     """A data generation run.
@@ -96,6 +83,9 @@ class DataConfig:
       scene variety.
     kinds: piece kinds a shard's scene is drawn from. pieces: (min, max) piece count of a shard, drawn on a grid of
       ``pieces_step`` (each distinct scene compiles once; a coarse grid means fewer compiles).
+    scenes: how many scenes the run draws, shard i taking scene i mod ``scenes``; 0 (default): a scene per shard. A
+      JAX engine builds and compiles each distinct scene once (MuJoCo Warp: 5-70 s a new scene, docs/warp), so a run
+      of many shards on few scenes pays few compiles, for less variety of kinds, counts and layouts.
     layouts: pile layouts to draw from. two_kinds: probability that a shard mixes two kinds (half the pieces each),
       for Sort. image_size: square image side (pixels). seed: everything random derives from (seed, shard index).
     drop_broken: drop episodes whose world broke (else keep them with their ``broken`` flags).
@@ -121,6 +111,7 @@ class DataConfig:
     kinds: tuple[str, ...] = ("coffee", "almond", "rice", "mnm", "granola", "candy")
     pieces: tuple[int, int] = (40, 100)
     pieces_step: int = 10
+    scenes: int = 0
     layouts: tuple[str, ...] = LAYOUTS
     two_kinds: float = 0.25
     image_size: int = 128
@@ -137,6 +128,8 @@ class DataConfig:
             value = getattr(self, name)
             if value < 1:  # an int: check_fields
                 raise ValueError(f"DataConfig.{name} must be a positive int, got {value!r}")
+        if self.scenes < 0:  # an int: check_fields
+            raise ValueError(f"DataConfig.scenes must be 0 (a scene per shard) or a positive count, got {self.scenes}")
         if not self.kinds:
             raise ValueError("DataConfig.kinds must name at least one piece kind")
         check_kind_names(self.kinds, "DataConfig.kinds")
@@ -191,10 +184,11 @@ def concrete(config: DataConfig) -> DataConfig:
 
 
 def shard_sim_config(config: DataConfig, shard: int) -> SimConfig:
-    """The scene of shard ``shard``: kind(s), piece count and layout drawn from ``np.random.default_rng((seed,
-    shard))``; image size from the DataConfig, everything else from ``config.sim``, as the run's engine simulates it
-    (``engines.sim_config``: the fast scene's physics for "mjx-fast")."""
-    rng = np.random.default_rng((config.seed, shard))
+    """The scene of shard ``shard``: kind(s), piece count and layout drawn from ``np.random.default_rng((seed, j))``
+    with j the shard's scene (``shard``, or ``shard % scenes``); image size from the DataConfig, everything else from
+    ``config.sim``, as the run's engine simulates it (``engines.sim_config``: the fast scene's physics for
+    "mjx-fast")."""
+    rng = np.random.default_rng((config.seed, shard % config.scenes if config.scenes else shard))
     lo, hi = config.pieces
     n = int(rng.choice(np.arange(lo, hi + 1, config.pieces_step)))
     layout = str(rng.choice(config.layouts))
@@ -312,6 +306,16 @@ def shards_todo(out_dir: str, n_shards: int, part: tuple[int, int] | None = None
     return [s for s in range(i, n_shards, k) if not os.path.exists(shard_path(out_dir, s))]
 
 
+def by_scene(config: DataConfig, todo: list[int]) -> list[int]:
+    """``todo``'s shards grouped by scene, in shard order within a scene and by first shard across scenes: an engine
+    taking them in turn meets each scene in one stretch, so it builds and compiles each once (``_episode_fn`` keeps
+    only the last few)."""
+    scene, first = {i: shard_sim_config(config, i).to_json() for i in todo}, {}
+    for i in todo:
+        first.setdefault(scene[i], i)
+    return sorted(todo, key=lambda i: (first[scene[i]], i))
+
+
 def generate(config: DataConfig, out_dir: str, devices=None, progress: bool = True, workers: int | None = None,
              part: tuple[int, int] | None = None, cpu_workers: int = 0) -> dict:
     """Simulate ``config`` into ``out_dir`` (shards, config.json, summary.json), resuming a killed run: shard files
@@ -342,7 +346,7 @@ def generate(config: DataConfig, out_dir: str, devices=None, progress: bool = Tr
     else:
         write_text(config_path, config.to_json())
 
-    todo = shards_todo(out_dir, config.n_shards, part)
+    todo = by_scene(config, shards_todo(out_dir, config.n_shards, part))
     mine = len(range(part[0], config.n_shards, part[1]))
     start, lock, frames = time.perf_counter(), threading.Lock(), []
     made = {config.backend: 0, **({helper.backend: 0} if helper else {})}
@@ -380,14 +384,11 @@ def generate(config: DataConfig, out_dir: str, devices=None, progress: bool = Tr
     seconds = time.perf_counter() - start
     distributed.barrier(f"generate {os.path.abspath(out_dir)}")
 
-    totals = dict(shards=0, episodes=0, frames=0, broken_dropped=0, simulated=0)
-    for path in sorted(glob.glob(os.path.join(out_dir, SHARD_GLOB))):  # those written so far (a lone part: its own)
-        shard = read_shard(path, ("broken", "simulated", "dropped"))
-        totals["shards"] += 1
-        totals["episodes"] += len(shard["broken"])
-        totals["frames"] += shard["broken"].size
-        totals["broken_dropped"] += int(shard["dropped"])
-        totals["simulated"] += int(shard["simulated"])
+    written = [read_shard(path, ("broken", "simulated", "dropped"))  # those written so far (a lone part: its own)
+               for path in sorted(glob.glob(os.path.join(out_dir, SHARD_GLOB)))]
+    totals = dict(shards=len(written), episodes=sum(len(s["broken"]) for s in written),
+                  frames=sum(s["broken"].size for s in written), broken_dropped=sum(int(s["dropped"]) for s in written),
+                  simulated=sum(int(s["simulated"]) for s in written))
     summary = dict(totals, episodes_requested=config.episodes, pushes=config.pushes, shards_written=len(todo),
                    shards_skipped=mine - len(todo), seconds=seconds,
                    samples_per_s=written_frames / seconds if todo else 0.0,

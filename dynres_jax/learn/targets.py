@@ -19,10 +19,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from dynres_jax.config import SimConfig
+from dynres_jax.config import SimConfig, check_kind_names
 from dynres_jax.errors import InputError
 from dynres_jax.io.shards import SHARD_GLOB, iter_shards
-from dynres_jax.learn.data import KIND_NAMES, PER_EPISODE, check_kind_names
+from dynres_jax.learn.data import KIND_NAMES, PER_EPISODE
 from dynres_jax.perception import sample_particles
 from dynres_jax.sim.camera import Camera, Observation
 

@@ -43,10 +43,10 @@ from jax.sharding import Mesh
 from tqdm import tqdm
 
 from dynres_jax import distributed
-from dynres_jax.config import check_fields
+from dynres_jax.config import check_fields, check_kind_names
 from dynres_jax.errors import InputError
 from dynres_jax.io import ckpt, files
-from dynres_jax.learn import data, targets
+from dynres_jax.learn import targets
 from dynres_jax.models.cnn_dynamics import CNNDynamicsConfig
 from dynres_jax.models.dynamics import DynamicsConfig, resolution_code, rollout
 from dynres_jax.models.registry import make_model, model_class
@@ -96,7 +96,7 @@ class TrainConfig:
             raise ValueError(f"loss must be one of {', '.join(LOSSES)}, got {self.loss!r}")
         if not 1 <= self.omega_min <= self.n_max:
             raise ValueError(f"omega_min={self.omega_min} must lie in [1, n_max={self.n_max}]")
-        data.check_kind_names(self.held_out_kinds, "held_out_kinds")
+        check_kind_names(self.held_out_kinds, "held_out_kinds")
         small = {name: getattr(self, name) for name in ("steps", "batch", "horizon", "eval_every", "ckpt_every",
                                                            "val_batches", "n_max") if getattr(self, name) < 1}
         if small:
