@@ -149,6 +149,14 @@ def test_resume_rewrites_missing_shard_identically(generated, tmp_path):
     assert data.generate(QUICK, out, progress=False)["shards_written"] == 0  # complete: nothing to do
     with pytest.raises(ValueError, match="another DataConfig"):
         data.generate(data.replace(QUICK, seed=1), out, progress=False)
+    with open(os.path.join(out, "config.json")) as f:
+        begun = json.load(f)
+    del begun["scenes"]  # a run begun before DataConfig.scenes existed resumes, as of the field's default only
+    with open(os.path.join(out, "config.json"), "w") as f:
+        json.dump(begun, f)
+    assert data.generate(QUICK, out, progress=False)["shards_written"] == 0
+    with pytest.raises(ValueError, match="another DataConfig"):
+        data.generate(data.replace(QUICK, scenes=2), out, progress=False)
 
 
 def test_a_part_makes_only_its_shards_bit_for_bit(generated, tmp_path):

@@ -339,8 +339,8 @@ def generate(config: DataConfig, out_dir: str, devices=None, progress: bool = Tr
             os.unlink(leftover)
     config_path = os.path.join(out_dir, "config.json")
     if os.path.exists(config_path):
-        with open(config_path) as f:
-            if f.read() != config.to_json():
+        with open(config_path) as f:  # a field added since the run began counts as its default
+            if {**json.loads(DataConfig().to_json()), **json.load(f)} != json.loads(config.to_json()):
                 raise ValueError(f"{out_dir} holds data of another DataConfig (see its config.json); resume with "
                                  "the same config or write to a new folder")
     else:
