@@ -103,15 +103,14 @@ def check_overflow(flags, n_pieces: int) -> None:
 @functools.lru_cache(maxsize=8)
 def _warmed(key) -> bool:
     model, n_pieces = key
-    from warp import JaxCallableGraphMode  # only once installed (check_installed)
-
-    mx, d = put(model, n_pieces, 1, graph_mode=JaxCallableGraphMode.NONE)
+    mx, d = put(model, n_pieces, 1)  # no graph captured
     jax.block_until_ready(jax.jit(mjx.step)(mx, d).qpos)
     return True
 
 
 def warm_up(model: mujoco.MjModel, n_pieces: int) -> None:
     """Compile and load MuJoCo Warp's kernels for ``model`` with one step outside CUDA graph capture (once per
-    model and process): a graph captured while kernels load fails."""
+    model and process): a graph captured while kernels load fails (the benchmark's WARP mode; ``put``'s default
+    captures none, and kernels a larger batch adds still load on its first call)."""
     if jax.default_backend() == "gpu":
         _warmed((model, n_pieces))
