@@ -85,7 +85,8 @@ class DataConfig:
       ``pieces_step`` (each distinct scene compiles once; a coarse grid means fewer compiles).
     scenes: how many scenes the run draws, shard i taking scene i mod ``scenes``; 0 (default): a scene per shard. A
       JAX engine builds and compiles each distinct scene once (MuJoCo Warp: 5-70 s a new scene, docs/warp), so a run
-      of many shards on few scenes pays few compiles, for less variety of kinds, counts and layouts.
+      of many shards on few scenes pays few compiles, for less variety of kinds, counts and layouts (and with
+      ``planned``, an S divisible by 3 plans each scene at one ω only).
     layouts: pile layouts to draw from. two_kinds: probability that a shard mixes two kinds (half the pieces each),
       for Sort. image_size: square image side (pixels). seed: everything random derives from (seed, shard index).
     drop_broken: drop episodes whose world broke (else keep them with their ``broken`` flags).
