@@ -18,7 +18,10 @@
 # 7. planned (issue 50 item 3, not in the default STAGES): on-policy data (--planned 0.5, the shipped policy) as made
 #    today (C workers, shards of 64 worlds: 27 frames/s in docs/model_at_scale) and by Warp in shards of PLANNED_WORLDS
 #    (default 2048) worlds, each decision batched over the whole shard; PLANNED_EPISODES (2048) episodes each.
-# Stages run in the order engine, data, train, loop, mix, gpus, planned, bench (the benchmark, the longest, last).
+# 8. scenes (issue 50 item 1, not in the default STAGES): Warp data alone (seed 15, EPISODES episodes in shards of
+#    GPU_WORLDS worlds) with a scene per shard (--scenes 0) and with one scene for the run (--scenes 1), end to end,
+#    each with Warp's kernel cache empty.
+# Stages run in the order engine, data, train, loop, mix, gpus, planned, scenes, bench (the benchmark last).
 # $WORK/results.tar.gz (logs, runs: the study, the benchmark, the models, closed-loop folders) after every stage;
 # $WORK/done at the end; a stage whose output exists is skipped. Env: WORK, EPISODES (1024), STEPS (14000), COUNT
 # (256), C_WORKERS (6), BENCH_FLAGS (--worlds 2048 8192 --graph-modes WARP JAX), DATA_FLAGS, STAGES (engine data
@@ -90,6 +93,15 @@ if stage planned; then
     else EPISODES=${PLANNED_EPISODES:-2048} gen Pw 14 "${PLANNED_WORLDS:-2048}" 1 --backend warp --planned 0.5; fi
     log "planned $name: $(since "$t0") s end to end," \
       "$(summary "$WORK/data/$name" "s['frames'], 'frames,', round(s['samples_per_s'], 1), 'frames/s'")"
+  done
+  pack
+fi
+if stage scenes; then
+  for s in 0 1; do  # each with Warp's kernel cache empty, as on a fresh machine
+    [ -f "$WORK/data/S$s/summary.json" ] && continue
+    t0=$(now)
+    ( export WARP_CACHE_PATH=$WORK/kernels_S$s; gen "S$s" 15 "${GPU_WORLDS:-256}" 1 --backend warp --scenes "$s" )
+    log "scenes $s: $(since "$t0") s end to end, $(summary "$WORK/data/S$s" "s['shards'], 'shards'")"
   done
   pack
 fi
