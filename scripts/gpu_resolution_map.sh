@@ -8,8 +8,8 @@
 # reference-starts, reference-lr, reference-pricing: the authors' planner with that one option ours, for the
 # attribution), FLAGS (more tradeoff flags). The attribution (issue 51), 4 surfaces at M = 50 on fresh scenes:
 #   OUT=/root/attr SAMPLES=50 SEED=65000 PLANNERS="reference reference-starts reference-lr reference-pricing" \
-#     bash scripts/gpu_resolution_map.sh A CPU dry run: GPUS=1 SCENES=quick SAMPLES=4 (tradeoff's --quick sizes). A finished surface is
-# kept on a rerun.
+#     bash scripts/gpu_resolution_map.sh
+# A CPU dry run: GPUS=1 SCENES=quick SAMPLES=4 (tradeoff's --quick sizes). A finished surface is kept on a rerun.
 # $OUT/results.tar.gz after every surface.
 set -uo pipefail
 OUT=${OUT:-/root/map}; SCENES=${SCENES:-128}; SEED=${SEED:-63000}; SAMPLES=${SAMPLES:-"20 50 200"}
