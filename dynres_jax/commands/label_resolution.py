@@ -29,7 +29,6 @@ I labels shards I, I + K, ... into the same --out.
 from __future__ import annotations
 
 import contextlib
-import dataclasses
 import functools
 import os
 import time
@@ -105,10 +104,10 @@ def main(argv=None):
     load_timing(parser, args)
     check_pile(parser, (args.kind,), (args.pieces,))
     try:
-        engines.check_beside(args.backend, args.cpu_workers)
         cfg = LabelConfig(kind=args.kind, pieces=args.pieces, batch=args.batch, evals=args.evals, repeats=args.repeats,
                           seed=args.seed, plan_seed=args.plan_seed, mid_episode=args.mid_episode, quick=args.quick,
                           backend=args.backend)
+        helper_cfg = engines.beside(cfg, args.cpu_workers)
     except ValueError as e:
         parser.error(str(e))
     dynamics, n_max, name = load_model(parser, args.dynamics, args.ckpt, SceneConfig.plate_half_width)
@@ -142,8 +141,7 @@ def main(argv=None):
 
             return produce
 
-        fill(todo, [producer(cfg, processes)]
-             + ([producer(dataclasses.replace(cfg, backend="mujoco"), helpers)] if helpers else []))
+        fill(todo, [producer(cfg, processes)] + ([producer(helper_cfg, helpers)] if helpers else []))
         bar.close()
     minutes = (time.perf_counter() - t0) / 60
     distributed.barrier(f"label {os.path.abspath(args.out)}")

@@ -292,12 +292,10 @@ def finish_shard(arrays: dict, n_keep: int, drop_broken: bool) -> dict:
 def check_helpers(config: DataConfig, cpu_workers: int) -> DataConfig | None:
     """The C engine's DataConfig for ``cpu_workers`` helper processes beside ``config``'s engine (None for none);
     ValueError unless that engine is a JAX engine of C's physics and the data are random pushes."""
-    engines.check_beside(config.backend, cpu_workers)
-    if cpu_workers == 0:
-        return None
-    if config.planned > 0:
+    helper = engines.beside(config, cpu_workers)
+    if helper is not None and config.planned > 0:
         raise ValueError(f"C workers ({cpu_workers}) fill shards of random pushes only; got planned {config.planned}")
-    return replace(config, backend="mujoco")
+    return helper
 
 
 def shards_todo(out_dir: str, n_shards: int, part: tuple[int, int] | None = None) -> list[int]:

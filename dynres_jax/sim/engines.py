@@ -68,13 +68,15 @@ def sim_config(config: SimConfig, name: str) -> SimConfig:
     return dataclasses.replace(config, scene=dataclasses.replace(config.scene, **fast_fields(config.scene.kinds)))
 
 
-def check_beside(name: str, cpu_workers: int) -> None:
-    """ValueError unless ``cpu_workers`` C MuJoCo worker processes may fill shards beside the engine ``name``: none,
+def beside(config, cpu_workers: int):
+    """The config of ``cpu_workers`` C MuJoCo worker processes filling shards beside the engine of ``config`` (any
+    config with a ``backend``): ``config`` with backend "mujoco", or None for none. ValueError unless they may: none,
     or any number beside a JAX engine of C's physics (``Engine.c_physics``, not ``workers``: Warp)."""
-    engine = ENGINES[resolve(name)]
+    engine = ENGINES[resolve(config.backend)]
     if cpu_workers < 0 or (cpu_workers > 0 and (engine.workers or not engine.c_physics)):
         raise ValueError(f"C workers ({cpu_workers}) fill shards beside a JAX engine of C's physics (warp); got "
-                         f"backend {name!r}")
+                         f"backend {config.backend!r}")
+    return dataclasses.replace(config, backend="mujoco") if cpu_workers else None
 
 
 def physics(name: str) -> str:
