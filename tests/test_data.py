@@ -522,3 +522,19 @@ def test_c_workers_fill_shards_beside_a_jax_engine_of_c_physics(generated, tmp_p
                 np.testing.assert_array_equal(made[name], alone[name], err_msg=name)
     with pytest.raises(ValueError, match="C's physics"):
         data.generate(data.replace(QUICK, backend="mjx-fast"), str(tmp_path / "fast"), progress=False, cpu_workers=1)
+
+
+def test_check_helpers(monkeypatch):
+    """The C helpers' config: the run's with backend "mujoco" (nothing else changed), None for no helpers; refused
+    beside an engine of other physics or of worker processes, for a negative count, and for on-policy data."""
+    monkeypatch.setitem(engines.ENGINES, "mjx", dataclasses.replace(engines.ENGINES["mjx"], c_physics=True))
+    helper = data.check_helpers(QUICK, 3)
+    assert helper == data.replace(QUICK, backend="mujoco") and QUICK.backend == "mjx"
+    assert data.check_helpers(QUICK, 0) is None
+    for config, workers in ((data.replace(QUICK, backend="mjx-fast"), 1), (data.replace(QUICK, backend="mujoco"), 1),
+                            (QUICK, -1)):
+        with pytest.raises(ValueError, match="C's physics"):
+            data.check_helpers(config, workers)
+    with pytest.raises(ValueError, match="random pushes only"):
+        data.check_helpers(data.replace(QUICK, planned=0.5), 2)
+    assert data.check_helpers(data.replace(QUICK, planned=0.5), 0) is None
