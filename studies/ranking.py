@@ -31,7 +31,7 @@ from dynres_jax.config import DEFAULT_PIECES, PileConfig, SceneConfig, SimConfig
 from dynres_jax.control import tasks
 from dynres_jax.control.choosers import FixedOmega
 from dynres_jax.control.decision import decide_batch
-from dynres_jax.control.goals import make_goal, stack
+from dynres_jax.control.goals import make_goals
 from dynres_jax.control.mpc import MPCConfig, fold, run, scorer
 from dynres_jax.control.objective import objective
 from dynres_jax.control.planner import planner_config
@@ -75,7 +75,7 @@ def build(args) -> ranking.RankingSet:
         pool = WorldPool(sim, processes)
         camera = pool.camera
         masks = [tasks.episode_goal(args.task, i, args.seed, pool.env, args.letters) for i in range(args.episodes)]
-        goals = stack([make_goal(m, camera) for m in masks])
+        goals = make_goals(masks, camera)
         piles = jax.vmap(lambda i: jax.random.fold_in(jax.random.PRNGKey(args.seed), i))(jnp.arange(args.episodes))
         keys = fold(piles, 1)
         cfg = MPCConfig(mpc_steps=max(args.capture) + 1,

@@ -8,10 +8,12 @@ import numpy as np
 import pytest
 
 from dynres_jax.config import CameraConfig, SceneConfig, SimConfig
+from dynres_jax.control import goals as goals_module
 from dynres_jax.control import objective as obj
 from dynres_jax.control.goals import (
     disc_goal,
     make_goal,
+    make_goals,
     polygon_goal,
     random_polygon_goal,
     signed_distance,
@@ -155,6 +157,24 @@ def test_goal_samples_are_goal_pixels(disc):
     assert samples.shape == (500, 2) and int(disc.sample_mask.sum()) == min(500, n)
     assert np.all(mask[(samples[:, 1] - 0.5).astype(int), (samples[:, 0] - 0.5).astype(int)])
     assert len({tuple(s) for s in samples[: min(500, n)]}) == min(500, n)  # distinct until the goal is used up
+
+
+def test_make_goals_equals_make_goal_one_by_one(monkeypatch):
+    """The batched Goals (vectorised GOAL_BATCH masks at a time, here 2 for 5: a remainder) equal the one-by-one
+    Goals leaf for leaf; a bad mask is named by its index before any work."""
+    monkeypatch.setattr(goals_module, "GOAL_BATCH", 2)
+    masks = [disc_goal(CAM, (0.0, 0.0), 0.05), disc_goal(CAM, (0.05, -0.03), 0.03)]
+    masks += [text_goal(CAM, letter, (0.0, 0.01), 0.1) for letter in "JTU"]
+    batch = make_goals(np.stack(masks), CAM, n_samples=64)
+    assert batch.distance.shape == (5, CAM.height, CAM.width)
+    for i, mask in enumerate(masks):
+        for one, many in zip(make_goal(mask, CAM, n_samples=64), batch, strict=True):
+            np.testing.assert_array_equal(np.asarray(many[i]), np.asarray(one))
+    assert not np.array_equal(np.asarray(batch.distance[0]), np.asarray(batch.distance[1]))
+    with pytest.raises(ValueError, match="goal mask 1 covers no pixel"):
+        make_goals(np.stack([masks[0], np.zeros_like(masks[0])]), CAM)
+    with pytest.raises(ValueError, match=r"\[B >= 1, H, W\]"):
+        make_goals(masks[0], CAM)
 
 
 # ----------------------------------------------------------------------------------------------------------------

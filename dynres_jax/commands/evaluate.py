@@ -61,7 +61,7 @@ from dynres_jax.control.choosers import (
     climb,
     on_ladder,
 )
-from dynres_jax.control.goals import make_goal, stack
+from dynres_jax.control.goals import make_goals
 from dynres_jax.control.mpc import SensorView, run
 from dynres_jax.io import ckpt, files
 from dynres_jax.io.draw import evaluation_plots
@@ -321,7 +321,7 @@ def run_methods(args, rank: int, size: int, sim, main_model, cnn_model) -> dict:
         pool = make_pool(sim, args.backend, processes)
         masks = [tasks.episode_goal(args.task, i, args.seed, pool.env, args.letters)
                  for i in range(args.episodes)]
-        goals = stack([make_goal(masks[i], pool.camera) for i in mine])
+        goals = make_goals(np.asarray(masks)[mine], pool.camera)
         pile_keys, keys = tasks.episode_keys(args.seed, mine)
         todo = [m for m in args.methods if not os.path.exists(os.path.join(args.out, f"{m}.json"))]
         cfg = mpc_config(pool.env, args, mpc_steps=args.mpc_steps, real_depth=args.sensor != "none")

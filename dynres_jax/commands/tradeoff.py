@@ -45,7 +45,7 @@ from dynres_jax.config import CameraConfig, PileConfig, PushConfig, SceneConfig,
 from dynres_jax.control import tasks
 from dynres_jax.control.budget import BUCKETS, TimingTable, bucket_for
 from dynres_jax.control.decision import decide_batch, episode
-from dynres_jax.control.goals import make_goal, stack
+from dynres_jax.control.goals import make_goals
 from dynres_jax.control.mpc import MPCConfig, measure_timing
 from dynres_jax.control.objective import distribution_distance
 from dynres_jax.control.planner import planner_config
@@ -271,7 +271,7 @@ def surface(args, model: LoadedDynamics) -> dict:
                             buckets=args.buckets)
             path = os.path.join(args.out, f"surface_{kind}.npz")
             starts, masks = _scenes(kind, args, pool)
-            goals = stack([make_goal(m, pool.camera) for m in masks])
+            goals = make_goals(masks, pool.camera)
             if timing is None:
                 timing = priced(args, cfg, functools.partial(measure_timing, episode(starts.obs), episode(goals),
                                                              dynamics, cfg, pool.camera))

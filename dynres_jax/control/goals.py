@@ -63,12 +63,16 @@ def stack_goals(goals, hold=None) -> KindGoals:
 # Goal masks (host, NumPy / OpenCV). Inputs in metres on the table plane; outputs [H, W] bool.
 # ---------------------------------------------------------------------------------------------------------------
 
+@functools.lru_cache(maxsize=4)
 def _table_xy(camera: Camera) -> np.ndarray:
-    """[H, W, 2] world (x, y) in metres where each pixel centre's ray meets the table (NaN where it never does)."""
+    """[H, W, 2] world (x, y) in metres where each pixel centre's ray meets the table (NaN where it never does);
+    computed once per camera, read-only."""
     d = np.asarray(camera.ray_directions(camera.pixel_centres()), np.float64)
     with np.errstate(divide="ignore", invalid="ignore"):
         t = np.where(d[..., 2] < 0, -camera.centre[2] / d[..., 2], np.nan)
-    return camera.centre[:2] + t[..., None] * d[..., :2]
+    xy = camera.centre[:2] + t[..., None] * d[..., :2]
+    xy.flags.writeable = False
+    return xy
 
 
 def check_within(mask, camera: Camera, half_width: float) -> None:
@@ -265,17 +269,46 @@ def goal_fields(mask, camera: Camera, n_samples: int) -> Goal:
     return Goal(mask, signed_distance(mask), uv[idx], jnp.arange(n_samples) < jnp.sum(flat))
 
 
+def _checked_mask(mask, camera: Camera, what: str = "goal mask") -> np.ndarray:
+    """mask as [H, W] bool; ValueError for the wrong shape, no pixels, or every pixel."""
+    mask = np.asarray(mask)
+    if mask.shape != (camera.height, camera.width):
+        raise ValueError(f"{what} has shape {mask.shape}, the camera's image is {(camera.height, camera.width)}")
+    mask = mask.astype(bool)
+    _check_nonempty(what, mask)
+    if mask.all():
+        raise ValueError(f"{what} covers the whole image: its signed distance field is undefined")
+    return mask
+
+
+def _check_samples(n_samples) -> int:
+    if not isinstance(n_samples, int | np.integer) or n_samples < 1:
+        raise ValueError(f"n_samples must be a positive int, got {n_samples!r}")
+    return int(n_samples)
+
+
 def make_goal(mask, camera: Camera, n_samples: int = 500) -> Goal:
     """Goal mask [H, W] bool (the camera's pixel grid) -> Goal with its signed distance field (pixels, exact
     Euclidean, ``signed_distance``) and ``n_samples`` FPS samples of the goal pixel centres (``goal_fields``).
     ValueError for a mask of the wrong shape, an empty mask (no pixels) or one covering the whole image."""
-    mask = np.asarray(mask)
-    if mask.shape != (camera.height, camera.width):
-        raise ValueError(f"goal mask has shape {mask.shape}, the camera's image is {(camera.height, camera.width)}")
-    if not isinstance(n_samples, int | np.integer) or n_samples < 1:
-        raise ValueError(f"n_samples must be a positive int, got {n_samples!r}")
-    mask = mask.astype(bool)
-    _check_nonempty("goal mask", mask)
-    if mask.all():
-        raise ValueError("goal mask covers the whole image: its signed distance field is undefined")
-    return goal_fields(mask, camera, int(n_samples))
+    mask = _checked_mask(mask, camera)
+    return goal_fields(mask, camera, _check_samples(n_samples))
+
+
+GOAL_BATCH = 64  # masks a batched goal computation vectorises at once (its memory grows with it: about 2 MB a mask)
+
+
+def make_goals(masks, camera: Camera, n_samples: int = 500) -> Goal:
+    """``make_goal`` of each of masks [B, H, W] in one compiled call (``GOAL_BATCH`` masks vectorised at a time):
+    the Goals stacked [B, ...], equal to ``stack`` of the one-by-one Goals. ValueError naming the first bad mask."""
+    masks = np.asarray(masks)
+    if masks.ndim != 3 or len(masks) == 0:
+        raise ValueError(f"goal masks must be [B >= 1, H, W], got shape {masks.shape}")
+    n_samples = _check_samples(n_samples)
+    masks = np.stack([_checked_mask(m, camera, f"goal mask {i}") for i, m in enumerate(masks)])
+    return _goal_fields_batch(masks, camera, n_samples, min(GOAL_BATCH, len(masks)))
+
+
+@functools.partial(jax.jit, static_argnames=("camera", "n_samples", "batch"))
+def _goal_fields_batch(masks, camera: Camera, n_samples: int, batch: int) -> Goal:
+    return jax.lax.map(lambda m: goal_fields(m, camera, n_samples), masks, batch_size=batch)

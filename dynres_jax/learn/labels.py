@@ -16,7 +16,7 @@ import numpy as np
 from dynres_jax.config import CameraConfig, PileConfig, PushConfig, SceneConfig, SimConfig, check_fields
 from dynres_jax.control import budget, mpc, resolution, tasks
 from dynres_jax.control.choosers import FixedOmega
-from dynres_jax.control.goals import make_goal, stack
+from dynres_jax.control.goals import make_goals
 from dynres_jax.control.objective import distribution_distance
 from dynres_jax.sim import engines
 from dynres_jax.sim.env import PileEnv
@@ -89,7 +89,7 @@ def shard_scenes(cfg: LabelConfig, shard: int, pool):
     pile_keys = jax.vmap(lambda j: jax.random.fold_in(jax.random.fold_in(jax.random.PRNGKey(cfg.seed), shard), j))(
         jnp.arange(cfg.batch) // 2)  # scenes 2j and 2j + 1: the same pile
     goal_masks, shapes = shard_goals(cfg, shard, pool.env)
-    goals = stack([make_goal(m, pool.camera) for m in goal_masks])
+    goals = make_goals(goal_masks, pool.camera)
     return pool.reset(pile_keys), goal_masks, goals, shapes
 
 

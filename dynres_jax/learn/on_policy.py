@@ -20,7 +20,7 @@ import numpy as np
 
 from dynres_jax.control import budget, tasks
 from dynres_jax.control.decision import decide_batch
-from dynres_jax.control.goals import disc_goal, make_goal, stack
+from dynres_jax.control.goals import disc_goal, make_goals
 from dynres_jax.control.mpc import MPCConfig, fold, shift
 from dynres_jax.control.planner import planner_config
 from dynres_jax.models.registry import SHIPPED_DYNAMICS, load_dynamics
@@ -74,7 +74,7 @@ def planned_episodes(worlds, keys, pushes: int, planned: float, dynamics, omega:
     env, camera = worlds.env, worlds.camera
     keys = jnp.asarray(keys)
     b = len(keys)
-    goals = stack([make_goal(episode_goal(k, env), camera) for k in fold(keys, 0)])
+    goals = make_goals(np.stack([episode_goal(k, env) for k in np.asarray(fold(keys, 0))]), camera)
     cfg = MPCConfig(planner=planner_config(env, **PLANNER))
     spec = cfg.spec(budget.bucket_for(omega, cfg.buckets))
     states = worlds.reset(fold(keys, 1))

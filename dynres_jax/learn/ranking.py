@@ -27,7 +27,7 @@ from scipy.stats import rankdata
 
 from dynres_jax.config import SimConfig
 from dynres_jax.control.decision import goal_cost
-from dynres_jax.control.goals import Goal, make_goal, stack
+from dynres_jax.control.goals import Goal, make_goals
 from dynres_jax.errors import InputError
 from dynres_jax.io.shards import save_npz
 from dynres_jax.sim.camera import Camera
@@ -125,8 +125,8 @@ def _predict(positions, mask, radius, goals, candidates, *, dynamics, camera):
 
 
 def goals(ranking: RankingSet) -> Goal:
-    """The states' goals [S], rebuilt from their masks (``make_goal``)."""
-    return stack([make_goal(m, ranking.camera) for m in ranking.goal_mask])
+    """The states' goals [S], rebuilt from their masks (``make_goals``)."""
+    return make_goals(ranking.goal_mask, ranking.camera)
 
 
 def predict(ranking: RankingSet, dynamics) -> tuple[np.ndarray, np.ndarray]:

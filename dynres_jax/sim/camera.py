@@ -33,6 +33,11 @@ def neighbourhoods(image):
     return jnp.stack([padded[i:i + h, j:j + w] for i in range(3) for j in range(3)])
 
 
+def _xp(*arrays):
+    """jax.numpy where any of ``arrays`` is a JAX array (or a tracer), else NumPy."""
+    return jnp if any(isinstance(a, jax.Array) for a in arrays) else np
+
+
 MIN_IMAGE, MAX_IMAGE = 8, 4096  # pixels per side: the renderer's and perception's range (a 4K depth frame fits)
 
 
@@ -140,25 +145,26 @@ class Camera:
         check_geometry(arrays["K"], arrays["rotation"], arrays["centre"], int(arrays["width"]), int(arrays["height"]))
         return cls(arrays["K"], arrays["rotation"], arrays["centre"], int(arrays["width"]), int(arrays["height"]))
 
-    # --- geometry ---
+    # --- geometry (NumPy in, NumPy out, so host callers such as goal masks stay off the device; JAX otherwise) ---
     def world_to_pixel(self, points):
         """points [..., 3] world -> (uv [..., 2] continuous pixel coordinates, depth [...] z-depth in metres)."""
         p_cam = (points - self.centre) @ self.rotation  # R^T (p - c), row-vector form
         z = p_cam[..., 2]
-        uv = p_cam[..., :2] / z[..., None] * jnp.diag(self.K)[:2] + self.K[:2, 2]
+        uv = p_cam[..., :2] / z[..., None] * np.diag(self.K)[:2] + self.K[:2, 2]
         return uv, z
 
     def pixel_to_world(self, uv, depth):
         """uv [..., 2] pixel coordinates and z-depth [...] (metres) -> world points [..., 3]."""
-        xy = (uv - self.K[:2, 2]) / jnp.diag(self.K)[:2]
-        p_cam = jnp.concatenate([xy * depth[..., None], depth[..., None]], axis=-1)
+        xy = (uv - self.K[:2, 2]) / np.diag(self.K)[:2]
+        p_cam = _xp(uv, depth).concatenate([xy * depth[..., None], depth[..., None]], axis=-1)
         return p_cam @ self.rotation.T + self.centre
 
     def ray_directions(self, uv):
         """uv [..., 2] -> world ray directions [..., 3] whose camera-z component is 1, so distance along them is
         z-depth."""
-        xy = (uv - self.K[:2, 2]) / jnp.diag(self.K)[:2]
-        return jnp.concatenate([xy, jnp.ones_like(xy[..., :1])], axis=-1) @ self.rotation.T
+        xy = (uv - self.K[:2, 2]) / np.diag(self.K)[:2]
+        xp = _xp(uv)
+        return xp.concatenate([xy, xp.ones_like(xy[..., :1])], axis=-1) @ self.rotation.T
 
     def pixel_centres(self) -> np.ndarray:
         """[H, W, 2] (u, v) of every pixel centre."""
