@@ -21,6 +21,15 @@ gen() {  # NAME SEED WORLDS WORKERS [FLAGS...]: EPISODES episodes of 10 pushes i
     > "$WORK/logs/data_$name.log" 2>&1 && log "data $name: $(grep -o '"frames": [0-9]*' "$WORK/logs/data_$name.log")"
 }
 
+timed() {  # NAME SEED WORLDS WORKERS WHAT [FLAGS...]: gen, unless NAME is made, then log its seconds end to end
+  local name=$1 seed=$2 worlds=$3 workers=$4 what=$5 t0  # WHAT: an expression of its summary s (``summary``)
+  shift 5
+  [ -f "$WORK/data/$name/summary.json" ] && return
+  t0=$(now)
+  gen "$name" "$seed" "$worlds" "$workers" "$@"
+  log "$name: $(since "$t0") s end to end, $(summary "$WORK/data/$name" "$what")"
+}
+
 train() {  # NAME DATA... [-- FLAGS...]: --recipe shipped on $WORK/data/DATA..., STEPS steps, into $WORK/runs/NAME
   local name=$1; shift
   local folders=() flags=()

@@ -63,14 +63,8 @@ if stage loop; then
   pack
 fi
 if stage mix; then
-  for name in Calone WC; do
-    [ -f "$WORK/data/$name/summary.json" ] && continue
-    t0=$(now)
-    if [ $name = Calone ]; then gen Calone 12 128 "$(nproc)" --backend mujoco
-    else gen WC 12 128 1 --backend warp --cpu-workers $(($(nproc) - 1)); fi
-    log "mix $name: $(since "$t0") s end to end," \
-      "$(summary "$WORK/data/$name" "s['shards_by_engine']")"
-  done
+  timed Calone 12 128 "$(nproc)" "s['shards_by_engine']" --backend mujoco
+  timed WC 12 128 1 "s['shards_by_engine']" --backend warp --cpu-workers $(($(nproc) - 1))
   pack
 fi
 if stage gpus; then
@@ -86,22 +80,15 @@ if stage gpus; then
   pack
 fi
 if stage planned; then
-  for name in Pc Pw; do
-    [ -f "$WORK/data/$name/summary.json" ] && continue
-    t0=$(now)
-    if [ $name = Pc ]; then EPISODES=${PLANNED_EPISODES:-2048} gen Pc 14 64 "$(nproc)" --backend mujoco --planned 0.5
-    else EPISODES=${PLANNED_EPISODES:-2048} gen Pw 14 "${PLANNED_WORLDS:-2048}" 1 --backend warp --planned 0.5; fi
-    log "planned $name: $(since "$t0") s end to end," \
-      "$(summary "$WORK/data/$name" "s['frames'], 'frames,', round(s['samples_per_s'], 1), 'frames/s'")"
-  done
+  rate="s['frames'], 'frames,', round(s['samples_per_s'], 1), 'frames/s'"
+  EPISODES=${PLANNED_EPISODES:-2048} timed Pc 14 64 "$(nproc)" "$rate" --backend mujoco --planned 0.5
+  EPISODES=${PLANNED_EPISODES:-2048} timed Pw 14 "${PLANNED_WORLDS:-2048}" 1 "$rate" --backend warp --planned 0.5
   pack
 fi
 if stage scenes; then
   for s in 0 1; do  # each with Warp's kernel cache empty, as on a fresh machine
-    [ -f "$WORK/data/S$s/summary.json" ] && continue
-    t0=$(now)
-    ( export WARP_CACHE_PATH=$WORK/kernels_S$s; gen "S$s" 15 "${GPU_WORLDS:-256}" 1 --backend warp --scenes "$s" )
-    log "scenes $s: $(since "$t0") s end to end, $(summary "$WORK/data/S$s" "s['shards'], 'shards'")"
+    ( export WARP_CACHE_PATH=$WORK/kernels_S$s
+      timed "S$s" 15 "${GPU_WORLDS:-256}" 1 "s['shards'], 'shards'" --backend warp --scenes "$s" )
   done
   pack
 fi
