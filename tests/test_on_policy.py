@@ -77,11 +77,14 @@ def test_planned_share_is_checked():
 
 def test_every_key_draws_a_goal_inside_the_bin_even_for_a_large_pile():
     """The largest piles of the data (100 M&Ms) fit no disc and not every letter: a goal is still drawn, inside the
-    bin, for every key (the first on-policy run on a GPU stopped at a letter S wider than the bin)."""
+    bin, for every key (the first on-policy run on a GPU stopped at a letter S wider than the bin); drawn on threads,
+    the masks are the serial ones."""
     from dynres_jax.config import CameraConfig, SceneConfig, SimConfig
 
     env = PileEnv(SimConfig(scene=SceneConfig(kinds=("mnm",), pieces=(100,)), camera=CameraConfig(width=64, height=64)),
                   backend="mujoco", render=False)
-    masks = [on_policy.episode_goal(k, env) for k in jax.random.split(jax.random.PRNGKey(0), 24)]
+    keys = jax.random.split(jax.random.PRNGKey(0), 24)
+    masks = [on_policy.episode_goal(k, env) for k in keys]
     assert all(m.shape == (64, 64) and m.any() and not m.all() for m in masks)
     assert len({m.tobytes() for m in masks}) > 3
+    np.testing.assert_array_equal(on_policy.episode_goals(keys, env), np.stack(masks))  # on threads, the same

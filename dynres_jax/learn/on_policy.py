@@ -13,6 +13,8 @@ of push from them. Frames and actions are recorded as ``learn.data`` records ran
 from __future__ import annotations
 
 import functools
+import os
+from concurrent.futures import ThreadPoolExecutor
 
 import jax
 import jax.numpy as jnp
@@ -63,6 +65,15 @@ def episode_goal(key, env) -> np.ndarray:
     return disc_goal(env.camera, (0.0, 0.0), scene.bin_half_width - tasks.GOAL_MARGIN)
 
 
+def episode_goals(keys, env) -> np.ndarray:
+    """``episode_goal`` of each of keys [B, 2] (raw uint32) -> masks [B, H, W] bool, drawn on all the host's cores
+    at once (OpenCV and NumPy release the GIL; each mask depends on its key alone, so the masks are the serial
+    ones)."""
+    keys = np.asarray(keys)
+    with ThreadPoolExecutor(max(1, min(len(keys), os.cpu_count() or 1))) as threads:
+        return np.stack(list(threads.map(lambda k: episode_goal(k, env), keys)))
+
+
 def planned_episodes(worlds, keys, pushes: int, planned: float, dynamics, omega: int, record) -> dict:
     """One episode per key [B, 2] in ``worlds`` (``sim.pool.Worlds`` whose states carry observations): a reset, then
     ``pushes`` pushes, each world's the planner's (at ``omega``, or the frame's foreground points where fewer; on
@@ -74,7 +85,7 @@ def planned_episodes(worlds, keys, pushes: int, planned: float, dynamics, omega:
     env, camera = worlds.env, worlds.camera
     keys = jnp.asarray(keys)
     b = len(keys)
-    goals = make_goals(np.stack([episode_goal(k, env) for k in np.asarray(fold(keys, 0))]), camera)
+    goals = make_goals(episode_goals(fold(keys, 0), env), camera)
     cfg = MPCConfig(planner=planner_config(env, **PLANNER))
     spec = cfg.spec(budget.bucket_for(omega, cfg.buckets))
     states = worlds.reset(fold(keys, 1))
