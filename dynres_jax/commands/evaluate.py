@@ -319,9 +319,8 @@ def run_methods(args, rank: int, size: int, sim, main_model, cnn_model) -> dict:
     results = {}
     with process_pool(args.workers) if engines.uses_workers(args.backend) else contextlib.nullcontext() as processes:
         pool = make_pool(sim, args.backend, processes)
-        masks = [tasks.episode_goal(args.task, i, args.seed, pool.env, args.letters)
-                 for i in range(args.episodes)]
-        goals = make_goals(np.asarray(masks)[mine], pool.camera)
+        goals = make_goals([tasks.episode_goal(args.task, int(i), args.seed, pool.env, args.letters) for i in mine],
+                           pool.camera)  # episode i's goal depends on (seed, i) alone: each process draws its own
         pile_keys, keys = tasks.episode_keys(args.seed, mine)
         todo = [m for m in args.methods if not os.path.exists(os.path.join(args.out, f"{m}.json"))]
         cfg = mpc_config(pool.env, args, mpc_steps=args.mpc_steps, real_depth=args.sensor != "none")
