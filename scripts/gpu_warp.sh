@@ -21,7 +21,10 @@
 # 8. scenes (issue 50 item 1, not in the default STAGES): Warp data alone (seed 15, EPISODES episodes in shards of
 #    GPU_WORLDS worlds) with a scene per shard (--scenes 0) and with one scene for the run (--scenes 1), end to end,
 #    each with Warp's kernel cache empty.
-# Stages run in the order engine, data, train, loop, mix, gpus, planned, scenes, bench (the benchmark last).
+# 9. profile (issue 50 item 3, not in the default STAGES): where an on-policy shard's time goes
+#    (scripts/profile_on_policy.py, PLANNED_WORLDS worlds, 3 pushes, two rounds of the same shard), Warp and C workers;
+#    on a host of two GPUs side by side, each on one GPU and half the cores, else one after the other.
+# Stages run in the order engine, data, train, loop, mix, gpus, planned, scenes, profile, bench (the benchmark last).
 # $WORK/results.tar.gz (logs, runs: the study, the benchmark, the models, closed-loop folders) after every stage;
 # $WORK/done at the end; a stage whose output exists is skipped. Env: WORK, EPISODES (1024), STEPS (14000), COUNT
 # (256), C_WORKERS (6), BENCH_FLAGS (--worlds 2048 8192 --graph-modes WARP JAX), DATA_FLAGS, STAGES (engine data
@@ -90,6 +93,20 @@ if stage scenes; then
     ( export WARP_CACHE_PATH=$WORK/kernels_S$s
       timed "S$s" 15 "${GPU_WORLDS:-256}" 1 "s['shards'], 'shards'" --backend warp --scenes "$s" )
   done
+  pack
+fi
+if stage profile; then
+  gpus=$(nvidia-smi -L 2>/dev/null | grep -c '^GPU'); cores=$(nproc); [ "$gpus" -ge 2 ] && cores=$((cores / 2))
+  for b in warp mujoco; do
+    [ -f "$WORK/runs/profile_$b.json" ] && continue
+    g=$([ "$gpus" -ge 2 ] && [ "$b" = mujoco ] && echo 1 || echo 0); first=$((g * cores))
+    CUDA_VISIBLE_DEVICES=$g taskset -c "$first-$((first + cores - 1))" python scripts/profile_on_policy.py --backend "$b" \
+      --worlds "${PLANNED_WORLDS:-1024}" --workers $((cores - 1)) --json "$WORK/runs/profile_$b.json" \
+      > "$WORK/logs/profile_$b.log" 2>&1 &
+    [ "$gpus" -ge 2 ] || wait
+  done
+  wait
+  log "profile: $(cat "$WORK"/logs/profile_*.log | grep -c '^{') rounds"
   pack
 fi
 if stage bench && [ ! -f "$WORK/runs/bench_warp.json" ]; then
