@@ -8,6 +8,8 @@ shard (round 1 pays the compiles; later rounds show what a further shard of the 
 Stages: ``masks`` (goal masks on the host), ``goals`` (``make_goals``), ``reset`` and ``push`` (the engine; C
 workers' pushes include rendering on the device), ``decide`` (perception and the plan, batched over the shard's worlds),
 ``record`` (a frame's arrays); ``other`` is the rest of the round (copies to the host, random pushes, bookkeeping).
+With C workers the worlds run in ``--lanes`` threads whose stages overlap, so the stages may add up to more than
+the round.
 Prints a line a round and writes them to --json.
 """
 
@@ -53,10 +55,12 @@ def main():
     parser.add_argument("--shard", type=int, default=0, help="the shard (its scene; ω = OMEGAS[shard % 3])")
     parser.add_argument("--rounds", type=int, default=2)
     parser.add_argument("--seed", type=int, default=16)
+    parser.add_argument("--lanes", type=int, default=on_policy.HOST_LANES, help="on_policy.HOST_LANES (C workers)")
     parser.add_argument("--json", default=None)
     args = parser.parse_args()
     config = data.DataConfig(episodes=args.worlds, pushes=args.pushes, worlds=args.worlds, backend=args.backend,
                              planned=0.5, seed=args.seed)
+    on_policy.HOST_LANES = args.lanes
     on_policy.episode_goals = timed("masks", on_policy.episode_goals)
     on_policy.make_goals = timed("goals", on_policy.make_goals)
     on_policy.decide_batch = timed("decide", on_policy.decide_batch)
@@ -70,7 +74,7 @@ def main():
             t0 = time.perf_counter()
             out = data.simulate_shard(config, args.shard, pool=pool)
             total = time.perf_counter() - t0
-            row = dict(round=r + 1, backend=config.backend, worlds=args.worlds, pushes=args.pushes,
+            row = dict(round=r + 1, backend=config.backend, worlds=args.worlds, pushes=args.pushes, lanes=args.lanes,
                        omega=on_policy.OMEGAS[args.shard % len(on_policy.OMEGAS)], pieces=int(len(out["kind"])),
                        kinds=list(map(str, out["kind_names"])), device=jax.devices()[0].device_kind, total=total,
                        **{k: round(v, 2) for k, v in SECONDS.items()},

@@ -88,3 +88,28 @@ def test_every_key_draws_a_goal_inside_the_bin_even_for_a_large_pile():
     assert all(m.shape == (64, 64) and m.any() and not m.all() for m in masks)
     assert len({m.tobytes() for m in masks}) > 3
     np.testing.assert_array_equal(on_policy.episode_goals(keys, env), np.stack(masks))  # on threads, the same
+
+
+def test_lanes_step_each_group_as_it_would_alone():
+    """Two lanes on C workers (one group pushes while the other plans): each world's episode is the one its group of
+    worlds makes alone, and the groups' worlds are not mixed up; lanes are checked."""
+    from dynres_jax.sim.pool import WorldPool, process_pool
+
+    sim = data.shard_sim_config(CONFIG, 0)
+    keys = np.asarray(jax.random.split(jax.random.PRNGKey(5), 4))
+    dynamics = sweep_dynamics(sim.scene.plate_half_width)
+    saved = dict(on_policy.PLANNER)
+    on_policy.PLANNER.update(samples=8, adam_steps=4)
+    try:
+        with process_pool(2) as processes:
+            worlds = WorldPool(sim, processes)
+            run = lambda k, lanes: on_policy.planned_episodes(worlds, k, 2, 0.5, dynamics, 8,  # noqa: E731
+                                                              data.frame_record, lanes)
+            both, first, second = run(keys, 2), run(keys[:2], 1), run(keys[2:], 1)
+            with pytest.raises(ValueError, match="lanes must be between 1 and the 4 worlds"):
+                run(keys, 5)
+    finally:
+        on_policy.PLANNER.update(saved)
+    for name in ("pos", "action", "depth", "broken"):
+        np.testing.assert_array_equal(both[name], np.concatenate([first[name], second[name]]))
+    assert np.abs(both["pos"][:, -1] - both["pos"][:, 0]).max() > 0.005  # the pushes moved pieces

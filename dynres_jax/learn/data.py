@@ -248,7 +248,8 @@ def _episode_fn(sim: SimConfig, pushes: int, devices: tuple, backend: str, world
 def simulate_shard(config: DataConfig, shard: int, devices=None, pool=None) -> dict:
     """Simulate shard ``shard`` (all ``worlds`` episodes, nothing dropped) -> dict of NumPy arrays with a leading
     world axis (see the module docstring) plus the shard's metadata. ``pool``: worker processes for backend
-    "mujoco" (``pool.process_pool``); without one the C episodes run in this process."""
+    "mujoco" (``pool.process_pool``); without one the C episodes run in this process. Planned shards on a pool run
+    in ``on_policy.HOST_LANES`` lanes (one group of worlds pushes while another plans)."""
     config = concrete(config)
     devices = check_devices(config, devices)
     sim = shard_sim_config(config, shard)
@@ -256,9 +257,10 @@ def simulate_shard(config: DataConfig, shard: int, devices=None, pool=None) -> d
     if config.planned > 0:
         worlds = pools.make_pool(sim, config.backend, pool)
         env = worlds.env
+        lanes = min(on_policy.HOST_LANES, config.worlds) if pool is not None else 1
         out = on_policy.planned_episodes(worlds, keys, config.pushes, config.planned, on_policy.policy_dynamics(
             config.policy, sim.scene.plate_half_width), on_policy.OMEGAS[shard % len(on_policy.OMEGAS)],
-                                         frame_record)
+                                         frame_record, lanes)
     elif engines.uses_workers(config.backend):
         worlds = pools.make_pool(sim, config.backend, pool)
         env, out = worlds.env, worlds.random_episodes(keys, config.pushes)

@@ -31,6 +31,7 @@ from dynres_jax.perception import point_cloud
 OMEGAS = (25, 50, 100)  # the resolution of shard i's plans: OMEGAS[i % 3]
 LETTERS = "JTUCLSYO"  # Redistribute goals an episode may draw
 PLANNER = dict(samples=50, adam_steps=100)  # the closed loop's planner (docs/ladder's settings)
+HOST_LANES = 2  # groups of worlds a shard on C workers steps in turn: one pushes on the host while another plans
 
 
 def policy_dir(policy: str) -> str:
@@ -74,36 +75,63 @@ def episode_goals(keys, env) -> np.ndarray:
         return np.stack(list(threads.map(lambda k: episode_goal(k, env), keys)))
 
 
-def planned_episodes(worlds, keys, pushes: int, planned: float, dynamics, omega: int, record) -> dict:
+def planned_episodes(worlds, keys, pushes: int, planned: float, dynamics, omega: int, record, lanes: int = 1) -> dict:
     """One episode per key [B, 2] in ``worlds`` (``sim.pool.Worlds`` whose states carry observations): a reset, then
     ``pushes`` pushes, each world's the planner's (at ``omega``, or the frame's foreground points where fewer; on
     ``dynamics``: radius -> model) with probability ``planned``, else random. record: States [B] -> the arrays kept of
-    a frame (``data.frame_record``). Returns record's arrays stacked [B, F, ...] (F = pushes + 1; broken is sticky,
-    as every State's) and action [B, F - 1, 4]."""
+    a frame (``data.frame_record``). lanes: the worlds split into this many groups (``np.array_split``), each stepped
+    in a thread of its own, so that one group's pushes (C workers on the host) overlap another's decisions (on the
+    device); ``worlds`` must then be safe to call from several threads (a ``WorldPool`` on worker processes is), and a
+    world's episode depends on its key and its group's size. Returns record's arrays stacked [B, F, ...] (F =
+    pushes + 1; broken is sticky, as every State's) and action [B, F - 1, 4]."""
     if not 0.0 <= planned <= 1.0:
         raise ValueError(f"planned must be a share in [0, 1], got {planned}")
-    env, camera = worlds.env, worlds.camera
-    keys = jnp.asarray(keys)
-    b = len(keys)
-    goals = make_goals(episode_goals(fold(keys, 0), env), camera)
+    keys = np.asarray(keys)
+    if not 1 <= lanes <= len(keys):
+        raise ValueError(f"lanes must be between 1 and the {len(keys)} worlds, got {lanes}")
+    goals = make_goals(episode_goals(fold(keys, 0), worlds.env), worlds.camera)
+
+    def lane(group):
+        return _episodes(worlds, jnp.asarray(keys[group]), jax.tree.map(lambda g: g[group], goals), pushes, planned,
+                         dynamics, omega, record)
+
+    with ThreadPoolExecutor(lanes) as threads:
+        parts = list(threads.map(lane, np.array_split(np.arange(len(keys)), lanes)))
+    return {name: np.concatenate([p[name] for p in parts]) for name in parts[0]}
+
+
+def _episodes(worlds, keys, goals, pushes: int, planned: float, dynamics, omega: int, record) -> dict:
+    """``planned_episodes`` of one group of worlds: keys [B, 2], goals (Goal [B])."""
+    env, camera, b = worlds.env, worlds.camera, len(keys)
     cfg = MPCConfig(planner=planner_config(env, **PLANNER))
     spec = cfg.spec(budget.bucket_for(omega, cfg.buckets))
     states = worlds.reset(fold(keys, 1))
     frames, actions = [jax.device_get(record(states))], []
     init, warm = jnp.zeros((b, cfg.planner.horizon, 4), jnp.float32), False
     steps = np.full(b, cfg.planner.adam_steps, np.int32)
-    points = jax.jit(jax.vmap(lambda o: jnp.sum(point_cloud(o, camera, max_points=cfg.max_points)[1])))
-    random = jax.jit(jax.vmap(env.sample_push))
     for t in range(pushes):
         step_keys = fold(fold(keys, 2), t)
-        result = decide_batch(states.obs, goals, step_keys, init, warm, np.minimum(omega, np.asarray(points(
-            states.obs))), steps, spec=spec, dynamics=dynamics, camera=camera)[2]
+        visible = np.asarray(_visible_points(states.obs, camera=camera, max_points=cfg.max_points))
+        result = decide_batch(states.obs, goals, step_keys, init, warm, np.minimum(omega, visible), steps, spec=spec,
+                              dynamics=dynamics, camera=camera)[2]
         chosen = jax.vmap(jax.random.uniform)(fold(step_keys, 2)) < planned
-        action = np.asarray(jnp.where(chosen[:, None], result.best[:, 0], random(fold(step_keys, 1), states.pos)),
-                            np.float32)
+        action = np.asarray(jnp.where(chosen[:, None], result.best[:, 0],
+                                      _random_pushes(fold(step_keys, 1), states.pos, env=env)), np.float32)
         states = worlds.push(states, action)
         init, warm = shift(result.best), True
         frames.append(jax.device_get(record(states)))
         actions.append(action)
     out = {name: np.stack([f[name] for f in frames], axis=1) for name in frames[0]}
     return dict(out, action=np.stack(actions, axis=1))
+
+
+@functools.partial(jax.jit, static_argnames=("camera", "max_points"))
+def _visible_points(obs, *, camera, max_points):
+    """``perception.visible_points`` of each frame of obs [B], traced: -> [B] int."""
+    return jax.vmap(lambda o: jnp.sum(point_cloud(o, camera, max_points=max_points)[1]))(obs)
+
+
+@functools.partial(jax.jit, static_argnames="env")
+def _random_pushes(keys, pos, *, env):
+    """``env.sample_push`` of each world: keys [B, 2], pos [B, N, 3] -> actions [B, 4] (compiled once per env)."""
+    return jax.vmap(env.sample_push)(keys, pos)
