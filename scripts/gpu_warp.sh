@@ -12,9 +12,11 @@
 #    M&M COUNT episodes and almond 64, paired (episode i is the same pile and goal for both models).
 # 5. mix (issue 50, not in the default STAGES): the same DataConfig (seed 12, EPISODES episodes) end to end, start-up
 #    and compiles included, by C workers on every host core alone, then by Warp with C workers on the other cores.
-# 6. gpus (issue 50 item 4, not in the default STAGES): Warp data alone on 1, 2 and 4 GPUs of the host, one process
-#    a GPU (a jax.distributed job, scripts/gpu_job.sh), the same DataConfig (seed 13, EPISODES episodes in shards of
-#    GPU_WORLDS worlds, default 256), end to end.
+# 6. gpus (issue 50 item 4, not in the default STAGES): data on 1, 2 and 4 GPUs of the host, one process a GPU (a
+#    jax.distributed job, scripts/gpu_job.sh, each process with its share of the host cores as C workers), the same
+#    DataConfig (seed 13, EPISODES episodes in shards of GPU_WORLDS worlds, default 256), end to end. GPU_FLAGS picks
+#    the data (default "--backend warp": Warp alone); on-policy data on C workers: GPU_FLAGS="--backend mujoco
+#    --planned 0.5" with at least six shards a process, so each process plans at every ω of on_policy.OMEGAS.
 # 7. planned (issue 50 item 3, not in the default STAGES): on-policy data (--planned 0.5, the shipped policy) as made
 #    today (C workers, shards of 64 worlds: 27 frames/s in docs/model_at_scale) and by Warp in shards of PLANNED_WORLDS
 #    (default 2048) worlds, each decision batched over the whole shard; PLANNED_EPISODES (2048) episodes each.
@@ -77,7 +79,8 @@ if stage gpus; then
     # shellcheck disable=SC2086
     ( GPUS=$g PER_GPU=1; . "$(dirname "$0")/gpu_job.sh"
       job "$WORK/logs/data_G$g.log" python -m experiments.generate_data --out "$WORK/data/G$g" --episodes "$EPISODES" \
-        --pushes 10 --worlds "${GPU_WORLDS:-256}" --seed 13 --backend warp --no-progress ${DATA_FLAGS:-} )
+        --pushes 10 --worlds "${GPU_WORLDS:-256}" --seed 13 --workers "$workers" --no-progress \
+        ${GPU_FLAGS:---backend warp} ${DATA_FLAGS:-} )
     log "gpus $g: $(since "$t0") s end to end"
   done
   pack
