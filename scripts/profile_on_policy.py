@@ -5,8 +5,9 @@ shard (round 1 pays the compiles; later rounds show what a further shard of the 
     python scripts/profile_on_policy.py --backend warp --worlds 1024 --pushes 3 --rounds 2 --json FILE
     python scripts/profile_on_policy.py --backend mujoco --worlds 1024 --workers 16 --pushes 3 --json FILE
 
-Stages: ``masks`` (goal masks on the host), ``goals`` (``make_goals``), ``reset`` and ``push`` (the engine; C
-workers' pushes include rendering on the device), ``decide`` (perception and the plan, batched over the shard's worlds),
+Stages: ``pool`` (the engine's worlds built), ``masks`` (goal masks on the host), ``goals`` (``make_goals``),
+``reset`` and ``push`` (the engine; C workers' pushes include rendering on the device), ``visible`` (each frame's
+foreground points), ``decide`` (perception and the plan, batched over the shard's worlds), ``random`` (random pushes),
 ``record`` (a frame's arrays); ``other`` is the rest of the round (copies to the host, random pushes, bookkeeping).
 With C workers the worlds run in ``--lanes`` threads whose stages overlap, so the stages may add up to more than
 the round.
@@ -40,7 +41,7 @@ def timed(name, fn):
 
 def timed_pool(make_pool):
     def make(*args, **kwargs):
-        worlds = make_pool(*args, **kwargs)
+        worlds = timed("pool", make_pool)(*args, **kwargs)
         worlds.reset, worlds.push = timed("reset", worlds.reset), timed("push", worlds.push)
         return worlds
     return make
@@ -64,6 +65,8 @@ def main():
     on_policy.episode_goals = timed("masks", on_policy.episode_goals)
     on_policy.make_goals = timed("goals", on_policy.make_goals)
     on_policy.decide_batch = timed("decide", on_policy.decide_batch)
+    on_policy._visible_points = timed("visible", on_policy._visible_points)
+    on_policy._random_pushes = timed("random", on_policy._random_pushes)
     pools.make_pool = timed_pool(pools.make_pool)
     data.frame_record = timed("record", data.frame_record)
     rows = []
