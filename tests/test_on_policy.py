@@ -113,3 +113,50 @@ def test_lanes_step_each_group_as_it_would_alone():
     for name in ("pos", "action", "depth", "broken"):
         np.testing.assert_array_equal(both[name], np.concatenate([first[name], second[name]]))
     assert np.abs(both["pos"][:, -1] - both["pos"][:, 0]).max() > 0.005  # the pushes moved pieces
+
+
+def test_only_planned_worlds_are_planned_warm_after_a_planned_push():
+    """planned = 0.5: a push plans exactly the worlds whose push it plans (padding copies aside), warm-started where
+    the world's previous push was planned; random pushes are the piles sampler's; chunks of one world (each decided
+    alone) and of several give the same pushes, so chunking mixes up no worlds."""
+    sim = data.shard_sim_config(CONFIG, 0)
+    worlds = EnvWorlds(PileEnv(sim, backend="mujoco"))
+    keys = jax.random.split(jax.random.PRNGKey(7), WORLDS)
+    dynamics = sweep_dynamics(sim.scene.plate_half_width)
+    calls, decide = [], on_policy.decide_batch
+
+    def spy(obs, goals, step_keys, init, warm, *args, **kwargs):
+        calls.append((np.asarray(step_keys), np.asarray(warm)))
+        return decide(obs, goals, step_keys, init, warm, *args, **kwargs)
+
+    saved, chunks = dict(on_policy.PLANNER), on_policy.PLAN_CHUNKS
+    on_policy.PLANNER.update(samples=8, adam_steps=4)
+    on_policy.decide_batch = spy
+    try:
+        runs = {}
+        for on_policy.PLAN_CHUNKS in (1, 100):  # chunks of 3 worlds, of 1
+            calls.clear()
+            runs[on_policy.PLAN_CHUNKS] = on_policy.planned_episodes(worlds, keys, 3, 0.5, dynamics, 8,
+                                                                     data.frame_record)
+    finally:
+        on_policy.PLANNER.update(saved)
+        on_policy.decide_batch, on_policy.PLAN_CHUNKS = decide, chunks
+    run = runs[100]
+    planned_before = np.zeros(WORLDS, bool)
+    for t in range(3):
+        step_keys = np.asarray(on_policy.fold(on_policy.fold(keys, 2), t))
+        chosen = np.asarray(jax.vmap(jax.random.uniform)(on_policy.fold(step_keys, 2)) < 0.5)
+        seen = {}
+        for k, w in calls:
+            for key, warm in zip(k, w, strict=True):
+                i = int(np.flatnonzero((step_keys == key).all(1))[0]) if (step_keys == key).all(1).any() else None
+                if i is not None:
+                    seen[i] = bool(warm)
+        assert sorted(seen) == list(np.flatnonzero(chosen)), (t, seen, chosen)
+        assert all(warm == planned_before[i] for i, warm in seen.items())
+        random = np.asarray(jax.vmap(worlds.env.sample_push)(on_policy.fold(step_keys, 1), run["pos"][:, t]))
+        np.testing.assert_allclose(run["action"][~chosen, t], random[~chosen], atol=1e-6)
+        assert not np.allclose(run["action"][chosen, t], random[chosen], atol=1e-3)
+        planned_before = chosen
+    assert 0 < sum(len(k) for k, _ in calls)
+    np.testing.assert_allclose(runs[1]["action"], runs[100]["action"], atol=1e-4)

@@ -115,23 +115,25 @@ def perceive_and_decide(obs, goal, key, init, warm, omega, adam_steps, kind=None
 
 @functools.partial(jax.jit, static_argnames=("spec", "dynamics", "camera"))
 def _decide_batch(obs, goal, key, init, warm, omega, adam_steps, kinds, *, spec, dynamics, camera):
-    def one(obs, goal, key, init, omega, adam_steps, kind):
+    def one(obs, goal, key, init, warm, omega, adam_steps, kind):
         return perceive_and_decide(obs, goal, key, init, warm, omega, adam_steps, kind, spec=spec, dynamics=dynamics,
                                    camera=camera)
 
-    return per_episode(one)(obs, goal, key, init, omega, adam_steps, kinds)
+    return per_episode(one)(obs, goal, key, init, warm, omega, adam_steps, kinds)
 
 
 def decide_batch(obs, goals, keys, init, warm, omega, adam_steps, kinds=None, *, spec: DecisionSpec, dynamics,
                  camera):
-    """``perceive_and_decide`` over a batch of episodes (every argument but warm with a leading axis [B]) as one
-    compiled function per spec (and model and camera). init [B, T, 4] (ignored unless warm); warm, omega [B],
-    adam_steps [B] and kinds [B] (None: every piece) are traced. The particles are checked: bad perception input
-    raises a ValueError naming it (``perception.check_particles``). Returns (Particles [B], c [B], PlanResult [B])."""
+    """``perceive_and_decide`` over a batch of episodes (every argument with a leading axis [B], warm may be one for
+    all) as one compiled function per spec (and model and camera). init [B, T, 4] (used where warm); warm [] or [B],
+    omega [B], adam_steps [B] and kinds [B] (None: every piece) are traced. The particles are checked: bad perception
+    input raises a ValueError naming it (``perception.check_particles``). Returns (Particles [B], c [B],
+    PlanResult [B])."""
     if kinds is not None and isinstance(goals, KindGoals):
         raise ValueError("KindGoals score every kind's particles: a decision perceives every piece (kinds=None)")
     omega = np.asarray(omega, np.int32)
-    particles, c_now, result = _decide_batch(obs, goals, keys, jnp.asarray(init, jnp.float32), jnp.asarray(warm),
+    warm = jnp.broadcast_to(jnp.asarray(warm, bool), omega.shape)
+    particles, c_now, result = _decide_batch(obs, goals, keys, jnp.asarray(init, jnp.float32), warm,
                                              jnp.asarray(omega), jnp.asarray(adam_steps, jnp.int32),
                                              None if kinds is None else jnp.asarray(kinds, jnp.int32),
                                              spec=spec, dynamics=dynamics, camera=camera)

@@ -4,10 +4,11 @@ Random pushes (``PileEnv.sample_push``) cover where a pile can go, not where the
 refines its pushes by gradient descent through f, so it seeks out the pushes f is most optimistic about, and a model
 trained on random pushes alone ranks those wrongly (docs/ladder: the simulator ranking the model's own refined plans
 rescues most failures). An on-policy episode (``planned_episodes``) draws a task goal from its key (a Gather disc
-where the pile fits one, else a Redistribute letter) and, at every push, plans for every world with the closed
-loop's planner (``PLANNER``, at one ω per shard) on the policy model; each world executes the planned push with
-probability ``planned`` and a random push otherwise, so the data holds the states the planner visits and both kinds
-of push from them. Frames and actions are recorded as ``learn.data`` records random episodes. On C workers a shard runs
+where the pile fits one, else a Redistribute letter); at every push each world pushes as the closed loop's planner
+(``PLANNER``, at one ω per shard, on the policy model) plans with probability ``planned``, and randomly otherwise, so
+the data holds the states the planner visits and both kinds of push from them. Only the worlds whose push is planned
+are planned for, and a plan starts from the world's previous one where that was planned too (the closed loop's warm
+start). Frames and actions are recorded as ``learn.data`` records random episodes. On C workers a shard runs
 in lanes, groups of worlds that take turns: one pushes on the host while another plans on the device (docs/warp:
 1.47x one lane on one H200 and 16 cores).
 """
@@ -15,6 +16,7 @@ in lanes, groups of worlds that take turns: one pushes on the host while another
 from __future__ import annotations
 
 import functools
+import math
 import os
 from concurrent.futures import ThreadPoolExecutor
 
@@ -34,6 +36,7 @@ OMEGAS = (25, 50, 100)  # the resolution of shard i's plans: OMEGAS[i % 3]
 LETTERS = "JTUCLSYO"  # Redistribute goals an episode may draw
 PLANNER = dict(samples=50, adam_steps=100)  # the closed loop's planner (docs/ladder's settings)
 HOST_LANES = 2  # groups of worlds a shard on C workers steps in turn: one pushes on the host while another plans
+PLAN_CHUNKS = 4  # a push plans its planned worlds in chunks of about a quarter of the worlds expected to be planned
 
 
 def policy_dir(policy: str) -> str:
@@ -83,8 +86,8 @@ def planned_episodes(worlds, keys, pushes: int, planned: float, dynamics, omega:
     ``dynamics``: radius -> model) with probability ``planned``, else random. record: States [B] -> the arrays kept of
     a frame (``data.frame_record``). lanes: the worlds split into this many groups (``np.array_split``), each stepped
     in a thread of its own, so that one group's pushes (C workers on the host) overlap another's decisions (on the
-    device); ``worlds`` must then be safe to call from several threads (a ``WorldPool`` on worker processes is), and a
-    world's episode depends on its key and its group's size. Returns record's arrays stacked [B, F, ...] (F =
+    device); ``worlds`` must then be safe to call from several threads (a ``WorldPool`` on worker processes is). A
+    world's episode depends on its key and, to float rounding, on the worlds planned beside it. Returns record's arrays stacked [B, F, ...] (F =
     pushes + 1; broken is sticky, as every State's) and action [B, F - 1, 4]."""
     if not 0.0 <= planned <= 1.0:
         raise ValueError(f"planned must be a share in [0, 1], got {planned}")
@@ -103,28 +106,42 @@ def planned_episodes(worlds, keys, pushes: int, planned: float, dynamics, omega:
 
 
 def _episodes(worlds, keys, goals, pushes: int, planned: float, dynamics, omega: int, record) -> dict:
-    """``planned_episodes`` of one group of worlds: keys [B, 2], goals (Goal [B])."""
+    """``planned_episodes`` of one group of worlds: keys [B, 2], goals (Goal [B]). A push plans only for the worlds
+    whose push it plans, in chunks of one size (``_chunks``: one compile); a world's plan starts from its previous one
+    (warm start) where its previous push was planned too."""
     env, camera, b = worlds.env, worlds.camera, len(keys)
     cfg = MPCConfig(planner=planner_config(env, **PLANNER))
     spec = cfg.spec(budget.bucket_for(omega, cfg.buckets))
+    size = max(1, math.ceil(b * planned / PLAN_CHUNKS))
     states = worlds.reset(fold(keys, 1))
     frames, actions = [jax.device_get(record(states))], []
-    init, warm = jnp.zeros((b, cfg.planner.horizon, 4), jnp.float32), False
-    steps = np.full(b, cfg.planner.adam_steps, np.int32)
+    plans, warm = np.zeros((b, cfg.planner.horizon, 4), np.float32), np.zeros(b, bool)
     for t in range(pushes):
         step_keys = fold(fold(keys, 2), t)
-        visible = np.asarray(_visible_points(states.obs, camera=camera, max_points=cfg.max_points))
-        result = decide_batch(states.obs, goals, step_keys, init, warm, np.minimum(omega, visible), steps, spec=spec,
-                              dynamics=dynamics, camera=camera)[2]
-        chosen = jax.vmap(jax.random.uniform)(fold(step_keys, 2)) < planned
-        action = np.asarray(jnp.where(chosen[:, None], result.best[:, 0],
-                                      _random_pushes(fold(step_keys, 1), states.pos, env=env)), np.float32)
+        chosen = np.asarray(jax.vmap(jax.random.uniform)(fold(step_keys, 2)) < planned)
+        action = np.array(_random_pushes(fold(step_keys, 1), states.pos, env=env), np.float32)
+        for rows, n in _chunks(np.flatnonzero(chosen), size):
+            obs = jax.tree.map(lambda x, r=rows: x[r], states.obs)
+            visible = np.asarray(_visible_points(obs, camera=camera, max_points=cfg.max_points))
+            best = np.asarray(decide_batch(obs, jax.tree.map(lambda x, r=rows: x[r], goals), step_keys[rows],
+                                           plans[rows], warm[rows], np.minimum(omega, visible),
+                                           np.full(size, cfg.planner.adam_steps, np.int32), spec=spec,
+                                           dynamics=dynamics, camera=camera)[2].best)
+            action[rows[:n]], plans[rows[:n]] = best[:n, 0], np.asarray(shift(best))[:n]
+        warm = chosen
         states = worlds.push(states, action)
-        init, warm = shift(result.best), True
         frames.append(jax.device_get(record(states)))
         actions.append(action)
     out = {name: np.stack([f[name] for f in frames], axis=1) for name in frames[0]}
     return dict(out, action=np.stack(actions, axis=1))
+
+
+def _chunks(rows: np.ndarray, size: int):
+    """rows [K] in chunks of ``size``: (chunk [size], n) with its first n rows real, the last chunk padded with
+    copies of its last row (planned again, the copies' plans unused)."""
+    for i in range(0, len(rows), size):
+        chunk = rows[i:i + size]
+        yield np.concatenate([chunk, np.full(size - len(chunk), chunk[-1])]), len(chunk)
 
 
 @functools.partial(jax.jit, static_argnames=("camera", "max_points"))
