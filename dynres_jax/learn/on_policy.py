@@ -87,8 +87,8 @@ def planned_episodes(worlds, keys, pushes: int, planned: float, dynamics, omega:
     a frame (``data.frame_record``). lanes: the worlds split into this many groups (``np.array_split``), each stepped
     in a thread of its own, so that one group's pushes (C workers on the host) overlap another's decisions (on the
     device); ``worlds`` must then be safe to call from several threads (a ``WorldPool`` on worker processes is). A
-    world's episode depends on its key and, to float rounding, on the worlds planned beside it. Returns record's arrays stacked [B, F, ...] (F =
-    pushes + 1; broken is sticky, as every State's) and action [B, F - 1, 4]."""
+    world's episode depends on its key and, to float rounding, on the worlds planned beside it. Returns record's
+    arrays stacked [B, F, ...] (F = pushes + 1; broken is sticky, as every State's) and action [B, F - 1, 4]."""
     if not 0.0 <= planned <= 1.0:
         raise ValueError(f"planned must be a share in [0, 1], got {planned}")
     keys = np.asarray(keys)
