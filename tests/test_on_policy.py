@@ -146,12 +146,9 @@ def test_only_planned_worlds_are_planned_warm_after_a_planned_push():
     for t in range(3):
         step_keys = np.asarray(on_policy.fold(on_policy.fold(keys, 2), t))
         chosen = np.asarray(jax.vmap(jax.random.uniform)(on_policy.fold(step_keys, 2)) < 0.5)
-        seen = {}
-        for k, w in calls:
-            for key, warm in zip(k, w, strict=True):
-                i = int(np.flatnonzero((step_keys == key).all(1))[0]) if (step_keys == key).all(1).any() else None
-                if i is not None:
-                    seen[i] = bool(warm)
+        world = {key.tobytes(): i for i, key in enumerate(step_keys)}  # this push's plan keys -> their worlds
+        seen = {world[key.tobytes()]: bool(warm) for k, w in calls for key, warm in zip(k, w, strict=True)
+                if key.tobytes() in world}  # world -> the warm flag it was planned with at this push
         assert sorted(seen) == list(np.flatnonzero(chosen)), (t, seen, chosen)
         assert all(warm == planned_before[i] for i, warm in seen.items())
         random = np.asarray(jax.vmap(worlds.env.sample_push)(on_policy.fold(step_keys, 1), run["pos"][:, t]))
