@@ -8,7 +8,8 @@ shard (round 1 pays the compiles; later rounds show what a further shard of the 
 Stages: ``pool`` (the engine's worlds built), ``masks`` (goal masks on the host), ``goals`` (``make_goals``),
 ``reset`` and ``push`` (the engine; C workers' pushes include rendering on the device), ``visible`` (each frame's
 foreground points), ``decide`` (perception and the plan, batched over the shard's worlds), ``random`` (random pushes),
-``record`` (a frame's arrays); ``other`` is the rest of the round (copies to the host, random pushes, bookkeeping).
+``record`` (a frame's arrays); ``other`` is the rest of the round (copies to the host, the planned share's draw,
+bookkeeping).
 With C workers the worlds run in ``--lanes`` threads whose stages overlap, so the stages may add up to more than
 the round.
 Prints a line a round and writes them to --json.
@@ -23,6 +24,7 @@ from collections import defaultdict
 import jax
 
 from dynres_jax.learn import data, on_policy
+from dynres_jax.sim import engines
 from dynres_jax.sim import pool as pools
 from dynres_jax.sim.pool import process_pool
 
@@ -70,8 +72,7 @@ def main():
     pools.make_pool = timed_pool(pools.make_pool)
     data.frame_record = timed("record", data.frame_record)
     rows = []
-    uses_workers = data.engines.uses_workers(config.backend)
-    with (process_pool(args.workers) if uses_workers else contextlib.nullcontext()) as pool:
+    with (process_pool(args.workers) if engines.uses_workers(config.backend) else contextlib.nullcontext()) as pool:
         for r in range(args.rounds):
             SECONDS.clear()
             t0 = time.perf_counter()
