@@ -17,6 +17,7 @@
 #    DataConfig (seed 13, EPISODES episodes in shards of GPU_WORLDS worlds, default 256), end to end. GPU_FLAGS picks
 #    the data (default "--backend warp": Warp alone); on-policy data on C workers: GPU_FLAGS="--backend mujoco
 #    --planned 0.5" with at least six shards a process, so each process plans at every ω of on_policy.OMEGAS.
+#    GPU_COUNTS (default "1 2 4") picks the runs, those of more GPUs than the host has skipped.
 # 7. planned (issue 50 item 3, not in the default STAGES): on-policy data (--planned 0.5, the shipped policy) as made
 #    today (C workers, shards of 64 worlds: 27 frames/s in docs/model_at_scale) and by Warp in shards of PLANNED_WORLDS
 #    (default 2048) worlds, each decision batched over the whole shard; PLANNED_EPISODES (2048) episodes each.
@@ -73,7 +74,7 @@ if stage mix; then
   pack
 fi
 if stage gpus; then
-  for g in 1 2 4; do
+  for g in ${GPU_COUNTS:-1 2 4}; do
     [ "$g" -le "$(nvidia-smi -L 2>/dev/null | grep -c '^GPU')" ] && [ ! -f "$WORK/data/G$g/summary.json" ] || continue
     t0=$(now)
     # shellcheck disable=SC2086
