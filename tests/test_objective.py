@@ -96,6 +96,27 @@ def test_text_goal_inside_image_at_its_size():
         assert text_goal(CAM, text, (0.0, 0.0), 0.1).sum() > 0
 
 
+def test_text_goal_too_tall_fails_before_it_is_drawn(monkeypatch):
+    """Text taller than the bin fails before OpenCV draws it (drawing large text costs most), yet that early check
+    refuses nothing whose ink fits: the tallest "I" that fits is the bin's width to within a canvas pixel."""
+    drawn = []
+    put_text = cv2.putText
+    monkeypatch.setattr(goals_module.cv2, "putText", lambda *a, **k: drawn.append(1) or put_text(*a, **k))
+    with pytest.raises(ValueError, match="outside the bin"):
+        text_goal(CAM, "I", (0.0, 0.0), 2.5 * goals_module.BIN_HALF_WIDTH)
+    assert not drawn
+
+    def fits(height):
+        try:
+            return text_goal(CAM, "I", (0.0, 0.0), height).any()
+        except ValueError:
+            return False
+    lo, hi = 0.1, 0.5
+    while hi - lo > 1e-5:
+        lo, hi = ((lo + hi) / 2, hi) if fits((lo + hi) / 2) else (lo, (lo + hi) / 2)
+    assert drawn and abs(lo - 2 * goals_module.BIN_HALF_WIDTH) < PIXEL_M / goals_module.TEXT_OVERSAMPLE
+
+
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_polygon_goal_matches_point_in_polygon(seed):
     rng = np.random.default_rng(seed)

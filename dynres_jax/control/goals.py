@@ -201,6 +201,9 @@ def text_goal(camera: Camera, text: str, centre_xy, height_m: float, font: int =
     thickness_m = height_m / 5 if thickness_m is None else thickness_m
     _check_positive("text thickness_m", thickness_m)
     centre = np.asarray(centre_xy, np.float64).reshape(2)
+    # the ink is height_m tall: text that cannot fit fails before it is drawn (the drawing costs most for large text)
+    _check_in_view(f"text goal {text!r}", camera, centre + [[0, -0.45 * height_m], [0, 0.45 * height_m]],
+                   bin_half_width)
     res = _metres_per_pixel(camera, centre) / TEXT_OVERSAMPLE  # metres per canvas pixel
     thickness = max(1, round(thickness_m / res))
     scale = 1.0
