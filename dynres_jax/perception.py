@@ -118,10 +118,15 @@ def point_cloud(observation: Observation, camera: Camera, *, max_points: int | N
     return pack(*foreground(observation, camera, **foreground_kw), max_points)
 
 
+def visible_count(observation: Observation, camera: Camera, max_points: int | None):
+    """How many foreground points a frame gives perception to sample from (``point_cloud``'s valid count, at most
+    max_points): the largest ω it can sample. Traceable: -> [] int."""
+    return jnp.sum(point_cloud(observation, camera, max_points=max_points)[1])
+
+
 def visible_points(observation: Observation, camera: Camera, max_points: int | None) -> int:
-    """How many foreground points one concrete frame gives perception to sample from (``point_cloud``'s valid
-    count, at most max_points): the largest ω it can sample."""
-    return int(np.sum(np.asarray(point_cloud(observation, camera, max_points=max_points)[1])))
+    """``visible_count`` of one concrete frame, as a Python int."""
+    return int(visible_count(observation, camera, max_points))
 
 
 def pack(points, valid, max_points: int | None):

@@ -30,7 +30,7 @@ from dynres_jax.control.goals import disc_goal, make_goals
 from dynres_jax.control.mpc import MPCConfig, fold, shift
 from dynres_jax.control.planner import planner_config
 from dynres_jax.models.registry import SHIPPED_DYNAMICS, load_dynamics
-from dynres_jax.perception import point_cloud
+from dynres_jax.perception import visible_count
 
 OMEGAS = (25, 50, 100)  # the resolution of shard i's plans: OMEGAS[i % 3]
 LETTERS = "JTUCLSYO"  # Redistribute goals an episode may draw
@@ -146,8 +146,8 @@ def _chunks(rows: np.ndarray, size: int):
 
 @functools.partial(jax.jit, static_argnames=("camera", "max_points"))
 def _visible_points(obs, *, camera, max_points):
-    """``perception.visible_points`` of each frame of obs [B], traced: -> [B] int."""
-    return jax.vmap(lambda o: jnp.sum(point_cloud(o, camera, max_points=max_points)[1]))(obs)
+    """``perception.visible_count`` of each frame of obs [B]: -> [B] int."""
+    return jax.vmap(lambda o: visible_count(o, camera, max_points))(obs)
 
 
 @functools.partial(jax.jit, static_argnames="env")
