@@ -59,12 +59,12 @@ def main():
     parser.add_argument("--rounds", type=int, default=2)
     parser.add_argument("--seed", type=int, default=16)
     parser.add_argument("--lanes", type=int, default=on_policy.HOST_LANES, help="on_policy.HOST_LANES (C workers)")
-    parser.add_argument("--chunks", type=int, default=on_policy.PLAN_CHUNKS, help="on_policy.PLAN_CHUNKS")
+    parser.add_argument("--slack", type=float, default=on_policy.PLAN_SLACK, help="on_policy.PLAN_SLACK")
     parser.add_argument("--json", default=None)
     args = parser.parse_args()
     config = data.DataConfig(episodes=args.worlds, pushes=args.pushes, worlds=args.worlds, backend=args.backend,
                              planned=0.5, seed=args.seed)
-    on_policy.HOST_LANES, on_policy.PLAN_CHUNKS = args.lanes, args.chunks
+    on_policy.HOST_LANES, on_policy.PLAN_SLACK = args.lanes, args.slack
     on_policy.episode_goals = timed("masks", on_policy.episode_goals)
     on_policy.make_goals = timed("goals", on_policy.make_goals)
     on_policy.decide_batch = timed("decide", on_policy.decide_batch)
@@ -80,7 +80,7 @@ def main():
             out = data.simulate_shard(config, args.shard, pool=pool)
             total = time.perf_counter() - t0
             row = dict(round=r + 1, backend=config.backend, worlds=args.worlds, pushes=args.pushes, lanes=args.lanes,
-                       chunks=args.chunks,
+                       slack=args.slack,
                        omega=on_policy.OMEGAS[args.shard % len(on_policy.OMEGAS)], pieces=int(len(out["kind"])),
                        kinds=list(map(str, out["kind_names"])), device=jax.devices()[0].device_kind, total=total,
                        **{k: round(v, 2) for k, v in SECONDS.items()},

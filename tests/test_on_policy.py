@@ -129,19 +129,19 @@ def test_only_planned_worlds_are_planned_warm_after_a_planned_push():
         calls.append((np.asarray(step_keys), np.asarray(warm)))
         return decide(obs, goals, step_keys, init, warm, *args, **kwargs)
 
-    saved, chunks = dict(on_policy.PLANNER), on_policy.PLAN_CHUNKS
+    saved, chunk_size = dict(on_policy.PLANNER), on_policy._chunk_size
     on_policy.PLANNER.update(samples=8, adam_steps=4)
     on_policy.decide_batch = spy
     try:
         runs = {}
-        for on_policy.PLAN_CHUNKS in (1, 100):  # chunks of 3 worlds, of 1
+        for size in (None, 1):  # the rule's chunks (all the worlds here), chunks of one world
+            on_policy._chunk_size = chunk_size if size is None else lambda b, planned: 1
             calls.clear()
-            runs[on_policy.PLAN_CHUNKS] = on_policy.planned_episodes(worlds, keys, 3, 0.5, dynamics, 8,
-                                                                     data.frame_record)
+            runs[size] = on_policy.planned_episodes(worlds, keys, 3, 0.5, dynamics, 8, data.frame_record)
     finally:
         on_policy.PLANNER.update(saved)
-        on_policy.decide_batch, on_policy.PLAN_CHUNKS = decide, chunks
-    run = runs[100]
+        on_policy.decide_batch, on_policy._chunk_size = decide, chunk_size
+    run = runs[1]
     planned_before = np.zeros(WORLDS, bool)
     for t in range(3):
         step_keys = np.asarray(on_policy.fold(on_policy.fold(keys, 2), t))
@@ -156,4 +156,14 @@ def test_only_planned_worlds_are_planned_warm_after_a_planned_push():
         assert not np.allclose(run["action"][chosen, t], random[chosen], atol=1e-3)
         planned_before = chosen
     assert 0 < sum(len(k) for k, _ in calls)
-    np.testing.assert_allclose(runs[1]["action"], runs[100]["action"], atol=1e-4)
+    np.testing.assert_allclose(runs[1]["action"], runs[None]["action"], atol=1e-4)
+
+
+@pytest.mark.parametrize("b, planned", [(6, 0.5), (64, 0.5), (128, 0.25), (512, 0.5), (512, 0.9), (40, 1.0)])
+def test_chunk_size_makes_nearly_every_push_one_decision(b, planned):
+    """A group's decision size holds the planned worlds of nearly every push (binomial draws: at most 1 % need a
+    second decision), stays within the group, and pads by a few standard deviations at most."""
+    size = on_policy._chunk_size(b, planned)
+    counts = np.random.default_rng(0).binomial(b, planned, 100_000)
+    assert size <= b and np.mean(counts > size) <= 0.01
+    assert size <= b * planned + 4 * np.sqrt(b * planned * (1 - planned)) + 1
