@@ -113,6 +113,7 @@ def _episodes(worlds, keys, goals, pushes: int, planned: float, dynamics, omega:
     cfg = MPCConfig(planner=planner_config(env, **PLANNER))
     spec = cfg.spec(budget.bucket_for(omega, cfg.buckets))
     size = _chunk_size(b, planned)
+    steps = np.full(size, cfg.planner.adam_steps, np.int32)
     states = worlds.reset(fold(keys, 1))
     frames, actions = [jax.device_get(record(states))], []
     plans, warm = np.zeros((b, cfg.planner.horizon, 4), np.float32), np.zeros(b, bool)
@@ -125,8 +126,7 @@ def _episodes(worlds, keys, goals, pushes: int, planned: float, dynamics, omega:
             visible = np.asarray(_visible_points(obs, camera=camera, max_points=cfg.max_points))
             best = np.asarray(decide_batch(obs, jax.tree.map(lambda x, r=rows: x[r], goals), step_keys[rows],
                                            plans[rows], warm[rows], np.minimum(omega, visible),
-                                           np.full(size, cfg.planner.adam_steps, np.int32), spec=spec,
-                                           dynamics=dynamics, camera=camera)[2].best)
+                                           steps, spec=spec, dynamics=dynamics, camera=camera)[2].best)
             action[rows[:n]], plans[rows[:n]] = best[:n, 0], np.asarray(shift(best))[:n]
         warm = chosen
         states = worlds.push(states, action)
