@@ -15,7 +15,9 @@ import json
 import math
 import os
 import shutil
+import signal
 import sys
+import threading
 import traceback
 
 from dynres_jax import distributed
@@ -33,10 +35,41 @@ def prog(name: str) -> str:
     return f"dynres {name}" if os.path.basename(sys.argv[0]) == "dynres" else f"python -m experiments.{name}"
 
 
-def parser(name: str, doc: str | None) -> argparse.ArgumentParser:
+class Parser(argparse.ArgumentParser):
+    """A command's parser: a mistake is one line (``PROG: error: ...`` and where the options are), exit status 2; the
+    ``--out`` it parsed is kept for ``guarded``'s line on an interrupt."""
+
+    def error(self, message: str):
+        self.exit(2, f"{self.prog}: error: {message} (options: {self.prog} --help)\n")
+
+    def parse_known_args(self, args=None, namespace=None):
+        global _out
+        parsed, rest = super().parse_known_args(args, namespace)
+        _out = getattr(parsed, "out", _out)
+        return parsed, rest
+
+
+_out: str | None = None  # the --out of the command running in this process (Parser sets it, guarded reads it)
+
+
+def parser(name: str, doc: str | None) -> Parser:
     """The parser of command ``name`` (its module docstring as the description)."""
-    return argparse.ArgumentParser(prog=prog(name), description=doc,
-                                   formatter_class=argparse.RawDescriptionHelpFormatter)
+    return Parser(prog=prog(name), description=doc, formatter_class=argparse.RawDescriptionHelpFormatter)
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM, raised where the command is, so it unwinds as Ctrl-C does."""
+
+
+def _terminate(signum, frame):
+    raise Terminated
+
+
+def _interrupted(name: str) -> str:
+    """The line an interrupted command ends with: what it kept and how to go on."""
+    if _out and os.path.isfile(os.path.join(_out, RUN)):
+        return f"{prog(name)}: interrupted; finished work is kept in {_out}; rerun the same command to resume"
+    return f"{prog(name)}: interrupted before writing anything; rerun the same command to start again"
 
 
 def guarded(name: str):
@@ -44,13 +77,21 @@ def guarded(name: str):
     reading, a folder of another run) is printed as one line naming the input, exit status 2, as argparse does; a
     ``JobError`` (a peer that never joined) the same way with status 1; a JAX platform that cannot start
     (``JAX_PLATFORMS`` naming a missing or unknown one) the same way with status 2; a closed standard output
-    (``| head``) ends the command quietly, as Unix tools do, status 1."""
+    (``| head``) ends the command quietly, as Unix tools do, status 1; SIGINT (Ctrl-C) and SIGTERM end it with one
+    line saying what was kept and how to resume, status 130 and 143 as a shell reports those signals."""
 
     def wrap(main):
         @functools.wraps(main)
         def run(argv=None):
+            global _out
+            _out = None
+            in_main = threading.current_thread() is threading.main_thread()  # signal handlers are set only there
+            previous = signal.signal(signal.SIGTERM, _terminate) if in_main else None
             try:
                 return main(argv)
+            except KeyboardInterrupt as e:
+                print(("\n" if sys.stderr.isatty() else "") + _interrupted(name), file=sys.stderr)  # past a bar
+                raise SystemExit(143 if isinstance(e, Terminated) else 130) from None
             except (InputError, JobError) as e:
                 print(f"{prog(name)}: error: {' '.join(str(e).split())}", file=sys.stderr)
                 raise SystemExit(2 if isinstance(e, InputError) else 1) from None
@@ -64,6 +105,9 @@ def guarded(name: str):
             except BrokenPipeError:
                 os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # no second error at exit's flush
                 raise SystemExit(1) from None
+            finally:
+                if in_main:
+                    signal.signal(signal.SIGTERM, previous or signal.SIG_DFL)  # None: a handler set outside Python
 
         return run
 

@@ -14,6 +14,7 @@ from __future__ import annotations
 import functools
 import multiprocessing
 import os
+import signal
 from typing import Protocol
 
 import jax
@@ -62,7 +63,9 @@ def _checked(env: PileEnv, actions) -> np.ndarray:
 
 
 def _host_only() -> None:
-    """Worker initialiser: JAX on the host (never the accelerator the parent holds), one thread per process."""
+    """Worker initialiser: JAX on the host (never the accelerator the parent holds), one thread per process; Ctrl-C
+    is the parent's to report (it ends the pool), not every worker's."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     os.environ["XLA_FLAGS"] = "--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1"
     jax.config.update("jax_platforms", "cpu")
 

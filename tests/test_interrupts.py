@@ -1,0 +1,29 @@
+"""Ctrl-C and SIGTERM end a command with one line saying what was kept and how to resume, never a traceback."""
+
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import pytest
+
+
+@pytest.mark.parametrize("signum, status", [(signal.SIGINT, 130), (signal.SIGTERM, 143)])
+def test_an_interrupted_command_ends_with_one_line_and_the_signals_status(tmp_path, signum, status):
+    out = tmp_path / "sim"
+    run = subprocess.Popen([sys.executable, "-m", "experiments.simulate", "--pieces", "20", "--pushes", "10000",
+                            "--image-size", "32", "--out", str(out)], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                           text=True, env=dict(os.environ, JAX_PLATFORMS="cpu"))
+    deadline = time.monotonic() + 120
+    while not (out / "run.json").exists() and run.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert run.poll() is None, run.communicate()
+    time.sleep(1.0)  # into the pushes
+    run.send_signal(signum)
+    _, err = run.communicate(timeout=60)
+    assert run.returncode == status, err
+    assert "Traceback" not in err, err
+    said = [line for line in err.splitlines() if "interrupted" in line]
+    assert said == [f"python -m experiments.simulate: interrupted; finished work is kept in {out}; rerun the same "
+                    "command to resume"], err
