@@ -135,7 +135,7 @@ def test_resume_rewrites_missing_shard_identically(generated, tmp_path):
     with open(second, "rb") as f:
         second_bytes = f.read()
     os.unlink(second)  # the run was killed before shard 1 ...
-    leftover = os.path.join(out, files.TMP_PREFIX + "shard_00001.npz.x7k2")
+    leftover = os.path.join(out, files.tmp_prefix(second) + "x7k2")
     with open(leftover, "wb") as f:  # ... while writing it
         f.write(b"half a zip")
     mtime = os.stat(first).st_mtime_ns
@@ -164,7 +164,7 @@ def test_a_part_makes_only_its_shards_bit_for_bit(generated, tmp_path):
     original, _ = generated
     out = str(tmp_path / "parts")
     os.makedirs(out)
-    other = os.path.join(out, files.TMP_PREFIX + "shard_00000.npz.a1b2")  # part 0 is writing shard 0 right now
+    other = os.path.join(out, files.tmp_prefix(shards.shard_path(out, 0)) + "a1b2")  # part 0 writes shard 0 now
     with open(other, "wb") as f:
         f.write(b"part 0 at work")
     summary = data.generate(QUICK, out, progress=False, part=(1, 2))

@@ -3,19 +3,20 @@ prints a user's mistake (``errors.InputError``) as one line with exit status 2, 
 
 Every command's ``--out`` folder holds ``run.json``: the command and the settings that made it. A rerun with the same
 settings resumes (or rewrites the same results); other settings are refused with what differs, unless ``--fresh``
-asks to start the folder afresh; a folder of another command, or a non-empty folder this package did not make, is
-refused.
+asks to delete what the earlier runs wrote (``run.files`` lists it; a user's own file stays); a folder of another
+command, a non-empty folder this package did not make, or one another run holds (``run.lock``) is refused.
 """
 
 from __future__ import annotations
 
 import argparse
+import fcntl
 import functools
 import json
 import math
 import os
-import shutil
 import signal
+import socket
 import sys
 import threading
 import traceback
@@ -214,8 +215,9 @@ def engine(parser: argparse.ArgumentParser, name: str) -> str:
 
 def add_fresh(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--fresh", action="store_true",
-                        help="delete what an earlier run of this command with other settings left in --out, and "
-                             "start afresh (default: a rerun resumes with the same settings, other ones are refused)")
+                        help="delete the files an earlier run of this command with other settings wrote in --out "
+                             "(yours stay), and start afresh (default: a rerun resumes with the same settings, other "
+                             "ones are refused)")
 
 
 def settings(args: argparse.Namespace, ignore=()) -> dict:
@@ -228,13 +230,21 @@ def settings(args: argparse.Namespace, ignore=()) -> dict:
 
 def claim(out: str, command: str, config: dict, fresh: bool = False) -> bool:
     """Make ``out`` this run's folder before any work; True when it resumes an earlier run of the same settings.
-    InputError naming --out when it cannot be written, holds another command's run, a non-empty folder this package
-    did not make, or a run of other settings (unless ``fresh``: then the earlier run's files are deleted). In a job,
-    every process checks before process 0 writes anything, so all see the same folder and refuse it together."""
+    InputError naming --out when it cannot be written, another run holds its lock (``LOCK``), it holds another
+    command's run, a non-empty folder this package did not make, or a run of other settings (unless ``fresh``: then
+    what the earlier runs listed as their own is deleted, ``files.remove_owned``; a user's file stays). From here on
+    every file the run writes in ``out`` is listed (``files.own``). In a job, every process checks before process 0
+    writes anything, so all see the same folder and refuse it together; process 0 holds the lock."""
     record = os.path.join(out, RUN)
     if os.path.exists(out) and not os.path.isdir(out):
         raise InputError(f"--out {out!r} is a file, not a folder")
     _check_can_create(out)
+    if os.path.isdir(out) and not os.path.isfile(record) and set(os.listdir(out)) - {LOCK}:
+        raise InputError(f"--out {out!r} is not empty and holds no {RUN} (it was not made by a dynres command); "
+                         "choose a new or empty folder")
+    if not distributed.agree(_lock(out) if distributed.is_writer() else True):
+        raise InputError(f"--out {out!r} is in use by another run ({_holder(out)}); wait for it to end or choose "
+                         "another folder")
     earlier, afresh = None, False
     if os.path.isfile(record):
         try:
@@ -251,21 +261,62 @@ def claim(out: str, command: str, config: dict, fresh: bool = False) -> bool:
                 raise InputError(f"--out {out!r} holds a {command} run of other settings "
                                  f"({_differences(earlier_config, config)}); rerun with its settings to resume, "
                                  "choose another --out, or pass --fresh to start it afresh")
+            if not os.path.isfile(os.path.join(out, files.OWN)):
+                raise InputError(f"--out {out!r}: its run lists no files of its own (no {files.OWN}: it began before "
+                                 "dynres listed them), so --fresh cannot tell them from yours; delete them yourself "
+                                 "or choose another folder")
+            files.owned(out)  # a damaged list refused before anything is deleted
             earlier, afresh = None, True
-    elif os.path.isdir(out) and os.listdir(out):
-        raise InputError(f"--out {out!r} is not empty and holds no {RUN} (it was not made by a dynres command); "
-                         "choose a new or empty folder")
     distributed.barrier(f"claim checked {os.path.abspath(out)}")
     if distributed.is_writer():
-        if afresh:
-            shutil.rmtree(out)
         try:
             files.check_writable(out)
         except OSError as e:
             raise InputError(f"--out: {e}") from None
+        if afresh:
+            files.remove_owned(out, keep=(RUN,))
+        elif earlier is None:
+            files.write_text(os.path.join(out, files.OWN), "")
         files.write_json(record, dict(command=command, config=config))
     distributed.barrier(f"claim written {os.path.abspath(out)}")
+    files.own(out)
     return earlier is not None
+
+
+LOCK = "run.lock"  # in --out: flock-ed by the process that claimed it, holding its pid and host; never deleted
+_locks: dict[str, int] = {}  # folder (real path) -> the open lock file this process holds
+
+
+def _lock(out: str) -> bool:
+    """Hold ``out``'s lock for the rest of this process (an ``flock``: the kernel drops it when the process dies, so a
+    stale lock, its pid no longer alive, is taken over); False when another process holds it."""
+    os.makedirs(out, exist_ok=True)
+    key = os.path.realpath(out)
+    if key in _locks:
+        return True
+    fd = os.open(os.path.join(out, LOCK), os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        os.close(fd)
+        return False
+    except OSError as e:
+        os.close(fd)
+        raise InputError(f"--out {out!r}: cannot lock {LOCK} ({e.strerror or e}); choose a folder on a file system "
+                         "with locks") from None
+    os.ftruncate(fd, 0)
+    os.write(fd, f"pid {os.getpid()} on {socket.gethostname()}\n".encode())
+    _locks[key] = fd
+    return True
+
+
+def _holder(out: str) -> str:
+    """Who holds ``out``'s lock, as its file says."""
+    try:
+        with open(os.path.join(out, LOCK)) as f:
+            return f.read().strip() or "pid not yet written"
+    except OSError as e:
+        return f"its {LOCK} unreadable: {e.strerror or e}"
 
 
 def _check_can_create(path: str) -> None:

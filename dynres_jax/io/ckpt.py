@@ -125,7 +125,9 @@ def latest_step(directory) -> int | None:
 
 def save(directory, step: int, state: dict[str, Any], meta: dict, keep: int | None = 3) -> None:
     """Write pytrees ``state`` (e.g. {"model": nnx.State, "opt": ...}) and JSON ``meta`` as ``step``; keeps the
-    newest ``keep`` steps."""
+    newest ``keep`` steps. ``directory`` is listed whole as a claimed folder's own (``files.record``): orbax writes
+    there, not through ``files``."""
+    files.record(directory, whole=True)
     unsealed = os.path.join(directory, str(step))
     if os.path.isdir(unsealed) and step not in _steps(directory):
         shutil.rmtree(unsealed)  # a save killed between orbax's rename and the manifest: unfinished

@@ -1,14 +1,30 @@
 """Atomic files: every long job writes through these, so a reader (or a resumed run) sees the old file or the whole
-new one, never a part. Temporary files start with ``TMP_PREFIX``; a job may delete leftovers of a killed run."""
+new one, never a part. Temporary files start with ``tmp_prefix(path)``; a job may delete leftovers of a killed run.
+
+A command's claimed ``--out`` folder (``own``) lists every path written in it (``OWN``, before the write), so a later
+``--fresh`` deletes what the run made and nothing else (``remove_owned``).
+"""
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
+import shutil
 import tempfile
 from collections.abc import Callable
 
+from dynres_jax.errors import InputError
+
 TMP_PREFIX = ".tmp-"
+OWN = "run.files"  # in a claimed folder: the paths its runs wrote, relative to it, one JSON string a line
+_owned: dict[str, set[str]] = {}  # this process's claimed folder (absolute) -> the paths its list holds
+
+
+def tmp_prefix(path: str) -> str:
+    """How the temporary files of ``path`` begin (in its folder): short whatever the name's length (a 255-byte name
+    fits), the same for every write of ``path``, so a job can find a killed write's leftovers."""
+    return TMP_PREFIX + hashlib.sha256(os.fsencode(os.path.basename(path))).hexdigest()[:12] + "."
 
 
 def atomic_write(path: str, write: Callable) -> None:
@@ -16,7 +32,8 @@ def atomic_write(path: str, write: Callable) -> None:
     ``path`` (``os.replace``)."""
     folder = os.path.dirname(os.path.abspath(path))
     os.makedirs(folder, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=folder, prefix=TMP_PREFIX + os.path.basename(path) + ".")
+    record(path)
+    fd, tmp = tempfile.mkstemp(dir=folder, prefix=tmp_prefix(path))
     try:
         with os.fdopen(fd, "wb") as f:
             write(f)
@@ -55,3 +72,72 @@ def write_image(path: str, image) -> None:
     if not ok:
         raise OSError(f"OpenCV could not encode an image for {path!r}")
     atomic_write(path, lambda f: f.write(data.tobytes()))
+
+
+def own(folder: str) -> None:
+    """From now on, list every path this process writes under ``folder`` (its claimed ``--out``) in ``folder/OWN``;
+    nothing when ``folder`` has no list (a run begun before lists: ``--fresh`` refuses it, ``remove_owned``)."""
+    _owned.clear()
+    if os.path.isfile(os.path.join(folder, OWN)):
+        _owned[os.path.abspath(folder)] = set(owned(folder))
+
+
+def owned(folder: str) -> list[str]:
+    """The paths ``folder/OWN`` lists (relative to it; a folder recorded whole ends in "/"). InputError naming the
+    list when it is unreadable or names a path outside the folder."""
+    listing = os.path.join(folder, OWN)
+    try:
+        with open(listing, encoding="utf-8") as f:
+            paths = [json.loads(line) for line in f if line.strip()]
+    except (OSError, ValueError) as e:
+        raise InputError(f"{listing!r} is unreadable or damaged ({type(e).__name__})") from None
+    for rel in paths:
+        if not isinstance(rel, str) or os.path.isabs(rel) or os.path.normpath(rel).split(os.sep)[0] in ("..", "."):
+            raise InputError(f"{listing!r} names {rel!r}, not a path inside the folder; the list was edited")
+    return paths
+
+
+def record(path: str, whole: bool = False) -> None:
+    """List ``path`` (``whole``: a folder, everything in it) as the claimed folder's own, before it is written, so a
+    killed write leaves a listed name, never an unlisted file; nothing for a path outside the claimed folder."""
+    path = os.path.abspath(path)
+    for folder, paths in _owned.items():
+        rel = os.path.relpath(path, folder) + (os.sep if whole else "")
+        if rel.startswith(os.pardir + os.sep) or rel in paths or rel == OWN:
+            continue
+        with open(os.path.join(folder, OWN), "a", encoding="utf-8") as f:
+            f.write(json.dumps(rel) + "\n")
+        paths.add(rel)
+
+
+def remove_owned(folder: str, keep: tuple[str, ...] = ()) -> None:
+    """Delete what ``folder``'s list names but ``keep`` (files with their temporary leftovers, folders recorded
+    whole), then the folders this leaves empty, and empty the list: a file the runs did not write stays."""
+    parents, paths = set(), []
+    for rel in owned(folder):
+        if rel in keep:
+            continue
+        path = os.path.join(folder, rel.rstrip(os.sep))
+        if rel.endswith(os.sep) and os.path.isdir(path) and not os.path.islink(path):
+            shutil.rmtree(path)
+        elif os.path.lexists(path) and not os.path.isdir(path):
+            os.unlink(path)
+        parents.add(os.path.dirname(path))
+        paths.append(path)
+    for leftover in leftovers(paths):
+        os.unlink(leftover)
+    for parent in sorted(parents, key=len, reverse=True):  # deepest first
+        while os.path.normpath(parent) != os.path.normpath(folder) and os.path.isdir(parent) and not os.listdir(parent):
+            os.rmdir(parent)
+            parent = os.path.dirname(parent)
+    write_text(os.path.join(folder, OWN), "")
+
+
+def leftovers(paths) -> list[str]:
+    """The temporary files that killed writes of ``paths`` left."""
+    starts: dict[str, set[str]] = {}
+    for path in paths:
+        starts.setdefault(os.path.dirname(os.path.abspath(path)), set()).add(tmp_prefix(path))
+    size = len(tmp_prefix(""))
+    return [os.path.join(folder, name) for folder, prefixes in starts.items() if os.path.isdir(folder)
+            for name in os.listdir(folder) if name[:size] in prefixes]

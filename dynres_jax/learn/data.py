@@ -57,7 +57,7 @@ from tqdm import tqdm
 
 from dynres_jax import distributed
 from dynres_jax.config import KINDS, PushConfig, SimConfig, check_fields, check_kind_names, replace
-from dynres_jax.io.files import TMP_PREFIX, write_json, write_text
+from dynres_jax.io.files import leftovers, write_json, write_text
 from dynres_jax.io.shards import SHARD_GLOB, fill, read_shard, save_npz, shard_path
 from dynres_jax.learn import on_policy
 from dynres_jax.sim import engines, warp
@@ -334,10 +334,8 @@ def generate(config: DataConfig, out_dir: str, devices=None, progress: bool = Tr
     helper = check_helpers(config, cpu_workers)
     part = part or distributed.part()
     os.makedirs(out_dir, exist_ok=True)
-    for shard in range(part[0], config.n_shards, part[1]):  # half-written shards of a killed run of this part
-        for leftover in glob.glob(os.path.join(out_dir, TMP_PREFIX + os.path.basename(shard_path(out_dir, shard))
-                                               + "*")):
-            os.unlink(leftover)
+    for leftover in leftovers(shard_path(out_dir, shard) for shard in range(part[0], config.n_shards, part[1])):
+        os.unlink(leftover)  # half-written shards of a killed run of this part
     config_path = os.path.join(out_dir, "config.json")
     if os.path.exists(config_path):
         with open(config_path) as f:  # a field added since the run began counts as its default

@@ -335,6 +335,7 @@ def train(cfg: TrainConfig, data_dir: str, out_dir: str, progress: bool = True,
                         val_rmse_mm=float(np.sqrt(val["mse"])) * 1000, val_distance_mm=val["distance"] * 1000,
                         samples_per_s=speed.samples_per_s(), devices=mesh.size)
             if distributed.is_writer():
+                files.record(metrics_path)  # appended to, not written through files
                 with open(metrics_path, "a") as f:
                     f.write(json.dumps(last) + "\n")
             bar.set_postfix(train=f"{last['train_rmse_mm']:.2f}mm", val=f"{last['val_rmse_mm']:.2f}mm")

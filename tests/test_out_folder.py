@@ -1,0 +1,101 @@
+"""An output folder loses no file: --fresh deletes only what the runs listed as their own, a second run on a held
+folder is refused in one line while a stale lock is taken over, and an atomic write fits any legal file name."""
+
+import json
+import os
+import subprocess
+import sys
+
+import pytest
+
+from dynres_jax.commands import checks
+from dynres_jax.errors import InputError
+from dynres_jax.io import files
+
+HOLD = """import fcntl, os, sys
+fd = os.open(sys.argv[1], os.O_RDWR | os.O_CREAT)
+fcntl.flock(fd, fcntl.LOCK_EX)
+os.write(fd, b"pid %d on here" % os.getpid())
+print("held", flush=True)
+sys.stdin.read()
+"""
+
+
+def _hold(out: str) -> subprocess.Popen:
+    """Another process holding ``out``'s lock until its stdin closes."""
+    proc = subprocess.Popen([sys.executable, "-c", HOLD, os.path.join(out, checks.LOCK)], stdin=subprocess.PIPE,
+                            stdout=subprocess.PIPE, text=True)
+    assert proc.stdout.readline() == "held\n"
+    return proc
+
+
+def test_fresh_deletes_only_the_runs_files(tmp_path):
+    out = str(tmp_path / "run")
+    assert not checks.claim(out, "demo", {"a": 1})
+    files.write_json(os.path.join(out, "result.json"), {"x": 1})
+    files.write_text(os.path.join(out, "parts", "0.json"), "{}")
+    files.record(os.path.join(out, "ckpt"), whole=True)  # as ckpt.save does: orbax writes inside
+    os.makedirs(os.path.join(out, "ckpt", "3"))
+    open(os.path.join(out, "ckpt", "3", "data"), "w").close()
+    killed = files.tmp_prefix(os.path.join(out, "result.json")) + "a1b2"
+    open(os.path.join(out, killed), "w").close()
+    with open(os.path.join(out, "notes.txt"), "w") as f:  # the user's own
+        f.write("mine")
+    assert checks.claim(out, "demo", {"a": 1})  # the same settings resume
+    with pytest.raises(InputError, match="other settings"):
+        checks.claim(out, "demo", {"a": 2})
+    assert not checks.claim(out, "demo", {"a": 2}, fresh=True)
+    assert sorted(os.listdir(out)) == sorted(["notes.txt", checks.RUN, checks.LOCK, files.OWN])
+    with open(os.path.join(out, checks.RUN)) as f:
+        assert json.load(f)["config"] == {"a": 2}
+    files.write_text(os.path.join(out, "result.json"), "new")
+    assert files.owned(out) == ["result.json"]  # the new run lists its own from an empty list
+
+
+def test_fresh_refuses_a_run_without_a_list(tmp_path):
+    out = str(tmp_path / "run")
+    checks.claim(out, "demo", {"a": 1})
+    os.unlink(os.path.join(out, files.OWN))  # a run begun before lists
+    with pytest.raises(InputError, match="lists no files of its own"):
+        checks.claim(out, "demo", {"a": 2}, fresh=True)
+    assert os.path.exists(os.path.join(out, checks.RUN))
+
+
+def test_a_held_folder_is_refused_in_one_line(tmp_path, capsys):
+    out = str(tmp_path / "run")
+    os.makedirs(out)
+    holder = _hold(out)
+    try:
+        main = checks.guarded("demo")(lambda argv: checks.claim(out, "demo", {}))
+        with pytest.raises(SystemExit) as e:
+            main([])
+        assert e.value.code == 2
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and f"--out {out!r} is in use by another run (pid {holder.pid} " in err
+        assert os.listdir(out) == [checks.LOCK]  # nothing written
+    finally:
+        holder.communicate("")
+    assert not checks.claim(out, "demo", {})  # its holder gone: a stale lock, taken over
+    with open(os.path.join(out, checks.LOCK)) as f:
+        assert f.read().startswith(f"pid {os.getpid()} ")
+
+
+def test_a_folder_holding_only_a_lock_counts_as_empty(tmp_path):
+    out = str(tmp_path / "run")
+    os.makedirs(out)
+    open(os.path.join(out, checks.LOCK), "w").close()
+    assert not checks.claim(out, "demo", {})
+    with open(os.path.join(out, "theirs.txt"), "w") as f:
+        f.write("x")
+    os.unlink(os.path.join(out, checks.RUN))
+    with pytest.raises(InputError, match="not empty"):
+        checks.claim(out, "demo", {})
+
+
+def test_a_255_byte_name_writes_atomically(tmp_path):
+    path = str(tmp_path / ("é" * 125 + "x.txt"))  # 255 bytes in UTF-8
+    assert len(os.fsencode(os.path.basename(path))) == 255
+    files.write_text(path, "whole")
+    with open(path) as f:
+        assert f.read() == "whole"
+    assert os.listdir(tmp_path) == [os.path.basename(path)]
