@@ -63,9 +63,12 @@ def test_readme_command_parses(module, args, monkeypatch, capsys):
     assert "usage" in _help(module, args, monkeypatch, capsys)
 
 
-def test_simulate_demo_writes_its_files(tmp_path):
+def test_simulate_demo_writes_its_files(tmp_path, capsys):
     simulate.main(["--kind", "coffee", "candy", "--pieces", "3", "2", "--pushes", "1", "--image-size", "48",
                    "--layout", "two_blobs", "--out", str(tmp_path)])
+    said = capsys.readouterr().err.splitlines()  # a start line before the scene is built, then the pushes' progress
+    assert said[0].endswith(f"simulate: 1 push(es) of 3 + 2 coffee + candy pieces on mujoco, into {tmp_path}; "
+                            "building the scene") and said[-1].startswith("pushes: 1/1 push"), said
     for name in ("pushes.gif", "final_rgb.png", "final_depth.png", "actions.json"):
         assert (tmp_path / name).stat().st_size > 0
     record = json.loads((tmp_path / "actions.json").read_text())

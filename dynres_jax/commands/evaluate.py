@@ -36,7 +36,7 @@ import jax
 import numpy as np
 from jax._src import xla_bridge  # whether the backends have started: XLA reads XLA_FLAGS when they do
 
-from dynres_jax import distributed
+from dynres_jax import distributed, progress
 from dynres_jax.commands import checks
 from dynres_jax.commands.planner_args import (
     add_planner_args,
@@ -379,6 +379,9 @@ def report(summary: dict) -> None:
 def main(argv=None):
     parser = build_parser()
     args = parser.parse_args(argv)
+    progress.start(checks.prog("evaluate"), f"{args.task}, methods {' '.join(args.methods)} on {args.episodes} "
+                   f"episodes of {args.mpc_steps} steps, into {args.out} (finished methods are kept); loading the "
+                   "models and the simulator")
     rank, size, sim, main_model, cnn_model = check_args(parser, args)
     checks.claim(args.out, "evaluate", checks.settings(args, ignore=("methods",)), args.fresh)
     results = run_methods(args, rank, size, sim, main_model, cnn_model)

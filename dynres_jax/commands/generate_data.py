@@ -24,7 +24,7 @@ import argparse
 import dataclasses
 import json
 
-from dynres_jax import distributed
+from dynres_jax import distributed, progress
 from dynres_jax.commands import checks
 from dynres_jax.config import SceneConfig
 from dynres_jax.io import ckpt
@@ -87,6 +87,9 @@ def main(argv=None) -> dict:
     if config.planned > 0 and ckpt.latest_step(on_policy.policy_dir(config.policy)) is None:
         parser.error(f"--policy {config.policy}: no checkpoint there (a folder with a finished step, RUN/ckpt)")
     checks.claim(args.out, "generate_data", checks.settings(args), args.fresh)
+    progress.start(checks.prog("generate_data"), f"{config.episodes} episodes of {config.pushes} pushes in "
+                   f"{config.n_shards} shard(s) on {config.backend}, into {args.out} (finished shards are kept); the "
+                   "first shard compiles (minutes on a CPU)")
     summary = data.generate(config, args.out, progress=not args.no_progress, workers=args.workers,
                             cpu_workers=args.cpu_workers)
     print(json.dumps(summary, indent=1, sort_keys=True))

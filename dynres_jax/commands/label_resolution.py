@@ -35,9 +35,8 @@ import time
 
 import jax
 import numpy as np
-from tqdm import tqdm
 
-from dynres_jax import distributed
+from dynres_jax import distributed, progress
 from dynres_jax.commands import checks
 from dynres_jax.commands.planner_args import (
     add_planner_args,
@@ -86,6 +85,7 @@ def build_parser():
                              f"ω = {MID_EPISODE_OMEGA} under the same budget (default 0: fresh piles, Fig. 4's pairs)")
     checks.add_engine(parser)
     parser.add_argument("--quick", action="store_true", help="tiny sizes for a CPU smoke run")
+    parser.add_argument("--quiet", action="store_true", help="no progress bar")
     distributed.add_args(parser)
     return parser
 
@@ -100,6 +100,9 @@ def main(argv=None):
     if args.quick:
         args.scenes, args.batch, args.evals, args.repeats, args.pieces = 8, 4, 6, 1, 60  # 60: points for ω = 100
         args.samples, args.adam_steps = 4, 4
+    progress.start(checks.prog("label_resolution"), f"{args.scenes} {args.kind} scenes of {args.pieces} pieces in "
+                   f"shards of {args.batch}, into {args.out} (finished shards are kept); the first shard compiles "
+                   "(minutes on a CPU)")
     resolve_planner_args(parser, args)
     load_timing(parser, args)
     check_pile(parser, (args.kind,), (args.pieces,))
@@ -132,7 +135,7 @@ def main(argv=None):
             start, _, goals, _ = shard_scenes(cfg, first, pool)
             timing = timing_table(args, args.out, start.obs, goals, dynamics, planner(pool.env), pool.camera,
                                   [OMEGA_MIN])
-        bar = tqdm(total=len(todo), desc="label shards", unit="shard")
+        bar = progress.bar(total=len(todo), desc="label", unit="shard", quiet=args.quiet)
 
         def producer(engine_cfg: LabelConfig, pool_processes):
             def produce(s: int) -> None:

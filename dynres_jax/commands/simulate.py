@@ -13,8 +13,8 @@ import cv2
 import imageio.v3 as iio
 import jax
 import numpy as np
-from tqdm import tqdm
 
+from dynres_jax import progress
 from dynres_jax.commands import checks
 from dynres_jax.config import KINDS, CameraConfig, PileConfig, SceneConfig, SimConfig
 from dynres_jax.io import files
@@ -64,11 +64,14 @@ def main(argv=None):
         parser.error(str(e))
     engine = checks.engine(parser, args.backend)
     checks.claim(args.out, "simulate", checks.settings(args), args.fresh)
+    progress.start(checks.prog("simulate"), f"{args.pushes} push(es) of {' + '.join(map(str, pieces))} "
+                   f"{' + '.join(args.kind)} pieces on {engine}, into {args.out}; building the scene")
     env = engines.make_env(cfg, engine)
     key = jax.random.PRNGKey(args.seed)
     state = env.reset(key)
     frames, actions = [frame(state.obs)], []
-    for i in tqdm(range(args.pushes), desc="pushes"):
+    pushes = progress.bar(range(args.pushes), desc="pushes", unit="push")
+    for i in pushes:
         action = np.asarray(env.sample_push(jax.random.fold_in(key, i + 1), state.pos))
         actions.append(action.tolist())
         if env.draws_pushes:  # the C engine draws the plate moving
@@ -78,7 +81,7 @@ def main(argv=None):
             state = env.push(state, action)
         frames.append(frame(state.obs))
         if bool(state.broken):
-            tqdm.write(f"push {i}: the world broke (NaN, or a piece left the bin); stopping")
+            pushes.write(f"push {i}: the world broke (NaN, or a piece left the bin); stopping")
             break
 
     files.atomic_write(os.path.join(args.out, "pushes.gif"),

@@ -53,13 +53,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
-from tqdm import tqdm
 
 from dynres_jax import distributed
 from dynres_jax.config import KINDS, PushConfig, SimConfig, check_fields, check_kind_names, replace
 from dynres_jax.io.files import leftovers, write_json, write_text
 from dynres_jax.io.shards import SHARD_GLOB, fill, read_shard, save_npz, shard_path
 from dynres_jax.learn import on_policy
+from dynres_jax.progress import bar as progress_bar
 from dynres_jax.sim import engines, warp
 from dynres_jax.sim import pool as pools
 from dynres_jax.sim.camera import MAX_IMAGE, MIN_IMAGE
@@ -349,7 +349,7 @@ def generate(config: DataConfig, out_dir: str, devices=None, progress: bool = Tr
     mine = len(range(part[0], config.n_shards, part[1]))
     start, lock, frames = time.perf_counter(), threading.Lock(), []
     made = {config.backend: 0, **({helper.backend: 0} if helper else {})}
-    bar = tqdm(total=mine, initial=mine - len(todo), unit="shard", desc="generate", disable=not progress)
+    bar = progress_bar(total=mine, initial=mine - len(todo), unit="shard", desc="generate", quiet=not progress)
 
     def producer(cfg: DataConfig, pool):  # an engine's shards, each written while its next one simulates
         pending = []

@@ -18,9 +18,8 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 from flax import nnx
-from tqdm import tqdm
 
-from dynres_jax import distributed
+from dynres_jax import distributed, progress
 from dynres_jax.control.resolution import OMEGA_MAX, OMEGA_MIN, Regressor
 from dynres_jax.io.shards import complete_shards, read_shard
 
@@ -83,7 +82,7 @@ def train_regressor(d: dict, steps: int = 3000, batch: int = 64, lr: float = 1e-
     validation_loss = jax.jit(lambda p: loss_fn(p, x_val, y_val), out_shardings=whole)
     rng = np.random.default_rng(seed)
     best, best_loss, best_step = params, float(distributed.host(validation_loss(params))), 0
-    for i in tqdm(range(1, steps + 1), desc="train regressor"):
+    for i in progress.bar(range(1, steps + 1), desc="train regressor", unit="step"):
         idx = rng.choice(train_i, batch)
         turns, flip = rng.integers(0, 4, batch), rng.integers(0, 2, batch)
         params, state, _ = step(params, state, *distributed.sharded((x[idx], y[idx], turns, flip), mesh))

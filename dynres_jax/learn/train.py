@@ -40,7 +40,6 @@ import numpy as np
 import optax
 from flax import nnx
 from jax.sharding import Mesh
-from tqdm import tqdm
 
 from dynres_jax import distributed
 from dynres_jax.config import check_fields, check_kind_names
@@ -50,6 +49,7 @@ from dynres_jax.learn import targets
 from dynres_jax.models.cnn_dynamics import CNNDynamicsConfig
 from dynres_jax.models.dynamics import DynamicsConfig, resolution_code, rollout
 from dynres_jax.models.registry import make_model, model_class
+from dynres_jax.progress import bar as progress_bar
 
 SCHEDULE = ("steps", "eval_every", "ckpt_every", "val_batches")  # may change when a run resumes; nothing else may
 VAL_STREAM = 2**30  # keys of validation batches: VAL_STREAM + b folded into the seed's, apart from steps' (step)
@@ -316,7 +316,8 @@ def train(cfg: TrainConfig, data_dir: str, out_dir: str, progress: bool = True,
     train_frames, val_frames = resident(train_set, mesh), resident(val_set, mesh)
     key = jax.random.PRNGKey(cfg.seed)
     last = {}
-    bar = tqdm(range(start, cfg.steps), initial=start, total=cfg.steps, desc="train", disable=not progress)
+    bar = progress_bar(range(start, cfg.steps), initial=start, total=cfg.steps, desc="train", unit="step",
+                       quiet=not progress)
     t0 = time.perf_counter()
     speed = _Speed(cfg.batch)
     for i in bar:
