@@ -99,3 +99,36 @@ def test_a_255_byte_name_writes_atomically(tmp_path):
     with open(path) as f:
         assert f.read() == "whole"
     assert os.listdir(tmp_path) == [os.path.basename(path)]
+
+
+def test_a_resume_whose_input_changed_is_refused(tmp_path):
+    out, ckpt, goal = str(tmp_path / "run"), tmp_path / "ckpt", tmp_path / "goal.png"
+    (ckpt / "3").mkdir(parents=True)
+    (ckpt / "3" / "data").write_bytes(b"model")
+    goal.write_bytes(b"goal")
+    inputs = {"--ckpt": str(ckpt), "--goal": str(goal), "--regressor": None}
+    assert not checks.claim(out, "demo", {}, inputs=inputs)
+    with open(os.path.join(out, checks.RUN)) as f:
+        assert json.load(f)["inputs"]["--goal"] == [[str(goal), checks.digest(str(goal), "--goal")]]
+    (ckpt / checks.LOCK).write_text("pid 1")  # a lock is not content
+    assert checks.claim(out, "demo", {}, inputs=inputs)
+    (ckpt / "3" / "data").write_bytes(b"other model")
+    with pytest.raises(InputError, match=f"input --ckpt '{ckpt}' changed since it began"):
+        checks.claim(out, "demo", {}, inputs=inputs)
+    (ckpt / "3" / "data").write_bytes(b"model")
+    goal.write_bytes(b"another goal")
+    with pytest.raises(InputError, match="input --goal"):
+        checks.claim(out, "demo", {}, inputs=inputs)
+    assert not checks.claim(out, "demo", {}, fresh=True, inputs=inputs)  # --fresh starts afresh on the new goal
+    assert checks.claim(out, "demo", {}, inputs=inputs)
+
+
+def test_a_run_without_input_hashes_is_not_resumed(tmp_path):
+    out, goal = str(tmp_path / "run"), tmp_path / "goal.png"
+    goal.write_bytes(b"goal")
+    checks.claim(out, "demo", {})
+    assert checks.claim(out, "demo", {})  # no inputs: nothing to prove
+    with open(os.path.join(out, checks.RUN), "w") as f:
+        json.dump({"command": "demo", "config": {}}, f)  # a run begun before inputs were recorded
+    with pytest.raises(InputError, match="recorded no hashes of its inputs"):
+        checks.claim(out, "demo", {}, inputs={"--goal": str(goal)})

@@ -12,6 +12,7 @@ from __future__ import annotations
 import argparse
 import fcntl
 import functools
+import hashlib
 import json
 import math
 import os
@@ -228,13 +229,15 @@ def settings(args: argparse.Namespace, ignore=()) -> dict:
     return {k: v for k, v in sorted(vars(args).items()) if k not in skip}
 
 
-def claim(out: str, command: str, config: dict, fresh: bool = False) -> bool:
-    """Make ``out`` this run's folder before any work; True when it resumes an earlier run of the same settings.
-    InputError naming --out when it cannot be written, another run holds its lock (``LOCK``), it holds another
-    command's run, a non-empty folder this package did not make, or a run of other settings (unless ``fresh``: then
-    what the earlier runs listed as their own is deleted, ``files.remove_owned``; a user's file stays). From here on
-    every file the run writes in ``out`` is listed (``files.own``). In a job, every process checks before process 0
-    writes anything, so all see the same folder and refuse it together; process 0 holds the lock."""
+def claim(out: str, command: str, config: dict, fresh: bool = False, inputs: dict | None = None) -> bool:
+    """Make ``out`` this run's folder before any work; True when it resumes an earlier run of the same settings and
+    inputs. ``inputs``: the files and folders the run reads, {flag: path, a list of paths, or None}; run.json keeps
+    each one's SHA-256 (``digest``). InputError naming --out when it cannot be written, another run holds its lock
+    (``LOCK``), it holds another command's run, a non-empty folder this package did not make, or a run of other
+    settings or whose inputs changed since, naming the first (unless ``fresh``: then what the earlier runs listed as
+    their own is deleted, ``files.remove_owned``; a user's file stays). From here on every file the run writes in
+    ``out`` is listed (``files.own``). In a job, every process checks before process 0 writes anything, so all see the
+    same folder and refuse it together; process 0 holds the lock."""
     record = os.path.join(out, RUN)
     if os.path.exists(out) and not os.path.isdir(out):
         raise InputError(f"--out {out!r} is a file, not a folder")
@@ -245,6 +248,8 @@ def claim(out: str, command: str, config: dict, fresh: bool = False) -> bool:
     if not distributed.agree(_lock(out) if distributed.is_writer() else True):
         raise InputError(f"--out {out!r} is in use by another run ({_holder(out)}); wait for it to end or choose "
                          "another folder")
+    hashes = {flag: [[path, digest(path, flag)] for path in ([paths] if isinstance(paths, str) else paths)]
+              for flag, paths in sorted((inputs or {}).items()) if paths is not None}
     earlier, afresh = None, False
     if os.path.isfile(record):
         try:
@@ -257,10 +262,13 @@ def claim(out: str, command: str, config: dict, fresh: bool = False) -> bool:
         if earlier_command != command:
             raise InputError(f"--out {out!r} holds a {earlier_command} run; choose another folder for {command}")
         if earlier_config != json.loads(json.dumps(config)):
+            why = f"of other settings ({_differences(earlier_config, config)}); rerun with its settings to resume"
+        else:
+            why = _changed(earlier.get("inputs"), hashes)
+        if why:
             if not fresh:
-                raise InputError(f"--out {out!r} holds a {command} run of other settings "
-                                 f"({_differences(earlier_config, config)}); rerun with its settings to resume, "
-                                 "choose another --out, or pass --fresh to start it afresh")
+                raise InputError(f"--out {out!r} holds a {command} run {why}, choose another --out, or pass --fresh "
+                                 "to start it afresh")
             if not os.path.isfile(os.path.join(out, files.OWN)):
                 raise InputError(f"--out {out!r}: its run lists no files of its own (no {files.OWN}: it began before "
                                  "dynres listed them), so --fresh cannot tell them from yours; delete them yourself "
@@ -277,7 +285,7 @@ def claim(out: str, command: str, config: dict, fresh: bool = False) -> bool:
             files.remove_owned(out, keep=(RUN,))
         elif earlier is None:
             files.write_text(os.path.join(out, files.OWN), "")
-        files.write_json(record, dict(command=command, config=config))
+        files.write_json(record, dict(command=command, config=config, inputs=hashes))
     distributed.barrier(f"claim written {os.path.abspath(out)}")
     files.own(out)
     return earlier is not None
@@ -317,6 +325,38 @@ def _holder(out: str) -> str:
             return f.read().strip() or "pid not yet written"
     except OSError as e:
         return f"its {LOCK} unreadable: {e.strerror or e}"
+
+
+def digest(path: str, flag: str) -> str | None:
+    """SHA-256 of a file's bytes, or of a folder's files (each path in it with its bytes' hash; a lock and temporary
+    files left out), or None when ``path`` does not exist; InputError naming ``flag`` when it cannot be read."""
+    try:
+        if not os.path.exists(path):
+            return None
+        if not os.path.isdir(path):
+            with open(path, "rb") as f:
+                return hashlib.file_digest(f, "sha256").hexdigest()
+        found = {}
+        for root, folders, names in os.walk(path):
+            folders.sort()
+            for name in names:
+                if name != LOCK and not name.startswith(files.TMP_PREFIX):
+                    found[os.path.relpath(os.path.join(root, name), path)] = digest(os.path.join(root, name), flag)
+        return hashlib.sha256(json.dumps(found, sort_keys=True).encode()).hexdigest()
+    except OSError as e:
+        raise InputError(f"{flag} {path!r} cannot be read ({e.strerror or e})") from None
+
+
+def _changed(earlier: dict | None, now: dict) -> str:
+    """Why a run whose inputs had the hashes ``earlier`` cannot resume with ``now`` ("" when they are the same)."""
+    if earlier is None:
+        return "" if not now else ("that recorded no hashes of its inputs (it began before dynres recorded them), so a "
+                                   "resume cannot prove them the same")
+    for flag in sorted(set(earlier) | set(now)):
+        for path, sha in now.get(flag, []):
+            if [path, sha] not in earlier.get(flag, []):
+                return f"whose input {flag} {path!r} changed since it began (its SHA-256 differs); restore it to resume"
+    return "" if earlier == now else "of other inputs; rerun with its inputs to resume"
 
 
 def _check_can_create(path: str) -> None:

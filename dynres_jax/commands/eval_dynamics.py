@@ -137,7 +137,8 @@ def main(argv=None):
     if len(set(args.omegas)) < len(args.omegas):
         parser.error(f"--omegas names an ω twice: {args.omegas}")
     val = targets.load_shards(args.data, "val")
-    checks.claim(args.out, "eval_dynamics", checks.settings(args), args.fresh)
+    checks.claim(args.out, "eval_dynamics", checks.settings(args), args.fresh,
+                 {"--ckpt": args.ckpt, "--data": args.data})
     graphdef, state = nnx.split(model)
     rng = np.random.default_rng(args.seed)
     windows = targets.random_windows(val, rng, args.windows, tcfg["horizon"])

@@ -383,7 +383,9 @@ def main(argv=None):
                    f"episodes of {args.mpc_steps} steps, into {args.out} (finished methods are kept); loading the "
                    "models and the simulator")
     rank, size, sim, main_model, cnn_model = check_args(parser, args)
-    checks.claim(args.out, "evaluate", checks.settings(args, ignore=("methods",)), args.fresh)
+    checks.claim(args.out, "evaluate", checks.settings(args, ignore=("methods",)), args.fresh,
+                 {"--ckpt": args.ckpt, "--regressor": args.regressor, "--cnn-ckpt": args.cnn_ckpt,
+                  "--timing": args.timing})
     results = run_methods(args, rank, size, sim, main_model, cnn_model)
     devices = sorted({r.get("device", "unrecorded") for r in results.values()})  # where the methods ran
     summary = dict(task=args.task, kind=args.kind, pieces=args.pieces, sensor=args.sensor, dynamics=main_model.name,

@@ -116,7 +116,8 @@ def main(argv=None):
     dynamics, n_max, name = load_model(parser, args.dynamics, args.ckpt, SceneConfig.plate_half_width)
     if n_max < OMEGA_MAX:
         parser.error(f"the dynamics checkpoint holds {n_max} particles; labels need {OMEGA_MAX}")
-    checks.claim(args.out, "label_resolution", checks.settings(args), args.fresh)
+    checks.claim(args.out, "label_resolution", checks.settings(args), args.fresh,
+                 {"--ckpt": args.ckpt, "--timing": args.timing})
     if distributed.is_writer():
         files.write_json(os.path.join(args.out, "config.json"), dict(vars(args), dynamics_name=name))
     n_shards = -(-args.scenes // args.batch)

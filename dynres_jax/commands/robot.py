@@ -83,7 +83,8 @@ def main(argv=None):
         make_goal(goal_mask, camera)
     except ValueError as e:
         parser.error(f"--goal: {e}")
-    checks.claim(args.out, "robot", checks.settings(args), args.fresh)
+    checks.claim(args.out, "robot", checks.settings(args), args.fresh,
+                 {"--ckpt": args.ckpt, "--goal": args.goal, "--replay": args.replay})
     pusher = DryRun() if args.dry_run or args.replay else source
     cfg = MPCConfig(mpc_steps=args.steps, real_depth=True, planner=planner_config(
         env, samples=args.samples, adam_steps=args.adam_steps, seed=args.seed))

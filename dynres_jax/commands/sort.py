@@ -73,7 +73,8 @@ def main(argv=None):
         goals_xy, radius, masks = sort_goal(np.random.default_rng(args.seed), env)
     except ValueError as e:
         parser.error(str(e))
-    done = finished(args.out, checks.claim(args.out, "sort", checks.settings(args), args.fresh), args.fresh)
+    resumed = checks.claim(args.out, "sort", checks.settings(args), args.fresh, loop.inputs)
+    done = finished(args.out, resumed, args.fresh)
     if done is not None:
         return done
     goals = [make_goal(m, env.camera) for m in masks]

@@ -120,7 +120,7 @@ def load_model(parser: argparse.ArgumentParser, choice: str, ckpt_dir: str, plat
 class Loop:
     """What the loop flags ask for: the simulator, the planner's model, the MPC settings, the timing table of
     --timing (or None), and ω or, for --resolution adaptive, the regressor g's ``(obs [B], goals [B]) -> ω [B]``
-    (omega None)."""
+    (omega None); inputs: the files read, by flag (``checks.claim``'s)."""
 
     env: PileEnv
     model: LoadedDynamics
@@ -128,6 +128,7 @@ class Loop:
     timing: budget.TimingTable | None
     omega: int | None
     regressor: Callable | None
+    inputs: dict
 
     def chooser(self, goals) -> Chooser:
         """The loop's chooser against goals [B]: the regressor's ω (adaptive) or the fixed ω."""
@@ -147,9 +148,12 @@ def build_loop(args, sim: SimConfig, parser: argparse.ArgumentParser, task: str)
     regressor = None
     if omega != "adaptive" and getattr(args, "regressor", None) is not None:
         parser.error(f"--regressor is for --resolution adaptive; with a fixed ω ({omega}) nothing would use it")
+    inputs = {"--ckpt": None if args.dynamics == "sweep" else args.ckpt or shipped_dynamics(task),
+              "--timing": args.timing}
     if omega == "adaptive":
+        inputs["--regressor"] = args.regressor or SHIPPED_REGRESSOR
         try:
-            regressor = load_regressor(args.regressor or SHIPPED_REGRESSOR, Camera.top_down(sim.camera))
+            regressor = load_regressor(inputs["--regressor"], Camera.top_down(sim.camera))
         except CheckpointError as e:
             parser.error(f"--regressor: {e}")
     env = engines.make_env(sim, checks.engine(parser, args.backend))
@@ -159,7 +163,7 @@ def build_loop(args, sim: SimConfig, parser: argparse.ArgumentParser, task: str)
     except ValueError as e:
         parser.error(str(e))
     check_budget(cfg, timing, [OMEGA_MIN] if regressor else [int(omega)])
-    return Loop(env, model, cfg, timing, None if regressor else int(omega), regressor)
+    return Loop(env, model, cfg, timing, None if regressor else int(omega), regressor, inputs)
 
 
 def check_visible(parser: argparse.ArgumentParser, obs, camera: Camera, omega: int, cfg: MPCConfig) -> None:
@@ -215,7 +219,7 @@ def main(task: str, argv=None):
         parser.error(f"--letter {args.letter!r}: {e}" if spec.letter else str(e))
     state = env.reset(jax.random.PRNGKey(args.seed))
     check_visible(parser, state.obs, env.camera, loop.omega or OMEGA_MIN, cfg)
-    done = finished(args.out, checks.claim(args.out, task, checks.settings(args), args.fresh), args.fresh)
+    done = finished(args.out, checks.claim(args.out, task, checks.settings(args), args.fresh, loop.inputs), args.fresh)
     if done is not None:
         return done
     goal = make_goal(goal_mask, env.camera)

@@ -52,7 +52,7 @@ from dynres_jax.control.planner import planner_config
 from dynres_jax.control.resolution import CANDIDATES
 from dynres_jax.io import files
 from dynres_jax.io.shards import complete_shards, read_shard, save_npz
-from dynres_jax.models.registry import LoadedDynamics
+from dynres_jax.models.registry import SHIPPED_DYNAMICS, LoadedDynamics
 from dynres_jax.sim.pool import WorldPool, process_pool
 from dynres_jax.stats import wilson
 
@@ -95,7 +95,8 @@ def main(argv=None):
         checks.quick_sets(parser, args, ("scenes", "samples", "pieces"))
         check_pile(parser, SceneConfig.kinds, (args.pieces,))
         model = load_model(parser, "auto", args.ckpt, SceneConfig.plate_half_width)
-        checks.claim(args.out, "tradeoff", checks.settings(args), args.fresh)
+        checks.claim(args.out, "tradeoff", checks.settings(args), args.fresh,
+                     {"--ckpt": args.ckpt or SHIPPED_DYNAMICS})
         return surface(args, model)
     if args.reliability:
         first, second = args.reliability
@@ -107,10 +108,10 @@ def main(argv=None):
             check_same_scenes(first, second)
         except ValueError as e:
             parser.error(f"--reliability: {e}")
-        checks.claim(args.out, "tradeoff", checks.settings(args), args.fresh)
+        checks.claim(args.out, "tradeoff", checks.settings(args), args.fresh, {"--reliability": args.reliability})
         return reliability(first, second, args.out)
     paths = complete_shards(args.labels, "--labels", "labels")
-    checks.claim(args.out, "tradeoff", checks.settings(args), args.fresh)
+    checks.claim(args.out, "tradeoff", checks.settings(args), args.fresh, {"--labels": args.labels})
     shards = {int(z["shard"]): z for z in map(read_shard, paths)}
     letter_vs_disc, blob_vs_spread, examples = [], [], {}
     for s, z in shards.items():

@@ -123,7 +123,8 @@ def main(argv=None):
         parser.error(f"--data names {', '.join(twice)} twice: its episodes would count twice")
     for folder in args.data:
         check_data(folder, cfg)
-    checks.claim(args.out, "train_dynamics", checks.settings(args, ignore=(*SCHEDULE, "max_minutes")), args.fresh)
+    checks.claim(args.out, "train_dynamics", checks.settings(args, ignore=(*SCHEDULE, "max_minutes")), args.fresh,
+                 {"--data": args.data})
     print(json.dumps(train(cfg, args.data, args.out, progress=not args.quiet, max_minutes=args.max_minutes)))
 
 

@@ -45,7 +45,7 @@ def main(argv=None):
     if len({os.path.abspath(folder) for folder in args.labels}) < len(args.labels):
         parser.error(f"--labels names a folder twice: {' '.join(args.labels)}")
     labels = load_labels(args.labels)
-    checks.claim(args.out, "train_regressor", checks.settings(args), args.fresh)
+    checks.claim(args.out, "train_regressor", checks.settings(args), args.fresh, {"--labels": args.labels})
     params, metrics, truth, pred = train_regressor(labels, steps=args.steps, batch=args.batch,
                                                    lr=args.lr, width=args.width, val_every=args.val_every,
                                                    seed=args.seed)
