@@ -13,6 +13,7 @@ import pytest
 from flax import nnx
 
 from dynres_jax.commands import eval_dynamics
+from dynres_jax.errors import InputError
 from dynres_jax.io import ckpt
 from dynres_jax.learn import data, targets
 from dynres_jax.learn.train import (
@@ -268,3 +269,51 @@ def test_metrics_survive_a_torn_last_line_and_a_rerun(tmp_path):
     path.write_text('{"step": 2}\n{"ste\n{"step": 4}\n')
     with pytest.raises(InputError, match="line 2 is not JSON"):
         read_metrics(str(path))
+
+
+def _dataset(**change) -> targets.Dataset:
+    """Two tiny episodes of one frame pair, every piece in view: trainable unless ``change`` breaks it."""
+    e, f, n = 2, 2, 3
+    piece = np.full((e, f, 4, 4), -1, np.int16)
+    piece[:, :, 1, 1] = 0
+    arrays = dict(depth=np.ones((e, f, 4, 4), np.float16), piece=piece, pos=np.zeros((e, f, n, 3), np.float32),
+                  mat=np.broadcast_to(np.eye(3, dtype=np.float32), (e, f, n, 3, 3)).copy(),
+                  piece_mask=np.ones((e, n), bool), kind=np.zeros((e, n), np.int16),
+                  action=np.zeros((e, f - 1, 4), np.float32), broken=np.zeros((e, f), bool), episode=np.arange(e))
+    return targets.Dataset(**{**arrays, **change}, camera=None)
+
+
+def test_degenerate_data_is_refused_before_training():
+    from dynres_jax.learn.train import check_data
+
+    check_data(_dataset(), "train", "d")
+    with pytest.raises(InputError, match="'train' split: every episode is broken"):
+        check_data(_dataset(broken=np.ones((2, 2), bool)), "train", "d")
+    with pytest.raises(InputError, match="no frame shows a piece"):
+        check_data(_dataset(piece=np.full((2, 2, 4, 4), -1, np.int16)), "train", "d")
+    pos = np.zeros((2, 2, 3, 3), np.float32)
+    pos[1, 0, 2, 0] = np.inf
+    with pytest.raises(InputError, match="--data d: the 'val' split: episode 1 has a piece position that is not fin"):
+        check_data(_dataset(pos=pos), "val", "d")
+
+
+def test_a_diverged_run_stops_and_saves_nothing(shards, tmp_path, monkeypatch):
+    from dynres_jax.learn import train as train_module
+
+    real = train_module.make_step
+
+    def poisoned(*args, **kwargs):  # every step's parameters NaN from step 1 on: a loss that diverged
+        step_fn, eval_fn = real(*args, **kwargs)
+
+        def step(*step_args):
+            params, opt_state, errors = step_fn(*step_args)
+            return jax.tree.map(lambda x: x * np.nan, params), opt_state, errors
+
+        return step, eval_fn
+
+    monkeypatch.setattr(train_module, "make_step", poisoned)
+    out = str(tmp_path / "run")
+    with pytest.raises(InputError, match="training diverged at step 2 .*the last checkpoint is none"):
+        train(CFG, shards, out, progress=False)
+    assert ckpt.latest_step(os.path.join(out, "ckpt")) is None
+    assert not os.path.exists(os.path.join(out, "metrics.jsonl"))

@@ -252,6 +252,33 @@ def _trim_metrics(path: str, last_step: int) -> None:
     files.write_text(path, "".join(json.dumps(r) + "\n" for _, r in sorted(keep.items())))
 
 
+def check_data(dataset: targets.Dataset, split: str, data_dir) -> None:
+    """InputError naming the data and the problem, before any step, when the ``split`` episodes cannot be trained on:
+    every episode broken, no piece in view in any frame (no foreground), or a position, rotation or push that is not
+    finite."""
+    where = f"--data {data_dir if isinstance(data_dir, str) else ' '.join(data_dir)}: the {split!r} split"
+    if dataset.broken[:, -1].all():
+        raise InputError(f"{where}: every episode is broken (its world broke: NaN, a piece through the table or out "
+                         "of the bin); nothing to train on")
+    if not any((frames >= 0).any() for frames in dataset.piece):  # one episode at a time: no full-size copy
+        raise InputError(f"{where}: no frame shows a piece (no foreground); nothing to train on")
+    for name, what in (("pos", "piece position"), ("mat", "piece rotation"), ("action", "push")):
+        bad = ~np.isfinite(getattr(dataset, name)).reshape(len(dataset), -1).all(axis=1)
+        if bad.any():
+            broken = " (the episode is flagged broken: generate with broken episodes dropped)" \
+                if dataset.broken[bad.argmax(), -1] else ""
+            raise InputError(f"{where}: episode {dataset.episode[bad.argmax()]} has a {what} that is not finite "
+                             f"(NaN or inf){broken}; {int(bad.sum())} episodes have one")
+
+
+def diverged(step: int, ckpt_dir: str, why: str) -> InputError:
+    """The error that stops a run whose loss or parameters became non-finite at ``step``: nothing of it is saved."""
+    last = ckpt.latest_step(ckpt_dir)
+    return InputError(f"training diverged at step {step} ({why}): stopped, no checkpoint or metrics of it saved "
+                      f"(the last checkpoint is {'none' if last is None else f'step {last}'}); lower --lr or check "
+                      "the data")
+
+
 class _Speed:
     """Training samples/s without compilation, validation and checkpoints: the clock starts when the first step
     (which compiles) is done and stops between ``pause`` and ``resume``."""
@@ -294,6 +321,8 @@ def train(cfg: TrainConfig, data_dir: str, out_dir: str, progress: bool = True,
                           for split in ("train", "val"))
     if cfg.horizon > train_set.pushes:
         raise InputError(f"horizon {cfg.horizon} exceeds the data's {train_set.pushes} pushes per episode")
+    for split, dataset in (("train", train_set), ("val", val_set)):
+        check_data(dataset, split, data_dir)
     os.makedirs(out_dir, exist_ok=True)
     ckpt_dir, metrics_path = os.path.join(out_dir, "ckpt"), os.path.join(out_dir, "metrics.jsonl")
     graphdef, params = nnx.split(make_model(cfg.model, cfg.seed))
@@ -332,6 +361,8 @@ def train(cfg: TrainConfig, data_dir: str, out_dir: str, progress: bool = True,
                    for b in range(cfg.val_batches)]
             val = {name: float(np.mean([v[name] for v in val])) for name in LOSSES}
             train_mse = float(distributed.host(errors)["mse"])
+            if not np.isfinite([train_mse, *val.values()]).all():
+                raise diverged(done, ckpt_dir, f"train mse {train_mse}, val mse {val['mse']}")
             last = dict(step=done, horizon=cfg.horizon, train_rmse_mm=float(np.sqrt(train_mse)) * 1000,
                         val_rmse_mm=float(np.sqrt(val["mse"])) * 1000, val_distance_mm=val["distance"] * 1000,
                         samples_per_s=speed.samples_per_s(), devices=mesh.size)
@@ -343,6 +374,8 @@ def train(cfg: TrainConfig, data_dir: str, out_dir: str, progress: bool = True,
             speed.resume()
         if done % cfg.ckpt_every == 0 or done == cfg.steps or out_of_time:
             speed.pause(params)
+            if not all(bool(jnp.isfinite(x).all()) for x in jax.tree.leaves(params)):
+                raise diverged(done, ckpt_dir, "parameters not finite")
             if distributed.is_writer():
                 ckpt.save(ckpt_dir, done, distributed.host({"module": params, "opt": opt_state}), card(cfg, step=done))
             distributed.barrier(f"checkpoint {done}")
