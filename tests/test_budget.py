@@ -223,3 +223,28 @@ def test_reference_planner_flags_resolve_to_the_authors_options_and_a_flag_besid
         with pytest.raises(SystemExit):
             parsed(*bad)
         assert says in capsys.readouterr().err
+
+
+def test_a_fixed_omega_times_only_its_bucket(scene, monkeypatch, tmp_path):
+    """measure_timing for the ω a run decides at times their buckets alone; a task command at a fixed ω asks for
+    its ω only (was: every bucket, 43 of a 60 s run)."""
+    env, state, _, goal, planner = scene
+    cfg = MPCConfig(buckets=(16, 32), max_points=512, planner=planner)
+    lines = []
+    table = measure_timing(state.obs, goal, sweep_dynamics(env.config.scene.plate_half_width), cfg, env.camera,
+                           log=lines.append, omegas=[12], repeats=1)
+    assert set(table.step_s) == {16} and [line.split(":")[1] for line in lines] == [" bucket 16 (1 of 1)"]
+
+    from dynres_jax.commands import gather, task
+
+    asked = []
+
+    def measured(*args, omegas=None, **kwargs):
+        asked.append(omegas)
+        raise KeyboardInterrupt  # enough: the command stops here, as Ctrl-C stops it
+
+    monkeypatch.setattr(task, "measure_timing", measured)
+    with pytest.raises(SystemExit):
+        gather.main(["--time-budget", "1", "--resolution", "25", "--dynamics", "sweep", "--pieces", "20",
+                     "--mpc-steps", "1", "--samples", "4", "--out", str(tmp_path / "gather")])
+    assert asked == [[25]]

@@ -85,7 +85,7 @@ def main(argv=None):
           f"ω = {args.resolution}; {args.samples} x {args.adam_steps} Adam steps")
     t0 = time.perf_counter()
     if cfg.time_budget is not None and timing is None:
-        timing = measure_timing(state.obs, goals[0], loop.model.dynamics, cfg, env.camera)
+        timing = measure_timing(state.obs, goals[0], loop.model.dynamics, cfg, env.camera, omegas=[loop.omega])
         check_budget(cfg, timing, [loop.omega])
     key = jax.random.PRNGKey(args.seed)
     policy = SortPolicy(env, cfg, loop.omega, key, goals_xy, radius, grid_step=args.grid_step)

@@ -230,7 +230,8 @@ def main(task: str, argv=None):
           f"ω = {args.resolution}; {budget_text}")
     t0 = time.perf_counter()
     if cfg.time_budget is not None and timing is None:
-        timing = measure_timing(state.obs, goal, loop.model.dynamics, cfg, env.camera)
+        timing = measure_timing(state.obs, goal, loop.model.dynamics, cfg, env.camera,
+                                omegas=None if loop.regressor else [loop.omega])
         check_budget(cfg, timing, [OMEGA_MIN] if loop.regressor else [loop.omega])
     frames = goal_frames(goal_mask, env.camera)
     state, records = run_episode(env, state, loop.chooser(batch(goal)), loop.model.dynamics, cfg,

@@ -85,10 +85,11 @@ class MPCConfig:
 
 
 def measure_timing(obs, goal: Goal, dynamics, cfg: MPCConfig, camera, repeats: int = 3,
-                   log=print) -> budget.TimingTable:
+                   log=print, omegas=None) -> budget.TimingTable:
     """A timing table of this device for decisions like ``cfg``'s on ``obs`` and ``goal`` (one decision per call, the
-    planner's batch), for every bucket of cfg.buckets, each at its largest ω that ``obs`` has the points for
-    (``budget.measure``; log: its progress lines)."""
+    planner's batch), for the buckets of ``omegas`` (the fixed ω a run decides at; None: any ω, every bucket of
+    cfg.buckets), each at its largest ω that ``obs`` has the points for (``budget.measure``; log: its progress
+    lines)."""
     if cfg.planner.adam_steps < 1:
         raise ValueError("measuring a timing table needs PlannerConfig.adam_steps >= 1")
     points = visible_points(obs, camera, cfg.max_points)
@@ -100,7 +101,8 @@ def measure_timing(obs, goal: Goal, dynamics, cfg: MPCConfig, camera, repeats: i
                               dynamics=dynamics, camera=camera)[2]
         return result.best[0, 0]
 
-    return budget.measure(run, cfg.buckets, samples=cfg.planner.samples, horizon=cfg.planner.horizon,
+    buckets = cfg.buckets if omegas is None else sorted({budget.bucket_for(int(w), cfg.buckets) for w in omegas})
+    return budget.measure(run, buckets, samples=cfg.planner.samples, horizon=cfg.planner.horizon,
                           max_steps=cfg.planner.adam_steps, repeats=repeats, log=log)
 
 
