@@ -3,7 +3,7 @@
 A robot computer with ``jax`` (jaxlib at least as new as the exporting one) and ``flatbuffers`` (which
 ``jax.export`` reads its files with), not this package, loads the file and calls it on a depth frame and a goal mask:
 
-    exported = jax.export.deserialize(open("decision.jaxexport", "rb").read())
+    exported = jax.export.deserialize(open("out/decision.jaxexport", "rb").read())
     out = exported.call(depth, goal_mask, key, omega, adam_steps, init, warm)
     out["push"]  # the push to execute: (x_start, y_start, x_end, y_end), metres; NaN unless out["error"] == 0
 

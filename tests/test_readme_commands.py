@@ -67,3 +67,20 @@ def test_every_readme_command_line_parses(monkeypatch, tmp_path, module, argv):
     monkeypatch.chdir(tmp_path)  # relative paths (out/gather, runs/labels) resolve in a scratch folder
     args = parse(monkeypatch, module, argv)
     assert isinstance(args, argparse.Namespace)
+
+
+def test_the_readme_writes_nothing_git_would_track():
+    """Every ``--out`` of the README's commands inside the checkout, and the wheel folder it shows, is one .gitignore
+    covers: following the README leaves a clean checkout (was: G.png, push.png, decision.jaxexport in the root)."""
+    import shutil
+    import subprocess
+
+    root = Path(__file__).resolve().parents[1]
+    if shutil.which("git") is None or not (root / ".git").exists():
+        pytest.skip("not a git checkout")
+    outs = {out for _, args in LINES if "--out" in args and not (out := args[args.index("--out") + 1]).startswith("/")}
+    outs |= {f"{p}.json" for p in outs if p.endswith(".jaxexport")} | {"dist/"}
+    assert "pip wheel . --no-deps -w dist/" in README and len(outs) >= 10
+    ignored = subprocess.run(["git", "check-ignore", "--no-index", "--stdin"], input="\n".join(sorted(outs)),
+                             cwd=root, capture_output=True, text=True).stdout.split()
+    assert sorted(outs - set(ignored)) == []

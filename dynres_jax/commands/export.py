@@ -1,14 +1,14 @@
 """Export a trained dynamics model's whole MPC decision as one file, for a robot computer that has JAX but not this
 code:
 
-    python -m experiments.export --out decision.jaxexport    # the shipped model; --ckpt runs/NAME/ckpt for another
+    python -m experiments.export --out out/decision.jaxexport    # the shipped model; --ckpt runs/NAME/ckpt for another
 
 writes FILE (a ``jax.export`` serialised StableHLO program: depth frame + goal mask -> push, with the goal's distance
 field, perception, the model weights, the camera and the planner settings inside) and FILE.json (its inputs and
 outputs with shapes, dtypes and units, the error bits, the settings, camera and checkpoint step). On the robot,
 ``pip install jax flatbuffers`` (jaxlib no older than the exporting one) and:
 
-    exported = jax.export.deserialize(open("decision.jaxexport", "rb").read())
+    exported = jax.export.deserialize(open("out/decision.jaxexport", "rb").read())
     out = exported.call(depth, goal_mask, key, omega, adam_steps, init, warm)
     push = out["push"]   # (x_start, y_start, x_end, y_end), metres; execute it when out["error"] == 0
 

@@ -1,6 +1,6 @@
 """Plan one push for a recorded RGBD frame (a real camera's, or one the simulator saved with ``frames.save_frame``):
 
-    python -m experiments.plan --depth D.png --rgb C.png --camera cam.json --goal G.png --out push.png
+    python -m experiments.plan --depth D.png --rgb C.png --camera cam.json --goal out/G.png --out out/push.png
 
 Depth is a 16-bit PNG in millimetres (as depth cameras save it), the camera a JSON file (``Camera.to_json``: K,
 rotation camera-to-world, centre, width, height; world frame z up, table at z = 0), the goal a black-and-white PNG
@@ -50,7 +50,7 @@ def build_parser():
     parser.add_argument("--dynamics", default="auto", choices=["auto", "learned", "sweep"])
     parser.add_argument("--ckpt", default=None, help=f"dynamics checkpoint (default {SHIPPED_DYNAMICS})")
     parser.add_argument("--seed", type=checks.seed, default=0)
-    parser.add_argument("--out", default="push.png", help="the frame with the goal, particles and push drawn")
+    parser.add_argument("--out", default="out/push.png", help="the frame with the goal, particles and push drawn")
     parser.add_argument("--real-depth", action=argparse.BooleanOptionalAction, default=True,
                         help="perception for a real camera's depth (a 3 x 3 median, the table plane fitted from the "
                              "frame: perception.foreground); --no-real-depth for a simulator's exact depth")

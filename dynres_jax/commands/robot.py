@@ -1,7 +1,7 @@
 """A robot's closed loop (``control.robot``) on the simulator as camera and arm, or on recorded frames:
 
     python -m experiments.robot --out out/robot                             # the simulator, a RealSense's profile
-    python -m experiments.robot --goal G.png --steps 30 --out out/robot     # any goal PNG (experiments.goal)
+    python -m experiments.robot --goal out/G.png --steps 30 --out out/robot     # any goal PNG (experiments.goal)
     python -m experiments.robot --replay out/robot/frames --out out/replay  # recorded frames: a dry run
 
 Each step reads a frame, stops when ``--success`` of its foreground lies inside the goal (or after ``--steps``
