@@ -110,3 +110,13 @@ def test_usage_and_errors_name_the_command_as_it_was_run():
         assert result.returncode == 2, result.stderr
         assert re.fullmatch(f"{named}: error: argument --disc: .* \\(options: {named} --help\\)\n", result.stderr), \
             result.stderr
+
+
+def test_a_bad_recipe_is_one_line_too(capsys):
+    """train_dynamics reads --recipe before its parser (the recipe sets the defaults): its mistake is one line too."""
+    from dynres_jax.commands import train_dynamics
+
+    with pytest.raises(SystemExit) as exit_:
+        train_dynamics.main(["--recipe", "nope"])
+    err = capsys.readouterr().err
+    assert exit_.value.code == 2 and err.count("\n") == 1 and "error: argument --recipe: invalid choice" in err, err

@@ -45,7 +45,7 @@ def build_parser(argv=None):
     """``train_dynamics``'s flags, their defaults the --recipe's in argv (if any). Returns (parser, the recipe's
     TrainConfig or the default one)."""
     parser = checks.parser("train_dynamics", __doc__)
-    recipe = argparse.ArgumentParser(add_help=False)
+    recipe = checks.Parser(prog=parser.prog, add_help=False)
     recipe.add_argument("--recipe", choices=sorted(RECIPES), default=None,
                         help="start from a named config (train.RECIPES); other flags override it")
     start = recipe.parse_known_args(argv)[0].recipe
