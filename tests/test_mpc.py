@@ -25,6 +25,7 @@ from dynres_jax.control.choosers import (
 )
 from dynres_jax.control.decision import batch, decide_batch, goal_cost
 from dynres_jax.control.goals import disc_goal, make_goal
+from dynres_jax.control.judge import JudgeScored
 from dynres_jax.control.mpc import MPCConfig, fold, run, run_episode, scorer
 from dynres_jax.control.objective import distribution_distance
 from dynres_jax.control.planner import PlannerConfig, _plan_jit, plan
@@ -94,6 +95,27 @@ def test_episode_brings_the_pile_nearer_the_goal(episode):
     env, start, goal, _, records, _, _ = episode
     before = float(distribution_distance(start.obs, goal, env.camera))
     assert records[-1]["distance"] < before, "three planned pushes should lower the distribution distance d"
+
+
+def test_the_judge_pushes_the_candidate_it_rates_best(episode):
+    """A closed loop whose keep rule is a second model (``judge.JudgeScored``, the sweep heuristic as judge): each
+    step pushes one of the refined candidates, and the record's predicted c is the judge's c of the pushed plan,
+    recomputed here from the step's particles."""
+    env, start, goal, _, _, _, _ = episode
+    judge = sweep_dynamics(0.04)
+    planner = PlannerConfig(samples=8, adam_steps=20, bound=env.action_bound, max_length=0.1)
+    cfg = MPCConfig(mpc_steps=2, buckets=(4, 8), max_points=512, planner=planner, warm_start=False)
+    seen = []
+    _, records = run_episode(env, start, JudgeScored(FixedOmega(batch(goal), 6), judge), sweep_dynamics(0.04), cfg,
+                             jax.random.PRNGKey(1), log=lambda s: None,
+                             on_step=[lambda t, states, particles, record: seen.append(particles)])
+    for particles, record in zip(seen, records, strict=True):
+        p = jax.tree.map(lambda x: x[0], particles)  # the callback's particles are the batch's [B = 1]
+        push = jnp.asarray(record["action"], jnp.float32).reshape(1, 4)
+        final = judge(p.radius)(p.positions, p.mask, push)[-1]
+        c = float(goal_cost(goal, env.camera, p.positions.shape[0])(final, p.mask))
+        assert np.isclose(float(np.ravel(record["predicted_objective"])[0]), c, rtol=1e-5)
+        assert np.isfinite(np.ravel(record["distance"])[0])
 
 
 def test_omega_out_of_range_is_named():

@@ -3,13 +3,15 @@ the frames the planner sees, and answers with ``Orders``: the goals, the plans t
 episode, plan draw, budget share, what is put forward), how the loop keeps one per episode (the lowest d after a push,
 or the one the model rates best), and which piece kinds to perceive; the loop (``mpc.run``) has one path for all.
 Fixed ω, the regressor g (adaptive ω, paper Sec. IV-C), a probe of several ω judged by the model (no labels), the
-oracle over ω, the best of K plans at one ω, the simulator as the model (the ``sim`` ceiling) and Sort's A* waypoints
-(``sort.SortPolicy``) are choosers; a new way of choosing is a new chooser, not a new parameter of the loop.
+oracle over ω, the best of K plans at one ω, the simulator as the model (the ``sim`` ceiling), a second model as the
+judge (``judge.JudgeScored``) and Sort's A* waypoints (``sort.SortPolicy``) are choosers; a new way of choosing is a
+new chooser, not a new parameter of the loop.
 """
 
 from __future__ import annotations
 
 import re
+from collections.abc import Callable
 from typing import NamedTuple
 
 import numpy as np
@@ -40,13 +42,14 @@ class Orders(NamedTuple):
     plans to make (``Candidate``); kinds [B]: the piece kind each decision perceives (None: every piece); record:
     extra record fields, arrays [B]; keep: how the loop keeps one proposal per episode (``mpc.KEEPS``): "distance"
     (each pushed on a copy of the worlds, the lowest d kept; one proposal is simply pushed) or "rate" (the plan whose
-    model predicts the largest fall of c per second of planning, pushed; nothing simulated)."""
+    model predicts the largest fall of c per second of planning, pushed; nothing simulated), or a callable with
+    their signature (``judge.JudgeKeep``: the proposal a second model rates best)."""
 
     goals: Goal | KindGoals
     candidates: tuple[Candidate, ...]
     kinds: np.ndarray | None = None
     record: dict = {}
-    keep: str = "distance"
+    keep: str | Callable = "distance"
 
 
 def at(omegas: tuple[int, ...], b: int, **kwargs) -> tuple[Candidate, ...]:
@@ -125,7 +128,7 @@ class BestOfK(Chooser):
         self.chooser, self.k = chooser, int(k)
 
     def __call__(self, t, obs) -> Orders:
-        orders = _one_plan(self.chooser(t, obs), "best-of-K")
+        orders = one_plan(self.chooser(t, obs), "best-of-K")
         return orders._replace(candidates=tuple(orders.candidates[0]._replace(draw=d) for d in range(self.k)))
 
     def score(self, states) -> dict:
@@ -144,7 +147,7 @@ class SimulatorScored(Chooser):
         self.chooser, self.refine = chooser, refine
 
     def __call__(self, t, obs) -> Orders:
-        orders = _one_plan(self.chooser(t, obs), "the simulator's choice")
+        orders = one_plan(self.chooser(t, obs), "the simulator's choice")
         return orders._replace(candidates=(orders.candidates[0]._replace(proposals="plans" if self.refine else
                                                                          "samples"),))
 
@@ -152,7 +155,7 @@ class SimulatorScored(Chooser):
         return self.chooser.score(states)
 
 
-def _one_plan(orders: Orders, what: str) -> Orders:
+def one_plan(orders: Orders, what: str) -> Orders:
     """orders, checked to hold one plain candidate (one ω, draw 0, the whole budget, the model's plan): what
     ``what`` builds on."""
     c = orders.candidates

@@ -86,10 +86,9 @@ class MPCConfig:
 
 def measure_timing(obs, goal: Goal, dynamics, cfg: MPCConfig, camera, repeats: int = 3,
                    log=print, omegas=None) -> budget.TimingTable:
-    """A timing table of this device for decisions like ``cfg``'s on ``obs`` and ``goal`` (one decision per call, the
-    planner's batch), for the buckets of ``omegas`` (the fixed ω a run decides at; None: any ω, every bucket of
-    cfg.buckets), each at its largest ω that ``obs`` has the points for (``budget.measure``; log: its progress
-    lines)."""
+    """A timing table of this device for decisions like ``cfg``'s on ``obs`` and ``goal`` (one decision per call),
+    for the buckets of ``omegas`` (the fixed ω a run decides at; None: every bucket of cfg.buckets), each at its
+    largest ω that ``obs`` has the points for (``budget.measure``; log: its progress lines)."""
     if cfg.planner.adam_steps < 1:
         raise ValueError("measuring a timing table needs PlannerConfig.adam_steps >= 1")
     points = visible_points(obs, camera, cfg.max_points)
@@ -268,7 +267,7 @@ def run(worlds: Worlds, states: State, chooser: Chooser, dynamics, cfg: MPCConfi
         for candidate in orders.candidates:
             announce(cfg, candidate.omega, log)
         plans = [propose(now, c, cfg=cfg, timing=timing, dynamics=dynamics) for c in orders.candidates]
-        kept = KEEPS[orders.keep](worlds, now, plans, score, timing)
+        kept = (orders.keep if callable(orders.keep) else KEEPS[orders.keep])(worlds, now, plans, score, timing)
         record = dict(step=t, **{k: np.asarray(kept[k]) for k in ("omega", "bucket", "adam_steps", "objective",
                                                                   "predicted_objective", "distance", "inside",
                                                                   "action")})

@@ -1,0 +1,77 @@
+"""The judge (issue 65): two models, the fast one proposes and a second, more accurate one chooses. The planner
+refines its M candidates with the fast model (``choosers.Candidate.proposals == "plans"``: the M candidates after the
+Adam steps and the model's best); the judge rolls each one out from the decision's own particles and scores its final
+state on the task objective c; the candidate with the lowest judged c is pushed. Nothing is simulated, so a robot can
+run it; the simulator choosing among the same candidates (``SimulatorScored(..., refine=True)``, the ``rerank`` rung)
+is the judge's ceiling. The judge is any planner dynamics (``models.registry``: radius -> model), so any checkpoint
+the registry loads can judge: ``JudgeScored(FixedOmega(goals, 50), load_dynamics("learned", CKPT, ...).dynamics)``.
+"""
+
+from __future__ import annotations
+
+import functools
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from dynres_jax.control.choosers import Chooser, Orders, one_plan
+from dynres_jax.control.decision import goal_cost
+from dynres_jax.control.goals import KindGoals
+from dynres_jax.control.mpc import keep_lowest_distance
+
+
+@functools.partial(jax.jit, static_argnames=("dynamics", "camera"))
+def judged_costs(particles, goals, proposals, *, dynamics, camera):
+    """c of each proposal's final state as the judge predicts it: particles [B] (``perception.Particles``: positions
+    [B, N, 3] m, mask [B, N], radius [B]), goals [B] (a batched Goal), proposals [B, K, T, 4] (push sequences, m) ->
+    [B, K]. dynamics: radius -> the judge's model ``(positions, mask, actions [T, 4]) -> [T, N, 3]``."""
+    capacity = particles.positions.shape[1]
+
+    def one(positions, mask, radius, goal, sequences):
+        model, cost = dynamics(radius), goal_cost(goal, camera, capacity)
+        return jax.vmap(lambda seq: cost(model(positions, mask, seq)[-1], mask))(sequences)
+
+    return jax.vmap(one)(particles.positions, particles.mask, particles.radius, goals, proposals)
+
+
+class JudgeKeep(NamedTuple):
+    """Keep rule of ``JudgeScored`` (``Orders.keep``; called as ``mpc.KEEPS``' rules are): per episode the proposal of
+    the one plan whose judged c is lowest (the first on ties) is pushed in the worlds; its judged c is the record's
+    predicted_objective. dynamics: radius -> the judge's model."""
+
+    dynamics: object
+
+    def __call__(self, worlds, now, plans: list[dict], score, timing=None) -> dict:
+        if len(plans) != 1:
+            raise ValueError(f"the judge chooses among one plan's proposals, got {len(plans)} plans")
+        plan = plans[0]
+        costs = np.asarray(judged_costs(plan["particles"], now.goals, jnp.asarray(plan["proposals"]),
+                                        dynamics=self.dynamics, camera=now.camera))
+        costs = np.where(np.isfinite(costs), costs, np.inf)  # a candidate the judge cannot score is never chosen
+        lost = np.flatnonzero(np.all(np.isinf(costs), axis=1))
+        if lost.size:
+            raise ValueError(f"the judge scored no candidate of episodes {lost.tolist()} (non-finite c for all)")
+        pick = np.argmin(costs, axis=1)
+        rows = np.arange(len(pick))
+        chosen = dict(plan, proposals=np.asarray(plan["proposals"])[rows, pick][:, None],
+                      predicted_objective=costs[rows, pick].astype(np.float32))
+        return keep_lowest_distance(worlds, now, [chosen], score)
+
+
+class JudgeScored(Chooser):
+    """Another chooser's orders (one candidate ω each step), the push chosen by the judge among the planner's M
+    candidates after the fast model's Adam steps and its best (``JudgeKeep``). Gather and Redistribute goals."""
+
+    def __init__(self, chooser: Chooser, judge):
+        self.chooser, self.keep = chooser, JudgeKeep(judge)
+
+    def __call__(self, t, obs) -> Orders:
+        orders = one_plan(self.chooser(t, obs), "the judge's choice")
+        if isinstance(orders.goals, KindGoals):
+            raise ValueError("the judge scores Gather and Redistribute goals; Sort's per-kind goals are not supported")
+        return orders._replace(candidates=(orders.candidates[0]._replace(proposals="plans"),), keep=self.keep)
+
+    def score(self, states) -> dict:
+        return self.chooser.score(states)
