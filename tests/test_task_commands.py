@@ -108,3 +108,24 @@ def test_a_rerun_into_a_finished_folder_says_so_and_does_nothing(tmp_path, capsy
     assert again["final_inside"] == first["final_inside"] and (tmp_path / "metrics.json").stat().st_mtime_ns == before
     gather.main([*tiny, "--fresh"])
     assert "step  1/1" in capsys.readouterr().out and (tmp_path / "metrics.json").stat().st_mtime_ns > before
+
+
+def test_judge_flag_puts_a_second_model_on_the_loop(tmp_path, capsys):
+    """--judge CKPT: the loop's chooser lets that checkpoint choose among the refined candidates (``JudgeScored``);
+    a missing checkpoint is one line naming --judge, before any work."""
+    from dynres_jax.commands import checks
+    from dynres_jax.commands.task import add_loop_args, build_loop
+    from dynres_jax.control.judge import JudgeScored
+
+    parser = checks.parser("gather", "test")
+    add_loop_args(parser, "gather")
+    args = parser.parse_args(["--dynamics", "sweep", "--judge", SHIPPED_DYNAMICS, "--out", str(tmp_path)])
+    loop = build_loop(args, SimConfig(scene=SceneConfig(pieces=(20,))), parser, "gather")
+    chooser = loop.chooser(None)
+    assert isinstance(chooser, JudgeScored) and loop.inputs["--judge"] == SHIPPED_DYNAMICS
+    assert "step" in loop.judge.name and isinstance(chooser.chooser, FixedOmega)
+    assert not isinstance(build_loop(parser.parse_args(["--dynamics", "sweep"]), SimConfig(), parser,
+                                     "gather").chooser(None), JudgeScored)
+    with pytest.raises(SystemExit) as e:
+        gather.main(["--judge", str(tmp_path / "nowhere"), "--out", str(tmp_path / "out")])
+    assert e.value.code == 2 and "--judge" in capsys.readouterr().err

@@ -40,6 +40,7 @@ from dynres_jax.control import budget, tasks
 from dynres_jax.control.choosers import AdaptiveOmega, Chooser, FixedOmega
 from dynres_jax.control.decision import batch
 from dynres_jax.control.goals import make_goal
+from dynres_jax.control.judge import JudgeScored
 from dynres_jax.control.mpc import MPCConfig, measure_timing, run_episode
 from dynres_jax.control.objective import inside_share
 from dynres_jax.control.planner import planner_config
@@ -75,6 +76,9 @@ def add_loop_args(parser: argparse.ArgumentParser, task: str, adaptive: bool = T
                                  "and beats it on Redistribute, docs/budget/README.md)")
         parser.add_argument("--regressor", default=None,
                             help=f"regressor checkpoint for --resolution adaptive (default {SHIPPED_REGRESSOR})")
+        parser.add_argument("--judge", default=None, metavar="CKPT",
+                            help="a second dynamics checkpoint that chooses among the planner's refined candidates "
+                                 "(control/judge.py); default: none, the planner's own best plan is pushed")
     checks.add_engine(parser)
     parser.add_argument("--samples", type=checks.samples, default=50, help="action sequences optimised at once (M)")
     parser.add_argument("--adam-steps", type=checks.adam_steps, default=100,
@@ -105,22 +109,22 @@ def check_pile(parser: argparse.ArgumentParser, kinds, pieces) -> None:
 
 
 def load_model(parser: argparse.ArgumentParser, choice: str, ckpt_dir: str, plate_half_width: float,
-               shipped: str = SHIPPED_DYNAMICS) -> LoadedDynamics:
+               shipped: str = SHIPPED_DYNAMICS, flag: str = "--ckpt") -> LoadedDynamics:
     """``registry.load_dynamics`` of ``ckpt_dir`` (None: ``shipped``; "" is no checkpoint, not the default), with a
-    missing or damaged checkpoint named by ``parser.error`` before any work."""
+    missing or damaged checkpoint named by ``parser.error`` (as ``flag``) before any work."""
     if choice == "sweep" and ckpt_dir is not None and os.path.abspath(ckpt_dir) != shipped:
-        parser.error(f"--ckpt {ckpt_dir} is given but --dynamics sweep plans without a checkpoint; drop one of them")
+        parser.error(f"{flag} {ckpt_dir} is given but --dynamics sweep plans without a checkpoint; drop one of them")
     try:
         return load_dynamics(choice, shipped if ckpt_dir is None else ckpt_dir, plate_half_width)
-    except CheckpointError as e:
-        parser.error(f"--ckpt: {e}")
+    except (CheckpointError, FileNotFoundError) as e:
+        parser.error(f"{flag}: {e}")
 
 
 @dataclass(frozen=True)
 class Loop:
     """What the loop flags ask for: the simulator, the planner's model, the MPC settings, the timing table of
     --timing (or None), and ω or, for --resolution adaptive, the regressor g's ``(obs [B], goals [B]) -> ω [B]``
-    (omega None); inputs: the files read, by flag (``checks.claim``'s)."""
+    (omega None); inputs: the files read, by flag (``checks.claim``'s); judge: --judge's model, or None."""
 
     env: PileEnv
     model: LoadedDynamics
@@ -129,10 +133,13 @@ class Loop:
     omega: int | None
     regressor: Callable | None
     inputs: dict
+    judge: LoadedDynamics | None = None
 
     def chooser(self, goals) -> Chooser:
-        """The loop's chooser against goals [B]: the regressor's ω (adaptive) or the fixed ω."""
-        return FixedOmega(goals, self.omega) if self.regressor is None else AdaptiveOmega(goals, self.regressor)
+        """The loop's chooser against goals [B]: the regressor's ω (adaptive) or the fixed ω; with a judge, its choice
+        among that plan's refined candidates."""
+        chooser = FixedOmega(goals, self.omega) if self.regressor is None else AdaptiveOmega(goals, self.regressor)
+        return chooser if self.judge is None else JudgeScored(chooser, self.judge.dynamics)
 
 
 def build_loop(args, sim: SimConfig, parser: argparse.ArgumentParser, task: str) -> Loop:
@@ -150,6 +157,12 @@ def build_loop(args, sim: SimConfig, parser: argparse.ArgumentParser, task: str)
         parser.error(f"--regressor is for --resolution adaptive; with a fixed ω ({omega}) nothing would use it")
     inputs = {"--ckpt": None if args.dynamics == "sweep" else args.ckpt or shipped_dynamics(task),
               "--timing": args.timing}
+    judge = None
+    if getattr(args, "judge", None) is not None:
+        judge = load_model(parser, "learned", args.judge, sim.scene.plate_half_width, flag="--judge")
+        if omega != "adaptive" and int(omega) > judge.n_max:
+            parser.error(f"--resolution {omega} exceeds the judge's n_max = {judge.n_max}")
+        inputs["--judge"] = args.judge
     if omega == "adaptive":
         inputs["--regressor"] = args.regressor or SHIPPED_REGRESSOR
         try:
@@ -163,7 +176,7 @@ def build_loop(args, sim: SimConfig, parser: argparse.ArgumentParser, task: str)
     except ValueError as e:
         parser.error(str(e))
     check_budget(cfg, timing, [OMEGA_MIN] if regressor else [int(omega)])
-    return Loop(env, model, cfg, timing, None if regressor else int(omega), regressor, inputs)
+    return Loop(env, model, cfg, timing, None if regressor else int(omega), regressor, inputs, judge)
 
 
 def check_visible(parser: argparse.ArgumentParser, obs, camera: Camera, omega: int, cfg: MPCConfig) -> None:
@@ -226,7 +239,8 @@ def main(task: str, argv=None):
     start_inside = float(inside_share(state.pos, np.ones(env.scene.n_pieces, bool), goal, env.camera))
     budget_text = (f"{args.samples} samples, {args.adam_steps} Adam steps" if args.time_budget is None else
                    f"{args.samples} samples, {args.time_budget} s per decision (at most {args.adam_steps} Adam steps)")
-    print(f"{task}: {args.pieces} {args.kind} pieces, goal {goal_info}; dynamics: {loop.model.name}; "
+    judged = "" if loop.judge is None else f"; judge: {loop.judge.name}"
+    print(f"{task}: {args.pieces} {args.kind} pieces, goal {goal_info}; dynamics: {loop.model.name}{judged}; "
           f"ω = {args.resolution}; {budget_text}")
     t0 = time.perf_counter()
     if cfg.time_budget is not None and timing is None:
@@ -240,7 +254,8 @@ def main(task: str, argv=None):
         timing.save(os.path.join(args.out, "timing.json"))
     write_episode(args.out, frames.finish(batch(state)))
     summary = dict(task=task, seed=args.seed, kind=args.kind, pieces=args.pieces, dynamics=loop.model.name,
-                   goal=goal_info, resolution=args.resolution, start_inside=start_inside,
+                   judge=None if loop.judge is None else loop.judge.name, goal=goal_info, resolution=args.resolution,
+                   start_inside=start_inside,
                    final_inside=records[-1]["inside"], final_distance=records[-1]["distance"],
                    seconds=time.perf_counter() - t0, mpc=dataclasses.asdict(cfg),
                    timing=timing.to_json() if timing else None, steps=records)
