@@ -117,3 +117,16 @@ def test_the_judge_asks_for_the_refined_candidates_of_one_plan(scene):
     kinds = KindGoals(jax.tree.map(lambda x: jnp.stack([x, x], 1), goals), jnp.zeros((B, 2), bool))
     with pytest.raises(ValueError, match="Sort"):
         JudgeScored(FixedOmega(kinds, 50), sweep_dynamics(0.04))(0, obs)
+
+
+def test_the_judge_recipe_is_the_issues_learned_simulator():
+    """``train_dynamics --recipe judge``: GNS with at least 10 message-passing steps of their own weights at width
+    128 or more, input noise, and at least 10 M push samples seen (steps x windows x pushes)."""
+    from dynres_jax.learn.train import RECIPES
+
+    recipe = RECIPES["judge"]
+    model = Dynamics(recipe.model, rngs=nnx.Rngs(0))
+    steps = [m for _, m in nnx.iter_graph(model) if type(m).__name__ == "GNSStep"]
+    assert recipe.model.processor == "gns" and len(steps) >= 10 and recipe.model.hidden >= 128
+    assert len({id(s.edge_in.kernel) for s in steps}) == len(steps)  # unshared: a kernel each
+    assert recipe.noise > 0 and recipe.steps * recipe.batch * recipe.horizon >= 10_000_000
