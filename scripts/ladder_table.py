@@ -19,8 +19,7 @@ import re
 
 import numpy as np
 
-from dynres_jax.control.sort import sort_succeeded
-from dynres_jax.control.tasks import succeeded
+from dynres_jax.control.tasks import sort_succeeded, succeeded
 from dynres_jax.io import files
 from dynres_jax.stats import mcnemar, paired_bootstrap, wilson
 

@@ -25,7 +25,7 @@ import json
 import os
 import re
 
-from dynres_jax.control.sort import SORT_INSIDE, SORT_MIXING, sort_succeeded
+from dynres_jax.control.tasks import SORT_INSIDE, SORT_MIXING, sort_succeeded
 from dynres_jax.io import files
 
 STALLED_STEPS, UNFINISHED_STEPS = 5, 3

@@ -144,7 +144,7 @@ def main(argv=None):
     sub = parser.add_subparsers(dest="command", required=True)
     b = sub.add_parser("build", help="closed-loop states, the planner's candidates, each pushed in C MuJoCo")
     b.add_argument("--out", required=True)
-    b.add_argument("--task", choices=sorted(tasks.TASKS), default="gather")
+    b.add_argument("--task", choices=sorted(t for t, spec in tasks.TASKS.items() if spec.kinds == 1), default="gather")
     b.add_argument("--kind", default="mnm", choices=sorted(DEFAULT_PIECES))
     b.add_argument("--pieces", type=int, default=None)
     b.add_argument("--letters", default="ZRKW")

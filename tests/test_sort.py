@@ -8,14 +8,15 @@ import numpy as np
 import pytest
 
 from dynres_jax.config import CameraConfig, PileConfig, PushConfig, SceneConfig, SimConfig
-from dynres_jax.control import sort
+from dynres_jax.control import sort, tasks
 from dynres_jax.control.choosers import BestOfK, Candidate, Chooser, Orders, SimulatorScored
 from dynres_jax.control.decision import batch, goal_cost
 from dynres_jax.control.goals import BIN_HALF_WIDTH, make_goal, stack_goals
 from dynres_jax.control.mpc import MPCConfig, run_episode
 from dynres_jax.control.objective import distribution_distance, kind_costs, kind_objective, objective
 from dynres_jax.control.planner import PlannerConfig
-from dynres_jax.control.sort import SortPolicy, astar_blobs, sort_goal, sort_scores
+from dynres_jax.control.sort import SortPolicy, astar_blobs
+from dynres_jax.control.tasks import sort_goal, sort_scores
 from dynres_jax.io.draw import sort_frames
 from dynres_jax.models.registry import sweep_dynamics
 from dynres_jax.perception import particle_kinds, sample_particles
@@ -304,5 +305,5 @@ def test_a_step_against_kind_goals_is_scored_per_kind(env):
 def test_sorts_target_by_hand():
     """Both kinds at least 80 % inside (8 of 10 as float32 rounds it counts) and mixing below 5 %."""
     eight_of_ten = float(np.float32(8) / np.float32(10))
-    assert sort.sort_succeeded([eight_of_ten, 1.0], 0.0) and sort.sort_succeeded([0.9, 0.95], 0.049)
-    assert not sort.sort_succeeded([0.79, 1.0], 0.0) and not sort.sort_succeeded([0.9, 0.9], 0.05)
+    assert tasks.sort_succeeded([eight_of_ten, 1.0], 0.0) and tasks.sort_succeeded([0.9, 0.95], 0.049)
+    assert not tasks.sort_succeeded([0.79, 1.0], 0.0) and not tasks.sort_succeeded([0.9, 0.9], 0.05)

@@ -6,13 +6,16 @@ over blob centres choosing which pile moves where (``dynres_jax.control.sort``):
 
 Writes ``episode.gif`` (observation; goal of kind 0 blue, of kind 1 orange; the current waypoint disc green; the
 moved kind's particles red), ``final.png`` and ``metrics.json`` (a record per MPC step, the start and final share
-of each kind inside its own goal, and the mixing: the share of pieces inside the other kind's goal; each step's
-``inside`` is the share of all pieces inside their own kind's goal, ``kind_inside`` the share per kind). Dynamics: the
-trained checkpoint given by ``--ckpt`` (default: the shipped one); ``--dynamics sweep`` plans with the sweep heuristic
-instead. ``--method`` climbs the ladder of ``experiments.evaluate`` on the same A* waypoints: ``bestK`` keeps the best
-of K plans from independent keys by their pushes on copies of the world, ``sim`` lets the simulator choose among the
-planner's first samples (no model; M pushes a step, slow) and ``rerank`` among its plans after the model's Adam
-steps.
+of each kind inside its own goal, the mixing: the share of pieces inside the other kind's goal, and ``success`` by
+Sort's rule, ``tasks.sort_succeeded``: each kind at least 80 % inside, mixing below 5 %; each step's ``inside`` is
+the share of all pieces inside their own kind's goal and ``distance`` d to the step's waypoint discs, ``kind_inside``
+the share per kind and ``goal_distance`` d to the true goals). A pile counts as arrived (A* leaves it at its goal)
+at ``--arrived`` of its particles inside its goal, by default Sort's success share. ``evaluate --task sort`` runs
+many such episodes with paired statistics. Dynamics: the trained checkpoint given by ``--ckpt`` (default: the shipped
+one); ``--dynamics sweep`` plans with the sweep heuristic instead. ``--method`` climbs the ladder of
+``experiments.evaluate`` on the same A* waypoints: ``bestK`` keeps the best of K plans from independent keys by their
+pushes on copies of the world, ``sim`` lets the simulator choose among the planner's first samples (no model; M pushes
+a step, slow) and ``rerank`` among its plans after the model's Adam steps.
 """
 
 from __future__ import annotations
@@ -32,7 +35,8 @@ from dynres_jax.control.choosers import climb, on_ladder
 from dynres_jax.control.decision import batch
 from dynres_jax.control.goals import make_goal
 from dynres_jax.control.mpc import measure_timing, run_episode
-from dynres_jax.control.sort import SortPolicy, sort_goal, sort_scores
+from dynres_jax.control.sort import ARRIVED, SortPolicy
+from dynres_jax.control.tasks import sort_goal, sort_scores, sort_succeeded, success_rule
 from dynres_jax.io import files
 from dynres_jax.io.draw import sort_frames
 
@@ -47,6 +51,9 @@ def build_parser():
     parser.add_argument("--pieces", nargs=2, type=checks.count(1), default=[40, 20], metavar="N",
                         help="pieces of each kind")
     parser.add_argument("--grid-step", type=checks.number(0.002, 0.1), default=0.02, help="A*'s grid spacing (m)")
+    parser.add_argument("--arrived", type=checks.number(0.01, 1.0), default=ARRIVED,
+                        help="a pile counts as arrived at its goal (A* moves it no more) when this share of its "
+                             "particles lies inside it (default: Sort's success share)")
     parser.add_argument("--method", default="model",
                         help="model: the planner with the dynamics model (default); bestK (e.g. best5): the best of "
                              "K plans by their simulated pushes; sim: the simulator chooses among the planner's first "
@@ -88,7 +95,7 @@ def main(argv=None):
         timing = measure_timing(state.obs, goals[0], loop.model.dynamics, cfg, env.camera, omegas=[loop.omega])
         check_budget(cfg, timing, [loop.omega])
     key = jax.random.PRNGKey(args.seed)
-    policy = SortPolicy(env, cfg, loop.omega, key, goals_xy, radius, grid_step=args.grid_step)
+    policy = SortPolicy(env, cfg, loop.omega, key, goals_xy, radius, grid_step=args.grid_step, arrived=args.arrived)
     frames = sort_frames(masks, lambda: policy.target_mask, env.camera)
     chooser = policy if args.method == "model" else climb(policy, args.method)
     state, records = run_episode(env, state, chooser, loop.model.dynamics, cfg, key, timing=timing, on_step=[frames])
@@ -99,13 +106,16 @@ def main(argv=None):
                    pieces=args.pieces,
                    goals=goals_xy.tolist(), radius=radius, resolution=args.resolution, start_inside=start_inside,
                    start_mixing=start_mixing, final_inside=records[-1]["kind_inside"],
-                   final_mixing=records[-1]["mixing"], seconds=time.perf_counter() - t0, mpc=dataclasses.asdict(cfg),
+                   final_mixing=records[-1]["mixing"], final_distance=records[-1]["goal_distance"],
+                   success=sort_succeeded(records[-1]["kind_inside"], records[-1]["mixing"]),
+                   seconds=time.perf_counter() - t0, mpc=dataclasses.asdict(cfg),
                    timing=timing.to_json() if timing else None, steps=records)
     files.write_json(os.path.join(args.out, "metrics.json"), summary)
     inside = summary["final_inside"]
     print(f"inside own goal: {args.kinds[0]} {start_inside[0]:.0%} -> {inside[0]:.0%}, {args.kinds[1]} "
           f"{start_inside[1]:.0%} -> {inside[1]:.0%}; mixing {start_mixing:.0%} -> {summary['final_mixing']:.0%}; "
-          f"wrote {args.out}/episode.gif, final.png, metrics.json")
+          f"{'success' if summary['success'] else 'no success'} ({success_rule('sort')}); wrote "
+          f"{args.out}/episode.gif, final.png, metrics.json")
     return summary
 
 

@@ -18,6 +18,8 @@ Paper mapping:
 - A pile has arrived when at least ``ARRIVED`` of its particles lie inside its goal disc (ours): A* starts it at its
   goal. Without this a pile already inside its goal, whose centre sat a centimetre off (pieces fill a disc unevenly),
   was pushed for the rest of the episode while the other pile waited (19 of 30 failures on seeds 30000, docs/sort).
+  ``ARRIVED`` is Sort's success share (``tasks.SORT_INSIDE``, 80 %): at 90 % a pile 80-89 % inside, already counted
+  a success, kept being pushed while the other waited (9 of 13 failures on fresh seeds, docs/sort).
 
 Closed loop (``SortPolicy``, a chooser on the one MPC loop, ``mpc.run``): each MPC step perceives both
 piles (particles of one kind each, segmentation), takes the blob centres as the particle centroids, RE-PLANS the A* path
@@ -29,13 +31,14 @@ path does not move it again) counts (``objective.kind_objective``), so a push th
 scatters and the resting pile never draws the push. When both piles are at their goals (centres snapping to them, or
 arrived), both kinds are pursued into their own goal discs; when A* finds no path (no room to pass), the pile farther
 from its goal is pursued straight to it and the other held at its goal. The paper's reference code has no Sort; these
-choices are ours.
+choices are ours. ``SortEpisodes`` runs one policy per episode of a batch (``evaluate --task sort``).
 """
 
 from __future__ import annotations
 
 import heapq
 import time
+from collections.abc import Sequence
 
 import jax
 import jax.numpy as jnp
@@ -46,19 +49,14 @@ from dynres_jax.control.budget import bucket_for
 from dynres_jax.control.choosers import Candidate, Chooser, Orders
 from dynres_jax.control.decision import batch, episode
 from dynres_jax.control.goals import disc_goal, make_goal, sort_goals, stack_goals
-from dynres_jax.control.mpc import MPCConfig
-from dynres_jax.control.objective import inside_share
-from dynres_jax.control.tasks import FILL
+from dynres_jax.control.mpc import MPCConfig, scorer
+from dynres_jax.control.tasks import SORT_INSIDE, sort_scores
 from dynres_jax.perception import check_particles, cloud_particles, foreground, pack
 from dynres_jax.sim.env import PileEnv
 
-GOAL_GAP = 0.04  # m: sort goals' rims at least this far apart (room for A*'s snapping of both centres to the grid)
-GOAL_EDGE = 0.01  # m: sort goals' rims at least this far from the bin wall
-SAMPLE_TRIES = 10_000  # rejection-sampling tries for the goal centres
 WAYPOINT_EDGE = 0.005  # m: A*'s bound keeps waypoint discs of goal_radius this far inside the bin
 MOVES = [(di, dj) for di in (-1, 0, 1) for dj in (-1, 0, 1) if (di, dj) != (0, 0)]  # 8-connected grid steps
-ARRIVED = 0.9  # share of a pile's particles inside its goal disc at which it counts as there
-SORT_INSIDE, SORT_MIXING = 0.8, 0.05  # Sort's target: each kind >= 80 % inside its own goal, mixing below 5 %
+ARRIVED = SORT_INSIDE  # share of a pile's particles inside its goal disc at which it counts as there: success's
 
 
 def astar_blobs(starts, goals, blob_radius: float, grid_step: float, bound) -> list[np.ndarray]:
@@ -131,41 +129,6 @@ def astar_blobs(starts, goals, blob_radius: float, grid_step: float, bound) -> l
                      f"{goals.tolist()} within ±{half.tolist()} m on a {grid_step} m grid (too little room to pass)")
 
 
-def sort_goal(rng: np.random.Generator, env: PileEnv) -> tuple[np.ndarray, float, np.ndarray]:
-    """Two random disjoint goal discs of one radius, sized to the kind with the larger footprint area (``tasks.FILL``
-    times it), rims ``GOAL_GAP`` apart and ``GOAL_EDGE`` from the wall: (centres [2, 2] m, radius m, masks [2, H, W]
-    bool, mask k for kind k). ValueError when the pieces are too many for two such discs in the bin."""
-    kinds = np.asarray(env.scene.kind)
-    if kinds.max() != 1:
-        raise ValueError(f"Sort needs a scene of two kinds, got kinds {env.config.scene.kinds}")
-    area = max(float(np.sum(np.pi * env.scene.footprint[kinds == k] ** 2)) for k in (0, 1)) * rng.uniform(*FILL)
-    radius = float(np.sqrt(area / np.pi))
-    lim = env.config.scene.bin_half_width - radius - GOAL_EDGE
-    need = 2 * radius + GOAL_GAP
-    for _ in range(SAMPLE_TRIES if lim > 0 else 0):
-        centres = rng.uniform(-lim, lim, size=(2, 2))
-        if np.linalg.norm(centres[0] - centres[1]) >= need:
-            return centres, radius, sort_goals(env.camera, centres, radius,
-                                               bin_half_width=env.config.scene.bin_half_width)
-    raise ValueError(f"two sort goals of radius {radius:.3f} m, {GOAL_GAP} m apart, hardly fit in the bin: too many "
-                     f"pieces ({env.config.scene.pieces})")
-
-
-def sort_scores(piece_pos, kinds, goals, camera) -> tuple[list[float], float]:
-    """piece_pos [N, 3] m, kinds [N] kind index, goals: the two ``Goal``s -> (inside: share of kind k's pieces
-    inside goal k, for k = 0, 1; mixing: share of all pieces inside the other kind's goal)."""
-    kinds = np.asarray(kinds)
-    inside = [float(inside_share(piece_pos, kinds == k, goals[k], camera)) for k in (0, 1)]
-    wrong = sum(float(inside_share(piece_pos, kinds == k, goals[1 - k], camera)) * np.sum(kinds == k) for k in (0, 1))
-    return inside, wrong / len(kinds)
-
-
-def sort_succeeded(inside, mixing: float) -> bool:
-    """Whether an episode meets Sort's target: both kinds' inside shares [2] at least SORT_INSIDE (float32 count
-    ratios, so with 1e-6 of rounding allowed) and mixing below SORT_MIXING."""
-    return bool(min(inside) >= SORT_INSIDE - 1e-6 and mixing < SORT_MIXING)
-
-
 def _kind_centres(obs, camera, omega: int, max_points: int | None, buckets, key, goals_xy,
                   goal_radius: float) -> tuple[np.ndarray, np.ndarray, int]:
     """The two piles' centres (m) [2, 2]: the mean of each kind's particles (ω = min(omega, that kind's foreground
@@ -216,14 +179,18 @@ class SortPolicy(Chooser):
     waypoint's disc (what a frame draws). Its record fields: phase ("path": following A*, "final": both at their
     goals, both pursued, "direct": A* found no path, the farther pile heads straight to its goal), kind moved (-1 in
     "final": both), waypoint [2] m (the moved kind's target centre), centres [2, 2] m (perceived), perceived_inside
-    [2] (each kind's share of particles inside its goal; ``ARRIVED`` or more: the pile starts A* at its goal),
-    astar_steps left, astar_s; its scores: kind_inside [2] (kind k's share inside goal k) and mixing (the share
-    inside the other kind's goal)."""
+    [2] (each kind's share of particles inside its goal; ``arrived`` (default ``ARRIVED``) or more: the pile starts
+    A* at its goal), astar_steps left, astar_s; its scores (``sort_step_scores``): kind_inside [2] (kind k's share
+    inside goal k), mixing (the share inside the other kind's goal) and goal_distance (d to the true goals)."""
 
     def __init__(self, env: PileEnv, cfg: MPCConfig, omega: int, key, goals_xy, goal_radius: float, log=print, *,
-                 blob_radius: float | None = None, grid_step: float = 0.02, lookahead: int = 3):
+                 blob_radius: float | None = None, grid_step: float = 0.02, lookahead: int = 3,
+                 arrived: float = ARRIVED):
         if lookahead < 1:
             raise ValueError(f"lookahead must be at least 1, got {lookahead}")
+        if not 0 < arrived <= 1:
+            raise ValueError(f"arrived must be a share in (0, 1], got {arrived}")
+        self.arrived = arrived
         self.omega, self.max_points, self.buckets = check_omega(omega), cfg.max_points, cfg.buckets
         self.piece_kinds, self.key, self.log = env.scene.kind, key, log
         self.camera, self.bin_half = env.camera, env.config.scene.bin_half_width
@@ -231,6 +198,7 @@ class SortPolicy(Chooser):
         self.goal_radius, self.grid_step, self.lookahead = goal_radius, grid_step, lookahead
         self.goal_masks = sort_goals(self.camera, self.goals_xy, goal_radius, bin_half_width=self.bin_half)
         self.goals = [make_goal(m, self.camera) for m in self.goal_masks]
+        self.kind_goals = stack_goals(self.goals)  # both kinds' true goals, both pursued: what d is scored against
         self.blob_radius = goal_radius if blob_radius is None else blob_radius
         self.bound = self.bin_half - goal_radius - WAYPOINT_EDGE
         self.phase, self.target_mask = None, np.zeros_like(self.goal_masks[0])
@@ -239,7 +207,7 @@ class SortPolicy(Chooser):
         obs = episode(obs)
         centres, inside, points = _kind_centres(obs, self.camera, self.omega, self.max_points, self.buckets,
                                                 jax.random.fold_in(self.key, t), self.goals_xy, self.goal_radius)
-        arrived = inside >= ARRIVED
+        arrived = inside >= self.arrived
         t0 = time.perf_counter()
         try:
             starts = np.where(arrived[:, None], self.goals_xy, centres)  # an arrived pile starts at its goal
@@ -269,5 +237,41 @@ class SortPolicy(Chooser):
         return Orders(batch(goals), (Candidate(np.array([max(min(self.omega, points), 1)])),), None, record)
 
     def score(self, states) -> dict:
-        inside, mixing = sort_scores(states.pos[0], self.piece_kinds, self.goals, self.camera)
-        return dict(kind_inside=[inside], mixing=[mixing])
+        return sort_step_scores(states, [self], batch(self.kind_goals))
+
+
+class SortEpisodes(Chooser):
+    """Sort on a batch of episodes (``evaluate --task sort``): policy b (a ``SortPolicy``: its own goals, key, A*
+    path and phase) decides for episode b of the frames, and their orders are joined into one batch, so each episode
+    is ordered as it would be alone and all plan in one compiled decision. Record fields and scores: each policy's,
+    stacked [B, ...]."""
+
+    def __init__(self, policies: Sequence[SortPolicy]):
+        if not policies:
+            raise ValueError("SortEpisodes needs a policy per episode, got none")
+        self.policies = list(policies)
+        self.goals = jax.tree.map(lambda *x: jnp.stack(x), *[p.kind_goals for p in self.policies])  # [B, 2, ...]
+
+    def __call__(self, t: int, obs) -> Orders:
+        if len(obs.depth) != len(self.policies):
+            raise ValueError(f"{len(obs.depth)} frames for {len(self.policies)} Sort episodes")
+        orders = [p(t, batch(episode(obs, b))) for b, p in enumerate(self.policies)]
+        goals = jax.tree.map(lambda *x: jnp.concatenate([jnp.asarray(v) for v in x]), *[o.goals for o in orders])
+        omega = np.concatenate([o.candidates[0].omega for o in orders])
+        record = {k: np.concatenate([np.asarray(o.record[k]) for o in orders]) for k in orders[0].record}
+        return Orders(goals, (Candidate(omega),), None, record)
+
+    def score(self, states) -> dict:
+        return sort_step_scores(states, self.policies, self.goals)
+
+
+def sort_step_scores(states, policies: Sequence[SortPolicy], goals) -> dict:
+    """Sort's scores of states [B] on the true state, episode b scored by policies[b]'s goals (goals: theirs as
+    KindGoals [B], both pursued): kind_inside [B, 2] and mixing [B] (``tasks.sort_scores``), and goal_distance [B],
+    the mean over both kinds of d of a kind's foreground to its own goal (``mpc.scorer``; the loop's own d scores a
+    step against its waypoint discs)."""
+    scores = [sort_scores(states.pos[b], p.piece_kinds, p.goals, p.camera) for b, p in enumerate(policies)]
+    kinds = tuple(np.asarray(policies[0].piece_kinds).tolist())
+    distance = scorer(policies[0].camera, kinds)(states, goals)["distance"]
+    return dict(kind_inside=[s[0] for s in scores], mixing=[s[1] for s in scores],
+                goal_distance=np.asarray(distance))

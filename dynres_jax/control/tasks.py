@@ -1,13 +1,19 @@
-"""Tasks (paper Sec. V): the goals of Gather and Redistribute, sized to the pile so it can fill them, and the registry
-every command, study and script reads a task from.
+"""Tasks (paper Sec. V): the goals of Gather, Redistribute and Sort, sized to the pile so it can fill them, the rule
+that says whether an episode succeeded, and the registry every command, study and script reads a task from.
 
 Gather: push the pile into a disc of random centre and radius. Redistribute: push it into a letter (the paper's J,
 T, U, or any character OpenCV draws). Both goals cover 1.3-1.8 times the area of the pieces' footprints, so the
 pile fills them loosely, and stay inside the bin. An episode succeeds when ``SUCCESS`` of the pieces end inside the
-goal. Sort (two kinds to their own regions, with the paper's A* blob planner) is in ``dynres_jax.control.sort``.
+goal (``succeeded``). Sort: two kinds, each pushed into its own disc (``sort_goal``; the A* blob planner that guides
+it is ``dynres_jax.control.sort``); an episode succeeds when each kind has at least ``SORT_INSIDE`` of its pieces
+inside its own goal and fewer than ``SORT_MIXING`` of all pieces lie in the other kind's goal (``sort_succeeded``).
+``episode_success`` applies the task's rule to an evaluation's episodes: the sort command, ``evaluate`` and the docs
+read these definitions.
 
 A new single-kind task is one ``Task`` (its goal sampler, its pile's layout, a line for ``--help``) added to ``TASKS``:
-the task commands (``commands/task.py``), ``evaluate``, the studies and the scripts take it from there.
+the task commands (``commands/task.py``), ``evaluate``, the studies and the scripts take it from there. Sort is the
+one task of two kinds (``Task.kinds``): it has its own command (``commands/sort.py``), and ``evaluate --task sort``
+plans it with ``sort.SortPolicy``.
 """
 
 from __future__ import annotations
@@ -20,8 +26,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from dynres_jax.config import SceneConfig
-from dynres_jax.control.goals import disc_goal, text_goal
+from dynres_jax.control.goals import disc_goal, sort_goals, text_goal
 from dynres_jax.control.mpc import fold
+from dynres_jax.control.objective import inside_share
 from dynres_jax.errors import InputError
 from dynres_jax.sim.env import PileEnv
 from dynres_jax.sim.scene import footprint
@@ -29,6 +36,10 @@ from dynres_jax.sim.scene import footprint
 FILL = (1.3, 1.8)  # goal area / the pieces' footprint area
 GOAL_MARGIN = 0.03  # m: a Gather disc stays this far inside the bin's walls
 SUCCESS = 0.9  # an episode succeeds when this share of the pieces ends inside the goal
+SORT_INSIDE, SORT_MIXING = 0.8, 0.05  # Sort succeeds: each kind >= 80 % inside its own goal, mixing below 5 %
+GOAL_GAP = 0.04  # m: sort goals' rims at least this far apart (room for A*'s snapping of both centres to the grid)
+GOAL_EDGE = 0.01  # m: sort goals' rims at least this far from the bin wall
+SAMPLE_TRIES = 10_000  # rejection-sampling tries for the sort goals' centres
 
 
 def largest_pile(scene: SceneConfig) -> int:
@@ -85,16 +96,62 @@ def redistribute_goal(rng: np.random.Generator, env: PileEnv, letter: str, centr
     return mask, dict(shape="text", text=letter, centre=centre.tolist(), height=float(height))
 
 
+def sort_goal(rng: np.random.Generator, env: PileEnv) -> tuple[np.ndarray, float, np.ndarray]:
+    """Two random disjoint goal discs of one radius, sized to the kind with the larger footprint area (``FILL``
+    times it), rims ``GOAL_GAP`` apart and ``GOAL_EDGE`` from the wall: (centres [2, 2] m, radius m, masks [2, H, W]
+    bool, mask k for kind k). ValueError when the pieces are too many for two such discs in the bin."""
+    kinds = np.asarray(env.scene.kind)
+    if kinds.max() != 1:
+        raise ValueError(f"Sort needs a scene of two kinds, got kinds {env.config.scene.kinds}")
+    area = max(float(np.sum(np.pi * env.scene.footprint[kinds == k] ** 2)) for k in (0, 1)) * rng.uniform(*FILL)
+    radius = float(np.sqrt(area / np.pi))
+    lim = env.config.scene.bin_half_width - radius - GOAL_EDGE
+    need = 2 * radius + GOAL_GAP
+    for _ in range(SAMPLE_TRIES if lim > 0 else 0):
+        centres = rng.uniform(-lim, lim, size=(2, 2))
+        if np.linalg.norm(centres[0] - centres[1]) >= need:
+            return centres, radius, sort_goals(env.camera, centres, radius,
+                                               bin_half_width=env.config.scene.bin_half_width)
+    raise ValueError(f"two sort goals of radius {radius:.3f} m, {GOAL_GAP} m apart, hardly fit in the bin: too many "
+                     f"pieces ({env.config.scene.pieces})")
+
+
+def _sort_task_goal(rng: np.random.Generator, env: PileEnv, letter=None) -> tuple[np.ndarray, dict]:
+    """``sort_goal`` as the registry's goal: (masks [2, H, W] bool, description with the centres and radius)."""
+    centres, radius, masks = sort_goal(rng, env)
+    return masks, dict(shape="discs", centres=centres.tolist(), radius=radius)
+
+
+def sort_scores(piece_pos, kinds, goals, camera) -> tuple[list[float], float]:
+    """piece_pos [N, 3] m, kinds [N] kind index, goals: the two ``Goal``s -> (inside: share of kind k's pieces
+    inside goal k, for k = 0, 1; mixing: share of all pieces inside the other kind's goal)."""
+    kinds = np.asarray(kinds)
+    inside = [float(inside_share(piece_pos, kinds == k, goals[k], camera)) for k in (0, 1)]
+    wrong = sum(float(inside_share(piece_pos, kinds == k, goals[1 - k], camera)) * np.sum(kinds == k) for k in (0, 1))
+    return inside, wrong / len(kinds)
+
+
+def sort_succeeded(inside, mixing) -> np.ndarray:
+    """Whether Sort's episodes meet its target: both kinds' inside shares (inside [..., 2]) at least SORT_INSIDE
+    (float32 count ratios, so with 1e-6 of rounding allowed, as ``succeeded``) and mixing [...] below SORT_MIXING.
+    One episode ([2], a scalar) gives a bool."""
+    inside = np.asarray(inside, np.float64)
+    ok = (inside.min(axis=-1) >= SORT_INSIDE - 1e-6) & (np.asarray(mixing, np.float64) < SORT_MIXING)
+    return bool(ok) if np.ndim(ok) == 0 else ok
+
+
 @dataclass(frozen=True)
 class Task:
-    """A single-kind task. description: one line for ``--help``; layout: the pile it starts from
-    (``PileConfig.layout``); goal(rng, env, letter) -> (mask [H, W] bool, description dict); letter: whether the goal
-    is drawn from text (the command takes ``--letter``, ``evaluate`` its ``--letters``)."""
+    """A task. description: one line for ``--help``; layout: the pile it starts from (``PileConfig.layout``);
+    goal(rng, env, letter) -> (mask [H, W] bool, description dict; Sort: masks [2, H, W], one per kind); letter:
+    whether the goal is drawn from text (the command takes ``--letter``, ``evaluate`` its ``--letters``); kinds: the
+    piece kinds of its scene (1; Sort's 2: each kind to its own goal, planned by ``sort.SortPolicy``)."""
 
     description: str
     layout: str
     goal: Callable[[np.random.Generator, PileEnv, str | None], tuple[np.ndarray, dict]]
     letter: bool = False
+    kinds: int = 1
 
 
 TASKS: dict[str, Task] = {
@@ -102,6 +159,8 @@ TASKS: dict[str, Task] = {
                    lambda rng, env, letter: gather_goal(rng, env)),
     "redistribute": Task("Redistribute (paper Sec. V): push a pile into a letter shape.", "blob",
                          redistribute_goal, letter=True),
+    "sort": Task("Sort (paper Sec. V): two piles of different kinds, each pushed into its own disc without mixing, "
+                 "guided by A* over the piles' centres.", "two_blobs", _sort_task_goal, kinds=2),
 }
 
 
@@ -111,10 +170,30 @@ def succeeded(inside) -> np.ndarray:
     return np.asarray(inside, np.float64) >= SUCCESS - 1e-6
 
 
+def episode_success(task: str, results: dict) -> np.ndarray:
+    """Per episode of an evaluation (``evaluate``'s METHOD.json: final_inside [E]; Sort's final_kind_inside [E, 2]
+    and final_mixing [E]), whether it met its task's target: ``sort_succeeded`` for Sort, else ``succeeded``."""
+    if TASKS[task].kinds == 2:
+        return sort_succeeded(np.reshape(results["final_kind_inside"], (-1, 2)), results["final_mixing"])
+    return succeeded(results["final_inside"])
+
+
+def success_rule(task: str) -> str:
+    """The task's success rule in words (what ``evaluate`` prints beside its success shares)."""
+    if TASKS[task].kinds == 2:
+        return f"each kind ≥{SORT_INSIDE:.0%} inside its goal, mixing <{SORT_MIXING:.0%}"
+    return f"≥{SUCCESS:.0%} inside"
+
+
+def draw_goal(task: str, i: int, seed: int, env: PileEnv, letters: str = "JTU") -> tuple[np.ndarray, dict]:
+    """Episode i's goal from rng (seed, i): the task's (mask, description), with the letter
+    ``letters[i % len(letters)]`` where it draws one."""
+    return TASKS[task].goal(np.random.default_rng((seed, i)), env, letters[i % len(letters)])
+
+
 def episode_goal(task: str, i: int, seed: int, env: PileEnv, letters: str = "JTU") -> np.ndarray:
-    """Episode i's goal mask [H, W] from rng (seed, i): the task's goal, with the letter ``letters[i % len(letters)]``
-    where it draws one."""
-    return TASKS[task].goal(np.random.default_rng((seed, i)), env, letters[i % len(letters)])[0]
+    """Episode i's goal mask [H, W] (Sort: [2, H, W]) from rng (seed, i) (``draw_goal``)."""
+    return draw_goal(task, i, seed, env, letters)[0]
 
 
 def episode_keys(seed: int, episodes) -> tuple[jax.Array, jax.Array]:
