@@ -105,7 +105,8 @@ def build_parser():
                              "best of ω in ORACLE_OMEGAS by the simulated outcome), 'bestK' (e.g. best5: every step "
                              "keeps the best of K plans at --best-omega by the simulated outcome, the oracle's "
                              "control), 'sim' (the simulator chooses among the planner's first samples, no model), "
-                             "'rerank' (the simulator chooses among the planner's plans after the model's Adam steps) "
+                             "'rerank' (the simulator chooses among the planner's plans after the model's Adam steps), "
+                             "'judge' (--judge's model chooses among them, at --best-omega) "
                              "and 'cnn' (the CNN-dynamics baseline at --cnn-omega); Sort takes fixed ω and the ladder")
     parser.add_argument("--best-omega", type=checks.omega, default=50, help="ω of the bestK, sim and rerank methods")
     add_planner_args(parser)
@@ -130,6 +131,8 @@ def build_parser():
     parser.add_argument("--regressor", default=SHIPPED_REGRESSOR)
     parser.add_argument("--cnn-ckpt", default=SHIPPED_CNN_DYNAMICS, help="the CNN-dynamics checkpoint of method 'cnn'")
     parser.add_argument("--cnn-omega", type=checks.omega, default=50, help="ω of method 'cnn'")
+    parser.add_argument("--judge", default=None, metavar="CKPT",
+                        help="the judge's dynamics checkpoint, for method 'judge' (control/judge.py)")
     parser.add_argument("--workers", type=checks.count(1, 1024), default=None)
     checks.add_engine(parser)
     parser.add_argument("--seed", type=checks.seed, default=0)
@@ -192,6 +195,10 @@ def check_args(parser, args):
     main_model = load_model(parser, args.dynamics, args.ckpt, sim.scene.plate_half_width, shipped_dynamics(args.task))
     cnn_model = load_model(parser, "learned", args.cnn_ckpt, sim.scene.plate_half_width) if "cnn" in args.methods \
         else None
+    judge = None if args.judge is None else load_model(parser, "learned", args.judge, sim.scene.plate_half_width,
+                                                       flag="--judge")
+    if judge is not None and args.best_omega > judge.n_max:
+        parser.error(f"method judge: ω = {args.best_omega} exceeds the judge's n_max = {judge.n_max}")
     for m in args.methods:
         omega = method_omega(m, args) if m != "cnn" else None
         if omega is not None and omega > main_model.n_max:
@@ -213,10 +220,10 @@ def check_args(parser, args):
     finest = max(max(ORACLE_OMEGAS) if m == "oracle" else max(PROBE_OMEGAS) if m == "probe" else w
                  for m, w in zip(args.methods, method_omegas(args), strict=True))  # adaptive: at least OMEGA_MIN
     check_visible(parser, env.reset(tasks.episode_keys(args.seed, [0])[0][0]).obs, env.camera, finest, cfg)
-    return rank, size, sim, main_model, cnn_model
+    return rank, size, sim, main_model, cnn_model, judge
 
 
-def run_methods(args, rank: int, size: int, sim, main_model, cnn_model) -> dict:
+def run_methods(args, rank: int, size: int, sim, main_model, cnn_model, judge=None) -> dict:
     """Every method of --methods on this process's share of the episodes (resuming finished methods and parts), merged
     over the job's processes. Returns {method: results}."""
     os.makedirs(os.path.join(args.out, "parts"), exist_ok=True)
@@ -251,7 +258,8 @@ def run_methods(args, rank: int, size: int, sim, main_model, cnn_model) -> dict:
                 starts = pool.reset(pile_keys)
                 view = None if args.sensor == "none" else SensorView(SENSORS[args.sensor], pool.env)
                 chooser = (sort_chooser(method, [info for _, info in drawn], pool.env, cfg, keys, mine, args) if sort
-                           else method_chooser(method, goals, args, pool.camera))
+                           else method_chooser(method, goals, args, pool.camera,
+                                               None if judge is None else judge.dynamics))
                 finals, records = run(pool, starts, chooser, model.dynamics, cfg, keys, timing=timing, view=view)
                 mine_done = episode_results(sort_records(records) if sort else records, mine, model.name, starts,
                                             finals)
@@ -280,14 +288,15 @@ def main(argv=None):
     progress.start(checks.prog("evaluate"), f"{args.task}, methods {' '.join(args.methods)} on {args.episodes} "
                    f"episodes of {args.mpc_steps} steps, into {args.out} (finished methods are kept); loading the "
                    "models and the simulator")
-    rank, size, sim, main_model, cnn_model = check_args(parser, args)
+    rank, size, sim, main_model, cnn_model, judge = check_args(parser, args)
     sort_only = () if tasks.TASKS[args.task].kinds == 2 else SORT_ONLY  # another task's run.json is as before
     checks.claim(args.out, "evaluate", checks.settings(args, ignore=("methods", *sort_only)), args.fresh,
                  {"--ckpt": args.ckpt, "--regressor": args.regressor, "--cnn-ckpt": args.cnn_ckpt,
-                  "--timing": args.timing})
-    results = run_methods(args, rank, size, sim, main_model, cnn_model)
+                  "--timing": args.timing, "--judge": args.judge})
+    results = run_methods(args, rank, size, sim, main_model, cnn_model, judge)
     devices = sorted({r.get("device", "unrecorded") for r in results.values()})  # where the methods ran
     summary = dict(task=args.task, kind=args.kind, pieces=args.pieces, sensor=args.sensor, dynamics=main_model.name,
+                   judge=None if judge is None else judge.name,
                    device=", ".join(devices),
                    time_budget=args.time_budget, samples=args.samples, adam_steps=args.adam_steps,
                    deterministic=args.deterministic,

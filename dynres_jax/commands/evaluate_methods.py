@@ -18,6 +18,7 @@ from dynres_jax.control.choosers import (
     climb,
     on_ladder,
 )
+from dynres_jax.control.judge import JudgeScored
 from dynres_jax.control.sort import ARRIVED, SortEpisodes, SortPolicy
 from dynres_jax.io import ckpt
 from dynres_jax.models.registry import describe, trained_n_max
@@ -40,12 +41,14 @@ def check_methods(parser, args, sort: bool) -> None:
     default_methods(args, sort)
     for m in args.methods:
         fixed = m.isdigit() and OMEGA_MIN <= int(m) <= OMEGA_MAX
-        if m not in ("adaptive", "probe", "oracle", "cnn") and not fixed and not on_ladder(m):
-            parser.error(f"--methods takes 'adaptive', 'probe', 'oracle', 'cnn', 'sim', 'rerank', 'bestK' (K >= 1) or "
-                         f"integers in [{OMEGA_MIN}, {OMEGA_MAX}], got {m!r}")
+        if m not in ("adaptive", "probe", "oracle", "cnn", "judge") and not fixed and not on_ladder(m):
+            parser.error(f"--methods takes 'adaptive', 'probe', 'oracle', 'cnn', 'judge', 'sim', 'rerank', 'bestK' "
+                         f"(K >= 1) or integers in [{OMEGA_MIN}, {OMEGA_MAX}], got {m!r}")
     args.methods = [str(int(m)) if m.isdigit() else m for m in args.methods]  # "050" is ω = 50
     if len(set(args.methods)) < len(args.methods):
         parser.error(f"--methods names a method twice: {' '.join(args.methods)}")
+    if ("judge" in args.methods) != (args.judge is not None):
+        parser.error("method 'judge' and --judge CKPT (the judge's checkpoint) go together; give both or neither")
     if not sort:
         for flag in SORT_ONLY:
             if getattr(args, flag) is not None:
@@ -62,12 +65,14 @@ def check_methods(parser, args, sort: bool) -> None:
                      "not through a depth camera's errors")
 
 
-def method_chooser(method: str, goals, args, camera) -> Chooser:
+def method_chooser(method: str, goals, args, camera, judge=None) -> Chooser:
     """The chooser of an evaluation method against goals [B]: a fixed ω ("50"; "cnn" at --cnn-omega), the
     regressor ("adaptive"), the probe of PROBE_OMEGAS judged by the model ("probe"), the oracle over
-    ORACLE_OMEGAS, the best of K plans at --best-omega ("bestK", e.g. "best5"), or the simulator choosing among
+    ORACLE_OMEGAS, the best of K plans at --best-omega ("bestK", e.g. "best5"), the simulator choosing among
     the planner's first samples ("sim") or among its plans after the model's Adam steps ("rerank"), both at
-    --best-omega."""
+    --best-omega, or the judge (``judge``: radius -> --judge's model) choosing among those plans ("judge")."""
+    if method == "judge":
+        return JudgeScored(FixedOmega(goals, args.best_omega), judge)
     if method == "adaptive":
         return AdaptiveOmega(goals, resolution.load_regressor(args.regressor, camera))
     if method == "oracle":
@@ -95,7 +100,7 @@ def method_omega(method: str, args) -> int | None:
     the methods that choose among ω (adaptive, oracle)."""
     if method.isdigit():
         return int(method)
-    if on_ladder(method):
+    if on_ladder(method) or method == "judge":
         return args.best_omega
     return args.cnn_omega if method == "cnn" else None
 

@@ -108,6 +108,8 @@ def label(method: str, r: dict) -> str:
         return "simulator chooses among samples"
     if method == "rerank":
         return "simulator ranks the model's plans"
+    if method == "judge":
+        return "judge ranks the model's plans"
     return f"CNN, ω = {round(float(np.mean(r['omega'])))}" if method == "cnn" else method
 
 
