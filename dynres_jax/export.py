@@ -14,8 +14,9 @@ dynamics f(z, u, ω). The model weights, the camera, the particle capacity and t
 inside it; the frame, the goal, ω, the Adam steps and the keys are inputs, so the goal or the resolution can change
 without exporting again. Inputs (``INPUT_NAMES`` order; shapes fixed at export, the sidecar ``FILE.json`` lists them):
 
-- depth [H, W] float32 m: the camera's z-depth, H x W its image; 0 (or ``sim.sensor.NO_READING``) where it gave no
-  reading. NaN or infinite pixels are an error.
+- depth [H, W] float32 m: the camera's z-depth, H x W its image; 0, NaN, ±inf (or ``sim.sensor.NO_READING``) where it
+  gave no reading (``sim.sensor.is_reading``, the rule perception and the robot's loop use); a frame with no reading
+  at all is an error.
 - goal_mask [H, W] bool: goal pixels (``io.frames.load_goal`` of a goal PNG, ``experiments.goal`` writes them).
 - key [2] uint32: ``jax.random.PRNGKey(seed)``'s data; split into perception's and the planner's keys as the closed
   loop splits it (``decision.perceive_and_decide``).
@@ -57,9 +58,8 @@ from dynres_jax.control.planner import PlannerConfig
 from dynres_jax.io import ckpt, files
 from dynres_jax.models.graph import no_gpu_kernels
 from dynres_jax.models.registry import load_dynamics
-from dynres_jax.perception import BAD_OMEGA, EMPTY_FOREGROUND, NAN_DEPTH, TOO_FEW_POINTS
+from dynres_jax.perception import BAD_OMEGA, EMPTY_FOREGROUND, NO_DEPTH, TOO_FEW_POINTS
 from dynres_jax.sim.camera import Camera, Observation
-from dynres_jax.sim.sensor import NO_READING
 
 FORMAT = "dynres_jax decision (depth + goal mask -> push), jax.export serialized Exported (StableHLO)"
 DEFAULT_GOAL_SAMPLES = 500  # Q: goals.make_goal's default n_samples
@@ -68,7 +68,7 @@ GOAL_FULL = 32  # error bit: the goal mask covers the whole image
 BAD_STEPS = 64  # error bit: adam_steps outside [0, the planner's]
 BAD_INIT = 128  # error bit: warm, and the warm start init has NaN or infinite values
 NOT_FINITE = 256  # error bit: the plan came out NaN or infinite (any other cause)
-ERRORS = {NAN_DEPTH: "the depth image has NaN or infinite pixels",
+ERRORS = {NO_DEPTH: "the depth image has no reading (every pixel 0, NaN or infinite)",
           EMPTY_FOREGROUND: "no foreground: nothing stands above the table inside the workspace",
           BAD_OMEGA: "omega outside [1, capacity]",
           TOO_FEW_POINTS: "fewer foreground points than omega",
@@ -96,7 +96,6 @@ def decision_step(dynamics: Callable, camera: Camera, spec: DecisionSpec, goal_s
                          f"{spec.planner.resamples}")
 
     def step(depth, goal_mask, key, omega, adam_steps, init, warm):
-        depth = jnp.where(depth == 0, NO_READING, depth)  # cameras write 0 where they have no reading
         goal_mask = jnp.asarray(goal_mask, bool)
         goal = goal_fields(goal_mask, camera, goal_samples)
         steps_ok = (adam_steps >= 0) & (adam_steps <= spec.planner.adam_steps)
@@ -120,7 +119,7 @@ def input_specs(camera: Camera, config: PlannerConfig):
     """The exported function's inputs: a list of dicts (name, shape, dtype, units, description), INPUT_NAMES order."""
     h, w, t = camera.height, camera.width, config.horizon
     rows = [
-        ("depth", (h, w), "float32", "m", "the camera's z-depth; 0 where it gave no reading"),
+        ("depth", (h, w), "float32", "m", "the camera's z-depth; 0 or NaN where it gave no reading"),
         ("goal_mask", (h, w), "bool", "", "goal pixels (a goal PNG read by io.frames.load_goal)"),
         ("key", (2,), "uint32", "", "PRNG key: the data of jax.random.PRNGKey(seed)"),
         ("omega", (), "int32", "particles", "the resolution, 1 <= omega <= capacity"),

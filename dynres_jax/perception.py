@@ -6,8 +6,9 @@ serves every resolution ω and ``jax.vmap`` works over observations, keys and ω
 - ``point_cloud``: every pixel is a candidate point (P = H * W, foreground mask alongside), or, with ``max_points``,
   the foreground pixels are packed into a fixed P = max_points slots; when there are more foreground pixels than
   slots, the ones kept are a uniform random subset drawn by one fixed pixel permutation (the same on every call).
-  Foreground: finite depth, more than ``margin`` (3 mm) above the table, inside the bin's workspace (so the bin walls
-  never count), optionally one object kind (segmentation) or one colour (chromaticity distance, for Sort).
+  Foreground: a depth reading (``sim.sensor.is_reading``: 0, NaN, ±inf and ``NO_READING`` are none), more than
+  ``margin`` (3 mm) above the table, inside the bin's workspace (so the bin walls never count), optionally one object
+  kind (segmentation) or one colour (chromaticity distance, for Sort).
 - ``fps``: farthest point sampling as a ``lax.fori_loop`` keeping a running min-distance [P] (no [P, P] matrix).
   The first k indices are the size-k FPS sample, so one call to N_max gives every ω <= N_max as a prefix mask.
 - ``recentre``: each particle moves to the mean of the cloud points within ``r_center`` of it (paper supplement).
@@ -25,7 +26,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from dynres_jax.sim.camera import Camera, Observation, neighbourhoods, rotation_about
-from dynres_jax.sim.sensor import NO_READING
+from dynres_jax.sim.sensor import NO_READING, is_reading, readings
 
 FOREGROUND_MARGIN = 0.003  # m: a pixel is foreground when its point is this far above the table (z = 0)
 WALL_BAND = 0.01  # m: with real_depth, the workspace shrinks by this much: calibration errors bring wall tops inside
@@ -38,7 +39,8 @@ MIN_WALL_POINTS = 10  # ``calibrate`` needs this many points on each wall
 PERMUTATION_SEED = 0  # seed of the fixed pixel permutation that subsamples the foreground under ``max_points``
 
 # Bit flags of ``Particles.error``.
-NAN_DEPTH = 1  # the depth image has NaN or infinite pixels
+NO_DEPTH = 1  # the depth image has no reading at all (every pixel 0, NaN, infinite or NO_READING)
+NAN_DEPTH = NO_DEPTH  # its former name: NaN pixels were an error; now, as 0, they are no reading
 EMPTY_FOREGROUND = 2  # no foreground point
 BAD_OMEGA = 4  # ω < 1 or ω > capacity
 TOO_FEW_POINTS = 8  # fewer foreground points than ω (and at least one)
@@ -63,10 +65,10 @@ class Particles(NamedTuple):
 
 def median_depth(depth):
     """depth [H, W] -> its 3 x 3 median [H, W] (edges replicated) over the readings a real camera gave, missing ones
-    (``sim.sensor.NO_READING``) left out (``NO_READING`` where all nine are missing): isolated noisy and flying pixels
+    (``sim.sensor.is_reading``) left out (``NO_READING`` where all nine are missing): isolated noisy and flying pixels
     removed, depth edges kept, and a small piece whose edge readings went missing not voted away by them."""
     near = neighbourhoods(depth)
-    near = jnp.where(near >= NO_READING, jnp.nan, near)
+    near = jnp.where(is_reading(near), near, jnp.nan)
     median = jnp.nanmedian(near, axis=0)
     return jnp.where(jnp.isnan(median), NO_READING, median)
 
@@ -92,12 +94,12 @@ def foreground(observation: Observation, camera: Camera, *, margin: float = FORE
     camera's depth (``sim.sensor``): its 3 x 3 median first (``median_depth``), heights over the table plane fitted
     from the frame (``table_height``) instead of over z = 0, and a workspace WALL_BAND narrower (a few millimetres of
     calibration error put wall tops inside it)."""
-    depth = jnp.asarray(observation.depth, jnp.float32)
+    depth = readings(jnp.asarray(observation.depth, jnp.float32))  # the one rule of what is a reading
     depth = (median_depth(depth) if real_depth else depth).reshape(-1)
     uv = jnp.asarray(camera.pixel_centres(), jnp.float32).reshape(-1, 2)
-    finite = jnp.isfinite(depth)
-    points = camera.pixel_to_world(uv, jnp.where(finite, depth, 0.0)).astype(jnp.float32)
-    inside = finite & jnp.all(jnp.abs(points[:, :2]) <= workspace - (WALL_BAND if real_depth else 0.0), axis=-1)
+    seen = is_reading(depth)
+    points = camera.pixel_to_world(uv, jnp.where(seen, depth, 0.0)).astype(jnp.float32)
+    inside = seen & jnp.all(jnp.abs(points[:, :2]) <= workspace - (WALL_BAND if real_depth else 0.0), axis=-1)
     height = points[:, 2] - table_height(points, inside) if real_depth else points[:, 2]
     valid = inside & (height > margin)
     if kind is not None:
@@ -151,7 +153,8 @@ def calibrate(observation: Observation, camera: Camera, *, bin_half_width: float
     ``SceneConfig``). Returns the camera whose world frame is the table's, bin centred. ValueError when a wall is not
     in view."""
     depth = np.asarray(observation.depth, np.float64).reshape(-1)
-    points = np.asarray(camera.pixel_to_world(camera.pixel_centres().reshape(-1, 2), depth), np.float64)
+    seen = is_reading(depth)
+    points = np.asarray(camera.pixel_to_world(camera.pixel_centres().reshape(-1, 2)[seen], depth[seen]), np.float64)
     points = points[np.isfinite(points).all(axis=1)]
     inner = np.all(np.abs(points[:, :2]) < bin_half_width - WALL_SEARCH, axis=1)
     near = inner & (np.abs(points[:, 2] - np.median(points[inner, 2])) < TABLE_BAND)
@@ -223,7 +226,7 @@ def recentre(particles, points, valid, r_center):
 
 
 def _particles(points, valid, depth, omega, key, capacity: int, r_center) -> Particles:
-    """h on a packed cloud (points [P, 3], valid [P]) of a depth image [H, W] (NaN there is an error)."""
+    """h on a packed cloud (points [P, 3], valid [P]) of a depth image [H, W] (no reading in it at all is an error)."""
     n_points = jnp.sum(valid).astype(jnp.int32)
     omega = jnp.asarray(omega, jnp.int32)
     indices, radius = fps(points, valid, capacity + 1, random_start(key, valid))  # one extra pick: r(ω = capacity)
@@ -231,7 +234,7 @@ def _particles(points, valid, depth, omega, key, capacity: int, r_center) -> Par
     if r_center is None:
         r_center = jnp.minimum(R_CENTER_MAX, 0.5 * r_omega)
     positions = recentre(points[indices[:capacity]], points, valid, r_center)
-    error = (jnp.where(~jnp.all(jnp.isfinite(depth)), NAN_DEPTH, 0)
+    error = (jnp.where(~jnp.any(is_reading(depth)), NO_DEPTH, 0)
              | jnp.where(n_points == 0, EMPTY_FOREGROUND, 0)
              | jnp.where((omega < 1) | (omega > capacity), BAD_OMEGA, 0)
              | jnp.where((n_points > 0) & (n_points < omega), TOO_FEW_POINTS, 0)).astype(jnp.int32)
@@ -302,8 +305,8 @@ def perceive(observation: Observation, camera: Camera, omega, key, capacity: int
 def describe_error(error: int, omega=None, capacity=None, n_points=None) -> str:
     """A readable list of the problems in a concrete ``Particles.error`` ('' when 0)."""
     problems = []
-    if error & NAN_DEPTH:
-        problems.append("the depth image has NaN or infinite pixels")
+    if error & NO_DEPTH:
+        problems.append("the depth image has no reading (every pixel 0, NaN or infinite)")
     if error & EMPTY_FOREGROUND:
         problems.append("empty foreground: no point is above the table margin (within the workspace, of the "
                         "requested kind / colour)")
@@ -336,8 +339,8 @@ def sample_particles(observation: Observation, camera: Camera, omega, key, capac
     max_points: see ``point_cloud`` (at 256 x 256, 8192 made h about 5 times faster on an H200); r_center:
     re-centring radius (m), default min(R_CENTER_MAX, 0.5 r(ω)) with r(ω) the covering radius of the ω-sample, 0 to
     disable; margin, workspace, kind, colour, colour_tol, real_depth: see ``foreground``. Raises ValueError naming the
-    problem when the result is concrete and the input bad (NaN depth, empty foreground, ω outside [1, capacity], fewer
-    foreground points than ω); traced, ``Particles.error`` says it.
+    problem when the result is concrete and the input bad (no depth reading at all, empty foreground, ω outside [1,
+    capacity], fewer foreground points than ω); traced, ``Particles.error`` says it.
     """
     if not isinstance(capacity, int | np.integer) or capacity < 1:
         raise ValueError(f"capacity must be a positive int, got {capacity!r}")

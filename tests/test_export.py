@@ -21,7 +21,7 @@ from dynres_jax.control.planner import PlannerConfig
 from dynres_jax.io import ckpt, frames
 from dynres_jax.models.dynamics import Dynamics, DynamicsConfig
 from dynres_jax.models.registry import load_dynamics
-from dynres_jax.perception import BAD_OMEGA, NAN_DEPTH
+from dynres_jax.perception import BAD_OMEGA, NO_DEPTH
 from dynres_jax.sim.camera import Camera, Observation
 from dynres_jax.sim.pushes import wall_reach
 from dynres_jax.sim.sensor import NO_READING
@@ -108,12 +108,14 @@ def test_the_file_decides_like_the_library_where_only_jax_and_flatbuffers_are(ti
 
 
 def test_a_missing_reading_may_be_written_as_zero(reloaded):
+    """0, NaN and ±inf are no reading, as NO_READING is (``sim.sensor.is_reading``, the library's rule too)."""
     depth, *rest = inputs(3)
     assert (depth == NO_READING).any()
-    as_camera = np.where(depth == NO_READING, 0.0, depth).astype(np.float32)
-    a, b = reloaded.call(depth, *rest), reloaded.call(as_camera, *rest)
-    for k in ex.OUTPUT_NAMES:
-        np.testing.assert_array_equal(np.asarray(a[k]), np.asarray(b[k]))
+    a = reloaded.call(depth, *rest)
+    for hole in (0.0, np.nan, np.inf, -np.inf):
+        b = reloaded.call(np.where(depth == NO_READING, hole, depth).astype(np.float32), *rest)
+        for k in ex.OUTPUT_NAMES:
+            np.testing.assert_array_equal(np.asarray(a[k]), np.asarray(b[k]), err_msg=f"{hole}: {k}")
 
 
 def test_bad_input_is_flagged_and_gives_no_push(reloaded):
@@ -121,8 +123,7 @@ def test_bad_input_is_flagged_and_gives_no_push(reloaded):
     cases = {
         "empty goal": ((depth, np.zeros_like(goal_mask), key, omega, steps, init, warm), ex.GOAL_EMPTY),
         "whole-image goal": ((depth, np.ones_like(goal_mask), key, omega, steps, init, warm), ex.GOAL_FULL),
-        "NaN depth": ((np.where(goal_mask, np.nan, depth).astype(np.float32), goal_mask, key, omega, steps, init,
-                       warm), NAN_DEPTH),
+        "no depth reading": ((np.full_like(depth, np.nan), goal_mask, key, omega, steps, init, warm), NO_DEPTH),
         "omega 0": ((depth, goal_mask, key, np.int32(0), steps, init, warm), BAD_OMEGA),
         "omega above capacity": ((depth, goal_mask, key, np.int32(SPEC.capacity + 1), steps, init, warm), BAD_OMEGA),
         "too many Adam steps": ((depth, goal_mask, key, omega, np.int32(SPEC.planner.adam_steps + 1), init, warm),

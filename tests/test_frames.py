@@ -127,3 +127,118 @@ def test_implausible_frames_are_refused_before_planning(saved, tmp_path):
                                     (depth, low, "median point lies")):
         with pytest.raises(frames.FrameError, match=says):
             load(depth_mm, **changes)
+
+
+def _exif_rotated(path, image, orientation=6):
+    """Save ``image`` (grey or RGB uint8) as PNG or JPEG with an EXIF orientation tag (6: turn 90 degrees to show)."""
+    from PIL import Image
+
+    exif = Image.Exif()
+    exif[0x0112] = orientation
+    Image.fromarray(image).save(path, exif=exif.tobytes(), **({"quality": 100} if path.endswith(".jpg") else {}))
+    assert cv2.imread(path, cv2.IMREAD_GRAYSCALE).shape[:2] == image.shape[:2][::-1]  # OpenCV would turn it
+    return path
+
+
+@pytest.mark.parametrize("suffix", [".png", ".jpg"])
+def test_images_are_read_as_stored_whatever_their_orientation_tag(saved, tmp_path, suffix):
+    """A goal, a mask and a colour frame with an EXIF orientation tag are read with the pixels as stored, not turned
+    as OpenCV turns them by default (the depth frame, which has no tag, would no longer match them)."""
+    pytest.importorskip("PIL")
+    env, state, paths = saved
+    goal = disc_goal(env.camera, np.array([0.05, 0.02]), 0.06)
+    tagged = _exif_rotated(str(tmp_path / f"goal{suffix}"), goal.astype(np.uint8) * 255)
+    np.testing.assert_array_equal(frames.load_goal(tagged, env.camera), goal)
+    wide = np.zeros((32, 64), np.uint8)
+    wide[:, :16] = 255
+    np.testing.assert_array_equal(frames.read_image(_exif_rotated(str(tmp_path / f"w{suffix}"), wide), "x",
+                                                    cv2.IMREAD_GRAYSCALE) > 127, wide > 127)
+    if suffix == ".png":  # lossless: the colour frame read back pixel for pixel
+        rgb = np.asarray(state.obs.rgb)
+        _exif_rotated(str(tmp_path / "rgb.png"), rgb)
+        obs, _ = frames.load_frame(paths["depth.png"], str(tmp_path / "rgb.png"), paths["camera.json"])
+        np.testing.assert_array_equal(obs.rgb, rgb)
+
+
+def test_goal_mask_with_an_orientation_tag_is_not_turned(saved, tmp_path, capsys):
+    pytest.importorskip("PIL")
+    from dynres_jax.commands import goal as goal_command
+
+    env, _, paths = saved
+    want = disc_goal(env.camera, np.array([0.08, 0.0]), 0.05)
+    big = cv2.resize(want.astype(np.uint8) * 255, (128, 128), interpolation=cv2.INTER_NEAREST)
+    tagged = _exif_rotated(str(tmp_path / "mask.png"), big, orientation=8)
+    goal_command.main(["--mask", tagged, "--camera", paths["camera.json"], "--out", str(tmp_path / "g.png")])
+    np.testing.assert_array_equal(frames.load_goal(str(tmp_path / "g.png"), env.camera), want)
+
+
+def _one_line_error(argv, capsys):
+    from dynres_jax.commands import goal as goal_command
+
+    with pytest.raises(SystemExit) as e:
+        goal_command.main(argv)
+    err = capsys.readouterr().err
+    assert e.value.code == 2 and err.count("\n") == 1 and "Traceback" not in err, err
+    return err
+
+
+def test_a_fifo_a_device_or_a_folder_is_named_not_read(saved, tmp_path, capsys):
+    """Where a file is expected, a FIFO (which would block the read forever), a device (/dev/null: no longer "does not
+    exist") and a folder are refused in one line naming what they are, before anything opens them."""
+    import os
+    import threading
+
+    _, _, paths = saved
+    fifo = str(tmp_path / "pipe.png")
+    os.mkfifo(fifo)
+    found = {}
+
+    def run():
+        found["mask"] = _one_line_error(["--mask", fifo, "--camera", paths["camera.json"], "--out",
+                                         str(tmp_path / "g.png")], capsys)
+
+    thread = threading.Thread(target=run, daemon=True)
+    thread.start()
+    thread.join(30)
+    if thread.is_alive():
+        os.open(fifo, os.O_WRONLY | os.O_NONBLOCK)  # unblock the reader before failing
+        pytest.fail("goal --mask blocked on a FIFO")
+    assert "FIFO" in found["mask"] and "--mask" in found["mask"]
+    err = _one_line_error(["--disc", "0", "0", "0.05", "--camera", os.devnull, "--out", str(tmp_path / "g.png")],
+                          capsys)
+    assert "character device" in err and "does not exist" not in err
+    err = _one_line_error(["--disc", "0", "0", "0.05", "--camera", str(tmp_path), "--out", str(tmp_path / "g.png")],
+                          capsys)
+    assert "is a folder" in err
+    for path, says in ((fifo, "FIFO"), (os.devnull, "character device"), (str(tmp_path), "a folder")):
+        with pytest.raises(frames.FrameError, match=says):
+            frames.load_frame(path, paths["rgb.png"], paths["camera.json"])
+        with pytest.raises(frames.FrameError, match=says):
+            frames.load_goal(path, saved[0].camera)
+    with pytest.raises(FileNotFoundError, match="does not exist"):
+        frames.load_camera(str(tmp_path / "none.json"))
+
+
+@pytest.mark.parametrize("text, says", [
+    ("[1, 2, 3]", "must be an object"), ('"camera"', "must be an object"), ("null", "must be an object"),
+    ("[" * 100_000 + "]" * 100_000, "nested too deeply"), ('{"K": ' + "[" * 5000 + "]" * 5000 + "}", "nested"),
+    ("{WIDTH9}", "width must be a finite number"), ("{CENTRE}", "centre"), ("{K_STRINGS}", "K must be"),
+    ("{NO_HEIGHT}", "lacks"), ("{HUGE}", "image size"), ("{BOOL}", "width must be"),
+])
+def test_bad_camera_json_is_one_line(saved, tmp_path, capsys, text, says):
+    """Camera JSON that is not an object, nested deeply, with a 400-digit number, a camera 10^300 m away, strings,
+    a missing field, an absurd size or a boolean is refused in one line naming the file, never a traceback."""
+    good = json.load(open(saved[2]["camera.json"]))
+    text = {"{WIDTH9}": json.dumps(good).replace(f'"width": {good["width"]}', '"width": ' + "9" * 400),
+            "{CENTRE}": json.dumps({**good, "centre": [0, 0, 1e300]}),
+            "{K_STRINGS}": json.dumps({**good, "K": [["1", "0", "0"]] * 3}),
+            "{NO_HEIGHT}": json.dumps({k: v for k, v in good.items() if k != "height"}),
+            "{HUGE}": json.dumps({**good, "width": 10**12}),
+            "{BOOL}": json.dumps({**good, "width": True})}.get(text, text)
+    path = tmp_path / "cam.json"
+    path.write_text(text)
+    with pytest.raises(frames.FrameError, match=says):
+        frames.load_camera(str(path))
+    err = _one_line_error(["--disc", "0", "0", "0.05", "--camera", str(path), "--out", str(tmp_path / "g.png")],
+                          capsys)
+    assert "camera file" in err and len(err) < 400, err

@@ -1,5 +1,7 @@
 """Perception h: point cloud, FPS (against a brute-force NumPy FPS), re-centring, sample_particles, bad input."""
 
+import functools
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -9,6 +11,7 @@ from dynres_jax import perception
 from dynres_jax.config import KINDS, CameraConfig, SceneConfig, SimConfig
 from dynres_jax.perception import fps, point_cloud, random_start, recentre, sample_particles
 from dynres_jax.sim.env import PileEnv
+from dynres_jax.sim.sensor import NO_READING, is_reading, readings
 
 N_MAX = 16
 
@@ -234,8 +237,8 @@ def test_bad_input_raises_naming_the_problem(env, states):
         sample_particles(obs, cam, N_MAX + 1, key, N_MAX)
     with pytest.raises(ValueError, match=f"too few foreground points: {n_points} points for omega=100"):
         sample_particles(obs, cam, 100, key, 128)
-    with pytest.raises(ValueError, match="NaN"):
-        sample_particles(obs._replace(depth=obs.depth.at[3, 5].set(jnp.nan)), cam, 3, key, N_MAX)
+    with pytest.raises(ValueError, match="no reading"):
+        sample_particles(obs._replace(depth=jnp.full_like(obs.depth, jnp.nan)), cam, 3, key, N_MAX)
     with pytest.raises(ValueError, match="shape"):
         sample_particles(obs._replace(depth=obs.depth[:32]), cam, 3, key, N_MAX)
     with pytest.raises(ValueError, match="capacity"):
@@ -245,9 +248,11 @@ def test_bad_input_raises_naming_the_problem(env, states):
 def test_bad_input_traced_returns_the_flag(env, states):
     obs, cam, key = states[0].obs, env.camera, jax.random.PRNGKey(0)
     run = jax.jit(lambda o, w: sample_particles(o, cam, w, key, N_MAX))
-    nan_obs = obs._replace(depth=obs.depth.at[3, 5].set(jnp.nan))
+    no_reading = perception.NO_DEPTH | perception.EMPTY_FOREGROUND
     cases = [(obs, 5, 0), (obs, 0, perception.BAD_OMEGA), (obs, N_MAX + 1, perception.BAD_OMEGA),
-             (nan_obs, 5, perception.NAN_DEPTH),
+             (obs._replace(depth=obs.depth.at[3, 5].set(jnp.nan)), 5, 0),  # a hole, as a 0 is
+             (obs._replace(depth=jnp.full_like(obs.depth, jnp.nan)), 5, no_reading),
+             (obs._replace(depth=jnp.zeros_like(obs.depth)), 5, no_reading),
              (obs._replace(depth=jnp.full_like(obs.depth, cam.centre[2])), 5, perception.EMPTY_FOREGROUND)]
     for o, w, flag in cases:
         out = run(o, w)
@@ -259,6 +264,48 @@ def test_bad_input_traced_returns_the_flag(env, states):
     assert int(few.error) == perception.TOO_FEW_POINTS
     errors = jax.vmap(lambda w: sample_particles(obs, cam, w, key, N_MAX).error)(jnp.array([0, 3, N_MAX + 1]))
     assert errors.tolist() == [perception.BAD_OMEGA, 0, perception.BAD_OMEGA]
+
+
+def _patch(depth, r, c, value, size=20):
+    return jnp.asarray(depth).at[r:r + size, c:c + size].set(value)
+
+
+@pytest.mark.parametrize("real_depth", [False, True])
+def test_no_reading_is_never_a_point(env, states, real_depth):
+    """Depth 0 (a camera's "no reading"), NaN, ±inf and NO_READING are one thing (``sim.sensor.is_reading``): a 20 x
+    20 patch of any of them on the table gives the particles of the frame without it (exactly, with exact depth); on
+    the pile, no particle lies in the patch or off the table (0 once put every patch pixel at the camera: a pile
+    widened to the camera's centre), and every kind of hole gives the same particles."""
+    obs, cam, key = states[0].obs, env.camera, jax.random.PRNGKey(3)
+    sample = functools.partial(sample_particles, camera=cam, omega=4, key=key, capacity=N_MAX, real_depth=real_depth)
+    _, valid = point_cloud(obs, cam)
+    valid = np.asarray(valid).reshape(cam.height, cam.width)
+    free = next((r, c) for r in range(8, cam.height - 28) for c in range(8, cam.width - 28)
+                if not valid[r:r + 20, c:c + 20].any())
+    rows, cols = np.nonzero(valid)
+    on_pile = (rows.min() - 12, cols.min() - 12)  # the pile's corner
+    whole = sample(obs)
+    for (r, c), pile in ((free, False), (on_pile, True)):
+        outs = [sample(obs._replace(depth=_patch(obs.depth, r, c, v)))
+                for v in (0.0, jnp.nan, jnp.inf, -jnp.inf, NO_READING, -0.5)]
+        for out in outs[1:]:
+            np.testing.assert_array_equal(np.asarray(out.positions), np.asarray(outs[0].positions))
+        out = outs[0]
+        assert bool(out.ok) and int(out.mask.sum()) == 4 and (int(out.n_points) < int(whole.n_points)) == pile
+        positions = np.asarray(out.positions)[np.asarray(out.mask)]
+        assert np.all(positions[:, 2] < 0.1), positions  # nothing at the camera (1 m up)
+        uv, _ = cam.world_to_pixel(positions)
+        inside = np.all((uv >= [c + 1, r + 1]) & (uv <= [c + 19, r + 19]), axis=1)
+        assert not inside.any(), uv[inside]
+        if not pile and not real_depth:
+            np.testing.assert_array_equal(np.asarray(out.positions), np.asarray(whole.positions))
+
+
+def test_is_reading_is_the_one_rule():
+    depth = np.array([0.0, np.nan, np.inf, -np.inf, -0.2, NO_READING, 2 * NO_READING, 0.5, 1.2], np.float32)
+    want = [False] * 7 + [True, True]
+    assert is_reading(depth).tolist() == want and np.asarray(is_reading(jnp.asarray(depth))).tolist() == want
+    np.testing.assert_array_equal(readings(depth), np.where(want, depth, NO_READING).astype(np.float32))
 
 
 def test_perceive_is_the_cloud_the_particles_and_the_kinds_of_one_frame():

@@ -329,11 +329,15 @@ def _holder(out: str) -> str:
 
 def digest(path: str, flag: str) -> str | None:
     """SHA-256 of a file's bytes, or of a folder's files (each path in it with its bytes' hash; a lock and temporary
-    files left out), or None when ``path`` does not exist; InputError naming ``flag`` when it cannot be read."""
+    files left out), or None when ``path`` does not exist; InputError naming ``flag`` when it cannot be read or is
+    neither a file nor a folder (a FIFO, a device: ``files.kind``)."""
+    kind = files.kind(path)
+    if kind == "missing":
+        return None
+    if kind not in ("file", "folder"):  # a FIFO or a device would block or read nothing
+        raise InputError(f"{flag} {path!r} is {kind}, not a file or folder")
     try:
-        if not os.path.exists(path):
-            return None
-        if not os.path.isdir(path):
+        if kind == "file":
             with open(path, "rb") as f:
                 return hashlib.file_digest(f, "sha256").hexdigest()
         found = {}

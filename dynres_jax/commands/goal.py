@@ -22,16 +22,15 @@ from dynres_jax.commands import checks
 from dynres_jax.config import CameraConfig
 from dynres_jax.control.goals import BIN_HALF_WIDTH, disc_goal, text_goal
 from dynres_jax.errors import InputError
-from dynres_jax.io.frames import load_camera, save_goal
+from dynres_jax.io.frames import load_camera, read_image, save_goal
 from dynres_jax.sim.camera import Camera
 
 
 def mask_goal(path: str, camera: Camera) -> np.ndarray:
     """A mask image of any size (white, > 127, is the goal) resized to the camera's [H, W] bool. InputError for an
-    unreadable file, another aspect ratio or no goal pixel after resizing."""
-    image = cv2.imread(path, cv2.IMREAD_GRAYSCALE)
-    if image is None:
-        raise InputError(f"--mask {path!r}: not a readable image")
+    unreadable file or one that is not a regular file (a FIFO, a device, a folder), another aspect ratio or no goal
+    pixel after resizing."""
+    image = read_image(path, "--mask", cv2.IMREAD_GRAYSCALE)  # a regular file, its EXIF orientation ignored
     (h, w), (ch, cw) = image.shape, (camera.height, camera.width)
     if abs(h * cw - w * ch) > max(h, w):  # a pixel of slack
         raise InputError(f"--mask {path!r} is {w} x {h} pixels, not the camera's aspect ratio ({cw} x {ch})")

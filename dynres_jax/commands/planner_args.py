@@ -16,6 +16,7 @@ from dynres_jax.control.decision import episode
 from dynres_jax.control.mpc import MPCConfig, measure_timing
 from dynres_jax.control.planner import REFERENCE_LR_SHARE, STARTS, PlannerConfig, planner_config, reference_lr
 from dynres_jax.errors import InputError
+from dynres_jax.io import files
 
 
 def add_budget_args(parser: argparse.ArgumentParser) -> None:
@@ -36,6 +37,7 @@ def load_timing(parser: argparse.ArgumentParser, args) -> budget.TimingTable | N
         return None
     if args.time_budget is None:
         parser.error("--timing needs --time-budget (the table spends a time budget)")
+    files.check_input(args.timing, "--timing")  # a FIFO would block the read; one line naming what it is
     try:
         return budget.TimingTable.load(args.timing)
     except (OSError, ValueError, TypeError) as e:

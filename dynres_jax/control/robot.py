@@ -11,8 +11,8 @@ through a depth camera's profile) and ``DryRun`` (a pusher that moves nothing). 
             self.camera, self.pipe = camera, rs.pipeline(); self.pipe.start()
         def read(self):
             f = rs.align(rs.stream.color).process(self.pipe.wait_for_frames())
-            depth = np.asarray(f.get_depth_frame().get_data()) / 1000.0   # mm -> m (0: no reading)
-            depth = np.where(depth > 0, depth, sensor.NO_READING).astype(np.float32)
+            depth = (np.asarray(f.get_depth_frame().get_data()) / 1000.0).astype(np.float32)  # mm -> m; 0 or NaN:
+            # no reading, as every path reads a frame (sim.sensor.is_reading)
             unknown = np.full(depth.shape, -1, np.int32)
             return Observation(depth, unknown, unknown, np.asarray(f.get_color_frame().get_data()))
 

@@ -11,6 +11,7 @@ import hashlib
 import json
 import os
 import shutil
+import stat
 import tempfile
 from collections.abc import Callable
 
@@ -19,6 +20,46 @@ from dynres_jax.errors import InputError
 TMP_PREFIX = ".tmp-"
 OWN = "run.files"  # in a claimed folder: the paths its runs wrote, relative to it, one JSON string a line
 _owned: dict[str, set[str]] = {}  # this process's claimed folder (absolute) -> the paths its list holds
+
+
+def kind(path: str) -> str:
+    """What stands at ``path`` (symbolic links followed), never opening it: "file", "folder" or "missing", else a
+    phrase for a sentence: "a FIFO (named pipe)", "a character device", "a block device", "a socket", "a broken
+    symbolic link", "unreadable (REASON)". Reading a FIFO or a device as a file blocks or reads nothing, so input
+    paths are checked with this first (``check_input``)."""
+    try:
+        mode = os.stat(path).st_mode
+    except FileNotFoundError:
+        return "a broken symbolic link" if os.path.islink(path) else "missing"
+    except OSError as e:
+        return f"unreadable ({e.strerror or e})"
+    if stat.S_ISREG(mode):
+        return "file"
+    if stat.S_ISDIR(mode):
+        return "folder"
+    for test, what in ((stat.S_ISFIFO, "a FIFO (named pipe)"), (stat.S_ISCHR, "a character device"),
+                       (stat.S_ISBLK, "a block device"), (stat.S_ISSOCK, "a socket")):
+        if test(mode):
+            return what
+    return "not a regular file"
+
+
+class MissingInput(InputError, FileNotFoundError):
+    """An input path where nothing stands."""
+
+
+def check_input(path: str, what: str, expect: tuple[str, ...] = ("file",)) -> str:
+    """``path``'s kind (``kind``) when it is one of ``expect`` ("file", "folder"); else InputError naming ``what`` (a
+    flag, or a phrase such as "depth file") and what stands there instead, in one line (``MissingInput``, also a
+    FileNotFoundError, when nothing does)."""
+    found = kind(path)
+    if found in expect:
+        return found
+    wanted = " or ".join(f"a {e}" for e in expect)
+    if found == "missing":
+        raise MissingInput(f"{what} {path!r} does not exist")
+    named = {"file": "a file", "folder": "a folder"}.get(found, found)
+    raise InputError(f"{what} {path!r} is {named}, not {wanted}")
 
 
 def tmp_prefix(path: str) -> str:

@@ -12,7 +12,7 @@ import numpy as np
 from dynres_jax.errors import InputError
 from dynres_jax.io import files
 from dynres_jax.sim.camera import Camera, Observation
-from dynres_jax.sim.sensor import NO_READING
+from dynres_jax.sim.sensor import is_reading, readings
 
 MIN_DEPTH, MAX_DEPTH = 0.1, 5.0  # m: a depth camera's median reading over a table top
 TABLE_OFFSET = 0.03  # m: the frame's median point may lie this far from the table plane (z = 0) the camera implies
@@ -20,12 +20,12 @@ TABLE_BAND, TABLE_SHARE = 0.02, 0.25  # that share of the readings lies within t
 
 
 def save_frame(folder: str, obs: Observation, camera: Camera) -> dict[str, str]:
-    """Write depth.png (uint16 mm; a missing reading, ``NO_READING`` or beyond 65.535 m, as 0, the way cameras save
-    it), rgb.png and camera.json into ``folder``; returns their paths."""
+    """Write depth.png (uint16 mm; no reading, ``sim.sensor.is_reading``, or one beyond 65.535 m, as 0, the way
+    cameras save it), rgb.png and camera.json into ``folder``; returns their paths."""
     os.makedirs(folder, exist_ok=True)
     paths = {name: os.path.join(folder, name) for name in ("depth.png", "rgb.png", "camera.json")}
     depth_mm = np.round(np.asarray(obs.depth, np.float64) * 1000)
-    missing = ~np.isfinite(depth_mm) | (depth_mm > 65535) | (np.asarray(obs.depth) >= NO_READING)
+    missing = ~is_reading(np.asarray(obs.depth)) | ~(depth_mm <= 65535)
     depth_mm = np.where(missing, 0, np.clip(depth_mm, 0, 65535)).astype(np.uint16)
     files.write_image(paths["depth.png"], depth_mm)
     files.write_image(paths["rgb.png"], cv2.cvtColor(np.asarray(obs.rgb, np.uint8), cv2.COLOR_RGB2BGR))
@@ -41,20 +41,39 @@ class MissingFrame(FrameError, FileNotFoundError):
     """A frame, camera or goal file that does not exist."""
 
 
-def _read(path: str, what: str, flags: int) -> np.ndarray:
-    if not os.path.isfile(path):
-        raise MissingFrame(f"{what} file {path!r} does not exist")
-    image = cv2.imread(path, flags)
+def check_file(path: str, what: str) -> None:
+    """MissingFrame when nothing is at ``path``, FrameError naming what is there (a folder, a FIFO, a device: reading
+    one would block or read nothing) when it is not a regular file; ``what`` names it ("depth file")."""
+    try:
+        files.check_input(path, what)
+    except files.MissingInput as e:
+        raise MissingFrame(str(e)) from None
+    except InputError as e:
+        raise FrameError(str(e)) from None
+
+
+def read_image(path: str, what: str, flags: int) -> np.ndarray:
+    """``cv2.imread(path, flags)`` of a regular file (``check_file``), its pixels as the camera stored them: an EXIF
+    orientation tag is ignored (OpenCV rotates by it otherwise, turning a goal or a colour frame against its depth
+    frame, which has no such tag). FrameError naming ``what`` ("goal file") when it is not a readable image."""
+    check_file(path, what)
+    image = cv2.imread(path, flags if flags == cv2.IMREAD_UNCHANGED else flags | cv2.IMREAD_IGNORE_ORIENTATION)
     if image is None:
-        raise FrameError(f"{what} file {path!r} is not a readable image")
+        raise FrameError(f"{what} {path!r} is not a readable image")
     return image
 
 
+MAX_CAMERA_BYTES = 1 << 20  # a camera's JSON is a few hundred bytes
+
+
 def load_camera(path: str) -> Camera:
-    """``Camera.from_json`` of a file; FrameError naming the file and what is wrong with it."""
-    if not os.path.isfile(path):
-        raise MissingFrame(f"camera file {path!r} does not exist")
+    """``Camera.from_json`` of a file; FrameError naming the file and what is wrong with it, in one line (not a
+    regular file, too large, not UTF-8, not JSON, or a camera ``from_json`` refuses)."""
+    check_file(path, "camera file")
     try:
+        size = os.path.getsize(path)
+        if size > MAX_CAMERA_BYTES:
+            raise ValueError(f"{size} bytes; a camera's JSON is a few hundred (at most {MAX_CAMERA_BYTES})")
         with open(path, encoding="utf-8") as f:
             return Camera.from_json(f.read())
     except (OSError, UnicodeDecodeError, ValueError) as e:  # json.JSONDecodeError is a ValueError
@@ -63,27 +82,28 @@ def load_camera(path: str) -> Camera:
 
 def load_frame(depth_path: str, rgb_path: str, camera_path: str) -> tuple[Observation, Camera]:
     """Read a recorded frame. Depth must be a single-channel 16-bit PNG in millimetres (0, no reading, becomes
-    ``NO_READING`` metres: beyond the table, so never foreground);
+    ``sim.sensor.NO_READING`` metres, never foreground: ``sim.sensor.is_reading``; EXIF orientation ignored);
     colour an 8-bit image of the same size; the camera's width and height must match. Segmentation is unknown
     (-1). Raises FrameError (MissingFrame, a FileNotFoundError, for a missing file) naming the file and the problem,
     also for depths no table-top camera sees (a median reading outside [MIN_DEPTH, MAX_DEPTH] m: metres saved as
     millimetres, or the reverse)."""
     camera = load_camera(camera_path)
-    depth = _read(depth_path, "depth", cv2.IMREAD_UNCHANGED)
+    depth = read_image(depth_path, "depth file", cv2.IMREAD_UNCHANGED)
     if depth.dtype != np.uint16 or depth.ndim != 2:
         raise FrameError(f"depth file {depth_path!r} must be a single-channel 16-bit PNG in millimetres, got "
                          f"{depth.dtype} with shape {depth.shape}")
-    rgb = cv2.cvtColor(_read(rgb_path, "colour", cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB)
+    rgb = cv2.cvtColor(read_image(rgb_path, "colour file", cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB)
     if depth.shape != (camera.height, camera.width) or rgb.shape[:2] != depth.shape:
         raise FrameError(f"image sizes differ: depth {depth_path!r} {depth.shape}, colour {rgb_path!r} "
                          f"{rgb.shape[:2]}, camera {camera_path!r} {(camera.height, camera.width)}")
-    if not (depth > 0).any():
+    metres = readings(depth.astype(np.float32) / 1000)  # 0: no reading (sim.sensor.is_reading)
+    seen = is_reading(metres)
+    if not seen.any():
         raise FrameError(f"depth file {depth_path!r} has no reading (every pixel 0)")
-    median = float(np.median(depth[depth > 0])) / 1000
+    median = float(np.median(metres[seen]))
     if not MIN_DEPTH <= median <= MAX_DEPTH:
         raise FrameError(f"depth file {depth_path!r}: its median reading is {median:g} m; a table-top camera sees "
                          f"[{MIN_DEPTH}, {MAX_DEPTH}] m (depth must be saved in millimetres)")
-    metres = np.where(depth > 0, depth.astype(np.float32) / 1000, NO_READING).astype(np.float32)
     check_table(metres, camera, f"depth file {depth_path!r} with camera {camera_path!r}")
     unknown = np.full(depth.shape, -1, np.int32)
     return Observation(metres, unknown, unknown, rgb), camera
@@ -94,7 +114,7 @@ def check_table(depth, camera: Camera, what: str) -> None:
     points (through the camera's intrinsics and pose) have a median height within TABLE_OFFSET of z = 0, and
     TABLE_SHARE of them lie within TABLE_BAND of that median (a flat table, not noise). Catches a depth scaled by
     mistake, a camera file of another camera or pose, and frames of no table."""
-    seen = np.asarray(depth) < NO_READING
+    seen = is_reading(np.asarray(depth))
     uv = camera.pixel_centres()[seen]
     z = np.asarray(camera.pixel_to_world(uv, np.asarray(depth)[seen]))[:, 2].astype(np.float64)
     median = float(np.median(z)) if z.size else np.nan
@@ -116,7 +136,7 @@ def save_goal(path: str, mask) -> str:
 
 def load_goal(path: str, camera: Camera) -> np.ndarray:
     """A goal mask [H, W] bool from a PNG (white = goal) of the camera's size."""
-    image = _read(path, "goal", cv2.IMREAD_GRAYSCALE)
+    image = read_image(path, "goal file", cv2.IMREAD_GRAYSCALE)
     if image.shape != (camera.height, camera.width):
         raise FrameError(f"goal file {path!r} is {image.shape}, the camera's images are "
                          f"{(camera.height, camera.width)}")

@@ -56,6 +56,35 @@ def check_image_size(width: int, height: int) -> None:
         raise ValueError(f"image size {width} x {height} pixels is outside [{MIN_IMAGE}, {MAX_IMAGE}] per side")
 
 
+MAX_CENTRE = 100.0  # m: a camera's centre lies this close to the table's origin along each axis (a table-top camera:
+#   about 1 m above it)
+
+
+def _short(value, limit: int = 80) -> str:
+    """``repr(value)`` cut to ``limit`` characters, for a message of one line."""
+    try:
+        text = repr(value)
+    except ValueError:  # an integer of more digits than Python prints
+        text = "a number too large to print"
+    return text if len(text) <= limit else text[:limit - 3] + "..."
+
+
+def _numbers(value, depth: int) -> np.ndarray | None:
+    """A JSON value as float64, or None unless it is a number (not a boolean) or, ``depth`` deep, lists of them
+    (a larger integer than a float holds is None too)."""
+    if depth and isinstance(value, list):
+        rows = [_numbers(v, depth - 1) for v in value]
+        if any(r is None for r in rows) or len({r.shape for r in rows}) > 1:
+            return None
+        return np.array(rows, np.float64).reshape(len(rows), *(rows[0].shape if rows else ()))
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        return None
+    try:
+        return np.asarray(float(value))
+    except OverflowError:
+        return None
+
+
 MIN_FOV_DEG, MAX_FOV_DEG = 1.0, 170.0  # fields of view (each axis) that real cameras have
 
 
@@ -126,19 +155,27 @@ class Camera:
         """A camera from its JSON; ValueError naming a missing field, one of the wrong shape or with a value that is
         not a finite number, an image size outside [MIN_IMAGE, MAX_IMAGE], or geometry no camera has
         (``check_geometry``)."""
-        d = json.loads(text)
-        missing = {"K", "rotation", "centre", "width", "height"} - set(d)
+        try:
+            d = json.loads(text)
+        except RecursionError:
+            raise ValueError("camera JSON is nested too deeply to be a camera") from None
+        fields = ("K", "rotation", "centre", "width", "height")
+        if not isinstance(d, dict):
+            raise ValueError(f"camera JSON must be an object with {', '.join(fields)}, got {type(d).__name__} "
+                             f"{_short(d)}")
+        missing = set(fields) - set(d)
         if missing:
             raise ValueError(f"camera JSON lacks {sorted(missing)}")
         arrays = {}
         for name, shape in (("K", (3, 3)), ("rotation", (3, 3)), ("centre", (3,)), ("width", ()), ("height", ())):
-            try:
-                a = np.asarray(d[name], float)
-            except (TypeError, ValueError):
-                raise ValueError(f"camera JSON: {name} must be numbers, got {d[name]!r}") from None
-            if a.shape != shape or not np.all(np.isfinite(a)):
-                raise ValueError(f"camera JSON: {name} must be finite numbers of shape {shape}, got {d[name]!r}")
+            a = _numbers(d[name], len(shape))
+            if a is None or a.shape != shape or not np.all(np.isfinite(a)):
+                wanted = f"finite numbers of shape {shape}" if shape else "a finite number"
+                raise ValueError(f"camera JSON: {name} must be {wanted}, got {_short(d[name])}")
             arrays[name] = a
+        if not np.all(np.abs(arrays["centre"]) <= MAX_CENTRE):
+            raise ValueError(f"camera JSON: centre {_short(d['centre'])} lies more than {MAX_CENTRE:g} m from the "
+                             "table's origin along an axis (metres expected)")
         if arrays["width"] != int(arrays["width"]) or arrays["height"] != int(arrays["height"]):
             raise ValueError(f"camera JSON: width and height must be whole pixels, got {d['width']}, {d['height']}")
         check_image_size(int(arrays["width"]), int(arrays["height"]))

@@ -33,6 +33,23 @@ from dynres_jax.sim.camera import Camera, Observation, neighbourhoods, rotation_
 NO_READING = 100.0  # m: the depth of a missing reading (beyond the table, so never foreground)
 
 
+def is_reading(depth):
+    """Where a depth image [..] (m) holds a reading: finite, above 0 and below ``NO_READING``. The one rule every path
+    (perception, the robot's loop, the exported decision, recorded frames) uses: 0 (what depth cameras write for a
+    missing pixel), NaN, ±inf, negative depths and ``NO_READING`` are no reading, never a point. NumPy in, NumPy out;
+    JAX (traceable) otherwise."""
+    xp = jnp if isinstance(depth, jax.Array) else np
+    depth = xp.asarray(depth)
+    return xp.isfinite(depth) & (depth > 0) & (depth < NO_READING)
+
+
+def readings(depth):
+    """depth [..] (m) with every pixel that is no reading (``is_reading``) set to ``NO_READING``, float32."""
+    xp = jnp if isinstance(depth, jax.Array) else np
+    depth = xp.asarray(depth, xp.float32)
+    return xp.where(is_reading(depth), depth, xp.float32(NO_READING))
+
+
 @dataclass(frozen=True)
 class DepthSensor:
     """A depth camera's errors (module docstring); every field's unit is in its name or there."""
