@@ -8,12 +8,17 @@
 # (metrics.jsonl's samples_per_s). The judge: STEPS steps (the recipe's 16,000 = 10.2 M push samples), BOX minutes at
 # most. $WORK/results.tar.gz (logs, metrics, checkpoints; no data) is rewritten after every stage; a stage whose
 # output exists is skipped, so a rerun on a warm machine goes on.
+# Closed loop: evaluate --methods 50 judge on M&M Gather, EVAL_EPISODES episodes from seed 7000 (tuning seeds: the
+# headline is measured once, later, on fresh ones).
 # Env: WORK, EPISODES (1536), STEPS (16000), BOX (minutes, 40), SPEED_STEPS (300), WORKERS (host cores a data job),
-# WINDOWS (512, eval_dynamics's). A CPU dry run: EPISODES=10 STEPS=20 SPEED_STEPS=4 WINDOWS=8 GPUS=1
-# DATA_FLAGS="--kinds coffee --pieces 20 20 --two-kinds 0 --image-size 64" WORKERS=2.
+# WINDOWS (512, eval_dynamics's), EVAL_EPISODES (64), TRAIN_FLAGS and EVAL_FLAGS (more flags). A CPU dry run:
+# EPISODES=4 STEPS=3 SPEED_STEPS=2 WINDOWS=4 EVAL_EPISODES=2 GPUS=1 WORKERS=2 TRAIN_FLAGS="--batch 4 --hidden 16"
+# DATA_FLAGS="--kinds coffee --pieces 20 20 --two-kinds 0 --image-size 64" EVAL_FLAGS="--quick --mpc-steps 1".
 set -uo pipefail
 WORK=${WORK:-/tmp/judge}; EPISODES=${EPISODES:-1536}; STEPS=${STEPS:-16000}; BOX=${BOX:-40}
 SPEED_STEPS=${SPEED_STEPS:-300}; WINDOWS=${WINDOWS:-512}; WORKERS=${WORKERS:-$(nproc)}
+EVAL_EPISODES=${EVAL_EPISODES:-64}
+read -ra train_flags <<< "${TRAIN_FLAGS:-}"; read -ra eval_flags <<< "${EVAL_FLAGS:-}"
 gpus=${GPUS:-$(nvidia-smi -L 2>/dev/null | grep -c "^GPU" || echo 1)}
 SHIPPED=dynres_jax/checkpoints/dynamics
 # shellcheck source=scripts/gpu_lib.sh
@@ -25,11 +30,11 @@ gen P 35 64 "$WORKERS" --planned 0.5
 pack
 data=("$WORK/data/R1" "$WORK/data/R2" "$WORK/data/R3" "$WORK/data/P")
 
-for n in 1 2 "$gpus"; do  # throughput: the same recipe on n GPUs
+for n in $(printf "%s\n" 1 2 "$gpus" | sort -nu); do  # throughput: the same recipe on n GPUs
   [ "$n" -le "$gpus" ] && [ ! -f "$WORK/runs/speed$n/metrics.jsonl" ] || continue
   CUDA_VISIBLE_DEVICES=$(seq -s, 0 $((n - 1))) python -m experiments.train_dynamics --recipe judge \
     --data "${data[@]}" --out "$WORK/runs/speed$n" --steps "$SPEED_STEPS" --eval-every "$SPEED_STEPS" --quiet \
-    > "$WORK/logs/speed$n.log" 2>&1
+    "${train_flags[@]}" > "$WORK/logs/speed$n.log" 2>&1
   log "speed on $n GPUs: $(tail -1 "$WORK/runs/speed$n/metrics.jsonl")"
 done
 pack
@@ -37,7 +42,8 @@ pack
 if [ ! -f "$WORK/runs/judge/done" ]; then
   log "train the judge"
   python -m experiments.train_dynamics --recipe judge --data "${data[@]}" --out "$WORK/runs/judge" --steps "$STEPS" \
-    --max-minutes "$BOX" --quiet > "$WORK/logs/train_judge.log" 2>&1 && touch "$WORK/runs/judge/done"
+    --max-minutes "$BOX" --quiet "${train_flags[@]}" > "$WORK/logs/train_judge.log" 2>&1 &&
+    touch "$WORK/runs/judge/done"
   log "judge: $(tail -1 "$WORK/runs/judge/metrics.jsonl")"
 fi
 pack
@@ -49,6 +55,14 @@ for m in "$SHIPPED" "$WORK/runs/judge/ckpt"; do
     --windows "$WINDOWS" > "$WORK/logs/eval_$name.log" 2>&1
   log "eval $name: $(tail -3 "$WORK/logs/eval_$name.log" | head -1)"
 done
+pack
+
+if [ ! -f "$WORK/runs/loop/summary.json" ]; then
+  log "closed loop: M&M Gather, the model against the judge"
+  python -m experiments.evaluate --task gather --kind mnm --methods 50 judge --judge "$WORK/runs/judge/ckpt" \
+    --episodes "$EVAL_EPISODES" --seed 7000 --out "$WORK/runs/loop" "${eval_flags[@]}" > "$WORK/logs/loop.log" 2>&1
+  log "loop: $(grep -m2 -E '^ *(50|judge)' "$WORK/logs/loop.log" | tr '\n' ' ')"
+fi
 pack
 touch "$WORK/done"
 log "done"
