@@ -109,7 +109,7 @@ def decision_step(dynamics: Callable, camera: Camera, spec: DecisionSpec, goal_s
                  | jnp.where(init_ok, 0, BAD_INIT)).astype(jnp.int32)
         error = error | jnp.where((error == 0) & ~jnp.all(jnp.isfinite(result.best)), NOT_FINITE, 0)  # never a NaN push
         best = jnp.where(error == 0, result.best, jnp.nan)
-        return dict(push=best[0], best=best, best_cost=result.best_cost, objective=c_now,
+        return dict(push=best[0], best=best, best_cost=result.best_cost, objective=c_now.astype(jnp.float32),
                     positions=particles.positions, mask=particles.mask, error=error, history=result.history)
 
     return step

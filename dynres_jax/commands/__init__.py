@@ -7,11 +7,26 @@ for each; ``-`` and ``_`` are the same in a command's name.
 
 from __future__ import annotations
 
+import ast
 import importlib
+import importlib.util
 import sys
 
 COMMANDS = ("gather", "redistribute", "sort", "plan", "goal", "robot", "evaluate", "eval_dynamics", "tradeoff",
             "generate_data", "train_dynamics", "label_resolution", "train_regressor", "simulate", "export")
+
+
+def docstring(module: str) -> str:
+    """Module ``module``'s docstring, also under ``python -OO`` (PYTHONOPTIMIZE=2 strips ``__doc__``: then read from
+    its source), "" when neither is there: the help text of a command never fails on a missing docstring."""
+    doc = getattr(sys.modules.get(module), "__doc__", None)
+    if doc is not None:
+        return doc
+    try:
+        with open(importlib.util.find_spec(module).origin, encoding="utf-8") as f:
+            return ast.get_docstring(ast.parse(f.read()), clean=False) or ""
+    except (OSError, SyntaxError, ValueError, AttributeError, ImportError):
+        return ""
 
 
 def main(argv=None) -> None:
@@ -19,7 +34,7 @@ def main(argv=None) -> None:
     summary the command has printed, is not returned: a console script's return value is its exit status)."""
     argv = sys.argv[1:] if argv is None else list(argv)
     if not argv or argv[0] in ("-h", "--help"):
-        print(__doc__.strip())
+        print(docstring(__name__).strip())
         return
     name = argv[0].replace("-", "_")
     if name not in COMMANDS:

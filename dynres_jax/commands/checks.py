@@ -22,7 +22,10 @@ import sys
 import threading
 import traceback
 
+import jax
+
 from dynres_jax import distributed
+from dynres_jax.commands import docstring
 from dynres_jax.config import OMEGA_MAX, OMEGA_MIN
 from dynres_jax.errors import InputError, JobError
 from dynres_jax.io import files
@@ -55,7 +58,10 @@ _out: str | None = None  # the --out of the command running in this process (Par
 
 
 def parser(name: str, doc: str | None) -> Parser:
-    """The parser of command ``name`` (its module docstring as the description)."""
+    """The parser of command ``name`` (its module docstring as the description; read from the calling module's source
+    when ``python -OO`` stripped it, ``commands.docstring``)."""
+    if doc is None:
+        doc = docstring(sys._getframe(1).f_globals.get("__name__", ""))
     return Parser(prog=prog(name), description=doc, formatter_class=argparse.RawDescriptionHelpFormatter)
 
 
@@ -87,6 +93,11 @@ def guarded(name: str):
         def run(argv=None):
             global _out
             _out = None
+            for stream in (sys.stdout, sys.stderr):  # "ω" on an ASCII terminal (PYTHONIOENCODING=ascii): \u03c9
+                if hasattr(stream, "reconfigure"):
+                    stream.reconfigure(errors="backslashreplace")
+            jax.config.update("jax_enable_x64", False)  # float32 whatever JAX_ENABLE_X64 says: resumes, checkpoints
+            # and exported files keep one precision
             in_main = threading.current_thread() is threading.main_thread()  # signal handlers are set only there
             previous = signal.signal(signal.SIGTERM, _terminate) if in_main else None
             try:

@@ -24,7 +24,7 @@ import imageio.v3 as iio
 import jax
 import numpy as np
 
-from dynres_jax.commands import checks
+from dynres_jax.commands import checks, docstring
 from dynres_jax.commands.planner_args import add_budget_args, check_budget, load_timing
 from dynres_jax.config import (
     DEFAULT_PIECES,
@@ -208,7 +208,7 @@ def write_episode(out: str, frames: list) -> None:
 
 def main(task: str, argv=None):
     spec = tasks.TASKS[task]
-    parser = checks.parser(task, spec.description + "\n\n" + __doc__.split("\n\n", 2)[2])
+    parser = checks.parser(task, spec.description + "\n\n" + (docstring(__name__).split("\n\n", 2) + ["", ""])[2])
     add_loop_args(parser, task)
     parser.add_argument("--kind", default="coffee", choices=sorted(KINDS))
     parser.add_argument("--pieces", type=checks.count(1), default=None,

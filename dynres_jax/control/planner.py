@@ -209,13 +209,13 @@ def _refine(dynamics_fn, cost_fn, actions, positions, mask, context, adam_steps,
 
     def objective(seq):  # [T, 4] -> mean over the R re-samplings of the final-state cost
         final = jax.vmap(lambda p, m, ctx: dynamics_fn(p, m, seq, ctx)[-1])(positions, mask, context)
-        return jnp.mean(jax.vmap(cost_fn)(final, mask))
+        return jnp.mean(jax.vmap(cost_fn)(final, mask)).astype(jnp.float32)  # float32 under JAX_ENABLE_X64 too
 
     value_and_grad = jax.vmap(jax.value_and_grad(objective))
     optimiser = optax.adam(c.lr)
 
     def keep_best(best, best_cost, best_index, actions, costs):
-        i = jnp.argmin(costs)
+        i = jnp.argmin(costs).astype(jnp.int32)  # the carry's int32 also under JAX_ENABLE_X64 (argmin's is int64)
         better = costs[i] < best_cost
         return (jnp.where(better, actions[i], best), jnp.where(better, costs[i], best_cost),
                 jnp.where(better, i, best_index))
