@@ -10,9 +10,9 @@
 # output exists is skipped, so a rerun on a warm machine goes on.
 # Closed loop: evaluate --methods 50 judge on M&M Gather, EVAL_EPISODES episodes from seed 7000 (tuning seeds: the
 # headline is measured once, later, on fresh ones).
-# Env: WORK, EPISODES (1536), STEPS (16000), BOX (minutes, 40), SPEED_STEPS (300), WORKERS (host cores a data job),
+# Env: WORK, PLANNED (0: no set P), EPISODES (1536), STEPS (16000), BOX (minutes, 40), SPEED_STEPS (300), WORKERS (host cores a data job),
 # WINDOWS (512, eval_dynamics's), EVAL_EPISODES (64), TRAIN_FLAGS and EVAL_FLAGS (more flags). A CPU dry run:
-# EPISODES=4 STEPS=3 SPEED_STEPS=2 WINDOWS=4 EVAL_EPISODES=2 GPUS=1 WORKERS=2 TRAIN_FLAGS="--batch 4 --hidden 16"
+# PLANNED=0 EPISODES=10 STEPS=3 SPEED_STEPS=2 WINDOWS=4 EVAL_EPISODES=2 GPUS=1 WORKERS=2 TRAIN_FLAGS="--batch 4 --hidden 16 --warmup 0"
 # DATA_FLAGS="--kinds coffee --pieces 20 20 --two-kinds 0 --image-size 64" EVAL_FLAGS="--quick --mpc-steps 1".
 set -uo pipefail
 WORK=${WORK:-/tmp/judge}; EPISODES=${EPISODES:-1536}; STEPS=${STEPS:-16000}; BOX=${BOX:-40}
@@ -26,14 +26,14 @@ source "$(dirname "$0")/gpu_lib.sh"
 
 log "start: $EPISODES episodes a set, $STEPS judge steps on $gpus GPUs, $WORKERS cores"
 for i in 1 2 3; do gen "R$i" "3$i" 128 "$WORKERS"; done
-gen P 35 64 "$WORKERS" --planned 0.5
+data=("$WORK/data/R1" "$WORK/data/R2" "$WORK/data/R3")
+if [ "${PLANNED:-1}" != 0 ]; then gen P 35 64 "$WORKERS" --planned 0.5; data+=("$WORK/data/P"); fi
 pack
-data=("$WORK/data/R1" "$WORK/data/R2" "$WORK/data/R3" "$WORK/data/P")
 
 for n in $(printf "%s\n" 1 2 "$gpus" | sort -nu); do  # throughput: the same recipe on n GPUs
   [ "$n" -le "$gpus" ] && [ ! -f "$WORK/runs/speed$n/metrics.jsonl" ] || continue
   CUDA_VISIBLE_DEVICES=$(seq -s, 0 $((n - 1))) python -m experiments.train_dynamics --recipe judge \
-    --data "${data[@]}" --out "$WORK/runs/speed$n" --steps "$SPEED_STEPS" --eval-every "$SPEED_STEPS" --quiet \
+    --data "${data[@]}" --out "$WORK/runs/speed$n" --steps "$SPEED_STEPS" --eval-every "$SPEED_STEPS" --warmup 0 --quiet \
     "${train_flags[@]}" > "$WORK/logs/speed$n.log" 2>&1
   log "speed on $n GPUs: $(tail -1 "$WORK/runs/speed$n/metrics.jsonl")"
 done
