@@ -208,7 +208,7 @@ E = [  # evaluate
     (["--methods", "50", "adaptive", "--regressor", "/nonexistent"], "--regressor"),
     (["--methods", "adaptive", "--regressor", "{dynamics}"], "--regressor"),
     (["--methods", "adaptive", "--regressor", "{flipped_regressor}"], "--regressor"), (["--kind", "x"], "--kind"),
-    (["--sensor", "x"], "--sensor"), (["--task", "sort"], "--task"), (["--pieces", "0"], "--pieces"),
+    (["--sensor", "x"], "--sensor"), (["--task", "sort", "--methods", "oracle"], "--methods"), (["--pieces", "0"], "--pieces"),
     (["--pieces", "100000"], "--pieces"), (["--samples", "0"], "--samples"), (["--adam-steps", "0"], "--adam-steps"),
     (["--pieces", "3", "--methods", "50"], "foreground points"), (["--pieces", "5", "--methods", "10", "oracle"], "ω = 100"),
     (["--horizon", "0"], "--horizon"), (["--horizon", "11"], "--horizon"), (["--time-budget", "0"], "--time-budget"),

@@ -256,36 +256,13 @@ def claim(out: str, command: str, config: dict, fresh: bool = False, inputs: dic
     if os.path.isdir(out) and not os.path.isfile(record) and set(os.listdir(out)) - {LOCK}:
         raise InputError(f"--out {out!r} is not empty and holds no {RUN} (it was not made by a dynres command); "
                          "choose a new or empty folder")
+    hashes = {flag: [[path, digest(path, flag)] for path in ([paths] if isinstance(paths, str) else paths)]
+              for flag, paths in sorted((inputs or {}).items()) if paths is not None}
+    _earlier(out, command, config, hashes, fresh)  # a refusal creates nothing, not even the lock
     if not distributed.agree(_lock(out) if distributed.is_writer() else True):
         raise InputError(f"--out {out!r} is in use by another run ({_holder(out)}); wait for it to end or choose "
                          "another folder")
-    hashes = {flag: [[path, digest(path, flag)] for path in ([paths] if isinstance(paths, str) else paths)]
-              for flag, paths in sorted((inputs or {}).items()) if paths is not None}
-    earlier, afresh = None, False
-    if os.path.isfile(record):
-        try:
-            with open(record) as f:
-                earlier = json.load(f)
-            earlier_command, earlier_config = earlier["command"], earlier["config"]
-        except (OSError, ValueError, KeyError, TypeError) as e:
-            raise InputError(f"--out {out!r}: its {RUN} is damaged ({type(e).__name__}); choose another folder") \
-                from None
-        if earlier_command != command:
-            raise InputError(f"--out {out!r} holds a {earlier_command} run; choose another folder for {command}")
-        if earlier_config != json.loads(json.dumps(config)):
-            why = f"of other settings ({_differences(earlier_config, config)}); rerun with its settings to resume"
-        else:
-            why = _changed(earlier.get("inputs"), hashes)
-        if why:
-            if not fresh:
-                raise InputError(f"--out {out!r} holds a {command} run {why}, choose another --out, or pass --fresh "
-                                 "to start it afresh")
-            if not os.path.isfile(os.path.join(out, files.OWN)):
-                raise InputError(f"--out {out!r}: its run lists no files of its own (no {files.OWN}: it began before "
-                                 "dynres listed them), so --fresh cannot tell them from yours; delete them yourself "
-                                 "or choose another folder")
-            files.owned(out)  # a damaged list refused before anything is deleted
-            earlier, afresh = None, True
+    earlier, afresh = _earlier(out, command, config, hashes, fresh)  # again, under the lock
     distributed.barrier(f"claim checked {os.path.abspath(out)}")
     if distributed.is_writer():
         try:
@@ -300,6 +277,37 @@ def claim(out: str, command: str, config: dict, fresh: bool = False, inputs: dic
     distributed.barrier(f"claim written {os.path.abspath(out)}")
     files.own(out)
     return earlier is not None
+
+
+def _earlier(out: str, command: str, config: dict, hashes: dict, fresh: bool) -> tuple[dict | None, bool]:
+    """(the earlier run's record to resume, or None; whether --fresh starts it afresh) of ``out``'s run.json;
+    InputError for another command's run, a damaged record, or other settings or changed inputs without ``fresh``."""
+    record = os.path.join(out, RUN)
+    if not os.path.isfile(record):
+        return None, False
+    try:
+        with open(record) as f:
+            earlier = json.load(f)
+        earlier_command, earlier_config = earlier["command"], earlier["config"]
+    except (OSError, ValueError, KeyError, TypeError) as e:
+        raise InputError(f"--out {out!r}: its {RUN} is damaged ({type(e).__name__}); choose another folder") from None
+    if earlier_command != command:
+        raise InputError(f"--out {out!r} holds a {earlier_command} run; choose another folder for {command}")
+    if earlier_config != json.loads(json.dumps(config)):
+        why = f"of other settings ({_differences(earlier_config, config)}); rerun with its settings to resume"
+    else:
+        why = _changed(earlier.get("inputs"), hashes)
+    if not why:
+        return earlier, False
+    if not fresh:
+        raise InputError(f"--out {out!r} holds a {command} run {why}, choose another --out, or pass --fresh to start "
+                         "it afresh")
+    if not os.path.isfile(os.path.join(out, files.OWN)):
+        raise InputError(f"--out {out!r}: its run lists no files of its own (no {files.OWN}: it began before dynres "
+                         "listed them), so --fresh cannot tell them from yours; delete them yourself or choose another "
+                         "folder")
+    files.owned(out)  # a damaged list refused before anything is deleted
+    return None, True
 
 
 LOCK = "run.lock"  # in --out: flock-ed by the process that claimed it, holding its pid and host; never deleted

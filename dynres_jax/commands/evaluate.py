@@ -49,7 +49,6 @@ from dynres_jax.commands.evaluate_methods import (
     SORT_ONLY,
     check_cnn,
     check_methods,
-    default_methods,
     method_chooser,
     method_omega,
     method_omegas,
@@ -284,15 +283,13 @@ def run_methods(args, rank: int, size: int, sim, main_model, cnn_model, judge=No
 def main(argv=None):
     parser = build_parser()
     args = parser.parse_args(argv)
-    default_methods(args, tasks.TASKS[args.task].kinds == 2)
-    progress.start(checks.prog("evaluate"), f"{args.task}, methods {' '.join(args.methods)} on {args.episodes} "
-                   f"episodes of {args.mpc_steps} steps, into {args.out} (finished methods are kept); loading the "
-                   "models and the simulator")
-    rank, size, sim, main_model, cnn_model, judge = check_args(parser, args)
+    rank, size, sim, main_model, cnn_model, judge = check_args(parser, args)  # bad input: one line, nothing else
     sort_only = () if tasks.TASKS[args.task].kinds == 2 else SORT_ONLY  # another task's run.json is as before
     checks.claim(args.out, "evaluate", checks.settings(args, ignore=("methods", *sort_only)), args.fresh,
                  {"--ckpt": args.ckpt, "--regressor": args.regressor, "--cnn-ckpt": args.cnn_ckpt,
                   "--timing": args.timing, "--judge": args.judge})
+    progress.start(checks.prog("evaluate"), f"{args.task}, methods {' '.join(args.methods)} on {args.episodes} "
+                   f"episodes of {args.mpc_steps} steps, into {args.out} (finished methods are kept)")
     results = run_methods(args, rank, size, sim, main_model, cnn_model, judge)
     devices = sorted({r.get("device", "unrecorded") for r in results.values()})  # where the methods ran
     summary = dict(task=args.task, kind=args.kind, pieces=args.pieces, sensor=args.sensor, dynamics=main_model.name,

@@ -100,9 +100,6 @@ def main(argv=None):
     if args.quick:
         args.scenes, args.batch, args.evals, args.repeats, args.pieces = 8, 4, 6, 1, 60  # 60: points for ω = 100
         args.samples, args.adam_steps = 4, 4
-    progress.start(checks.prog("label_resolution"), f"{args.scenes} {args.kind} scenes of {args.pieces} pieces in "
-                   f"shards of {args.batch}, into {args.out} (finished shards are kept); the first shard compiles "
-                   "(minutes on a CPU)")
     resolve_planner_args(parser, args)
     load_timing(parser, args)
     check_pile(parser, (args.kind,), (args.pieces,))
@@ -118,6 +115,9 @@ def main(argv=None):
         parser.error(f"the dynamics checkpoint holds {n_max} particles; labels need {OMEGA_MAX}")
     checks.claim(args.out, "label_resolution", checks.settings(args), args.fresh,
                  {"--ckpt": args.ckpt, "--timing": args.timing})
+    progress.start(checks.prog("label_resolution"), f"{args.scenes} {args.kind} scenes of {args.pieces} pieces in "
+                   f"shards of {args.batch}, into {args.out} (finished shards are kept); the first shard compiles "
+                   "(minutes on a CPU)")
     if distributed.is_writer():
         files.write_json(os.path.join(args.out, "config.json"), dict(vars(args), dynamics_name=name))
     n_shards = -(-args.scenes // args.batch)
