@@ -83,7 +83,7 @@ def test_every_command_offers_the_engine_table(capsys):
     """One table of engines (``sim.engines``): every command's --backend offers each engine by the same name."""
     from dynres_jax.commands import evaluate, gather, generate_data, label_resolution, simulate, sort
 
-    choices = "{" + ",".join(engines.NAMES) + "}"
+    choices = "(choosefrom" + ",".join(f"'{name}'" for name in engines.NAMES) + ")"  # the one-line error's list
     for command in (evaluate, gather, generate_data, label_resolution, simulate, sort):
         with pytest.raises(SystemExit):
             command.main(["--backend", "flex"])

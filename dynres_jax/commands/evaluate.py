@@ -293,7 +293,7 @@ def main(argv=None):
     results = run_methods(args, rank, size, sim, main_model, cnn_model, judge)
     devices = sorted({r.get("device", "unrecorded") for r in results.values()})  # where the methods ran
     summary = dict(task=args.task, kind=args.kind, pieces=args.pieces, sensor=args.sensor, dynamics=main_model.name,
-                   judge=None if judge is None else judge.name,
+                   **({} if judge is None else {"judge": judge.name}),
                    device=", ".join(devices),
                    time_budget=args.time_budget, samples=args.samples, adam_steps=args.adam_steps,
                    deterministic=args.deterministic,
