@@ -24,6 +24,6 @@ def test_an_interrupted_command_ends_with_one_line_and_the_signals_status(tmp_pa
     _, err = run.communicate(timeout=60)
     assert run.returncode == status, err
     assert "Traceback" not in err, err
-    said = [line for line in err.splitlines() if "interrupted" in line]
+    said = [line for line in err.splitlines() if ": interrupted" in line]  # the test's folder says it too
     assert said == [f"python -m experiments.simulate: interrupted; finished work is kept in {out}; rerun the same "
                     "command to resume"], err
