@@ -317,7 +317,10 @@ _locks: dict[str, int] = {}  # folder (real path) -> the open lock file this pro
 def _lock(out: str) -> bool:
     """Hold ``out``'s lock for the rest of this process (an ``flock``: the kernel drops it when the process dies, so a
     stale lock, its pid no longer alive, is taken over); False when another process holds it."""
-    os.makedirs(out, exist_ok=True)
+    try:
+        os.makedirs(out, exist_ok=True)
+    except OSError as e:  # a folder the checks let through but the system refuses (/proc, a read-only mount)
+        raise InputError(f"--out: cannot write to {out!r} ({e.strerror})") from None
     key = os.path.realpath(out)
     if key in _locks:
         return True
