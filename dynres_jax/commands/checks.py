@@ -10,14 +10,12 @@ command, a non-empty folder this package did not make, or one another run holds 
 from __future__ import annotations
 
 import argparse
-import fcntl
 import functools
 import hashlib
 import json
 import math
 import os
 import signal
-import socket
 import sys
 import threading
 import traceback
@@ -26,6 +24,7 @@ import jax
 
 from dynres_jax import distributed
 from dynres_jax.commands import docstring
+from dynres_jax.commands.folder_lock import LOCK, hold, holder
 from dynres_jax.config import OMEGA_MAX, OMEGA_MIN
 from dynres_jax.errors import InputError, JobError
 from dynres_jax.io import files
@@ -259,8 +258,8 @@ def claim(out: str, command: str, config: dict, fresh: bool = False, inputs: dic
     hashes = {flag: [[path, digest(path, flag)] for path in ([paths] if isinstance(paths, str) else paths)]
               for flag, paths in sorted((inputs or {}).items()) if paths is not None}
     _earlier(out, command, config, hashes, fresh)  # a refusal creates nothing, not even the lock
-    if not distributed.agree(_lock(out) if distributed.is_writer() else True):
-        raise InputError(f"--out {out!r} is in use by another run ({_holder(out)}); wait for it to end or choose "
+    if not distributed.agree(hold(out) if distributed.is_writer() else True):
+        raise InputError(f"--out {out!r} is in use by another run ({holder(out)}); wait for it to end or choose "
                          "another folder")
     earlier, afresh = _earlier(out, command, config, hashes, fresh)  # again, under the lock
     distributed.barrier(f"claim checked {os.path.abspath(out)}")
@@ -308,45 +307,6 @@ def _earlier(out: str, command: str, config: dict, hashes: dict, fresh: bool) ->
                          "folder")
     files.owned(out)  # a damaged list refused before anything is deleted
     return None, True
-
-
-LOCK = "run.lock"  # in --out: flock-ed by the process that claimed it, holding its pid and host; never deleted
-_locks: dict[str, int] = {}  # folder (real path) -> the open lock file this process holds
-
-
-def _lock(out: str) -> bool:
-    """Hold ``out``'s lock for the rest of this process (an ``flock``: the kernel drops it when the process dies, so a
-    stale lock, its pid no longer alive, is taken over); False when another process holds it."""
-    try:
-        os.makedirs(out, exist_ok=True)
-    except OSError as e:  # a folder the checks let through but the system refuses (/proc, a read-only mount)
-        raise InputError(f"--out: cannot write to {out!r} ({e.strerror})") from None
-    key = os.path.realpath(out)
-    if key in _locks:
-        return True
-    fd = os.open(os.path.join(out, LOCK), os.O_RDWR | os.O_CREAT, 0o644)
-    try:
-        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-    except BlockingIOError:
-        os.close(fd)
-        return False
-    except OSError as e:
-        os.close(fd)
-        raise InputError(f"--out {out!r}: cannot lock {LOCK} ({e.strerror or e}); choose a folder on a file system "
-                         "with locks") from None
-    os.ftruncate(fd, 0)
-    os.write(fd, f"pid {os.getpid()} on {socket.gethostname()}\n".encode())
-    _locks[key] = fd
-    return True
-
-
-def _holder(out: str) -> str:
-    """Who holds ``out``'s lock, as its file says."""
-    try:
-        with open(os.path.join(out, LOCK)) as f:
-            return f.read().strip() or "pid not yet written"
-    except OSError as e:
-        return f"its {LOCK} unreadable: {e.strerror or e}"
 
 
 def digest(path: str, flag: str) -> str | None:
