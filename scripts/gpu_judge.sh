@@ -10,7 +10,8 @@
 # The judge: STEPS steps (default: what TRAIN_MINUTES of training at the probed speed allow, written to $WORK/steps
 # and kept), stopping a minute before UNTIL (epoch seconds; the call's end) and going on in the next call.
 # Closed loop: evaluate --methods 50 judge on M&M Gather, EVAL_EPISODES episodes from seed 7000 (tuning seeds: the
-# headline is measured once, later, on fresh ones), every GPU (scripts/gpu_job.sh).
+# headline is measured once, later, on fresh ones), 50 samples x 100 Adam steps, one GPU (32 episodes x 2 methods
+# took 85 s on an H100).
 # $WORK/results.tar.gz (logs, metrics, no data or checkpoints) and judge_ckpt.tar.gz (the judge's newest step) are
 # rewritten after every stage, and copied to $OUT where set. A stage whose output exists is skipped.
 # Env: WORK, UNTIL, PLANNED, EPISODES (1536), P_EPISODES (512), STEPS, TRAIN_MINUTES (9), SPEED_STEPS
@@ -26,12 +27,12 @@ read -ra train_flags <<< "${TRAIN_FLAGS:-}"; read -ra eval_flags <<< "${EVAL_FLA
 SHIPPED=dynres_jax/checkpoints/dynamics
 # shellcheck source=scripts/gpu_lib.sh
 source "$(dirname "$0")/gpu_lib.sh"
-# shellcheck source=scripts/gpu_job.sh
-source "$(dirname "$0")/gpu_job.sh"  # gpus, job
+gpus=${GPUS:-$(nvidia-smi -L 2>/dev/null | grep -c "^GPU" || echo 1)}
 on() { CUDA_VISIBLE_DEVICES=$(( $1 % gpus )); export CUDA_VISIBLE_DEVICES; }
 
-pack_all() {  # pack, then the judge's newest checkpoint, both to $OUT where set
-  pack
+pack_all() {  # logs and runs (no data, no checkpoints), the judge's newest checkpoint: to $OUT where set
+  tar -czf "$WORK/results.tmp" --exclude='*/ckpt' -C "$WORK" logs runs 2>/dev/null
+  mv "$WORK/results.tmp" "$WORK/results.tar.gz"
   local step
   step=$(ls "$WORK/runs/judge/ckpt" 2>/dev/null | grep -E '^[0-9]+$' | sort -n | tail -1)
   [ -n "$step" ] && tar -czf "$WORK/judge.tmp" -C "$WORK/runs/judge" ckpt/"$step" && mv "$WORK/judge.tmp" "$WORK/judge_ckpt.tar.gz"
@@ -99,11 +100,10 @@ pack_all
 
 if [ ! -f "$WORK/runs/loop/summary.json" ]; then
   log "closed loop: M&M Gather, the model against the judge"
-  unset CUDA_VISIBLE_DEVICES
-  job "$WORK/logs/loop.log" python -m experiments.evaluate --task gather --kind mnm --methods 50 judge \
-    --judge "$WORK/runs/judge/ckpt" --episodes "$EVAL_EPISODES" --seed 7000 --workers "$workers" \
-    --out "$WORK/runs/loop" "${eval_flags[@]}"
-  log "loop: $(grep -m2 -E '^ *(50|judge)' "$WORK/logs/loop.log.0" | tr '\n' ' ')"
+  (on 0; python -m experiments.evaluate --task gather --kind mnm --methods 50 judge --judge "$WORK/runs/judge/ckpt" \
+    --episodes "$EVAL_EPISODES" --seed 7000 --samples 50 --out "$WORK/runs/loop" "${eval_flags[@]}" \
+    > "$WORK/logs/loop.log" 2>&1)
+  log "loop: $(grep -E '^ *(50|judge)[ -]' "$WORK/logs/loop.log" | tr '\n' ' ')"
 fi
 pack_all
 touch "$WORK/done"

@@ -146,7 +146,10 @@ def test_resume_rewrites_missing_shard_identically(generated, tmp_path):
         assert f.read() == second_bytes  # byte-identical: same arrays, fixed zip timestamps
     for name, value in read(second).items():
         np.testing.assert_array_equal(value, read(shards.shard_path(original, 1))[name], err_msg=name)
-    assert data.generate(QUICK, out, progress=False)["shards_written"] == 0  # complete: nothing to do
+    before = {name: open(os.path.join(out, name), "rb").read() for name in sorted(os.listdir(out))}
+    assert data.generate(QUICK, out, progress=False)["shards_written"] == 0  # complete: nothing to do ...
+    assert {name: open(os.path.join(out, name), "rb").read() for name in sorted(os.listdir(out))} == before
+    # ... and no file changed, summary.json's timings neither: the folder's hash (a training run's input) holds
     with pytest.raises(ValueError, match="another DataConfig"):
         data.generate(data.replace(QUICK, seed=1), out, progress=False)
     with open(os.path.join(out, "config.json")) as f:

@@ -89,6 +89,15 @@ def write_json(path: str, obj) -> None:
     atomic_write(path, lambda f: f.write(json.dumps(obj, indent=1, sort_keys=True).encode()))
 
 
+def read_json(path: str):
+    """The JSON in ``path``, or None when it is missing or unreadable."""
+    try:
+        with open(path) as f:
+            return json.load(f)
+    except (OSError, ValueError):
+        return None
+
+
 def write_text(path: str, text: str) -> None:
     atomic_write(path, lambda f: f.write(text.encode()))
 

@@ -56,7 +56,7 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from dynres_jax import distributed
 from dynres_jax.config import KINDS, PushConfig, SimConfig, check_fields, check_kind_names, replace
-from dynres_jax.io.files import leftovers, write_json, write_text
+from dynres_jax.io.files import leftovers, read_json, write_json, write_text
 from dynres_jax.io.shards import SHARD_GLOB, fill, read_shard, save_npz, shard_path
 from dynres_jax.learn import on_policy
 from dynres_jax.progress import bar as progress_bar
@@ -393,6 +393,7 @@ def generate(config: DataConfig, out_dir: str, devices=None, progress: bool = Tr
                    samples_per_s=written_frames / seconds if todo else 0.0,
                    devices=len(devices), device_kind=devices[0].device_kind, backend=config.backend,
                    shards_by_engine=made, process=part[0], processes=part[1])
-    if distributed.is_writer():
-        write_json(os.path.join(out_dir, "summary.json"), summary)
+    earlier = read_json(os.path.join(out_dir, "summary.json")) or {}
+    if distributed.is_writer() and any(earlier.get(k) != v for k, v in totals.items()):  # a rerun adding nothing
+        write_json(os.path.join(out_dir, "summary.json"), summary)  # changes no file (its hash is another run's input)
     return summary
