@@ -54,7 +54,7 @@ from jax import export as jax_export
 from dynres_jax.config import CameraConfig, SceneConfig
 from dynres_jax.control.decision import DecisionSpec, perceive_and_decide
 from dynres_jax.control.goals import goal_fields
-from dynres_jax.control.planner import PlannerConfig
+from dynres_jax.control.planner import NOT_FINITE, PlannerConfig
 from dynres_jax.io import ckpt, files
 from dynres_jax.models.graph import no_gpu_kernels
 from dynres_jax.models.registry import load_dynamics
@@ -67,7 +67,6 @@ GOAL_EMPTY = 16  # error bit: the goal mask has no pixel
 GOAL_FULL = 32  # error bit: the goal mask covers the whole image
 BAD_STEPS = 64  # error bit: adam_steps outside [0, the planner's]
 BAD_INIT = 128  # error bit: warm, and the warm start init has NaN or infinite values
-NOT_FINITE = 256  # error bit: the plan came out NaN or infinite (any other cause)
 ERRORS = {NO_DEPTH: "the depth image has no reading (every pixel 0, NaN or infinite)",
           EMPTY_FOREGROUND: "no foreground: nothing stands above the table inside the workspace",
           BAD_OMEGA: "omega outside [1, capacity]",

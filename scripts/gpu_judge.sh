@@ -91,7 +91,7 @@ pack_all
 
 for m in "$SHIPPED" "$WORK/runs/judge/ckpt"; do
   name=$([ "$m" = "$SHIPPED" ] && echo shipped || echo judge)
-  [ -f "$WORK/runs/eval/$name/summary.json" ] && continue
+  [ -f "$WORK/runs/eval/$name/eval.json" ] && continue
   (on 0; python -m experiments.eval_dynamics --ckpt "$m" --data "$WORK/data/R1" --out "$WORK/runs/eval/$name" \
     --windows "$WINDOWS" > "$WORK/logs/eval_$name.log" 2>&1)
   log "eval $name: $(tail -3 "$WORK/logs/eval_$name.log" | head -1)"
@@ -103,7 +103,7 @@ if [ ! -f "$WORK/runs/loop/summary.json" ]; then
   (on 0; python -m experiments.evaluate --task gather --kind mnm --methods 50 judge --judge "$WORK/runs/judge/ckpt" \
     --episodes "$EVAL_EPISODES" --seed 7000 --samples 50 --out "$WORK/runs/loop" "${eval_flags[@]}" \
     > "$WORK/logs/loop.log" 2>&1)
-  log "loop: $(grep -E '^ *(50|judge)[ -]' "$WORK/logs/loop.log" | tr '\n' ' ')"
+  log "loop: $(grep -E '^ *(50|judge)[: -]' "$WORK/logs/loop.log" | tr '\n' ' ')"
 fi
 pack_all
 touch "$WORK/done"

@@ -30,12 +30,7 @@ def _run(code_or_args, timeout=300, **env):
                           env={**os.environ, "JAX_PLATFORMS": "cpu", **env})
 
 
-@pytest.mark.parametrize("model", [
-    "sweep",
-    pytest.param("learned", marks=pytest.mark.xfail(strict=True, reason=(
-        "models/dynamics.py Dynamics.encode: jnp.zeros(1) is float64 under X64, so the rollout's scan carry mixes "
-        "float32 and float64 (models/ is its owners' to fix: jnp.zeros(1, start.dtype))"))),
-])
+@pytest.mark.parametrize("model", ["sweep", "learned"])
 def test_the_planner_runs_under_x64(model):
     """The planner's Adam loop keeps float32 costs and an int32 best index under JAX_ENABLE_X64=1 (argmin is int64
     there, a goal's float64 fields made float64 costs)."""

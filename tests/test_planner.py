@@ -324,3 +324,24 @@ def test_particles_no_plan_can_start_from_are_refused_by_name():
     garbage = np.asarray(positions).copy()
     garbage[~mask] = 7.0  # masked slots are not checked (the learned model ignores them, even NaN)
     assert np.isfinite(float(plan(sweep_dynamics, centroid_cost, garbage, mask, None, small).best_cost))
+
+
+def test_under_vmap_bad_particles_give_an_error_and_no_usable_push():
+    """Traced through jit and vmap (where ``plan`` cannot refuse before work), a set with a NaN valid position or no
+    valid particle comes back with its PlanResult.error bit and a NaN push and cost, never a finite push of cost 0;
+    its neighbours in the batch plan exactly as alone, error 0."""
+    from dynres_jax.control.planner import BAD_POSITIONS, NO_PARTICLES
+
+    small = PlannerConfig(samples=4, adam_steps=3, bound=BOUND)
+    positions, mask = pile(jax.random.PRNGKey(2), n=6)
+    batch_p = jnp.stack([positions, positions.at[1, 0].set(jnp.nan), positions])
+    batch_m = jnp.stack([mask, mask, jnp.zeros_like(mask)])
+    keys = jax.random.split(jax.random.PRNGKey(5), 3)
+    out = jax.jit(jax.vmap(lambda p, m, k: plan(sweep_dynamics, centroid_cost, p, m, k, small)))(batch_p, batch_m,
+                                                                                                 keys)
+    assert out.error.tolist() == [0, BAD_POSITIONS, NO_PARTICLES]
+    assert np.all(np.isnan(np.asarray(out.best[1:]))) and np.all(np.isnan(np.asarray(out.best_cost[1:])))
+    alone = plan(sweep_dynamics, centroid_cost, positions, mask, keys[0], small)
+    assert int(alone.error) == 0 and np.isfinite(float(alone.best_cost))
+    np.testing.assert_allclose(out.best[0], alone.best, atol=1e-6)
+    np.testing.assert_allclose(out.best_cost[0], alone.best_cost, rtol=1e-5)

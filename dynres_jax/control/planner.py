@@ -122,17 +122,28 @@ def planner_config(env, **settings) -> PlannerConfig:
                          max_length=push.max_length, **settings)
 
 
+NO_PARTICLES = 512  # PlanResult.error bit: a particle set with no valid particle
+BAD_POSITIONS = 1024  # PlanResult.error bit: a valid particle's position is NaN or infinite
+NOT_FINITE = 256  # PlanResult.error bit: the plan came out NaN or infinite (any other cause)
+PLAN_ERRORS = {NO_PARTICLES: "no valid particle to plan with (the mask is all False)",
+               BAD_POSITIONS: "positions of valid particles are NaN or infinite",
+               NOT_FINITE: "the plan is NaN or infinite"}
+
+
 class PlanResult(NamedTuple):
     """best [T, 4]: the lowest-cost sequence seen (projected); best_cost []: its cost; costs [M] and actions
     [M, T, 4]: every sequence after the final step; history [PlannerConfig.adam_steps]: the best cost seen up to each
     step run, NaN past the steps run (one slot when PlannerConfig.adam_steps is 0). With a vote, all of these are the
-    winning copy's re-sampling's (its cost on that re-sampling alone)."""
+    winning copy's re-sampling's (its cost on that re-sampling alone). error [] int32: 0, or bits of ``PLAN_ERRORS``
+    (the checks ``plan`` makes before work, made again inside the computation so that they hold under jit and vmap);
+    where it is not 0, best and best_cost are NaN: never a push that looks usable."""
 
     best: jax.Array
     best_cost: jax.Array
     costs: jax.Array
     history: jax.Array
     actions: jax.Array
+    error: jax.Array | None = None
 
 
 def _as_pytree_fn(fn):
@@ -250,14 +261,26 @@ def _plan(dynamics_fn, cost_fn, positions, mask, key, init, initial, adam_steps,
 
     dynamics_fn, context = _prepared(dynamics_fn, positions, mask)
     if not c.vote:
-        return _refine(dynamics_fn, cost_fn, actions, positions, mask, context, adam_steps, c)[0]
+        return _checked(_refine(dynamics_fn, cost_fn, actions, positions, mask, context, adam_steps, c)[0],
+                        positions, mask)
     one = lambda x: x[None]  # noqa: E731  one re-sampling as a set of one
     plans, best_index = jax.vmap(lambda p, m, ctx: _refine(dynamics_fn, cost_fn, actions, one(p), one(m),
                                                            jax.tree.map(one, ctx), adam_steps, c))(
         positions, mask, context)
     votes = jnp.zeros(c.samples, jnp.int32).at[best_index].add(1)  # each re-sampling votes for its best sample
     r = jnp.argmin(jnp.where(best_index == jnp.argmax(votes), plans.best_cost, jnp.inf))  # the winner's best copy
-    return jax.tree.map(lambda x: x[r], plans)
+    return _checked(jax.tree.map(lambda x: x[r], plans), positions, mask)
+
+
+def _checked(result: PlanResult, positions, mask) -> PlanResult:
+    """``result`` with its error bits (PlanResult); best and best_cost NaN where any is set."""
+    error = (jnp.where(~jnp.all(jnp.any(mask, axis=-1)), NO_PARTICLES, 0)
+             | jnp.where(jnp.all(jnp.isfinite(positions) | ~mask[..., None]), 0, BAD_POSITIONS))
+    error = error | jnp.where((error == 0) & ~(jnp.all(jnp.isfinite(result.best)) & jnp.isfinite(result.best_cost)),
+                              NOT_FINITE, 0)
+    ok = error == 0
+    return result._replace(best=jnp.where(ok, result.best, jnp.nan), best_cost=jnp.where(ok, result.best_cost, jnp.nan),
+                           error=error.astype(jnp.int32))
 
 
 _plan_jit = jax.jit(_plan, static_argnames="config")
@@ -300,4 +323,5 @@ def plan(dynamics_fn, cost_fn, positions, mask, key, config: PlannerConfig = Pla
                      jnp.asarray(adam_steps, jnp.int32), config=replace(config, seed=0))
 
 
-__all__ = ["PlanResult", "PlannerConfig", "plan", "planner_config", "reference_lr", "sample_pushes"]
+__all__ = ["BAD_POSITIONS", "NOT_FINITE", "NO_PARTICLES", "PLAN_ERRORS", "PlanResult", "PlannerConfig", "plan",
+           "planner_config", "reference_lr", "sample_pushes"]

@@ -230,7 +230,7 @@ class Dynamics(nnx.Module):
         attr, frame = mask.astype(jnp.float32)[:, None], None  # attr [N, 1]: 1 for a particle
         if cfg.push_frame:
             frame, start, length = _push_frame(action)  # frame [3, 3]: rows along, side, up
-            local = (clean - jnp.concatenate([start, jnp.zeros(1)])) @ frame.T / cfg.length_scale  # [N, 3]
+            local = (clean - jnp.concatenate([start, jnp.zeros(1, start.dtype)])) @ frame.T / cfg.length_scale  # [N, 3]
             s, t = local[:, :1], local[:, 1:2]
             ell = jnp.broadcast_to(length / cfg.length_scale, (n, 1))
             node_in = [(guess @ frame.T)[:, :1] / cfg.length_scale, s, t, s - ell, ell]
