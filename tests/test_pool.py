@@ -1,5 +1,11 @@
 """WorldPool: C MuJoCo worlds in worker processes behave as PileEnv's C backend world by world."""
 
+import os
+import subprocess
+import sys
+import textwrap
+import time
+
 import jax
 import numpy as np
 import pytest
@@ -107,3 +113,40 @@ def test_an_engine_on_an_existing_physics_is_one_row(monkeypatch):
     assert data.check_devices(config, [cpu, cpu]) == [cpu, cpu]  # host workers: worlds need not divide the devices
     with pytest.raises(ValueError, match="multiple of the device count"):
         data.check_devices(data.DataConfig(backend="mjx", worlds=3), [cpu, cpu])
+
+
+def _running(pid: int) -> bool:
+    """Whether process ``pid`` exists and is not a zombie waiting to be reaped."""
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().rsplit(")", 1)[1].split()[0] != "Z"
+    except OSError:
+        return False
+
+
+@pytest.mark.skipif(not os.path.isdir("/proc"), reason="reads /proc")
+def test_a_killed_parent_takes_its_busy_worker_with_it(tmp_path):
+    """kill -9 of the process that holds a pool, while a worker is mid-task: the worker ends within seconds, not
+    when its task does (a killed evaluation leaves no simulator workers behind)."""
+    script = tmp_path / "parent.py"
+    script.write_text(textwrap.dedent("""
+        import os, time
+        from dynres_jax.sim.pool import process_pool
+        if __name__ == "__main__":
+            pool = process_pool(1)
+            print(pool.apply(os.getpid), flush=True)
+            pool.apply(time.sleep, (120,))
+    """))
+    parent = subprocess.Popen([sys.executable, str(script)], stdout=subprocess.PIPE, text=True,
+                              cwd=os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+    worker = int(parent.stdout.readline())
+    time.sleep(1.0)  # the worker is inside its two-minute task
+    parent.kill()
+    parent.wait()
+    deadline = time.monotonic() + 15
+    while _running(worker) and time.monotonic() < deadline:
+        time.sleep(0.2)
+    survived = _running(worker)
+    if survived:
+        os.kill(worker, 9)
+    assert not survived

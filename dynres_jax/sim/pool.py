@@ -15,6 +15,8 @@ import functools
 import multiprocessing
 import os
 import signal
+import threading
+import time
 from typing import Protocol
 
 import jax
@@ -62,12 +64,21 @@ def _checked(env: PileEnv, actions) -> np.ndarray:
     return actions
 
 
-def _host_only() -> None:
+def _host_only(parent: int) -> None:
     """Worker initialiser: JAX on the host (never the accelerator the parent holds), one thread per process; Ctrl-C
-    is the parent's to report (it ends the pool), not every worker's."""
+    is the parent's to report (it ends the pool), not every worker's; the worker ends within a second of its parent
+    (process ``parent``), also mid-task when the parent was killed (``_die_with``)."""
+    threading.Thread(target=_die_with, args=(parent,), daemon=True).start()
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     os.environ["XLA_FLAGS"] = "--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1"
     jax.config.update("jax_platforms", "cpu")
+
+
+def _die_with(parent: int) -> None:
+    """A worker's watchdog: end this process once ``parent`` is no longer its parent (killed: re-parented)."""
+    while os.getppid() == parent:
+        time.sleep(1.0)
+    os._exit(1)
 
 
 def process_pool(workers: int | None = None):
@@ -77,7 +88,8 @@ def process_pool(workers: int | None = None):
     saved = {k: os.environ.get(k) for k in ("JAX_PLATFORMS", "XLA_PYTHON_CLIENT_PREALLOCATE")}
     os.environ.update(JAX_PLATFORMS="cpu", XLA_PYTHON_CLIENT_PREALLOCATE="false")
     try:
-        return multiprocessing.get_context("spawn").Pool(workers or os.cpu_count(), initializer=_host_only)
+        return multiprocessing.get_context("spawn").Pool(workers or os.cpu_count(), initializer=_host_only,
+                                                           initargs=(os.getpid(),))
     finally:
         for k, v in saved.items():
             if v is None:
