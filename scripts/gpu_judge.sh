@@ -31,8 +31,7 @@ gpus=${GPUS:-$(nvidia-smi -L 2>/dev/null | grep -c "^GPU" || echo 1)}
 on() { CUDA_VISIBLE_DEVICES=$(( $1 % gpus )); export CUDA_VISIBLE_DEVICES; }
 
 pack_all() {  # logs and runs (no data, no checkpoints), the judge's newest checkpoint: to $OUT where set
-  tar -czf "$WORK/results.tmp" --exclude='*/ckpt' -C "$WORK" logs runs 2>/dev/null
-  mv "$WORK/results.tmp" "$WORK/results.tar.gz"
+  pack --exclude='*/ckpt'
   local step
   step=$(ls "$WORK/runs/judge/ckpt" 2>/dev/null | grep -E '^[0-9]+$' | sort -n | tail -1)
   [ -n "$step" ] && tar -czf "$WORK/judge.tmp" -C "$WORK/runs/judge" ckpt/"$step" && mv "$WORK/judge.tmp" "$WORK/judge_ckpt.tar.gz"

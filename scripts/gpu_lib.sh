@@ -7,8 +7,8 @@ now() { date +%s.%N; }
 since() { python -c "print(round($(now) - $1, 1))"; }  # T0 (from now): seconds since, one decimal
 summary() { python -c "import json; s = json.load(open('$1/summary.json')); print($2)"; }  # DIR EXPR of s, its summary
 
-pack() {  # logs and runs (no data) into $WORK/results.tar.gz, atomically
-  tar -czf "$WORK/results.tmp" -C "$WORK" logs runs 2>/dev/null
+pack() {  # [TAR FLAGS...]: logs and runs (no data) into $WORK/results.tar.gz, atomically
+  tar -czf "$WORK/results.tmp" "$@" -C "$WORK" logs runs 2>/dev/null
   mv "$WORK/results.tmp" "$WORK/results.tar.gz"
 }
 

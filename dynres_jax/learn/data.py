@@ -393,7 +393,8 @@ def generate(config: DataConfig, out_dir: str, devices=None, progress: bool = Tr
                    samples_per_s=written_frames / seconds if todo else 0.0,
                    devices=len(devices), device_kind=devices[0].device_kind, backend=config.backend,
                    shards_by_engine=made, process=part[0], processes=part[1])
-    earlier = read_json(os.path.join(out_dir, "summary.json")) or {}
-    if distributed.is_writer() and any(earlier.get(k) != v for k, v in totals.items()):  # a rerun adding nothing
-        write_json(os.path.join(out_dir, "summary.json"), summary)  # changes no file (its hash is another run's input)
+    if distributed.is_writer():  # a rerun that added nothing changes no file (the folder's hash is a run's input)
+        earlier = read_json(os.path.join(out_dir, "summary.json")) or {}
+        if any(earlier.get(k) != v for k, v in totals.items()):
+            write_json(os.path.join(out_dir, "summary.json"), summary)
     return summary
