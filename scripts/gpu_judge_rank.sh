@@ -12,17 +12,18 @@
 #    sets: the control).
 # 3. tune: evaluate --methods 50 judge for JUDGE and each variant, TUNE episodes of M&M Gather (seed 7000) and of
 #    Redistribute on JTULYZRKW (seed 6000). The rule, fixed before any run: the judge with the most successes over
-#    both tasks, ties to the lower mean final distance; $WORK/chosen.
+#    both tasks, ties to the lower mean final distance; $WORK/chosen. CHOSEN=NAME skips this stage (a variant
+#    chosen beforehand; VARIANTS="NAME" then fine-tunes that one alone).
 # 4. fresh (once, never tuned on): the chosen judge against the model, 256 paired episodes of M&M Gather (seed 91000)
 #    and of Redistribute on 345689 (characters nobody has used, seed 91500), 64 of each other kind (seed 92000).
-# Results: $WORK/results.tar.gz (logs, tables, summaries) and $WORK/judges.tar.gz (the variants' module-only
-# checkpoints), copied to $OUT where set. Env: WORK, UNTIL, JUDGE, EPISODES (64), STEPS (1500), TUNE (64), FRESH
-# (256), KINDS_EPISODES (64), BUILD_FLAGS, FT_FLAGS, EVAL_FLAGS. CPU dry run: GPUS=1 EPISODES=2 STEPS=2 TUNE=1
+# Results: $WORK/results.tar.gz (logs, tables, summaries) and $WORK/judges.tar.gz (the module-only
+# checkpoint of the chosen variant), copied to $OUT where set. Env: WORK, UNTIL, JUDGE, VARIANTS, CHOSEN, EPISODES
+# (64), STEPS (1500), TUNE (64), FRESH (256), KINDS_EPISODES (64; 0: none), FRESH_SECONDS (420), BUILD_FLAGS, FT_FLAGS, EVAL_FLAGS. CPU dry run: GPUS=1 EPISODES=2 STEPS=2 TUNE=1
 # FRESH=1 KINDS_EPISODES=1 BUILD_FLAGS="--capture 0 --samples 4 --adam-steps 2 --pieces 30"
 # FT_FLAGS="--batch 2" EVAL_FLAGS="--quick --mpc-steps 1 --samples 4 --adam-steps 2 --pieces 40 --best-omega 10".
 set -uo pipefail
 WORK=${WORK:-/tmp/jr}; JUDGE=$(realpath "${JUDGE:-.judge/ckpt}"); EPISODES=${EPISODES:-64}; STEPS=${STEPS:-1500}
-TUNE=${TUNE:-64}; FRESH=${FRESH:-256}; KINDS_EPISODES=${KINDS_EPISODES:-64}; UNTIL=${UNTIL:-$(( $(date +%s) + 3600 ))}
+TUNE=${TUNE:-64}; FRESH=${FRESH:-256}; KINDS_EPISODES=${KINDS_EPISODES:-64}; VARIANTS=${VARIANTS:-"gath gslow all gpos"}; UNTIL=${UNTIL:-$(( $(date +%s) + 3600 ))}
 read -ra build_flags <<< "${BUILD_FLAGS:-}"; read -ra ft_flags <<< "${FT_FLAGS:-}"; read -ra eval_flags <<< "${EVAL_FLAGS:-}"
 # shellcheck source=scripts/gpu_lib.sh
 source "$(dirname "$0")/gpu_lib.sh"
@@ -32,8 +33,8 @@ on() { CUDA_VISIBLE_DEVICES=$(( $1 % gpus )); export CUDA_VISIBLE_DEVICES; }
 fits() { [ $(( UNTIL - $(date +%s) )) -ge "$1" ] || { log "$2 waits for the next call"; pack_all; exit 0; }; }
 pack_all() {
   pack --exclude='*/ckpt' --exclude='*/positions*'
-  local have=(); for v in "$WORK"/runs/ft_*/ckpt; do [ -d "$v" ] && have+=("${v#"$WORK/runs/"}"); done
-  [ ${#have[@]} -gt 0 ] && tar -czf "$WORK/judges.tmp" -C "$WORK/runs" "${have[@]}" && mv "$WORK/judges.tmp" "$WORK/judges.tar.gz"
+  local v; v=$(cat "$WORK/chosen" 2>/dev/null)
+  [ -d "$WORK/runs/ft_$v/ckpt" ] && tar -czf "$WORK/judges.tmp" -C "$WORK/runs" "ft_$v/ckpt" && mv "$WORK/judges.tmp" "$WORK/judges.tar.gz"
   [ -n "${OUT:-}" ] && cp "$WORK"/results.tar.gz "$WORK"/judges.tar.gz "$OUT"/ 2>/dev/null
   return 0
 }
@@ -71,10 +72,17 @@ finetune() {  # GPU NAME FLAGS... (train sets first: --train ...)
   log "fine-tune $name: $(tail -2 "$WORK/logs/finetune_$name.log" | tr '\n' ' ')"
 }
 fits 240 fine-tune
-finetune 0 gath --train "${gath[@]}" --lr 1e-4 &
-finetune 1 gslow --train "${gath[@]}" --lr 3e-5 &
-finetune 2 all --train "$WORK"/sets/*/ranking_set.npz --lr 1e-4 &
-finetune 3 gpos --train "${gath[@]}" --lr 1e-4 --rank-weight 0 &
+i=0
+for v in $VARIANTS; do
+  case $v in
+    gath) finetune $(( i % gpus )) gath --train "${gath[@]}" --lr 1e-4 & ;;
+    gslow) finetune $(( i % gpus )) gslow --train "${gath[@]}" --lr 3e-5 & ;;
+    all) finetune $(( i % gpus )) all --train "$WORK"/sets/*/ranking_set.npz --lr 1e-4 & ;;
+    gpos) finetune $(( i % gpus )) gpos --train "${gath[@]}" --lr 1e-4 --rank-weight 0 & ;;
+    *) log "no variant $v"; exit 1 ;;
+  esac
+  i=$(( i + 1 ))
+done
 wait
 pack_all
 
@@ -83,13 +91,15 @@ loop() {  # GPU NAME CKPT SEED EPISODES TASK-FLAGS...: evaluate --methods 50 jud
   [ -f "$WORK/runs/$name/summary.json" ] && return
   on "$g"
   python -m experiments.evaluate --methods 50 judge --judge "$judge" --episodes "$episodes" --seed "$seed" \
-    --samples 50 --out "$WORK/runs/$name" "$@" "${eval_flags[@]}" > "$WORK/logs/$name.log" 2>&1
-  log "$name: $(grep -E '^ *(50|judge)[: -]' "$WORK/logs/$name.log" | tr '\n' ' ')"
+    --samples 50 --workers "$LOOP_WORKERS" --out "$WORK/runs/$name" "$@" "${eval_flags[@]}" > "$WORK/logs/$name.log" 2>&1
+  log "$name: $(grep -E '^ *(50|judge)[: -]' "$WORK/logs/$name.log" | tr '\n' ' ' || tail -3 "$WORK/logs/$name.log")"
 }
-judges=(base gath gslow all gpos)
+judges=(base $VARIANTS)
 path() { [ "$1" = base ] && echo "$JUDGE" || echo "$WORK/runs/ft_$1/ckpt"; }
+[ -n "${CHOSEN:-}" ] && [ ! -f "$WORK/chosen" ] && echo "$CHOSEN" > "$WORK/chosen" && log "chosen beforehand: $CHOSEN"
 if [ ! -f "$WORK/chosen" ]; then
   fits 240 tune
+  LOOP_WORKERS=$(( cores / (2 * $(wc -w <<< "${judges[*]}")) + 1 ))
   i=0
   for j in "${judges[@]}"; do
     loop $(( i % gpus )) "tune_mnm_$j" "$(path "$j")" 7000 "$TUNE" --task gather --kind mnm &
@@ -116,11 +126,12 @@ fi
 pack_all
 
 chosen=$(path "$(cat "$WORK/chosen")")
-fits 330 fresh
+fits "${FRESH_SECONDS:-420}" fresh
+LOOP_WORKERS=$(( cores / 4 + 1 ))
 loop 0 fresh_mnm "$chosen" 91000 "$FRESH" --task gather --kind mnm &
 loop 1 fresh_red "$chosen" 91500 "$FRESH" --task redistribute --letters 345689 &
 i=2
-for k in coffee almond rice granola candy; do loop $(( i % gpus )) "fresh_$k" "$chosen" 92000 "$KINDS_EPISODES" --task gather --kind "$k" & i=$(( i + 1 )); done
+[ "$KINDS_EPISODES" -gt 0 ] && for k in coffee almond rice granola candy; do loop $(( i % gpus )) "fresh_$k" "$chosen" 92000 "$KINDS_EPISODES" --task gather --kind "$k" & i=$(( i + 1 )); done
 wait
 pack_all
 touch "$WORK/done"; log "done"
