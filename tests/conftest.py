@@ -10,10 +10,11 @@ import os
 import shutil
 import tempfile
 
-_CACHE = tempfile.mkdtemp(prefix="dynres-jax-test-cache-")
-atexit.register(shutil.rmtree, _CACHE, ignore_errors=True)
-os.environ.update(JAX_COMPILATION_CACHE_DIR=_CACHE, JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS="0",
-                  JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES="-1")  # inherited by workers and subprocesses
+if "DYNRES_TEST_CACHE" not in os.environ:  # the first process of the run (pytest, or xdist's controller) makes it;
+    _CACHE = tempfile.mkdtemp(prefix="dynres-jax-test-cache-")  # xdist's workers and commands' subprocesses inherit
+    atexit.register(shutil.rmtree, _CACHE, ignore_errors=True)  # the variable and share the one folder
+    os.environ.update(DYNRES_TEST_CACHE=_CACHE, JAX_COMPILATION_CACHE_DIR=_CACHE,
+                      JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS="0", JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES="-1")
 
 import jax  # noqa: E402  (after the cache settings, which JAX reads when it starts)
 import pytest  # noqa: E402
