@@ -30,9 +30,10 @@ import numpy as np
 from dynres_jax.config import DEFAULT_PIECES, PileConfig, SceneConfig, SimConfig
 from dynres_jax.control import tasks
 from dynres_jax.control.choosers import FixedOmega
-from dynres_jax.control.decision import decide_batch
+from dynres_jax.control.decision import decide_batch, fold
 from dynres_jax.control.goals import make_goals
-from dynres_jax.control.mpc import MPCConfig, fold, run, scorer
+from dynres_jax.control.keep import scorer
+from dynres_jax.control.mpc import MPCConfig, run
 from dynres_jax.control.objective import objective
 from dynres_jax.control.planner import planner_config
 from dynres_jax.learn import ranking

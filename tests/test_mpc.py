@@ -23,10 +23,11 @@ from dynres_jax.control.choosers import (
     climb,
     on_ladder,
 )
-from dynres_jax.control.decision import batch, decide_batch, goal_cost
+from dynres_jax.control.decision import batch, decide_batch, fold, goal_cost
 from dynres_jax.control.goals import disc_goal, make_goal
 from dynres_jax.control.judge import JudgeScored
-from dynres_jax.control.mpc import MPCConfig, fold, run, run_episode, scorer
+from dynres_jax.control.keep import scorer
+from dynres_jax.control.mpc import MPCConfig, run, run_episode
 from dynres_jax.control.objective import distribution_distance
 from dynres_jax.control.planner import PlannerConfig, _plan_jit, plan
 from dynres_jax.io.draw import PUSH_COLOUR, goal_frames, overlay

@@ -68,8 +68,9 @@ from dynres_jax.config import DEFAULT_PIECES, KINDS, CameraConfig, PileConfig, S
 from dynres_jax.control import resolution, tasks
 from dynres_jax.control.choosers import ORACLE_OMEGAS, PROBE_OMEGAS
 from dynres_jax.control.goals import make_goals
-from dynres_jax.control.mpc import SensorView, run
+from dynres_jax.control.mpc import run
 from dynres_jax.control.sort import ARRIVED
+from dynres_jax.control.views import SensorView
 from dynres_jax.io import ckpt, files
 from dynres_jax.io.draw import evaluation_plots
 from dynres_jax.models.registry import SHIPPED_CNN_DYNAMICS, SHIPPED_REGRESSOR, shipped_dynamics

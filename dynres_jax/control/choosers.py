@@ -40,7 +40,7 @@ class Orders(NamedTuple):
     """A chooser's orders for one MPC step, arrays with a leading axis [B]. goals: this step's goal of each
     decision (a batched Goal or KindGoals; the step's d and inside share are scored against it); candidates: the
     plans to make (``Candidate``); kinds [B]: the piece kind each decision perceives (None: every piece); record:
-    extra record fields, arrays [B]; keep: how the loop keeps one proposal per episode (``mpc.KEEPS``): "distance"
+    extra record fields, arrays [B]; keep: how the loop keeps one proposal per episode (``keep.KEEPS``): "distance"
     (each pushed on a copy of the worlds, the lowest d kept; one proposal is simply pushed) or "rate" (the plan whose
     model predicts the largest fall of c per second of planning, pushed; nothing simulated), or a callable with
     their signature (``judge.JudgeKeep``: the proposal a second model rates best)."""

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import functools
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -20,6 +21,7 @@ from dynres_jax.control.goals import Goal, KindGoals
 from dynres_jax.control.objective import SAMPLES_PER_PARTICLE, kind_costs, kind_objective, objective
 from dynres_jax.control.planner import PlannerConfig, plan, sample_pushes
 from dynres_jax.perception import Perceived, check_particles, cloud_particles, perceive
+from dynres_jax.sim.env import State
 
 
 @dataclass(frozen=True)
@@ -160,3 +162,23 @@ def batch(tree):
 def episode(tree, b: int = 0):
     """Episode b of a batched pytree: leaf [b] of every leaf (the inverse of ``batch`` for b = 0)."""
     return jax.tree.map(lambda x: x[b], tree)
+
+
+def fold(keys, n: int):
+    """keys [B] each with ``n`` folded in (``jax.random.fold_in``): a step's keys, a sensor's, a plan draw's."""
+    return jax.vmap(jax.random.fold_in, in_axes=(0, None))(keys, n)
+
+
+class Situation(NamedTuple):
+    """What every candidate decision of one MPC step starts from: states [B] (the true worlds), seen (the frames [B]
+    the planner sees, through ``camera``), goals [B] and kinds [B] (or None) of the chooser's orders, keys [B], the
+    warm start init [B, T, 4] and whether to use it (warm)."""
+
+    states: State
+    seen: object
+    camera: object
+    goals: object
+    kinds: np.ndarray | None
+    keys: jax.Array
+    init: jax.Array
+    warm: bool

@@ -19,7 +19,7 @@ import numpy as np
 from dynres_jax.control.choosers import Chooser, Orders, one_plan
 from dynres_jax.control.decision import goal_cost
 from dynres_jax.control.goals import KindGoals
-from dynres_jax.control.mpc import keep_lowest_distance
+from dynres_jax.control.keep import keep_lowest_distance
 
 
 @functools.partial(jax.jit, static_argnames=("dynamics", "camera"))
@@ -37,7 +37,7 @@ def judged_costs(particles, goals, proposals, *, dynamics, camera):
 
 
 class JudgeKeep(NamedTuple):
-    """Keep rule of ``JudgeScored`` (``Orders.keep``; called as ``mpc.KEEPS``' rules are): per episode the proposal of
+    """Keep rule of ``JudgeScored`` (``Orders.keep``; called as ``keep.KEEPS``' rules are): per episode the proposal of
     the one plan whose judged c is lowest (the first on ties) is pushed in the worlds; its judged c is the record's
     predicted_objective. dynamics: radius -> the judge's model."""
 

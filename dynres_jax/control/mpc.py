@@ -1,16 +1,16 @@
 """Closed loop (model-predictive control): observe -> h(y, ω) -> plan -> push, repeated, for many episodes at once.
 
 Worlds (``sim.pool.Worlds``) push a batch of simulated piles. A chooser (``choosers``; ``sort.SortPolicy``) orders at
-each MPC step the goals, candidate plans and piece kinds, and how to keep one. The decision (``decision.decide_batch``)
-perceives every frame once and plans, compiled once per resolution bucket. ``run`` joins them: each decision gets the
-Adam steps its ω affords (``MPCConfig.allot``: a count, or a time budget through a ``budget.TimingTable``), the kept
-plan's first push is executed, the step scored on the true state and the next warm-started with the plan shifted. A
-real camera's view is a ``SensorView``; GIF frames and other per-step work are ``on_step`` callbacks.
+each MPC step the goals, candidate plans and piece kinds, and how to keep one (``keep``). The decision
+(``decision.decide_batch``) perceives every frame once and plans, compiled once per resolution bucket. ``run`` joins
+them: each decision gets the Adam steps its ω affords (``MPCConfig.allot``: a count, or a time budget through a
+``budget.TimingTable``), the kept plan's first push is executed, the step scored on the true state and the next
+warm-started with the plan shifted. What the planner sees is a view (``views``: the simulator's frames, or a real
+camera's); GIF frames and other per-step work are ``on_step`` callbacks.
 """
 
 from __future__ import annotations
 
-import functools
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -23,18 +23,17 @@ import numpy as np
 from dynres_jax.config import check_fields
 from dynres_jax.control import budget
 from dynres_jax.control.choosers import Candidate, Chooser
-from dynres_jax.control.decision import DecisionSpec, batch, decide_batch, episode, per_episode
-from dynres_jax.control.goals import Goal, KindGoals
-from dynres_jax.control.objective import distribution_distance, inside_share
+from dynres_jax.control.decision import DecisionSpec, Situation, batch, decide_batch, episode, fold
+from dynres_jax.control.goals import Goal
+from dynres_jax.control.keep import KEEPS, keep_lowest_distance, planning_price, scorer
 from dynres_jax.control.planner import PlannerConfig
+from dynres_jax.control.views import ExactView
 from dynres_jax.errors import InputError
-from dynres_jax.perception import calibrate, visible_points
+from dynres_jax.perception import visible_points
 from dynres_jax.sim.env import PileEnv, State
 from dynres_jax.sim.pool import EnvWorlds, Worlds
-from dynres_jax.sim.sensor import DepthSensor
 
 PLAN_DRAWS = 1 << 20  # plan draw d > 0 folds PLAN_DRAWS + d into a step's keys (away from the sensor's fold 1)
-SIMULATED_WORLDS = 512  # worlds per push call when the simulator scores proposals (``keep_lowest_distance``)
 
 
 @dataclass(frozen=True)
@@ -105,52 +104,6 @@ def measure_timing(obs, goal: Goal, dynamics, cfg: MPCConfig, camera, repeats: i
                           max_steps=cfg.planner.adam_steps, repeats=repeats, log=log)
 
 
-class ExactView:
-    """The planner sees the simulator's frames through the true camera."""
-
-    def __init__(self, camera):
-        self.camera = camera
-
-    def __call__(self, t: int, states: State, keys) -> tuple:
-        return states.obs, self.camera
-
-
-class SensorView:
-    """The planner sees a real depth camera's frames (``sim.sensor.DepthSensor``: noise drawn from each step's keys)
-    through the camera it believes in, refined from episode 0's first frame as a robot checks its calibration
-    (``perception.calibrate``)."""
-
-    def __init__(self, sensor: DepthSensor, env: PileEnv, log=print):
-        self.sense = jax.jit(jax.vmap(sensor.observe))
-        self.camera, self.scene, self.log = sensor.believed_camera(env.camera), env.config.scene, log
-
-    def __call__(self, t: int, states: State, keys) -> tuple:
-        seen = self.sense(states.obs, fold(keys, 1))
-        if t == 0:
-            refined = calibrate(episode(seen), self.camera, bin_half_width=self.scene.bin_half_width,
-                                wall_height=self.scene.wall_height)
-            turn = np.degrees(np.arccos(np.clip((np.trace(refined.rotation @ self.camera.rotation.T) - 1) / 2, -1, 1)))
-            self.log(f"camera pose refined from the first frame: moved "
-                     f"{1000 * np.linalg.norm(refined.centre - self.camera.centre):.1f} mm, turned {turn:.2f}°")
-            self.camera = refined
-        return seen, self.camera
-
-
-class Situation(NamedTuple):
-    """What every candidate decision of one MPC step starts from: states [B] (the true worlds), seen (the frames [B]
-    the planner sees, through ``camera``), goals [B] and kinds [B] (or None) of the chooser's orders, keys [B], the
-    warm start init [B, T, 4] and whether to use it (warm)."""
-
-    states: State
-    seen: object
-    camera: object
-    goals: object
-    kinds: np.ndarray | None
-    keys: jax.Array
-    init: jax.Array
-    warm: bool
-
-
 def propose(now: Situation, candidate: Candidate, *, cfg: MPCConfig, timing: budget.TimingTable | None,
             dynamics) -> dict:
     """One candidate's decision (``choosers.Candidate``: its ω [B], plan draw and share of the budget) from ``now``,
@@ -177,53 +130,6 @@ def propose(now: Situation, candidate: Candidate, *, cfg: MPCConfig, timing: bud
     return dict(omega=np.asarray(candidate.omega), bucket=buckets, adam_steps=steps, objective=c_now,
                 predicted_objective=predicted, particles=particles, proposals=proposals,
                 wall=np.full(len(buckets), time.perf_counter() - t0))
-
-
-def keep_lowest_distance(worlds: Worlds, now: Situation, plans: list[dict], score: Callable,
-                         timing: budget.TimingTable | None = None) -> dict:
-    """Keep rule "distance": every proposal of every plan (``propose``) pushed on a copy of the worlds (a plan's
-    proposals SIMULATED_WORLDS // B to a call, so every core works; one proposal: the worlds themselves), per episode
-    the one whose push left the lowest d kept, the first on ties. Returns the kept plan's arrays [B] with best (its
-    action sequence), action (its first push), states (after) and ``score(states, goals)``'s."""
-    b, kept = len(now.keys), None
-    per_call = max(1, SIMULATED_WORLDS // b)
-    for plan in plans:
-        samples, common = plan["proposals"], {k: v for k, v in plan.items() if k != "proposals"}
-        for first in range(0, samples.shape[1], per_call):
-            k = min(per_call, samples.shape[1] - first)
-            tile = (lambda x: x) if k == 1 else lambda x, k=k: jnp.concatenate([jnp.asarray(x)] * k)  # [k * B, ...]
-            actions = samples[:, first:first + k, 0].transpose(1, 0, 2).reshape(k * b, 4)
-            after = worlds.push(jax.tree.map(tile, now.states), actions)
-            scores = score(after, jax.tree.map(tile, now.goals))
-            for j in range(k):
-                rows = (lambda x: x) if k == 1 else lambda x, j=j: x[j * b:(j + 1) * b]
-                outcome = dict(common, best=jnp.asarray(samples[:, first + j]), action=samples[:, first + j, 0],
-                               states=jax.tree.map(rows, after), **{key: rows(v) for key, v in scores.items()})
-                kept = outcome if kept is None else _lowest_distance([kept, outcome])
-    return kept
-
-
-def keep_best_rate(worlds: Worlds, now: Situation, plans: list[dict], score: Callable,
-                   timing: budget.TimingTable | None = None) -> dict:
-    """Keep rule "rate": per episode the plan whose model predicts the largest fall of c per second of planning (the
-    table's price of its bucket and steps; without a table, its wall time); only its push is executed, nothing is
-    simulated. Returns ``keep_lowest_distance``'s arrays [B]."""
-    return keep_lowest_distance(worlds, now, [best_rate(plans, timing)], score)
-
-
-def best_rate(plans: list[dict], timing: budget.TimingTable | None) -> dict:
-    """Per episode the plan (``propose``'s, proposing the model's best) whose model predicts the largest fall of c per
-    second of planning; one plan is its own best."""
-    if any(p["proposals"].shape[1] != 1 for p in plans):
-        raise ValueError("keep rule 'rate' judges the model's plans: every candidate must propose its best plan")
-    if len(plans) == 1:
-        return plans[0]
-    rates = np.stack([(np.asarray(p["objective"]) - np.asarray(p["predicted_objective"])) / _seconds(p, timing)
-                      for p in plans])
-    return _pick(plans, np.argmax(rates, axis=0))
-
-
-KEEPS = {"distance": keep_lowest_distance, "rate": keep_best_rate}  # Orders.keep -> how the loop keeps a candidate
 
 
 def act(worlds: Worlds, now: Situation, omega, *, cfg: MPCConfig, timing: budget.TimingTable | None, dynamics,
@@ -317,39 +223,9 @@ def _drawn(now: Situation, draw: int) -> Situation:
     return now._replace(keys=fold(now.keys, PLAN_DRAWS + draw))
 
 
-def fold(keys, n: int):
-    """keys [B] each with ``n`` folded in (``jax.random.fold_in``): a step's keys, a sensor's, a plan draw's."""
-    return jax.vmap(jax.random.fold_in, in_axes=(0, None))(keys, n)
-
-
 def shift(best):
     """The plan of the next step: the remaining pushes, the last one repeated (warm start)."""
     return jnp.concatenate([best[..., 1:, :], best[..., -1:, :]], axis=-2)
-
-
-def _lowest_distance(outcomes: list[dict]) -> dict:
-    """Per episode b, leaf [b] of the outcome whose push left the lowest d (``keep_lowest_distance``'s dicts,
-    arrays [B])."""
-    return _pick(outcomes, np.argmin(np.stack([np.asarray(o["distance"]) for o in outcomes]), axis=0))
-
-
-def _pick(outcomes: list[dict], pick) -> dict:
-    """Per episode b, leaf [b] of outcome pick[b] (dicts of arrays [B]; particles of candidates in smaller buckets
-    padded with masked slots to the largest)."""
-    slots = max(o["particles"].mask.shape[1] for o in outcomes)
-    pad = lambda x: jnp.pad(x, [(0, 0), (0, slots - x.shape[1])] + [(0, 0)] * (x.ndim - 2))  # noqa: E731
-    outcomes = [dict(o, particles=o["particles"]._replace(positions=pad(o["particles"].positions),
-                                                          mask=pad(o["particles"].mask))) for o in outcomes]
-    pick, rows = jnp.asarray(pick), jnp.arange(len(pick))
-    return jax.tree.map(lambda *x: jnp.stack([jnp.asarray(v) for v in x])[pick, rows], *outcomes)
-
-
-def _seconds(planned: dict, timing: budget.TimingTable | None) -> np.ndarray:
-    """A decision's planning seconds [B]: the table's price of its bucket and steps, else its wall time."""
-    if timing is None:
-        return np.asarray(planned["wall"])
-    return np.array([timing.seconds(int(b), int(s)) for b, s in zip(planned["bucket"], planned["adam_steps"],
-                                                                    strict=True)])
 
 
 def _planning_seconds(kept: dict, timing: budget.TimingTable | None) -> np.ndarray:
@@ -360,31 +236,7 @@ def _planning_seconds(kept: dict, timing: budget.TimingTable | None) -> np.ndarr
         return np.asarray(kept["wall"])
     if timing is None:
         return np.full(len(kept["wall"]), np.nan)
-    return _seconds(kept, timing)
-
-
-@functools.cache
-def scorer(camera, piece_kinds: tuple[int, ...]):
-    """A jitted ``(states [B], goals [B]) -> {distance, inside}`` on the true state (``_measure``)."""
-    one = per_episode(functools.partial(_measure, camera, jnp.asarray(piece_kinds)))
-    scores = jax.jit(lambda obs, pos, goals: one(obs, pos, goals))
-    return lambda states, goals: dict(zip(("distance", "inside"), scores(states.obs, states.pos, goals), strict=True))
-
-
-def _measure(camera, piece_kinds, obs, pos, goal):
-    """A step's scores on the true state: d of the foreground and the share of pieces inside the goal; for KindGoals,
-    the mean over kinds of d of that kind's foreground to its goal, and the share of pieces inside their own kind's
-    goal."""
-    if not isinstance(goal, KindGoals):
-        return distribution_distance(obs, goal, camera), inside_share(pos, jnp.ones(len(piece_kinds), bool), goal,
-                                                                     camera)
-
-    def one(g, k):
-        mine = piece_kinds == k
-        return distribution_distance(obs, g, camera, kind=k), inside_share(pos, mine, g, camera) * jnp.sum(mine)
-
-    distance, inside = jax.vmap(one)(goal.goals, jnp.arange(goal.hold.shape[0]))
-    return jnp.mean(distance), jnp.sum(inside) / len(piece_kinds)
+    return planning_price(kept, timing)
 
 
 def _log_step(log, r: dict, steps: int) -> None:

@@ -42,9 +42,10 @@ import numpy as np
 
 from dynres_jax.control.budget import TimingTable
 from dynres_jax.control.choosers import Chooser, FixedOmega
-from dynres_jax.control.decision import batch
+from dynres_jax.control.decision import Situation, batch
 from dynres_jax.control.goals import Goal, make_goal
-from dynres_jax.control.mpc import MPCConfig, Situation, announce, best_rate, propose, shift
+from dynres_jax.control.keep import best_rate
+from dynres_jax.control.mpc import MPCConfig, announce, propose, shift
 from dynres_jax.control.objective import distribution_distance
 from dynres_jax.errors import InputError
 from dynres_jax.io.frames import load_camera, load_frame

@@ -49,7 +49,8 @@ from dynres_jax.control.budget import bucket_for
 from dynres_jax.control.choosers import Candidate, Chooser, Orders
 from dynres_jax.control.decision import batch, episode
 from dynres_jax.control.goals import disc_goal, make_goal, sort_goals, stack_goals
-from dynres_jax.control.mpc import MPCConfig, scorer
+from dynres_jax.control.keep import scorer
+from dynres_jax.control.mpc import MPCConfig
 from dynres_jax.control.tasks import SORT_INSIDE, sort_scores
 from dynres_jax.perception import check_particles, cloud_particles, foreground, pack
 from dynres_jax.sim.env import PileEnv
@@ -268,7 +269,7 @@ class SortEpisodes(Chooser):
 def sort_step_scores(states, policies: Sequence[SortPolicy], goals) -> dict:
     """Sort's scores of states [B] on the true state, episode b scored by policies[b]'s goals (goals: theirs as
     KindGoals [B], both pursued): kind_inside [B, 2] and mixing [B] (``tasks.sort_scores``), and goal_distance [B],
-    the mean over both kinds of d of a kind's foreground to its own goal (``mpc.scorer``; the loop's own d scores a
+    the mean over both kinds of d of a kind's foreground to its own goal (``keep.scorer``; the loop's own d scores a
     step against its waypoint discs)."""
     scores = [sort_scores(states.pos[b], p.piece_kinds, p.goals, p.camera) for b, p in enumerate(policies)]
     kinds = tuple(np.asarray(policies[0].piece_kinds).tolist())

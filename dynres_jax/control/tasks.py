@@ -26,8 +26,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from dynres_jax.config import SceneConfig
+from dynres_jax.control.decision import fold
 from dynres_jax.control.goals import disc_goal, sort_goals, text_goal
-from dynres_jax.control.mpc import fold
 from dynres_jax.control.objective import inside_share
 from dynres_jax.errors import InputError
 from dynres_jax.sim.env import PileEnv

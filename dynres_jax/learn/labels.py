@@ -16,6 +16,7 @@ import numpy as np
 from dynres_jax.config import CameraConfig, PileConfig, PushConfig, SceneConfig, SimConfig, check_fields
 from dynres_jax.control import budget, mpc, resolution, tasks
 from dynres_jax.control.choosers import FixedOmega
+from dynres_jax.control.decision import Situation
 from dynres_jax.control.goals import make_goals
 from dynres_jax.control.objective import distribution_distance
 from dynres_jax.sim import engines
@@ -118,7 +119,7 @@ def label_shard(cfg: LabelConfig, shard: int, dynamics, planner: Callable[[PileE
     # Common random numbers: every ω of a scene is planned from the same R keys, so the same perception start and
     # the same starting pushes (decision.py); c*(ω) - c*(ω') is then the resolution's effect, not the draws'.
     keys = jax.random.split(jax.random.fold_in(jax.random.PRNGKey(plan_seed), shard * 100), b * r)
-    now = mpc.Situation(starts, starts.obs, camera, goals_r, None, keys, init, False)
+    now = Situation(starts, starts.obs, camera, goals_r, None, keys, init, False)
 
     def c_star(omega):
         """c*(ω) [B] of every scene (the mean of its repeats), the variance of that mean [B] (0 with one repeat) and

@@ -25,9 +25,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from dynres_jax.control import budget, tasks
-from dynres_jax.control.decision import decide_batch
+from dynres_jax.control.decision import decide_batch, fold
 from dynres_jax.control.goals import disc_goal, make_goals
-from dynres_jax.control.mpc import MPCConfig, fold, shift
+from dynres_jax.control.mpc import MPCConfig, shift
 from dynres_jax.control.planner import planner_config
 from dynres_jax.models.registry import SHIPPED_DYNAMICS, load_dynamics
 from dynres_jax.perception import visible_count

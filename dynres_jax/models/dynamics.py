@@ -26,7 +26,7 @@ once per plan, "Pair table" below). ``residual``: the network predicts a correct
 predictor's last layer starts at zero, so an untrained model is exactly the sweep heuristic. ``bin_position``: the
 node input also holds where the particle is in the bin, before and after the sweep's guess (x, y of each over
 ``bin_half_width``: 4 more inputs), so the model can learn where the walls stop a pile; the push frame alone does not
-say where the walls are. Options studied and dropped: ``docs/results.md``.
+say where the walls are. Options studied and dropped: ``docs/history.md``.
 
 Processor ``"gns"`` (``DynamicsConfig.processor``; default ``"propnet"``, steps 3-4 above): the encode-process-decode
 network of GNS (Sanchez-Gonzalez et al. 2020) on the same graph and inputs. Encoders: node input -> MLP -> LayerNorm;
