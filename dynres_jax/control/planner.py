@@ -169,8 +169,8 @@ def _batched(positions, mask, resamples):
 def sample_pushes(key, points, valid, config: PlannerConfig):
     """The planner's M starting sequences [M, T, 4] m (``sample_actions``), as config.starts says: through random
     valid points [P, 3] (valid [P]) of the pile, anywhere in the workspace, or the fixed set (key ignored). ``plan``
-    draws them through the particles; drawn through the perception cloud instead (``decision.decide``), they are the same
-    for every ω: common random numbers."""
+    draws them through the particles; drawn through the perception cloud instead (``decision.decide``), they are the
+    same for every ω: common random numbers."""
     c = config
     if c.starts == "fixed":
         key = jax.random.PRNGKey(FIXED_STARTS_SEED)
