@@ -27,8 +27,6 @@ read -ra train_flags <<< "${TRAIN_FLAGS:-}"; read -ra eval_flags <<< "${EVAL_FLA
 SHIPPED=dynres_jax/checkpoints/dynamics
 # shellcheck source=scripts/gpu_lib.sh
 source "$(dirname "$0")/gpu_lib.sh"
-gpus=${GPUS:-$(nvidia-smi -L 2>/dev/null | grep -c "^GPU" || echo 1)}
-on() { CUDA_VISIBLE_DEVICES=$(( $1 % gpus )); export CUDA_VISIBLE_DEVICES; }
 
 pack_all() {  # logs and runs (no data, no checkpoints), the judge's newest checkpoint: to $OUT where set
   pack --exclude='*/ckpt'

@@ -18,23 +18,26 @@
 #    and of Redistribute on 345689 (characters nobody has used, seed 91500), 64 of each other kind (seed 92000).
 # Results: $WORK/results.tar.gz (logs, tables, summaries) and $WORK/judges.tar.gz (the module-only
 # checkpoint of the chosen variant), copied to $OUT where set. Env: WORK, UNTIL, JUDGE, VARIANTS, CHOSEN, EPISODES
-# (64), STEPS (1500), TUNE (64), FRESH (256), KINDS_EPISODES (64; 0: none), FRESH_SECONDS (420), BUILD_FLAGS, FT_FLAGS, EVAL_FLAGS. CPU dry run: GPUS=1 EPISODES=2 STEPS=2 TUNE=1
-# FRESH=1 KINDS_EPISODES=1 BUILD_FLAGS="--capture 0 --samples 4 --adam-steps 2 --pieces 30"
-# FT_FLAGS="--batch 2" EVAL_FLAGS="--quick --mpc-steps 1 --samples 4 --adam-steps 2 --pieces 40 --best-omega 10".
+# (64), STEPS (1500), TUNE (64), FRESH (256), KINDS_EPISODES (64; 0: none), FRESH_SECONDS (420), BUILD_FLAGS,
+# FT_FLAGS, EVAL_FLAGS. CPU dry run: GPUS=1 EPISODES=2 STEPS=2 TUNE=1 FRESH=1 KINDS_EPISODES=1
+# BUILD_FLAGS="--capture 0 --samples 4 --adam-steps 2 --pieces 30" FT_FLAGS="--batch 2"
+# EVAL_FLAGS="--quick --mpc-steps 1 --samples 4 --adam-steps 2 --pieces 40 --best-omega 10".
 set -uo pipefail
 WORK=${WORK:-/tmp/jr}; JUDGE=$(realpath "${JUDGE:-.judge/ckpt}"); EPISODES=${EPISODES:-64}; STEPS=${STEPS:-1500}
-TUNE=${TUNE:-64}; FRESH=${FRESH:-256}; KINDS_EPISODES=${KINDS_EPISODES:-64}; VARIANTS=${VARIANTS:-"gath gslow all gpos"}; UNTIL=${UNTIL:-$(( $(date +%s) + 3600 ))}
-read -ra build_flags <<< "${BUILD_FLAGS:-}"; read -ra ft_flags <<< "${FT_FLAGS:-}"; read -ra eval_flags <<< "${EVAL_FLAGS:-}"
+TUNE=${TUNE:-64}; FRESH=${FRESH:-256}; KINDS_EPISODES=${KINDS_EPISODES:-64}; VARIANTS=${VARIANTS:-"gath gslow all gpos"}
+UNTIL=${UNTIL:-$(( $(date +%s) + 3600 ))}
+read -ra build_flags <<< "${BUILD_FLAGS:-}"; read -ra ft_flags <<< "${FT_FLAGS:-}"
+read -ra eval_flags <<< "${EVAL_FLAGS:-}"
 # shellcheck source=scripts/gpu_lib.sh
 source "$(dirname "$0")/gpu_lib.sh"
 export XLA_PYTHON_CLIENT_PREALLOCATE=false PYTHONPATH=${PYTHONPATH:+$PYTHONPATH:}$PWD  # several processes a GPU
-gpus=${GPUS:-$(nvidia-smi -L 2>/dev/null | grep -c "^GPU" || echo 1)}; cores=$(nproc)
-on() { CUDA_VISIBLE_DEVICES=$(( $1 % gpus )); export CUDA_VISIBLE_DEVICES; }
+cores=$(nproc)
 fits() { [ $(( UNTIL - $(date +%s) )) -ge "$1" ] || { log "$2 waits for the next call"; pack_all; exit 0; }; }
 pack_all() {
   pack --exclude='*/ckpt' --exclude='*/positions*'
   local v; v=$(cat "$WORK/chosen" 2>/dev/null)
-  [ -d "$WORK/runs/ft_$v/ckpt" ] && tar -czf "$WORK/judges.tmp" -C "$WORK/runs" "ft_$v/ckpt" && mv "$WORK/judges.tmp" "$WORK/judges.tar.gz"
+  [ -d "$WORK/runs/ft_$v/ckpt" ] && tar -czf "$WORK/judges.tmp" -C "$WORK/runs" "ft_$v/ckpt" &&
+    mv "$WORK/judges.tmp" "$WORK/judges.tar.gz"
   [ -n "${OUT:-}" ] && cp "$WORK"/results.tar.gz "$WORK"/judges.tar.gz "$OUT"/ 2>/dev/null
   return 0
 }
@@ -55,8 +58,7 @@ if [ ! -f "$WORK/sets/done" ]; then
   build 1 redistribute redistribute coffee 9510 "$EPISODES" --letters ACEHMNSX &
   build 2 gather_almond gather almond 9520 $(( EPISODES / 2 > 0 ? EPISODES / 2 : 1 )) &
   wait
-  ls "$WORK"/sets/*/ranking_set.npz > /dev/null 2>&1 && [ "$(ls "$WORK"/sets/*/ranking_set.npz | wc -l)" = 3 ] &&
-    touch "$WORK/sets/done"
+  [ "$(ls "$WORK"/sets/*/ranking_set.npz 2>/dev/null | wc -l)" = 3 ] && touch "$WORK/sets/done"
 fi
 pack_all
 [ -f "$WORK/sets/done" ] || { log "sets incomplete"; exit 1; }
@@ -91,14 +93,15 @@ loop() {  # GPU NAME CKPT SEED EPISODES TASK-FLAGS...: evaluate --methods 50 jud
   [ -f "$WORK/runs/$name/summary.json" ] && return
   on "$g"
   python -m experiments.evaluate --methods 50 judge --judge "$judge" --episodes "$episodes" --seed "$seed" \
-    --samples 50 --workers "$LOOP_WORKERS" --out "$WORK/runs/$name" "$@" "${eval_flags[@]}" > "$WORK/logs/$name.log" 2>&1
+    --samples 50 --workers "$LOOP_WORKERS" --out "$WORK/runs/$name" "$@" "${eval_flags[@]}" \
+    > "$WORK/logs/$name.log" 2>&1
   log "$name: $(grep -E '^ *(50|judge)[: -]' "$WORK/logs/$name.log" | tr '\n' ' ' || tail -3 "$WORK/logs/$name.log")"
 }
 judges=(base $VARIANTS)
 path() { [ "$1" = base ] && echo "$JUDGE" || echo "$WORK/runs/ft_$1/ckpt"; }
 [ -n "${CHOSEN:-}" ] && [ ! -f "$WORK/chosen" ] && echo "$CHOSEN" > "$WORK/chosen" && log "chosen beforehand: $CHOSEN"
 if [ ! -f "$WORK/chosen" ]; then
-  fits 240 tune
+  fits 480 tune  # ten closed loops at once ran past 320 s on 4 H200s: the call that lost a host had started at 318
   LOOP_WORKERS=$(( cores / (2 * $(wc -w <<< "${judges[*]}")) + 1 ))
   i=0
   for j in "${judges[@]}"; do
@@ -107,7 +110,7 @@ if [ ! -f "$WORK/chosen" ]; then
     i=$(( i + 2 ))
   done
   wait
-  python - "$WORK" "${judges[@]}" > "$WORK/chosen" 2> "$WORK/logs/tune_table.log" <<'PY' || { log "tune incomplete"; pack_all; exit 1; }
+  if ! python - "$WORK" "${judges[@]}" > "$WORK/chosen" 2> "$WORK/logs/tune_table.log" <<'PY'
 import json, sys
 work, names = sys.argv[1], sys.argv[2:]
 def rows(name):
@@ -121,6 +124,7 @@ for n in names:
           file=sys.stderr)
 print(max(names, key=lambda n: score[n]))
 PY
+  then log "tune incomplete"; rm -f "$WORK/chosen"; pack_all; exit 1; fi
   log "chosen on tuning seeds: $(cat "$WORK/chosen")"
 fi
 pack_all
@@ -131,7 +135,11 @@ LOOP_WORKERS=$(( cores / 4 + 1 ))
 loop 0 fresh_mnm "$chosen" 91000 "$FRESH" --task gather --kind mnm &
 loop 1 fresh_red "$chosen" 91500 "$FRESH" --task redistribute --letters 345689 &
 i=2
-[ "$KINDS_EPISODES" -gt 0 ] && for k in coffee almond rice granola candy; do loop $(( i % gpus )) "fresh_$k" "$chosen" 92000 "$KINDS_EPISODES" --task gather --kind "$k" & i=$(( i + 1 )); done
+if [ "$KINDS_EPISODES" -gt 0 ]; then
+  for k in coffee almond rice granola candy; do
+    loop $(( i % gpus )) "fresh_$k" "$chosen" 92000 "$KINDS_EPISODES" --task gather --kind "$k" & i=$(( i + 1 ))
+  done
+fi
 wait
 pack_all
 touch "$WORK/done"; log "done"

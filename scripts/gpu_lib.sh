@@ -1,7 +1,9 @@
 # Shared by the GPU run scripts (source it): stage log, results tarball, data sets and models under $WORK.
-# Env: WORK, EPISODES (episodes a data set), STEPS (Adam steps a model), BOX (minutes, each training's safety stop),
-# DATA_FLAGS (more generate_data flags).
+# Sets gpus (GPUS overrides) and on N. Env: WORK, EPISODES (episodes a data set), STEPS (Adam steps a model), BOX
+# (minutes, each training's safety stop), DATA_FLAGS (more generate_data flags).
 mkdir -p "$WORK/runs" "$WORK/logs"
+gpus=${GPUS:-$(n=$(nvidia-smi -L 2>/dev/null | grep -c "^GPU"); echo $(( n > 0 ? n : 1 )))}  # GPUS: override
+on() { CUDA_VISIBLE_DEVICES=$(( $1 % gpus )); export CUDA_VISIBLE_DEVICES; }  # N: what runs next uses GPU N mod gpus
 log() { echo "$(date +%T) $*" | tee -a "$WORK/logs/stages.log"; }
 now() { date +%s.%N; }
 since() { python -c "print(round($(now) - $1, 1))"; }  # T0 (from now): seconds since, one decimal
