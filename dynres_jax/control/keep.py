@@ -43,7 +43,7 @@ def keep_lowest_distance(worlds: Worlds, now: Situation, plans: list[dict], scor
                 rows = (lambda x: x) if k == 1 else lambda x, j=j: x[j * b:(j + 1) * b]
                 outcome = dict(common, best=jnp.asarray(samples[:, first + j]), action=samples[:, first + j, 0],
                                states=jax.tree.map(rows, after), **{key: rows(v) for key, v in scores.items()})
-                kept = outcome if kept is None else lowest_distance([kept, outcome])
+                kept = outcome if kept is None else _lowest_distance([kept, outcome])
     return kept
 
 
@@ -70,7 +70,7 @@ def best_rate(plans: list[dict], timing: budget.TimingTable | None) -> dict:
 KEEPS = {"distance": keep_lowest_distance, "rate": keep_best_rate}  # Orders.keep -> how the loop keeps a candidate
 
 
-def lowest_distance(outcomes: list[dict]) -> dict:
+def _lowest_distance(outcomes: list[dict]) -> dict:
     """Per episode b, leaf [b] of the outcome whose push left the lowest d (``keep_lowest_distance``'s dicts,
     arrays [B])."""
     return _pick(outcomes, np.argmin(np.stack([np.asarray(o["distance"]) for o in outcomes]), axis=0))
