@@ -278,6 +278,46 @@ def test_kind_objective_pursues_some_kinds_and_holds_the_others(env):
         stack_goals(goals, hold=[True])
 
 
+def numpy_bilinear(image, u, v):
+    """A NumPy reference of bilinear interpolation at pixel coordinates (u, v), pixel centres at +0.5."""
+    x = np.clip(u - 0.5, 0, image.shape[1] - 1.0)
+    y = np.clip(v - 0.5, 0, image.shape[0] - 1.0)
+    i, j = min(int(y), image.shape[0] - 2), min(int(x), image.shape[1] - 2)
+    fy, fx = y - i, x - j
+    return ((1 - fy) * ((1 - fx) * image[i, j] + fx * image[i, j + 1])
+            + fy * ((1 - fx) * image[i + 1, j] + fx * image[i + 1, j + 1]))
+
+
+def test_mixing_counts_how_deep_a_kind_lies_inside_the_other_kinds_goal(env):
+    goals_xy, radius, masks = sort_goal(np.random.default_rng(1), env)
+    goals = [make_goal(m, env.camera) for m in masks]
+    rng = np.random.default_rng(3)
+    xy = goals_xy[np.arange(16) % 2] + rng.uniform(-1.2 * radius, 1.2 * radius, (16, 2))  # in, on, beside goals
+    positions = np.concatenate([xy, np.full((16, 1), 0.01)], axis=1).astype(np.float32)
+    mask, kinds = np.arange(16) < 14, (np.arange(16) // 2) % 2  # each kind around both goals
+    plain = np.asarray(kind_costs(positions, mask, kinds, stack_goals(goals), env.camera))
+    assert np.array_equal(plain, kind_costs(positions, mask, kinds, stack_goals(goals, avoid=goals), env.camera))
+    mixed = np.asarray(kind_costs(positions, mask, kinds, stack_goals(goals, avoid=goals, mixing=2.5), env.camera))
+    uv = np.asarray(env.camera.world_to_pixel(positions)[0])
+    for k in (0, 1):
+        mine = np.flatnonzero(mask & (kinds == k))
+        depth = [max(0.0, -numpy_bilinear(np.asarray(goals[1 - k].distance), *uv[p])) for p in mine]
+        assert sum(depth) > 1.0  # the draw puts some of each kind inside the other's goal
+        assert mixed[k] - plain[k] == pytest.approx(2.5 * np.mean(depth), rel=1e-4, abs=1e-4)
+    # its gradient moves an intruding particle out of the other kind's goal
+    one = np.flatnonzero(mask & (kinds == 0))[np.argmax([-numpy_bilinear(np.asarray(goals[1].distance), *uv[p])
+                                                         for p in np.flatnonzero(mask & (kinds == 0))])]
+    grad = jax.grad(lambda x: kind_costs(x, mask, kinds, stack_goals(goals, avoid=goals, mixing=2.5),
+                                         env.camera)[0] - kind_costs(x, mask, kinds, stack_goals(goals),
+                                                                     env.camera)[0])(positions)
+    outward = positions[one, :2] - goals_xy[1]
+    assert float(np.dot(-np.asarray(grad)[one, :2], outward)) > 0
+    with pytest.raises(ValueError, match="mixing"):
+        stack_goals(goals, avoid=goals, mixing=-1.0)
+    with pytest.raises(ValueError, match="one region per goal"):
+        stack_goals(goals, avoid=goals[:1])
+
+
 class FixedKindGoals(Chooser):
     """A chooser that asks every step for Sort's own two goals (one per kind) at ω = 12."""
 

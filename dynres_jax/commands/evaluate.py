@@ -124,6 +124,9 @@ def build_parser():
     parser.add_argument("--arrived", type=checks.number(0.01, 1.0), default=None,
                         help=f"Sort: a pile counts as arrived (A* moves it no more) at this share of its particles "
                              f"inside its goal (default {ARRIVED}, Sort's success share)")
+    parser.add_argument("--mixing", type=checks.number(0.0, 100.0), default=None,
+                        help="Sort: weight in each kind's objective of its particles' depth inside the other kind's "
+                             "goal (pixels; default 0: none)")
     parser.add_argument("--grid-step", type=checks.number(0.002, 0.1), default=None,
                         help="Sort: A*'s grid spacing (m; default 0.02)")
     parser.add_argument("--ckpt", default=None, help="the dynamics checkpoint (default: the task's shipped one)")

@@ -25,7 +25,7 @@ from dynres_jax.models.registry import describe, trained_n_max
 
 METHODS = ["10", "25", "50", "75", "100", "adaptive"]  # --methods' default (Sort's: SORT_METHODS)
 SORT_METHODS = ["50"]
-SORT_ONLY = ("arrived", "grid_step")  # flags of Sort alone: not among another task's recorded settings
+SORT_ONLY = ("arrived", "grid_step", "mixing")  # flags of Sort alone: not among another task's recorded settings
 GRID_STEP = 0.02  # m: Sort's A* grid unless --grid-step
 
 
@@ -56,6 +56,7 @@ def check_methods(parser, args, sort: bool) -> None:
         return
     args.arrived = ARRIVED if args.arrived is None else args.arrived
     args.grid_step = GRID_STEP if args.grid_step is None else args.grid_step
+    args.mixing = 0.0 if args.mixing is None else args.mixing
     odd = [m for m in args.methods if not (m.isdigit() or on_ladder(m))]
     if odd:
         parser.error(f"--methods: Sort plans along A*'s waypoints at one ω a step (fixed ω, or bestK, sim and rerank "
@@ -89,7 +90,8 @@ def sort_chooser(method: str, drawn: list[dict], env, cfg, keys, episodes, args)
     goals' descriptions, and its planner key) at a fixed ω, or at --best-omega on the ladder's rung."""
     omega = args.best_omega if on_ladder(method) else int(method)
     policies = [SortPolicy(env, cfg, omega, key, goal["centres"], goal["radius"], grid_step=args.grid_step,
-                           arrived=args.arrived, log=lambda line, i=int(i): print(f"episode {i}: {line}"))
+                           arrived=args.arrived, mixing=args.mixing,
+                           log=lambda line, i=int(i): print(f"episode {i}: {line}"))
                 for i, key, goal in zip(episodes, keys, drawn, strict=True)]
     chooser = SortEpisodes(policies)
     return climb(chooser, method) if on_ladder(method) else chooser

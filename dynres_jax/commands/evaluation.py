@@ -43,7 +43,7 @@ def merge(parts: list[dict]) -> dict:
     """The processes' ``episode_results`` of one method -> the method's results in episode order: final d and inside
     share [E], their means per step [T], ω and Adam steps per step [T][E], broken [E], seconds (the slowest
     process's), and every piece's (x, y) at the start and the end [E][N][2] (m); Sort's adds final_kind_inside
-    [E][2], final_mixing [E], mean_mixing [T] and kind_inside [T][E][2]."""
+    [E][2], final_mixing [E], mean_mixing [T], kind_inside [T][E][2] and mixing [T][E]."""
     order = np.argsort(np.concatenate([p["episode"] for p in parts]))
     cat = lambda key: np.concatenate([np.asarray(p[key]) for p in parts], axis=-1)[..., order]  # noqa: E731
     distance, inside = cat("distance"), cat("inside")
@@ -58,7 +58,7 @@ def merge(parts: list[dict]) -> dict:
         kind = np.concatenate([np.asarray(p["kind_inside"]) for p in parts], axis=1)[:, order]
         mixing = cat("mixing")
         merged.update(final_kind_inside=kind[-1].tolist(), final_mixing=mixing[-1].tolist(),
-                      mean_mixing=mixing.mean(axis=1).tolist(), kind_inside=kind.tolist())
+                      mean_mixing=mixing.mean(axis=1).tolist(), kind_inside=kind.tolist(), mixing=mixing.tolist())
     return merged
 
 

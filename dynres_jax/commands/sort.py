@@ -54,6 +54,9 @@ def build_parser():
     parser.add_argument("--arrived", type=checks.number(0.01, 1.0), default=ARRIVED,
                         help="a pile counts as arrived at its goal (A* moves it no more) when this share of its "
                              "particles lies inside it (default: Sort's success share)")
+    parser.add_argument("--mixing", type=checks.number(0.0, 100.0), default=0.0,
+                        help="weight in each kind's objective of its particles' depth inside the other kind's goal "
+                             "(pixels; default 0: none)")
     parser.add_argument("--method", default="model",
                         help="model: the planner with the dynamics model (default); bestK (e.g. best5): the best of "
                              "K plans by their simulated pushes; sim: the simulator chooses among the planner's first "
@@ -95,7 +98,8 @@ def main(argv=None):
         timing = measure_timing(state.obs, goals[0], loop.model.dynamics, cfg, env.camera, omegas=[loop.omega])
         check_budget(cfg, timing, [loop.omega])
     key = jax.random.PRNGKey(args.seed)
-    policy = SortPolicy(env, cfg, loop.omega, key, goals_xy, radius, grid_step=args.grid_step, arrived=args.arrived)
+    policy = SortPolicy(env, cfg, loop.omega, key, goals_xy, radius, grid_step=args.grid_step, arrived=args.arrived,
+                        mixing=args.mixing)
     frames = sort_frames(masks, lambda: policy.target_mask, env.camera)
     chooser = policy if args.method == "model" else climb(policy, args.method)
     state, records = run_episode(env, state, chooser, loop.model.dynamics, cfg, key, timing=timing, on_step=[frames])

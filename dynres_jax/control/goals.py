@@ -39,10 +39,18 @@ class Goal(NamedTuple):
 
 class KindGoals(NamedTuple):
     """One goal per piece kind (Sort), a pytree like ``Goal``: goals, a Goal whose every leaf has a leading axis [K]
-    (goal k for kind k); hold [K] bool: kinds only kept from getting worse, not pursued (``kind_objective``)."""
+    (goal k for kind k); hold [K] bool: kinds only kept from getting worse, not pursued (``kind_objective``);
+    avoid [K, H, W] float32: signed distance (pixels) to the region kind k's pieces must keep out of (the other kinds'
+    own goals; ``NOWHERE`` where there is none); mixing [] float32: the weight of that intrusion in c_k (0: the
+    objective without it)."""
 
     goals: Goal
     hold: jax.Array
+    avoid: jax.Array
+    mixing: jax.Array
+
+
+NOWHERE = 1e4  # pixels: the signed distance of a region no pixel is in (KindGoals.avoid when no kind is avoided)
 
 
 def stack(goals) -> Goal:
@@ -50,13 +58,25 @@ def stack(goals) -> Goal:
     return jax.tree.map(lambda *x: jnp.stack(x), *goals)
 
 
-def stack_goals(goals, hold=None) -> KindGoals:
-    """A sequence of K Goals of one camera (goal k for kind k) and hold [K] bool (default: pursue every kind) ->
-    KindGoals."""
+def stack_goals(goals, hold=None, avoid=None, mixing: float = 0.0) -> KindGoals:
+    """A sequence of K Goals of one camera (goal k for kind k), hold [K] bool (default: pursue every kind), avoid: K
+    Goals, kind k's own region (Sort: its true goal), of which kind k must keep out of every other kind's (None: no
+    region is avoided), and mixing >= 0, the weight of an intrusion (``objective.kind_costs``) -> KindGoals."""
     hold = np.zeros(len(goals), bool) if hold is None else np.asarray(hold, bool)
     if hold.shape != (len(goals),):
         raise ValueError(f"hold must have one flag per goal ({len(goals)}), got shape {hold.shape}")
-    return KindGoals(stack(goals), jnp.asarray(hold))
+    if not (np.isfinite(mixing) and mixing >= 0):
+        raise ValueError(f"mixing must be a finite weight >= 0, got {mixing}")
+    shape = goals[0].distance.shape
+    if avoid is None:
+        fields = jnp.full((len(goals), *shape), NOWHERE, jnp.float32)
+    else:
+        if len(avoid) != len(goals):
+            raise ValueError(f"avoid must have one region per goal ({len(goals)}), got {len(avoid)}")
+        others = [[a.distance for j, a in enumerate(avoid) if j != k] for k in range(len(avoid))]
+        fields = jnp.stack([functools.reduce(jnp.minimum, o) if o else jnp.full(shape, NOWHERE, jnp.float32)
+                            for o in others])  # the union of the other kinds' regions: the nearest one's distance
+    return KindGoals(stack(goals), jnp.asarray(hold), fields, jnp.float32(mixing))
 
 
 # ---------------------------------------------------------------------------------------------------------------

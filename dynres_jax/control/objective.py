@@ -107,15 +107,27 @@ def objective(positions, mask, goal: Goal, camera: Camera):
     return _cost(uv, mask, goal)
 
 
+def _intrusion(pixels, valid, avoid):
+    """How deep points at pixels [P, 2] with valid [P] lie inside a region of signed distance field avoid [H, W]:
+    Σ_p max(0, -SDF(p)) / ω (pixels; 0 outside the region, and when ω = 0)."""
+    depth = jax.nn.relu(-bilinear(avoid, jnp.where(valid[:, None], pixels, 0.0)))
+    return jnp.sum(jnp.where(valid, depth, 0.0)) / jnp.maximum(jnp.sum(valid), 1)
+
+
 @functools.partial(jax.jit, static_argnames="camera")
 def kind_costs(positions, mask, kinds, goals: KindGoals, camera: Camera):
-    """c of each kind's particles against its own goal: positions [N, 3] (m), mask [N] bool, kinds [N] int (each
-    particle's kind index) -> [K] (pixels; 0 for a kind with no particle). Each is a mean over that kind's particles,
-    so kinds weigh alike whatever their particle counts."""
-    def one(goal, k):
-        return objective(positions, jnp.asarray(mask, bool) & (kinds == k), goal, camera)
+    """c_k of each kind's particles: c against its own goal plus goals.mixing × its intrusion into the region it must
+    keep out of (``KindGoals.avoid``: the other kinds' goals; ``_intrusion``): positions [N, 3] (m), mask [N] bool,
+    kinds [N] int (each particle's kind index) -> [K] (pixels; 0 for a kind with no particle). Each is a mean over
+    that kind's particles, so kinds weigh alike whatever their particle counts."""
+    mask = jnp.asarray(mask, bool)
+    uv, _ = camera.world_to_pixel(jnp.where(mask[:, None], jnp.asarray(positions, jnp.float32), 0.0))
 
-    return jax.vmap(one)(goals.goals, jnp.arange(goals.hold.shape[0]))
+    def one(goal, avoid, k):
+        mine = mask & (kinds == k)
+        return objective(positions, mine, goal, camera) + goals.mixing * _intrusion(uv, mine, avoid)
+
+    return jax.vmap(one)(goals.goals, goals.avoid, jnp.arange(goals.hold.shape[0]))
 
 
 @functools.partial(jax.jit, static_argnames="camera")

@@ -30,8 +30,9 @@ along its current run of moves; the other blob is held: only a loss against the 
 path does not move it again) counts (``objective.kind_objective``), so a push through the resting pile costs what it
 scatters and the resting pile never draws the push. When both piles are at their goals (centres snapping to them, or
 arrived), both kinds are pursued into their own goal discs; when A* finds no path (no room to pass), the pile farther
-from its goal is pursued straight to it and the other held at its goal. The paper's reference code has no Sort; these
-choices are ours. ``SortEpisodes`` runs one policy per episode of a batch (``evaluate --task sort``).
+from its goal is pursued straight to it and the other held at its goal. With ``mixing`` > 0 each kind's c also counts
+how deep its particles lie inside the other kind's true goal (``objective.kind_costs``). The paper's reference code
+has no Sort; these choices are ours. ``SortEpisodes`` runs one policy per episode of a batch (``evaluate --task sort``).
 """
 
 from __future__ import annotations
@@ -182,16 +183,20 @@ class SortPolicy(Chooser):
     "final": both), waypoint [2] m (the moved kind's target centre), centres [2, 2] m (perceived), perceived_inside
     [2] (each kind's share of particles inside its goal; ``arrived`` (default ``ARRIVED``) or more: the pile starts
     A* at its goal), astar_steps left, astar_s; its scores (``sort_step_scores``): kind_inside [2] (kind k's share
-    inside goal k), mixing (the share inside the other kind's goal) and goal_distance (d to the true goals)."""
+    inside goal k), mixing (the share inside the other kind's goal) and goal_distance (d to the true goals).
+    mixing: the weight in each kind's c of its particles' intrusion into the other kind's true goal
+    (``objective.kind_costs``; 0: none, each kind scored against its target disc alone)."""
 
     def __init__(self, env: PileEnv, cfg: MPCConfig, omega: int, key, goals_xy, goal_radius: float, log=print, *,
                  blob_radius: float | None = None, grid_step: float = 0.02, lookahead: int = 3,
-                 arrived: float = ARRIVED):
+                 arrived: float = ARRIVED, mixing: float = 0.0):
         if lookahead < 1:
             raise ValueError(f"lookahead must be at least 1, got {lookahead}")
         if not 0 < arrived <= 1:
             raise ValueError(f"arrived must be a share in (0, 1], got {arrived}")
-        self.arrived = arrived
+        if not (np.isfinite(mixing) and mixing >= 0):
+            raise ValueError(f"mixing must be a finite weight >= 0, got {mixing}")
+        self.arrived, self.mixing = arrived, mixing
         self.omega, self.max_points, self.buckets = check_omega(omega), cfg.max_points, cfg.buckets
         self.piece_kinds, self.key, self.log = env.scene.kind, key, log
         self.camera, self.bin_half = env.camera, env.config.scene.bin_half_width
@@ -234,7 +239,7 @@ class SortPolicy(Chooser):
         self.target_mask = masks[kind] if kind >= 0 else np.zeros_like(masks[0])
         record = dict(phase=[self.phase], kind=[kind], waypoint=[targets[max(kind, 0)]], centres=[centres],
                       perceived_inside=[inside], astar_steps=[steps_left], astar_s=[astar_s])
-        goals = stack_goals([make_goal(m, self.camera) for m in masks], hold)
+        goals = stack_goals([make_goal(m, self.camera) for m in masks], hold, self.goals, self.mixing)
         return Orders(batch(goals), (Candidate(np.array([max(min(self.omega, points), 1)])),), None, record)
 
     def score(self, states) -> dict:
