@@ -129,3 +129,40 @@ def test_judge_flag_puts_a_second_model_on_the_loop(tmp_path, capsys):
     with pytest.raises(SystemExit) as e:
         gather.main(["--judge", str(tmp_path / "nowhere"), "--out", str(tmp_path / "out")])
     assert e.value.code == 2 and "--judge" in capsys.readouterr().err
+
+
+def test_a_goal_png_is_the_goal_of_the_task_command_and_of_evaluate(tmp_path, capsys):
+    """--goal-png: the user's mask (here the whole bin, which holds every piece from the start, as no drawn goal
+    does) is the goal of redistribute's episode and of every evaluate episode, its content hash among the run's inputs;
+    refused beside --letter, for Sort and at another camera's size, in one line before any work."""
+    from dynres_jax.commands import redistribute
+    from dynres_jax.config import CameraConfig
+    from dynres_jax.control.goals import polygon_goal
+    from dynres_jax.io.frames import save_goal
+    from dynres_jax.sim.camera import Camera
+
+    corners = 0.2 * np.array([[-1, -1], [1, -1], [1, 1], [-1, 1]])
+    full, quick = tmp_path / "bin.png", tmp_path / "bin64.png"
+    save_goal(str(full), polygon_goal(Camera.top_down(CameraConfig()), corners))
+    save_goal(str(quick), polygon_goal(Camera.top_down(CameraConfig(width=64, height=64)), corners))
+    tiny = ["--mpc-steps", "1", "--samples", "4", "--adam-steps", "1", "--dynamics", "sweep", "--pieces", "20"]
+    summary = redistribute.main([*tiny, "--goal-png", str(full), "--out", str(tmp_path / "cmd")])
+    assert summary["goal"]["shape"] == "mask" and summary["goal"]["path"] == str(full)
+    assert summary["start_inside"] == summary["final_inside"] == 1.0
+    assert summary["goal"]["fill"] > 5  # the bin is many times the pile's footprint
+    run = json.loads((tmp_path / "cmd" / "run.json").read_text())
+    assert "--goal-png" in json.dumps(run)
+    result = evaluate.main(["--task", "redistribute", "--quick", "--episodes", "2", "--methods", "50", "--workers",
+                            "2", *tiny, "--goal-png", str(quick), "--out", str(tmp_path / "eval")])
+    assert result["methods"]["50"]["success_share"] == 1.0
+    capsys.readouterr()
+    refusals = [(redistribute.main, [*tiny, "--goal-png", str(full), "--letter", "T"], "give one"),
+                (redistribute.main, [*tiny, "--goal-png", str(quick)], "is (64, 64), the camera's images are"),
+                (evaluate.main, ["--task", "sort", "--quick", "--goal-png", str(quick)], "Sort"),
+                (evaluate.main, ["--task", "gather", "--quick", "--goal-png", str(full)], "images are (64, 64)")]
+    for i, (command, argv, words) in enumerate(refusals):
+        with pytest.raises(SystemExit):
+            command([*argv, "--out", str(tmp_path / f"refused{i}")])
+        err = capsys.readouterr().err
+        assert "--goal-png" in err and words in err, err
+        assert not (tmp_path / f"refused{i}").exists()

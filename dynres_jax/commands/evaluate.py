@@ -17,7 +17,8 @@ summary says how much of its gain over the best fixed ω adaptive recovers, ``or
 CNN-dynamics baseline at ``--cnn-omega``. The ladder of docs/ladder, where the simulator picks among the planner's
 candidates at ``--best-omega`` (``choosers.BestOfK``, ``SimulatorScored``): "bestK" (e.g. best5) among K plans from
 independent keys, the oracle's control; "sim" among the M first samples, no model; "rerank" among the M plans after
-the model's Adam steps. Redistribute's episode i draws the letter i modulo ``--letters``. Sort (``--kind A B``,
+the model's Adam steps. Redistribute's episode i draws the letter i modulo ``--letters``; ``--goal-png G.png`` gives
+every episode the user's goal (its pile still the task's, from (--seed, i)). Sort (``--kind A B``,
 ``--pieces NA NB``, default each kind at half its one-pile count; the shipped Sort model) plans along A*'s waypoints
 (``sort.SortEpisodes``) at a fixed ω or on the ladder at --best-omega; its d is to the true goals, its inside share
 the lower kind's, its success each kind at least 80 % inside and mixing below 5 % (``tasks.sort_succeeded``). Writes
@@ -69,10 +70,11 @@ from dynres_jax.control import resolution, tasks
 from dynres_jax.control.choosers import ORACLE_OMEGAS, PROBE_OMEGAS
 from dynres_jax.control.goals import make_goals
 from dynres_jax.control.mpc import run
-from dynres_jax.control.sort import ARRIVED
+from dynres_jax.control.sort import ARRIVED, MIXING
 from dynres_jax.control.views import SensorView
 from dynres_jax.io import ckpt, files
 from dynres_jax.io.draw import evaluation_plots
+from dynres_jax.io.frames import load_goal
 from dynres_jax.models.registry import SHIPPED_CNN_DYNAMICS, SHIPPED_REGRESSOR, shipped_dynamics
 from dynres_jax.sim import engines
 from dynres_jax.sim.camera import Camera
@@ -115,6 +117,9 @@ def build_parser():
                              f"from {', '.join(sorted(KINDS))}")
     parser.add_argument("--letters", type=checks.text, default="JTU",
                         help="Redistribute: episode i's goal is character i modulo these (default JTU)")
+    parser.add_argument("--goal-png", default=None, metavar="PNG",
+                        help="every episode's goal: a mask PNG of the camera's size, white = goal (experiments.goal "
+                             "writes them), instead of the task's drawn goals and --letters (not Sort)")
     parser.add_argument("--sensor", default="none", choices=sorted(SENSORS),
                         help="a real depth camera's errors on every observation the planner sees (sim.sensor; "
                              "perception then treats the depth as a real camera's); d and success use the true state")
@@ -125,8 +130,8 @@ def build_parser():
                         help=f"Sort: a pile counts as arrived (A* moves it no more) at this share of its particles "
                              f"inside its goal (default {ARRIVED}, Sort's success share)")
     parser.add_argument("--mixing", type=checks.number(0.0, 100.0), default=None,
-                        help="Sort: weight in each kind's objective of its particles' depth inside the other kind's "
-                             "goal (pixels; default 0: none)")
+                        help=f"Sort: weight in each kind's objective of its particles' depth inside the other kind's "
+                             f"goal (default {MIXING:g}; 0: none)")
     parser.add_argument("--grid-step", type=checks.number(0.002, 0.1), default=None,
                         help="Sort: A*'s grid spacing (m; default 0.02)")
     parser.add_argument("--ckpt", default=None, help="the dynamics checkpoint (default: the task's shipped one)")
@@ -212,6 +217,13 @@ def check_args(parser, args):
         except ckpt.CheckpointError as e:
             parser.error(f"--regressor (method adaptive): {e}")
     env = PileEnv(sim, backend="mujoco")
+    if args.goal_png is not None:
+        if sort:
+            parser.error("--goal-png: Sort draws a goal disc per kind, it takes no goal mask")
+        try:
+            tasks.mask_goal(env, load_goal(args.goal_png, env.camera))
+        except ValueError as e:
+            parser.error(f"--goal-png {args.goal_png}: {e}")
     if sort:
         try:
             tasks.draw_goal(args.task, 0, args.seed, env)
@@ -234,7 +246,9 @@ def run_methods(args, rank: int, size: int, sim, main_model, cnn_model, judge=No
     results = {}
     with process_pool(args.workers) if engines.uses_workers(args.backend) else contextlib.nullcontext() as processes:
         pool = make_pool(sim, args.backend, processes)
-        drawn = [tasks.draw_goal(args.task, int(i), args.seed, pool.env, args.letters) for i in mine]
+        mask = None if args.goal_png is None else load_goal(args.goal_png, pool.camera)  # every episode's goal
+        drawn = ([tasks.draw_goal(args.task, int(i), args.seed, pool.env, args.letters) for i in mine] if mask is None
+                 else [tasks.mask_goal(pool.env, mask)] * len(mine))
         sort = tasks.TASKS[args.task].kinds == 2  # its goals: a disc per kind; d and the timing table: kind 0's
         goals = make_goals([mask[0] if sort else mask for mask, _ in drawn], pool.camera)  # episode i's goal
         # depends on (seed, i) alone: each process draws its own
@@ -291,7 +305,7 @@ def main(argv=None):
     sort_only = () if tasks.TASKS[args.task].kinds == 2 else SORT_ONLY  # another task's run.json is as before
     checks.claim(args.out, "evaluate", checks.settings(args, ignore=("methods", *sort_only)), args.fresh,
                  {"--ckpt": args.ckpt, "--regressor": args.regressor, "--cnn-ckpt": args.cnn_ckpt,
-                  "--timing": args.timing, "--judge": args.judge})
+                  "--timing": args.timing, "--judge": args.judge, "--goal-png": args.goal_png})
     progress.start(checks.prog("evaluate"), f"{args.task}, methods {' '.join(args.methods)} on {args.episodes} "
                    f"episodes of {args.mpc_steps} steps, into {args.out} (finished methods are kept)")
     results = run_methods(args, rank, size, sim, main_model, cnn_model, judge)

@@ -19,7 +19,7 @@ from dynres_jax.control.choosers import (
     on_ladder,
 )
 from dynres_jax.control.judge import JudgeScored
-from dynres_jax.control.sort import ARRIVED, SortEpisodes, SortPolicy
+from dynres_jax.control.sort import ARRIVED, MIXING, SortEpisodes, SortPolicy
 from dynres_jax.io import ckpt
 from dynres_jax.models.registry import describe, trained_n_max
 
@@ -56,7 +56,7 @@ def check_methods(parser, args, sort: bool) -> None:
         return
     args.arrived = ARRIVED if args.arrived is None else args.arrived
     args.grid_step = GRID_STEP if args.grid_step is None else args.grid_step
-    args.mixing = 0.0 if args.mixing is None else args.mixing
+    args.mixing = MIXING if args.mixing is None else args.mixing
     odd = [m for m in args.methods if not (m.isdigit() or on_ladder(m))]
     if odd:
         parser.error(f"--methods: Sort plans along A*'s waypoints at one ω a step (fixed ω, or bestK, sim and rerank "

@@ -35,7 +35,7 @@ from dynres_jax.control.choosers import climb, on_ladder
 from dynres_jax.control.decision import batch
 from dynres_jax.control.goals import make_goal
 from dynres_jax.control.mpc import measure_timing, run_episode
-from dynres_jax.control.sort import ARRIVED, SortPolicy
+from dynres_jax.control.sort import ARRIVED, MIXING, SortPolicy
 from dynres_jax.control.tasks import sort_goal, sort_scores, sort_succeeded, success_rule
 from dynres_jax.io import files
 from dynres_jax.io.draw import sort_frames
@@ -54,9 +54,9 @@ def build_parser():
     parser.add_argument("--arrived", type=checks.number(0.01, 1.0), default=ARRIVED,
                         help="a pile counts as arrived at its goal (A* moves it no more) when this share of its "
                              "particles lies inside it (default: Sort's success share)")
-    parser.add_argument("--mixing", type=checks.number(0.0, 100.0), default=0.0,
-                        help="weight in each kind's objective of its particles' depth inside the other kind's goal "
-                             "(pixels; default 0: none)")
+    parser.add_argument("--mixing", type=checks.number(0.0, 100.0), default=MIXING,
+                        help=f"weight in each kind's objective of its particles' depth inside the other kind's goal "
+                             f"(default {MIXING:g}; 0: none)")
     parser.add_argument("--method", default="model",
                         help="model: the planner with the dynamics model (default); bestK (e.g. best5): the best of "
                              "K plans by their simulated pushes; sim: the simulator chooses among the planner's first "

@@ -3,6 +3,8 @@ the task commands:
 
     python -m experiments.gather --out out/gather
     python -m experiments.redistribute --letter T --out out/redistribute
+    python -m experiments.redistribute --goal-png seven.png --out out/seven   # your own shape, e.g. from
+    python -m experiments.goal --letter 7 --height 0.12 --out seven.png        # (or --mask drawing.png)
 
 Writes ``episode.gif`` (observation, goal in green, particles in red), ``final.png`` and ``metrics.json`` (a record
 per MPC step). Dynamics: the trained checkpoint given by ``--ckpt`` (default: the shipped one); ``--dynamics sweep``
@@ -49,6 +51,7 @@ from dynres_jax.errors import InputError
 from dynres_jax.io import files
 from dynres_jax.io.ckpt import CheckpointError
 from dynres_jax.io.draw import goal_frames
+from dynres_jax.io.frames import load_goal
 from dynres_jax.models.registry import (
     SHIPPED_DYNAMICS,
     SHIPPED_REGRESSOR,
@@ -214,10 +217,17 @@ def main(task: str, argv=None):
     parser.add_argument("--pieces", type=checks.count(1), default=None,
                         help="pieces in the pile (default: the kind's count for a pile of 100 coffee beans' area)")
     parser.add_argument("--layout", default=spec.layout, choices=["blob", "two_blobs", "spread"], help="initial pile")
+    parser.add_argument("--goal-png", default=None, metavar="PNG",
+                        help="the goal: a mask PNG of the camera's size, white = goal (experiments.goal writes them), "
+                             "instead of the task's drawn goal")
     if spec.letter:
-        parser.add_argument("--letter", default="T", type=checks.text,
-                            help="the goal: any characters OpenCV draws (paper: J, T, U)")
+        parser.add_argument("--letter", default=None, type=checks.text,
+                            help="the goal: any characters OpenCV draws (paper: J, T, U; default T)")
     args = parser.parse_args(argv)
+    if spec.letter and args.letter is not None and args.goal_png is not None:
+        parser.error("--letter and --goal-png each give the goal: give one")
+    if spec.letter:
+        args.letter = "T" if args.letter is None else args.letter
     resolve_pieces(parser, args)
 
     sim = SimConfig(scene=SceneConfig(kinds=(args.kind,), pieces=(args.pieces,)), pile=PileConfig(layout=args.layout),
@@ -227,9 +237,15 @@ def main(task: str, argv=None):
 
     rng = np.random.default_rng(args.seed)
     try:
-        goal_mask, goal_info = spec.goal(rng, env, args.letter if spec.letter else None)
+        if args.goal_png is not None:
+            goal_mask, goal_info = tasks.mask_goal(env, load_goal(args.goal_png, env.camera))
+            goal_info["path"] = args.goal_png
+        else:
+            goal_mask, goal_info = spec.goal(rng, env, args.letter if spec.letter else None)
     except ValueError as e:
-        parser.error(f"--letter {args.letter!r}: {e}" if spec.letter else str(e))
+        parser.error(f"--goal-png {args.goal_png}: {e}" if args.goal_png is not None else
+                     f"--letter {args.letter!r}: {e}" if spec.letter else str(e))
+    loop.inputs["--goal-png"] = args.goal_png
     state = env.reset(jax.random.PRNGKey(args.seed))
     check_visible(parser, state.obs, env.camera, loop.omega or OMEGA_MIN, cfg)
     done = finished(args.out, checks.claim(args.out, task, checks.settings(args), args.fresh, loop.inputs), args.fresh)

@@ -27,7 +27,7 @@ import numpy as np
 
 from dynres_jax.config import SceneConfig
 from dynres_jax.control.decision import fold
-from dynres_jax.control.goals import disc_goal, sort_goals, text_goal
+from dynres_jax.control.goals import check_within, disc_goal, sort_goals, text_goal
 from dynres_jax.control.objective import inside_share
 from dynres_jax.errors import InputError
 from dynres_jax.sim.env import PileEnv
@@ -57,6 +57,11 @@ def check_pile_fits(scene: SceneConfig) -> None:
                          f"{largest_pile(scene)} fit")
 
 
+def _pixel_area(env: PileEnv) -> float:
+    """m² of table a pixel of the env's top-down camera covers."""
+    return (2 * env.config.camera.view_half_width / env.camera.width) ** 2
+
+
 def _target_area(rng: np.random.Generator, env: PileEnv) -> float:
     return float(np.sum(np.pi * env.scene.footprint**2)) * rng.uniform(*FILL)
 
@@ -69,6 +74,19 @@ def gather_goal(rng: np.random.Generator, env: PileEnv) -> tuple[np.ndarray, dic
     lim = env.config.scene.bin_half_width - radius - GOAL_MARGIN
     centre = rng.uniform(-lim, lim, size=2)
     return disc_goal(env.camera, centre, radius), dict(shape="disc", centre=centre.tolist(), radius=radius)
+
+
+def mask_goal(env: PileEnv, mask) -> tuple[np.ndarray, dict]:
+    """A goal drawn by the user: mask [H, W] bool of the env's camera (a goal PNG, ``io.frames.load_goal``) ->
+    (mask, description: its area in m² and ``fill``, that area over the pieces' footprint area; the drawn goals'
+    fill is ``FILL``). ValueError when a goal pixel lies outside the bin."""
+    mask = np.asarray(mask, bool)
+    if mask.shape != (env.camera.height, env.camera.width):
+        raise ValueError(f"the goal mask is {mask.shape}, the camera's images are "
+                         f"{(env.camera.height, env.camera.width)}")
+    check_within(mask, env.camera, env.config.scene.bin_half_width)
+    area = float(mask.sum()) * _pixel_area(env)
+    return mask, dict(shape="mask", area=area, fill=area / float(np.sum(np.pi * env.scene.footprint**2)))
 
 
 def disc_and_letter(rng: np.random.Generator, env: PileEnv, letter: str) -> tuple[np.ndarray, np.ndarray, dict]:
@@ -87,7 +105,7 @@ def redistribute_goal(rng: np.random.Generator, env: PileEnv, letter: str, centr
     ``area``, m²): (mask [H, W] bool, description)."""
     target = _target_area(rng, env) if area is None else float(area)
     centre = rng.uniform(-0.03, 0.03, size=2) if centre is None else np.asarray(centre, np.float64)
-    pixel_area = (2 * env.config.camera.view_half_width / env.camera.width) ** 2
+    pixel_area = _pixel_area(env)
     height = 0.12
     for _ in range(3):  # a stroke's area grows with the square of the height (stroke width is height / 5)
         mask = text_goal(env.camera, letter, centre, height)
