@@ -30,6 +30,11 @@ Outputs (a dict): push [4] and best [T, 4] float32 m (the lowest-cost sequence; 
 [capacity] bool (the particles), error [] int32 (0: ok; bits of ``ERRORS``) and history [N] (the best cost up to each
 Adam step).
 
+A frame that shows no table where the camera puts it (a depth scaled or shifted, another camera's intrinsics or pose)
+sets ``NOT_A_TABLE``, by the rule ``plan`` refuses such frames with (``io.frames.table_fit``). The sidecar records the
+file's SHA-256 (``sha256``); ``load`` refuses a file that does not match it, and a robot without this package checks
+``hashlib.sha256(open(FILE, "rb").read()).hexdigest()`` against it.
+
 On the CPU the file decides bit for bit what the library's closed loop decides on the same frame, goal and key
 (``decision.decide_batch``, as ``control.robot.run_robot`` calls it; tests/test_export.py, in an environment with only
 jax and flatbuffers). ``platforms=("cuda",)`` lowers for a GPU robot on any machine. One file for several platforms
@@ -42,6 +47,7 @@ use atomics, so the live planner itself gives plans a few mm apart from run to r
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import json
 import os
 from collections.abc import Callable, Sequence
@@ -56,10 +62,12 @@ from dynres_jax.control.decision import DecisionSpec, perceive_and_decide
 from dynres_jax.control.goals import goal_fields
 from dynres_jax.control.planner import NOT_FINITE, PlannerConfig
 from dynres_jax.io import ckpt, files
+from dynres_jax.io.frames import on_a_table, table_fit
 from dynres_jax.models.graph import no_gpu_kernels
 from dynres_jax.models.registry import load_dynamics
 from dynres_jax.perception import BAD_OMEGA, EMPTY_FOREGROUND, NO_DEPTH, TOO_FEW_POINTS
 from dynres_jax.sim.camera import Camera, Observation
+from dynres_jax.sim.sensor import is_reading
 
 FORMAT = "dynres_jax decision (depth + goal mask -> push), jax.export serialized Exported (StableHLO)"
 DEFAULT_GOAL_SAMPLES = 500  # Q: goals.make_goal's default n_samples
@@ -67,6 +75,7 @@ GOAL_EMPTY = 16  # error bit: the goal mask has no pixel
 GOAL_FULL = 32  # error bit: the goal mask covers the whole image
 BAD_STEPS = 64  # error bit: adam_steps outside [0, the planner's]
 BAD_INIT = 128  # error bit: warm, and the warm start init has NaN or infinite values
+NOT_A_TABLE = 256  # error bit: the frame shows no table where the camera puts it (``io.frames.table_fit``, plan's rule)
 ERRORS = {NO_DEPTH: "the depth image has no reading (every pixel 0, NaN or infinite)",
           EMPTY_FOREGROUND: "no foreground: nothing stands above the table inside the workspace",
           BAD_OMEGA: "omega outside [1, capacity]",
@@ -75,6 +84,9 @@ ERRORS = {NO_DEPTH: "the depth image has no reading (every pixel 0, NaN or infin
           GOAL_FULL: "the goal mask covers the whole image",
           BAD_STEPS: "adam_steps outside [0, the planner's adam_steps]",
           BAD_INIT: "warm is set and init (the warm start) has NaN or infinite values",
+          NOT_A_TABLE: "the frame shows no table where the camera puts it (its median point off the table plane, too "
+                       "few flat readings, or a median reading outside a table-top camera's range: depth scaled, or "
+                       "another camera's intrinsics or pose), as plan refuses it",
           NOT_FINITE: "the plan is NaN or infinite"}
 INPUT_NAMES = ("depth", "goal_mask", "key", "omega", "adam_steps", "init", "warm")
 OUTPUT_NAMES = ("push", "best", "best_cost", "objective", "positions", "mask", "error", "history")
@@ -103,7 +115,8 @@ def decision_step(dynamics: Callable, camera: Camera, spec: DecisionSpec, goal_s
         particles, c_now, result = perceive_and_decide(frame, goal, key, init, warm, omega, adam_steps, spec=spec,
                                                        dynamics=dynamics, camera=camera)
         init_ok = ~jnp.asarray(warm, bool) | jnp.all(jnp.isfinite(init))
-        error = (particles.error | jnp.where(~jnp.any(goal_mask), GOAL_EMPTY, 0)
+        table_ok = on_a_table(*table_fit(depth, camera)) | ~jnp.any(is_reading(depth))  # none at all: NO_DEPTH
+        error = (particles.error | jnp.where(~jnp.any(goal_mask), GOAL_EMPTY, 0) | jnp.where(table_ok, 0, NOT_A_TABLE)
                  | jnp.where(jnp.all(goal_mask), GOAL_FULL, 0) | jnp.where(steps_ok, 0, BAD_STEPS)
                  | jnp.where(init_ok, 0, BAD_INIT)).astype(jnp.int32)
         error = error | jnp.where((error == 0) & ~jnp.all(jnp.isfinite(result.best)), NOT_FINITE, 0)  # never a NaN push
@@ -209,22 +222,30 @@ def _serialization_error(e: ImportError) -> ImportError:
 
 
 def save(exported: jax_export.Exported, path: str, info: dict | None = None) -> int:
-    """Write the serialised ``exported`` to ``path`` atomically, and ``info`` (``describe``) to ``path + ".json"``;
-    returns the file's size in bytes."""
+    """Write the serialised ``exported`` to ``path`` atomically, and ``info`` (``describe``) with the file's SHA-256
+    (``sha256``, what ``load`` checks) to ``path + ".json"``; returns the file's size in bytes."""
     try:
         data = bytes(exported.serialize())
     except ImportError as e:
         raise _serialization_error(e) from e
     files.atomic_write(path, lambda f: f.write(data))
     if info is not None:
-        files.write_json(path + ".json", info)
+        files.write_json(path + ".json", dict(info, sha256=hashlib.sha256(data).hexdigest()))
     return len(data)
 
 
 def load(path: str) -> jax_export.Exported:
-    """An exported decision from ``path`` (``jax.export.deserialize``; needs only JAX); call it with ``.call``."""
+    """An exported decision from ``path`` (``jax.export.deserialize``; needs only JAX); call it with ``.call``. When
+    its sidecar (``path + ".json"``) names a SHA-256, the file must match it: ValueError for a damaged or replaced
+    file."""
     with open(path, "rb") as f:
         data = bytearray(f.read())
+    sidecar = path + ".json"
+    if os.path.isfile(sidecar):
+        expected = (files.read_json(sidecar) or {}).get("sha256")
+        if expected is not None and hashlib.sha256(data).hexdigest() != expected:
+            raise ValueError(f"{path!r} does not match the SHA-256 its sidecar {sidecar!r} records: the file is "
+                             "damaged or another export's; export it again")
     try:
         return jax_export.deserialize(data)
     except ImportError as e:
@@ -258,5 +279,6 @@ def signature(exported: jax_export.Exported) -> str:
 
 
 __all__ = ["BAD_INIT", "BAD_STEPS", "DEFAULT_GOAL_SAMPLES", "ERRORS", "FORMAT", "GOAL_EMPTY", "GOAL_FULL",
-           "INPUT_NAMES", "NOT_FINITE", "OUTPUT_NAMES", "call", "decision_step", "describe", "describe_error",
-           "export_checkpoint", "export_decision", "input_specs", "load", "output_specs", "save", "signature"]
+           "INPUT_NAMES", "NOT_A_TABLE", "NOT_FINITE", "OUTPUT_NAMES", "call", "decision_step", "describe",
+           "describe_error", "export_checkpoint", "export_decision", "input_specs", "load", "output_specs", "save",
+           "signature"]

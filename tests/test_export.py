@@ -130,6 +130,10 @@ def test_bad_input_is_flagged_and_gives_no_push(reloaded):
                                 ex.BAD_STEPS),
         "NaN warm start": ((depth, goal_mask, key, omega, steps, np.full_like(init, np.nan), np.bool_(True)),
                            ex.BAD_INIT),
+        "a frame 1 m deeper": ((np.where(depth < NO_READING, depth + 1.0, depth), goal_mask, key, omega, steps, init,
+                                warm), ex.NOT_A_TABLE),
+        "depth x 1.1": ((np.where(depth < NO_READING, depth * 1.1, depth), goal_mask, key, omega, steps, init, warm),
+                        ex.NOT_A_TABLE),
     }
     for what, (args, bit) in cases.items():
         out = reloaded.call(*args)
@@ -140,6 +144,40 @@ def test_bad_input_is_flagged_and_gives_no_push(reloaded):
     assert int(reloaded.call(*inputs(5))["error"]) == 0 and ex.describe_error(0) == ""
     with pytest.raises(ValueError, match="shape"):
         reloaded.call(depth[:5], goal_mask, key, omega, steps, init, warm)
+
+
+def test_the_file_refuses_the_frames_plan_refuses(reloaded):
+    """The table check (``io.frames.table_fit``) flags a frame in the file exactly where ``check_table``, plan's
+    rule, raises: scaled and shifted depths, and noise, but not the frames of a table."""
+    depth, *rest = inputs(9)
+    seen = depth < NO_READING
+    rng = np.random.default_rng(0)
+    variants = {"as is": depth, "x 1.02": depth * 1.02, "x 1.05": depth * 1.05, "+ 2 cm": depth + 0.02,
+                "+ 5 cm": depth + 0.05, "noise": rng.uniform(0.5, 1.5, depth.shape), "x 0.5": depth * 0.5}
+    verdicts = {}
+    for what, d in variants.items():
+        d = np.where(seen, d, NO_READING).astype(np.float32)
+        try:
+            frames.check_table(d, CAMERA, what)
+            refused = False
+        except frames.FrameError:
+            refused = True
+        flagged = bool(int(reloaded.call(d, *rest)["error"]) & ex.NOT_A_TABLE)
+        verdicts[what] = (refused, flagged)
+    assert all(refused == flagged for refused, flagged in verdicts.values()), verdicts
+    assert verdicts["as is"] == (False, False) and verdicts["x 0.5"] == (True, True), verdicts
+
+
+def test_a_damaged_file_is_refused_by_its_sidecars_checksum(exported_file, tmp_path):
+    data = bytearray(open(exported_file, "rb").read())
+    info = json.loads(open(exported_file + ".json").read())
+    assert info["sha256"] and ex.load(exported_file) is not None
+    data[len(data) // 2] ^= 1
+    damaged = tmp_path / "decision.jaxexport"
+    damaged.write_bytes(bytes(data))
+    (tmp_path / "decision.jaxexport.json").write_text(json.dumps(info))
+    with pytest.raises(ValueError, match="SHA-256"):
+        ex.load(str(damaged))
 
 
 def test_convenience_call_and_key_types(reloaded):

@@ -7,6 +7,8 @@ from __future__ import annotations
 import os
 
 import cv2
+import jax
+import jax.numpy as jnp
 import numpy as np
 
 from dynres_jax.errors import InputError
@@ -109,20 +111,36 @@ def load_frame(depth_path: str, rgb_path: str, camera_path: str) -> tuple[Observ
     return Observation(metres, unknown, unknown, rgb), camera
 
 
+def table_fit(depth, camera: Camera):
+    """What says a depth frame [H, W] (m) shows a table where ``camera`` puts it: (the median height of its readings
+    as world points, m; the share of readings within TABLE_BAND of that median; its median reading, m); NaN, 0, NaN
+    for a frame with no reading. NumPy in, NumPy out (float64); JAX (traceable) otherwise, so ``check_table`` and
+    the exported decision (``export``) judge a frame by the same numbers."""
+    xp = jnp if isinstance(depth, jax.Array) else np
+    depth = xp.asarray(depth)
+    seen = is_reading(depth)
+    z = camera.pixel_to_world(camera.pixel_centres(), xp.where(seen, depth, 1.0))[..., 2]
+    height = xp.nanmedian(xp.where(seen, z, xp.nan))
+    flat = xp.sum(seen & (xp.abs(z - height) < TABLE_BAND)) / xp.maximum(xp.sum(seen), 1)
+    return height, flat, xp.nanmedian(xp.where(seen, depth, xp.nan))
+
+
+def on_a_table(height, flat, median) -> bool:
+    """Whether ``table_fit``'s numbers pass: the median point within TABLE_OFFSET of the table plane, TABLE_SHARE of
+    the readings flat, the median reading within [MIN_DEPTH, MAX_DEPTH] (traceable)."""
+    return (abs(height) <= TABLE_OFFSET) & (flat >= TABLE_SHARE) & (MIN_DEPTH <= median) & (median <= MAX_DEPTH)
+
+
 def check_table(depth, camera: Camera, what: str) -> None:
-    """FrameError naming ``what`` unless the frame shows a table where the camera says it is: its readings as world
-    points (through the camera's intrinsics and pose) have a median height within TABLE_OFFSET of z = 0, and
-    TABLE_SHARE of them lie within TABLE_BAND of that median (a flat table, not noise). Catches a depth scaled by
-    mistake, a camera file of another camera or pose, and frames of no table."""
-    seen = is_reading(np.asarray(depth))
-    uv = camera.pixel_centres()[seen]
-    z = np.asarray(camera.pixel_to_world(uv, np.asarray(depth)[seen]))[:, 2].astype(np.float64)
-    median = float(np.median(z)) if z.size else np.nan
-    if not np.isfinite(median) or abs(median) > TABLE_OFFSET:
-        raise FrameError(f"{what}: the frame's median point lies {median:+.3f} m from the table plane the camera "
+    """FrameError naming ``what`` unless the frame shows a table where the camera says it is (``table_fit``): its
+    readings as world points (through the camera's intrinsics and pose) have a median height within TABLE_OFFSET of
+    z = 0, and TABLE_SHARE of them lie within TABLE_BAND of that median (a flat table, not noise). Catches a depth
+    scaled by mistake, a camera file of another camera or pose, and frames of no table."""
+    height, flat, _ = (float(x) for x in table_fit(np.asarray(depth), camera))
+    if not (np.isfinite(height) and abs(height) <= TABLE_OFFSET):
+        raise FrameError(f"{what}: the frame's median point lies {height:+.3f} m from the table plane the camera "
                          f"implies (at most {TABLE_OFFSET} m): the depth is scaled, or the camera's intrinsics or pose "
                          "are another camera's")
-    flat = float(np.mean(np.abs(z - median) < TABLE_BAND))
     if flat < TABLE_SHARE:
         raise FrameError(f"{what}: only {flat:.0%} of the readings lie within {TABLE_BAND} m of the table's height "
                          f"(a table top gives at least {TABLE_SHARE:.0%}): the depth is noise, or not of a table top")
