@@ -2,7 +2,14 @@
 
 Task commands: gather, redistribute, sort, plan, goal, robot. Evaluation: evaluate, eval_dynamics, tradeoff. Learning:
 generate_data, train_dynamics, label_resolution, train_regressor. Other: simulate, export. ``dynres COMMAND --help``
-for each; ``-`` and ``_`` are the same in a command's name.
+for each; ``-`` and ``_`` are the same in a command's name. For example:
+
+    dynres gather --out out/gather                                   # the main job: Gather on the shipped model
+    dynres redistribute --letter T --out out/letter                  # a letter; --goal-png G.png: your own shape
+    dynres sort --kind almond mnm --out out/sort                     # two kinds, each to its own disc
+    dynres evaluate --task gather --episodes 64 --out runs/eval      # paired methods, intervals, McNemar
+    dynres plan --depth D.png --rgb C.png --camera cam.json --goal G.png --out out/push.png   # one push, a real frame
+    dynres export --out out/decision.jaxexport                       # the whole decision as one file for a robot
 """
 
 from __future__ import annotations

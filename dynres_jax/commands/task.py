@@ -1,10 +1,12 @@
 """One closed-loop episode of a task (``dynres_jax.control.tasks``) at a fixed or adaptive resolution ω; the body of
 the task commands:
 
-    python -m experiments.gather --out out/gather
-    python -m experiments.redistribute --letter T --out out/redistribute
-    python -m experiments.redistribute --goal-png seven.png --out out/seven   # your own shape, e.g. from
-    python -m experiments.goal --letter 7 --height 0.12 --out seven.png        # (or --mask drawing.png)
+    python -m experiments.gather --out out/gather                          # a disc of random centre and radius
+    python -m experiments.gather --resolution adaptive --out out/adaptive  # the regressor g picks ω every step
+    python -m experiments.gather --time-budget 0.25 --out out/budget       # the Adam steps that fit in 0.25 s
+    python -m experiments.redistribute --letter T --out out/redistribute   # any characters OpenCV draws
+    python -m experiments.goal --letter 7 --height 0.12 --out seven.png    # your own shape (or --mask drawing.png)
+    python -m experiments.redistribute --goal-png seven.png --out out/seven   # into it (gather takes --goal-png too)
 
 Writes ``episode.gif`` (observation, goal in green, particles in red), ``final.png`` and ``metrics.json`` (a record
 per MPC step). Dynamics: the trained checkpoint given by ``--ckpt`` (default: the shipped one); ``--dynamics sweep``
@@ -211,7 +213,9 @@ def write_episode(out: str, frames: list) -> None:
 
 def main(task: str, argv=None):
     spec = tasks.TASKS[task]
-    parser = checks.parser(task, spec.description + "\n\n" + (docstring(__name__).split("\n\n", 2) + ["", ""])[2])
+    _, examples, rest = (docstring(__name__).split("\n\n", 2) + ["", ""])[:3]
+    mine = [line for line in examples.splitlines() if f"experiments.{task} " in line or "goal" in line.split("#")[0]]
+    parser = checks.parser(task, "\n\n".join([spec.description, "\n".join(mine), rest]))
     add_loop_args(parser, task)
     parser.add_argument("--kind", default="coffee", choices=sorted(KINDS))
     parser.add_argument("--pieces", type=checks.count(1), default=None,
