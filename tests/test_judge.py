@@ -114,7 +114,8 @@ def test_the_judge_asks_for_the_refined_candidates_of_one_plan(scene):
     assert candidate.proposals == "plans" and np.all(candidate.omega == 50) and isinstance(orders.keep, JudgeKeep)
     with pytest.raises(ValueError, match="one plan per step"):
         JudgeScored(BestOfK(FixedOmega(goals, 50), 3), sweep_dynamics(0.04))(0, obs)
-    kinds = KindGoals(jax.tree.map(lambda x: jnp.stack([x, x], 1), goals), jnp.zeros((B, 2), bool))
+    pair = jax.tree.map(lambda x: jnp.stack([x, x], 1), goals)
+    kinds = KindGoals(pair, jnp.zeros((B, 2), bool), pair.distance, jnp.zeros(B))
     with pytest.raises(ValueError, match="Sort"):
         JudgeScored(FixedOmega(kinds, 50), sweep_dynamics(0.04))(0, obs)
 
