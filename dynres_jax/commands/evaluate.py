@@ -246,9 +246,9 @@ def run_methods(args, rank: int, size: int, sim, main_model, cnn_model, judge=No
     results = {}
     with process_pool(args.workers) if engines.uses_workers(args.backend) else contextlib.nullcontext() as processes:
         pool = make_pool(sim, args.backend, processes)
-        mask = None if args.goal_png is None else load_goal(args.goal_png, pool.camera)  # every episode's goal
-        drawn = ([tasks.draw_goal(args.task, int(i), args.seed, pool.env, args.letters) for i in mine] if mask is None
-                 else [tasks.mask_goal(pool.env, mask)] * len(mine))
+        drawn = ([tasks.draw_goal(args.task, int(i), args.seed, pool.env, args.letters) for i in mine]
+                 if args.goal_png is None else  # the user's goal, every episode's
+                 [tasks.mask_goal(pool.env, load_goal(args.goal_png, pool.camera))] * len(mine))
         sort = tasks.TASKS[args.task].kinds == 2  # its goals: a disc per kind; d and the timing table: kind 0's
         goals = make_goals([mask[0] if sort else mask for mask, _ in drawn], pool.camera)  # episode i's goal
         # depends on (seed, i) alone: each process draws its own

@@ -108,9 +108,9 @@ def objective(positions, mask, goal: Goal, camera: Camera):
 
 
 def _intrusion(pixels, valid, avoid):
-    """How deep points at pixels [P, 2] with valid [P] lie inside a region of signed distance field avoid [H, W]:
-    Σ_p max(0, -SDF(p)) / ω (pixels; 0 outside the region, and when ω = 0)."""
-    depth = jax.nn.relu(-bilinear(avoid, jnp.where(valid[:, None], pixels, 0.0)))
+    """How deep points at pixels [P, 2] (finite) with valid [P] lie inside a region of signed distance field avoid
+    [H, W]: Σ_p max(0, -SDF(p)) / ω (pixels; 0 outside the region, and when ω = 0)."""
+    depth = jax.nn.relu(-bilinear(avoid, pixels))
     return jnp.sum(jnp.where(valid, depth, 0.0)) / jnp.maximum(jnp.sum(valid), 1)
 
 
@@ -123,9 +123,9 @@ def kind_costs(positions, mask, kinds, goals: KindGoals, camera: Camera):
     mask = jnp.asarray(mask, bool)
     uv, _ = camera.world_to_pixel(jnp.where(mask[:, None], jnp.asarray(positions, jnp.float32), 0.0))
 
-    def one(goal, avoid, k):
+    def one(goal, avoid, k):  # c (``objective``) and the intrusion of one kind, on the particles projected once
         mine = mask & (kinds == k)
-        return objective(positions, mine, goal, camera) + goals.mixing * _intrusion(uv, mine, avoid)
+        return _cost(uv, mine, goal) + goals.mixing * _intrusion(uv, mine, avoid)
 
     return jax.vmap(one)(goals.goals, goals.avoid, jnp.arange(goals.hold.shape[0]))
 

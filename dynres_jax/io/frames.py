@@ -102,10 +102,6 @@ def load_frame(depth_path: str, rgb_path: str, camera_path: str) -> tuple[Observ
     seen = is_reading(metres)
     if not seen.any():
         raise FrameError(f"depth file {depth_path!r} has no reading (every pixel 0)")
-    median = float(np.median(metres[seen]))
-    if not MIN_DEPTH <= median <= MAX_DEPTH:
-        raise FrameError(f"depth file {depth_path!r}: its median reading is {median:g} m; a table-top camera sees "
-                         f"[{MIN_DEPTH}, {MAX_DEPTH}] m (depth must be saved in millimetres)")
     check_table(metres, camera, f"depth file {depth_path!r} with camera {camera_path!r}")
     unknown = np.full(depth.shape, -1, np.int32)
     return Observation(metres, unknown, unknown, rgb), camera
@@ -132,11 +128,15 @@ def on_a_table(height, flat, median) -> bool:
 
 
 def check_table(depth, camera: Camera, what: str) -> None:
-    """FrameError naming ``what`` unless the frame shows a table where the camera says it is (``table_fit``): its
-    readings as world points (through the camera's intrinsics and pose) have a median height within TABLE_OFFSET of
-    z = 0, and TABLE_SHARE of them lie within TABLE_BAND of that median (a flat table, not noise). Catches a depth
-    scaled by mistake, a camera file of another camera or pose, and frames of no table."""
-    height, flat, _ = (float(x) for x in table_fit(np.asarray(depth), camera))
+    """FrameError naming ``what`` unless the frame shows a table where the camera says it is (``table_fit``, the rule
+    of ``on_a_table``): its median reading within [MIN_DEPTH, MAX_DEPTH] m, its readings as world points (through the
+    camera's intrinsics and pose) with a median height within TABLE_OFFSET of z = 0, and TABLE_SHARE of them within
+    TABLE_BAND of that median (a flat table, not noise). Catches metres saved as millimetres, a depth scaled by
+    mistake, a camera file of another camera or pose, and frames of no table."""
+    height, flat, median = (float(x) for x in table_fit(np.asarray(depth), camera))
+    if not MIN_DEPTH <= median <= MAX_DEPTH:
+        raise FrameError(f"{what}: its median reading is {median:g} m; a table-top camera sees [{MIN_DEPTH}, "
+                         f"{MAX_DEPTH}] m (depth must be saved in millimetres)")
     if not (np.isfinite(height) and abs(height) <= TABLE_OFFSET):
         raise FrameError(f"{what}: the frame's median point lies {height:+.3f} m from the table plane the camera "
                          f"implies (at most {TABLE_OFFSET} m): the depth is scaled, or the camera's intrinsics or pose "
