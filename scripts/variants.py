@@ -1,0 +1,105 @@
+"""Policy variants compared episode by episode, from the folders ``scripts/gpu_variants.sh`` wrote: per kind (Sort:
+pair) and variant, or per goal character with ``--letters``, the success share (``tasks.episode_success``) with its
+Wilson interval, and each variant against the first (paired: successes only here / only there with McNemar's p, final
+d's mean difference with its bootstrap interval); Sort's failures by cause.
+
+    python scripts/variants.py --runs RUNS/variants --variants base mix10 --out docs/sort/mixing/fresh.md
+    python scripts/variants.py --runs RUNS/variants --task redistribute --letters F2O7 --variants s20 s40
+
+RUNS holds VARIANT/TASK-KIND/METHOD.json (``--method``, default 50). A Sort failure is "mixing" when both kinds are
+at least 80 % inside their goals but 5 % or more of the pieces lie in the other kind's goal, "short" when a kind is
+below 80 % with mixing under 5 %, "both" otherwise. With --letters, episode i's character is letters[i % len]
+(evaluate's rule). Writes the Markdown table to --out and prints it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import glob
+import json
+import os
+
+import numpy as np
+
+from dynres_jax.control.tasks import SORT_INSIDE, SORT_MIXING, episode_success
+from dynres_jax.io import files
+from dynres_jax.stats import mcnemar, paired_bootstrap, wilson
+
+
+def failures(result: dict) -> str:
+    """A Sort method's results -> its failures by cause, "mixing / short / both"."""
+    inside = np.asarray(result["final_kind_inside"]).min(axis=1) >= SORT_INSIDE - 1e-6
+    mixed = np.asarray(result["final_mixing"]) >= SORT_MIXING
+    failed = ~episode_success("sort", result)
+    counts = failed & inside & mixed, failed & ~inside & ~mixed, failed & ~inside & mixed
+    return " / ".join(str(int(np.sum(c))) for c in counts)
+
+
+def groups(task: str, n: int, letters: str | None) -> dict[str, np.ndarray]:
+    """The rows of a kind's table: every episode, then, with letters, each character's episodes."""
+    rows = {"all": np.ones(n, bool)}
+    for c in letters or "":
+        rows[c] = np.arange(n) % len(letters) == letters.index(c)
+    return rows
+
+
+def table(runs: str, task: str, variants: list[str], method: str, letters: str | None = None) -> str:
+    """The Markdown table: rows (kind, goal character, variant)."""
+    sort = task == "sort"
+    lines = ["| kind | goal | variant | success (95 % CI) |" + (" failures: mixing / short / both |" if sort else "")
+             + f" against {variants[0]}: only here / only there (McNemar p) | Δ final d (95 % CI) |",
+             "|---|---|---|---:|" + ("---:|" if sort else "") + "---:|---:|"]
+    kinds = sorted({os.path.basename(p)[len(task) + 1:] for p in glob.glob(os.path.join(runs, "*", f"{task}-*"))
+                    if os.path.isdir(p)})
+    for kind in kinds:
+        results = {}
+        for v in variants:
+            path = os.path.join(runs, v, f"{task}-{kind}", f"{method}.json")
+            if os.path.exists(path):
+                with open(path) as f:
+                    results[v] = json.load(f)
+        if variants[0] not in results:
+            continue
+        first = results[variants[0]]
+        n = min(len(r["final_distance"]) for r in results.values())  # a shorter run pairs on its first episodes
+        base = episode_success(task, first)[:n]
+        for name, rows in groups(task, n, letters).items():
+            for v, r in results.items():
+                ok = episode_success(task, r)[:n][rows]
+                lo, hi = wilson(int(ok.sum()), len(ok))
+                row = f"| {kind} | {name} | {v} | {ok.mean():.0%} ({lo:.0%}-{hi:.0%}), {ok.sum()} of {len(ok)} |"
+                if sort:
+                    row += f" {failures(r) if name == 'all' else ''} |"
+                if v == variants[0]:
+                    lines.append(row + " | |")
+                    continue
+                test = mcnemar(ok, base[rows])
+                p = "p < 0.001" if test["p"] < 0.001 else f"p = {test['p']:.3f}"
+                row += f" {test['first_only']} / {test['second_only']} ({p}) |"
+                if rows.sum() < 2:  # no interval from one episode
+                    lines.append(row + " |")
+                    continue
+                delta = paired_bootstrap(np.asarray(r["final_distance"])[:n][rows],
+                                         np.asarray(first["final_distance"])[:n][rows])
+                lines.append(row + f" {delta['mean']:+.2f} [{delta['ci95'][0]:+.2f}, {delta['ci95'][1]:+.2f}] |")
+    return "\n".join(lines) + "\n"
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--runs", required=True, help="the variants folder of gpu_variants.sh")
+    parser.add_argument("--variants", nargs="+", required=True, help="variant folders; the first is the reference")
+    parser.add_argument("--task", default="sort", choices=("gather", "redistribute", "sort"))
+    parser.add_argument("--method", default="50")
+    parser.add_argument("--letters", default=None, help="Redistribute: rows per goal character (evaluate's --letters)")
+    parser.add_argument("--out", default=None, help="write the table here (Markdown)")
+    args = parser.parse_args(argv)
+    text = table(args.runs, args.task, args.variants, args.method, args.letters)
+    if args.out:
+        os.makedirs(os.path.dirname(args.out) or ".", exist_ok=True)
+        files.write_text(args.out, text)
+    print(text)
+
+
+if __name__ == "__main__":
+    main()
