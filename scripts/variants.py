@@ -9,7 +9,8 @@ d's mean difference with its bootstrap interval); Sort's failures by cause.
 RUNS holds VARIANT/TASK-KIND/METHOD.json (``--method``, default 50). A Sort failure is "mixing" when both kinds are
 at least 80 % inside their goals but 5 % or more of the pieces lie in the other kind's goal, "short" when a kind is
 below 80 % with mixing under 5 %, "both" otherwise. With --letters, episode i's character is letters[i % len]
-(evaluate's rule). Writes the Markdown table to --out and prints it.
+(evaluate's rule). Writes the Markdown table to --out and prints it; --plot PNG draws each variant's mean inside
+share and d against the MPC step.
 """
 
 from __future__ import annotations
@@ -66,7 +67,7 @@ def table(runs: str, task: str, variants: list[str], method: str, letters: str |
         for name, rows in groups(task, n, letters).items():
             for v, r in results.items():
                 ok = episode_success(task, r)[:n][rows]
-                lo, hi = wilson(int(ok.sum()), len(ok))
+                lo, hi = (max(0.0, x) for x in wilson(int(ok.sum()), len(ok)))  # no "-0 %"
                 row = f"| {kind} | {name} | {v} | {ok.mean():.0%} ({lo:.0%}-{hi:.0%}), {ok.sum()} of {len(ok)} |"
                 if sort:
                     row += f" {failures(r) if name == 'all' else ''} |"
@@ -85,6 +86,32 @@ def table(runs: str, task: str, variants: list[str], method: str, letters: str |
     return "\n".join(lines) + "\n"
 
 
+def plot(runs: str, task: str, variants: list[str], method: str, path: str) -> None:
+    """Each variant's (and kind's) mean inside share and mean d over its MPC steps, as a PNG at path."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, (inside, distance) = plt.subplots(1, 2, figsize=(10, 3.6))
+    for v in variants:
+        for p in sorted(glob.glob(os.path.join(runs, v, f"{task}-*", f"{method}.json"))):
+            with open(p) as f:
+                r = json.load(f)
+            label = f"{v} ({os.path.basename(os.path.dirname(p))[len(task) + 1:]})"
+            steps = np.arange(1, len(r["mean_inside"]) + 1)
+            inside.plot(steps, np.asarray(r["mean_inside"]) * 100, label=label)
+            distance.plot(steps, r["mean_distance"], label=label)
+    inside.set(xlabel="MPC step", ylabel="pieces inside the goal (%, mean)")
+    distance.set(xlabel="MPC step", ylabel="d (px, mean)")
+    inside.legend(fontsize=8)
+    for ax in (inside, distance):
+        ax.grid(alpha=0.3)
+    fig.tight_layout()
+    files.atomic_write(path, lambda f: fig.savefig(f, format="png", dpi=110))
+    plt.close(fig)
+
+
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--runs", required=True, help="the variants folder of gpu_variants.sh")
@@ -93,11 +120,14 @@ def main(argv=None):
     parser.add_argument("--method", default="50")
     parser.add_argument("--letters", default=None, help="Redistribute: rows per goal character (evaluate's --letters)")
     parser.add_argument("--out", default=None, help="write the table here (Markdown)")
+    parser.add_argument("--plot", default=None, metavar="PNG", help="draw the variants' means over the MPC steps here")
     args = parser.parse_args(argv)
     text = table(args.runs, args.task, args.variants, args.method, args.letters)
     if args.out:
         os.makedirs(os.path.dirname(args.out) or ".", exist_ok=True)
         files.write_text(args.out, text)
+    if args.plot:
+        plot(args.runs, args.task, args.variants, args.method, args.plot)
     print(text)
 
 

@@ -45,3 +45,25 @@ def test_disc_and_letter_share_centre_and_area(env, letter):
 
     np.testing.assert_allclose(box_centre(disc), box_centre(text), atol=1.5)  # pixels
     assert np.all(np.abs(info["centre"]) <= 0.03)
+
+
+def test_each_task_sets_its_episode_length_where_no_flag_does(tmp_path):
+    """The commands' and evaluate's --mpc-steps default to the task's (Gather the paper's 20, Redistribute 60, Sort
+    30); a flag wins, and --quick's 3 wins over the task's."""
+    import argparse
+
+    from dynres_jax.commands import evaluate, sort
+    from dynres_jax.commands.task import add_loop_args
+
+    assert {name: t.mpc_steps for name, t in tasks.TASKS.items()} == dict(gather=20, redistribute=60, sort=30)
+    for name in tasks.TASKS:  # the flags every task command takes
+        parser = argparse.ArgumentParser()
+        add_loop_args(parser, name)
+        assert parser.parse_args([]).mpc_steps == tasks.TASKS[name].mpc_steps
+    assert sort.build_parser().parse_args([]).mpc_steps == 30
+    parser = evaluate.build_parser()
+    for argv, want in ((["--task", "redistribute"], 60), (["--task", "sort"], 30), ([], 20),
+                       (["--task", "redistribute", "--mpc-steps", "7"], 7), (["--task", "redistribute", "--quick"], 3)):
+        args = parser.parse_args([*argv, "--out", str(tmp_path)])
+        evaluate.apply_defaults(parser, args)
+        assert args.mpc_steps == want, argv

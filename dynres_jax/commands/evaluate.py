@@ -98,7 +98,9 @@ def build_parser():
     parser = checks.parser("evaluate", __doc__)
     parser.add_argument("--task", default="gather", choices=sorted(tasks.TASKS))
     parser.add_argument("--episodes", type=checks.count(1), default=64)
-    parser.add_argument("--mpc-steps", type=checks.count(1), default=20, help="MPC steps per episode")
+    parser.add_argument("--mpc-steps", type=checks.count(1), default=None,
+                        help="MPC steps per episode (default: the task's, " + ", ".join(
+                            f"{name} {task.mpc_steps}" for name, task in sorted(tasks.TASKS.items())) + ")")
     parser.add_argument("--methods", nargs="+", default=None,
                         help=f"default {' '.join(METHODS)} (Sort: {' '.join(SORT_METHODS)}). "
                              "Fixed ω (integers), 'adaptive' (the regressor picks ω), 'probe' (every step plans at "
@@ -175,12 +177,20 @@ def resolve_scene(parser, args) -> tuple[tuple[str, ...], tuple[int, ...]]:
     return tuple(kinds), tuple(pieces)
 
 
-def check_args(parser, args):
-    """Resolve and check the flags before any work (parser.error naming the problem). Returns (rank, size, sim,
-    main_model, cnn_model): this process in the job, the worlds' SimConfig and the loaded models."""
+def apply_defaults(parser, args) -> None:
+    """The defaults that depend on other flags: --quick's sizes (``QUICK``) where a flag does not set them, then the
+    task's MPC steps (``tasks.Task.mpc_steps``) where neither does."""
     for name, value in QUICK.items() if args.quick else ():
         if getattr(args, name) == parser.get_default(name):
             setattr(args, name, value)
+    if args.mpc_steps is None:
+        args.mpc_steps = tasks.TASKS[args.task].mpc_steps
+
+
+def check_args(parser, args):
+    """Resolve and check the flags before any work (parser.error naming the problem). Returns (rank, size, sim,
+    main_model, cnn_model): this process in the job, the worlds' SimConfig and the loaded models."""
+    apply_defaults(parser, args)
     if args.deterministic:
         deterministic(parser)
     rank, size = distributed.from_args(parser, args)

@@ -71,7 +71,8 @@ def add_loop_args(parser: argparse.ArgumentParser, task: str, adaptive: bool = T
     """The flags every closed-loop task command takes (``--out`` defaults to out/TASK); adaptive: whether
     ``--resolution`` may be 'adaptive' (Sort plans at one ω)."""
     parser.add_argument("--seed", type=checks.seed, default=0)
-    parser.add_argument("--mpc-steps", type=checks.count(1), default=20, help="MPC steps per episode")
+    parser.add_argument("--mpc-steps", type=checks.count(1), default=tasks.TASKS[task].mpc_steps,
+                        help=f"MPC steps per episode (default {tasks.TASKS[task].mpc_steps})")
     if not adaptive:
         parser.add_argument("--resolution", type=checks.omega, default=50, help="ω: particles the planner reasons with")
     else:
