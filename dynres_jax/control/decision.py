@@ -17,6 +17,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.tree_util import Partial
 
+from dynres_jax.chunks import in_chunks
 from dynres_jax.control.goals import Goal, KindGoals
 from dynres_jax.control.objective import SAMPLES_PER_PARTICLE, kind_costs, kind_objective, objective
 from dynres_jax.control.planner import PlannerConfig, plan, sample_pushes
@@ -127,18 +128,19 @@ def _decide_batch(obs, goal, key, init, warm, omega, adam_steps, kinds, *, spec,
 def decide_batch(obs, goals, keys, init, warm, omega, adam_steps, kinds=None, *, spec: DecisionSpec, dynamics,
                  camera):
     """``perceive_and_decide`` over a batch of episodes (every argument with a leading axis [B], warm may be one for
-    all) as one compiled function per spec (and model and camera). init [B, T, 4] (used where warm); warm [] or [B],
-    omega [B], adam_steps [B] and kinds [B] (None: every piece) are traced. The particles are checked: bad perception
-    input raises a ValueError naming it (``perception.check_particles``). Returns (Particles [B], c [B],
-    PlanResult [B])."""
+    all) as one compiled function per spec (and model and camera), run in chunks of a fixed size
+    (``chunks.in_chunks``), so an episode decides alike whatever runs beside it. init [B, T, 4] (used where warm);
+    warm [] or [B], omega [B], adam_steps [B] and kinds [B] (None: every piece) are traced. The particles are
+    checked: bad perception input raises a ValueError naming it (``perception.check_particles``). Returns
+    (Particles [B], c [B], PlanResult [B])."""
     if kinds is not None and isinstance(goals, KindGoals):
         raise ValueError("KindGoals score every kind's particles: a decision perceives every piece (kinds=None)")
     omega = np.asarray(omega, np.int32)
     warm = jnp.broadcast_to(jnp.asarray(warm, bool), omega.shape)
-    particles, c_now, result = _decide_batch(obs, goals, keys, jnp.asarray(init, jnp.float32), warm,
-                                             jnp.asarray(omega), jnp.asarray(adam_steps, jnp.int32),
-                                             None if kinds is None else jnp.asarray(kinds, jnp.int32),
-                                             spec=spec, dynamics=dynamics, camera=camera)
+    decide_chunk = functools.partial(_decide_batch, spec=spec, dynamics=dynamics, camera=camera)
+    particles, c_now, result = in_chunks(decide_chunk, obs, goals, keys, jnp.asarray(init, jnp.float32), warm,
+                                         jnp.asarray(omega), jnp.asarray(adam_steps, jnp.int32),
+                                         None if kinds is None else jnp.asarray(kinds, jnp.int32))
     check_particles(particles, omega, spec.capacity, "perception failed in episodes")
     return particles, c_now, result
 

@@ -14,6 +14,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from dynres_jax.chunks import in_chunks
 from dynres_jax.control import budget
 from dynres_jax.control.decision import Situation, per_episode
 from dynres_jax.control.goals import KindGoals
@@ -100,7 +101,8 @@ def scorer(camera, piece_kinds: tuple[int, ...]):
     """A jitted ``(states [B], goals [B]) -> {distance, inside}`` on the true state (``_measure``)."""
     one = per_episode(functools.partial(_measure, camera, jnp.asarray(piece_kinds)))
     scores = jax.jit(lambda obs, pos, goals: one(obs, pos, goals))
-    return lambda states, goals: dict(zip(("distance", "inside"), scores(states.obs, states.pos, goals), strict=True))
+    return lambda states, goals: dict(zip(("distance", "inside"), in_chunks(scores, states.obs, states.pos, goals),
+                                          strict=True))
 
 
 def _measure(camera, piece_kinds, obs, pos, goal):

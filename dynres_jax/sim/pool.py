@@ -23,6 +23,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from dynres_jax.chunks import in_chunks
 from dynres_jax.config import CameraConfig, SceneConfig, SimConfig
 from dynres_jax.sim import engines, warp
 from dynres_jax.sim.camera import Camera, Renderer
@@ -157,7 +158,8 @@ class WorldPool:
     def _states(self, rows) -> State:
         qpos, qvel, pos, mat, broken = (np.stack(x) for x in zip(*rows, strict=True))
         pos, mat = jnp.asarray(pos), jnp.asarray(mat)
-        return State(jnp.asarray(qpos), jnp.asarray(qvel), pos, mat, self._render(pos, mat), jnp.asarray(broken))
+        return State(jnp.asarray(qpos), jnp.asarray(qvel), pos, mat, in_chunks(self._render, pos, mat),
+                     jnp.asarray(broken))
 
     def reset(self, keys) -> State:
         """New settled piles, one per key: keys [B, 2] -> State [B]."""
