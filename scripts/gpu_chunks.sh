@@ -7,6 +7,7 @@
 # time ratio against the first source's. FLAGS: more evaluate flags (a CPU dry run: EPISODES=3 FEW=1 STEPS=1
 # FLAGS="--quick --samples 4 --adam-steps 2").
 #   OUT=runs/chunks SOURCES="/tmp/main ." bash scripts/gpu_chunks.sh
+#   (two GPUs: CUDA_VISIBLE_DEVICES=0 SOURCES=/tmp/main ... & CUDA_VISIBLE_DEVICES=1 SOURCES=. ... & wait; then both)
 set -uo pipefail
 OUT=${OUT:-runs/chunks}; OUT=$(mkdir -p "$OUT" && cd "$OUT" && pwd)  # absolute: the runs start in each source
 EPISODES=${EPISODES:-256}; FEW=${FEW:-32}; STEPS=${STEPS:-10}; SEED=${SEED:-71000}
@@ -15,6 +16,7 @@ names=()
 for src in $SOURCES; do
   name=$(basename "$(cd "$src" && pwd)"); names+=("$name")
   for n in "$EPISODES" "$FEW"; do
+    [ -f "$OUT/$name-$n.wall" ] && continue  # done: a rerun only reports (sources run side by side, then together)
     start=$(date +%s.%N)
     # shellcheck disable=SC2086
     (cd "$src" && python -m experiments.evaluate --task gather --kind "$KIND" --episodes "$n" --methods 50 \
