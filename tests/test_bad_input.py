@@ -66,7 +66,10 @@ def tiny_model():
     (lambda c: c["train"].update(n_max=None), "train.n_max must be a whole number .* got None"),
     (lambda c: c["train"].update(n_max=0), "got 0"),
     (lambda c: c["dynamics"].update(k=0), "DynamicsConfig.k must be at least 1"),
+    (lambda c: c["dynamics"].update(k=10**6), "DynamicsConfig.k must be at least 1 and at most 64, got 1000000"),
+    (lambda c: c["dynamics"].update(hidden=10**5), "DynamicsConfig.hidden must be .* at most 4096"),
     (lambda c: c["dynamics"].update(edge_radius=-1.0), "DynamicsConfig.edge_radius must be positive"),
+    (lambda c: c["dynamics"].update(length_scale=1e300), "DynamicsConfig.length_scale must be .* at most 1 m"),
     (lambda c: c["dynamics"].update(propagation_steps=0), "DynamicsConfig.propagation_steps must be at least 1"),
 ])
 def test_a_sealed_card_is_read_not_trusted(tiny_model, tmp_path, edit, message):

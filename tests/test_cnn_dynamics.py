@@ -59,8 +59,10 @@ def test_parameter_count_and_bad_config():
     default = count_params(nnx.eval_shape(lambda: CNNDynamics(rngs=nnx.Rngs(0))))
     assert default == expected_params(32) == 84_418
     assert count_params(nnx.eval_shape(lambda: CNNDynamics(SMALL, rngs=nnx.Rngs(0)))) == expected_params(8)
-    for bad, message in ((dict(grid=10), "grid must be a multiple of 4"), (dict(grid=4), "at least 8"),
-                         (dict(channels=0), "channels must be positive"), (dict(length_scale=0.0), "length_scale"),
+    for bad, message in ((dict(grid=10), "grid must be a multiple of 4"), (dict(grid=4), r"in \[8, 512\]"),
+                         (dict(grid=4096), r"in \[8, 512\]"), (dict(channels=0), r"channels must be in \[1, 4096\]"),
+                         (dict(channels=10**6), "channels must be in"), (dict(length_scale=0.0), "length_scale"),
+                         (dict(length_scale=5.0), "at most 1 m"),
                          (dict(grid=8.0), "CNNDynamicsConfig.grid must be an int")):
         with pytest.raises((ValueError, TypeError), match=message):
             CNNDynamicsConfig(**bad)

@@ -67,3 +67,22 @@ def test_each_task_sets_its_episode_length_where_no_flag_does(tmp_path):
         args = parser.parse_args([*argv, "--out", str(tmp_path)])
         evaluate.apply_defaults(parser, args)
         assert args.mpc_steps == want, argv
+
+
+def test_a_summary_counts_the_episodes_that_met_the_rule_at_some_step():
+    """Per step success by the task's rule, by hand: episode 0 meets Gather's 90 % only at step 1 and loses it, episode
+    1 only at the end, episode 2 never; Sort's episode 0 meets both shares at step 0 but mixes; the summary's reached
+    share counts the first two, its success share the second alone."""
+    from dynres_jax.commands.evaluation import summarise
+
+    inside = [[0.5, 0.2, 0.3], [0.95, 0.5, 0.89], [0.85, 0.9, 0.7]]  # [T][E]
+    np.testing.assert_array_equal(tasks.step_success("gather", dict(inside=inside)),
+                                  [[False, False, False], [True, False, False], [False, True, False]])
+    r = dict(inside=inside, final_inside=inside[-1], final_distance=[1.0, 2.0, 3.0], omega=[[50] * 3] * 3,
+             broken=[False] * 3)
+    s = summarise({"50": r}, "gather")["methods"]["50"]
+    assert s["reached_share"] == pytest.approx(2 / 3) and s["success_share"] == pytest.approx(1 / 3)
+    kind_inside = [[[0.9, 0.8], [0.7, 0.9]], [[0.9, 0.85], [0.9, 0.9]]]  # [T][E][2]
+    mixing = [[0.06, 0.0], [0.01, 0.04]]
+    np.testing.assert_array_equal(tasks.step_success("sort", dict(kind_inside=kind_inside, mixing=mixing)),
+                                  [[False, False], [True, True]])

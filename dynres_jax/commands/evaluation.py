@@ -41,14 +41,15 @@ def episode_results(records: list[dict], episodes, name: str, starts, finals) ->
 
 def merge(parts: list[dict]) -> dict:
     """The processes' ``episode_results`` of one method -> the method's results in episode order: final d and inside
-    share [E], their means per step [T], ω and Adam steps per step [T][E], broken [E], seconds (the slowest
-    process's), and every piece's (x, y) at the start and the end [E][N][2] (m); Sort's adds final_kind_inside
-    [E][2], final_mixing [E], mean_mixing [T], kind_inside [T][E][2] and mixing [T][E]."""
+    share [E], every step's [T][E] and their means per step [T], ω and Adam steps per step [T][E], broken [E],
+    seconds (the slowest process's), and every piece's (x, y) at the start and the end [E][N][2] (m); Sort's adds
+    final_kind_inside [E][2], final_mixing [E], mean_mixing [T], kind_inside [T][E][2] and mixing [T][E]."""
     order = np.argsort(np.concatenate([p["episode"] for p in parts]))
     cat = lambda key: np.concatenate([np.asarray(p[key]) for p in parts], axis=-1)[..., order]  # noqa: E731
     distance, inside = cat("distance"), cat("inside")
     pieces = lambda key: np.concatenate([np.asarray(p[key]) for p in parts])[order].tolist()  # noqa: E731
     merged = dict(final_distance=distance[-1].tolist(), final_inside=inside[-1].tolist(),
+                  distance=distance.tolist(), inside=inside.tolist(),
                   start_pieces=pieces("start_pieces"), final_pieces=pieces("final_pieces"),
                   mean_distance=distance.mean(axis=1).tolist(), mean_inside=inside.mean(axis=1).tolist(),
                   omega=cat("omega").tolist(), broken=cat("broken").tolist(), adam_steps=cat("adam_steps").tolist(),
@@ -63,17 +64,20 @@ def merge(parts: list[dict]) -> dict:
 
 
 def summarise(results: dict, task: str) -> dict:
-    """Per method: means with 95 % intervals and the success share (by ``task``'s rule; Sort's adds the mean final
-    share of each kind inside its goal and the mixing). Beside them, ``paired``: each other method against the
+    """Per method: means with 95 % intervals, the success share (by ``task``'s rule) and the share that met the rule
+    at some step (``reached_share``: at most what a stop rule could keep); Sort's adds the mean final share of each
+    kind inside its goal and the mixing. Beside them, ``paired``: each other method against the
     reference (adaptive when evaluated, else the first method) on the same episodes: the mean of its final d minus
     the reference's with a paired-bootstrap 95 % interval, and McNemar's test on success."""
     out, success = {}, {method: tasks.episode_success(task, r) for method, r in results.items()}
     for method, r in results.items():
         d, inside = np.array(r["final_distance"]), np.array(r["final_inside"])
         n, k = len(d), int(np.sum(success[method]))
+        reached = int(np.sum(tasks.step_success(task, r).any(axis=0)))  # met the rule at some step
         out[method] = dict(episodes=n, final_distance=float(d.mean()),
                            final_distance_ci95=float(1.96 * d.std(ddof=1) / np.sqrt(n)) if n > 1 else 0.0,
                            final_inside=float(inside.mean()), success_share=k / n, success_ci95=wilson(k, n),
+                           reached_share=reached / n,
                            mean_omega=float(np.mean(r["omega"])), broken=int(np.sum(r["broken"])),
                            dynamics=r.get("dynamics"))
         if "final_kind_inside" in r:
@@ -120,8 +124,8 @@ def report(summary: dict) -> None:
         sort = (f"  kinds inside {' / '.join(f'{x:.1%}' for x in s['final_kind_inside'])}, mixing "
                 f"{s['final_mixing']:.1%}") if "final_kind_inside" in s else ""
         print(f"{method:>8}: final d {s['final_distance']:8.2f} ± {s['final_distance_ci95']:.2f}  inside "
-              f"{s['final_inside']:.1%}{sort}  {rule} in {s['success_share']:.0%} of episodes  "
-              f"mean ω {s['mean_omega']:.1f}")
+              f"{s['final_inside']:.1%}{sort}  {rule} in {s['success_share']:.0%} of episodes "
+              f"({s['reached_share']:.0%} at some step)  mean ω {s['mean_omega']:.1f}")
     for method, p in summary["paired"].items():
         lo, hi = p["delta_d"]["ci95"]
         m = p["success"]

@@ -200,6 +200,15 @@ def episode_success(task: str, results: dict) -> np.ndarray:
     return succeeded(results["final_inside"])
 
 
+def step_success(task: str, results: dict) -> np.ndarray:
+    """Per MPC step and episode of an evaluation (``evaluate``'s METHOD.json: inside [T][E]; Sort's kind_inside
+    [T][E][2] and mixing [T][E]), whether the episode met its task's target after that step -> [T, E] bool. An
+    episode that met it at some step and not at the end is what a stop rule could have kept."""
+    if TASKS[task].kinds == 2:
+        return sort_succeeded(results["kind_inside"], results["mixing"])
+    return succeeded(results["inside"])
+
+
 def success_rule(task: str) -> str:
     """The task's success rule in words (what ``evaluate`` prints beside its success shares)."""
     if TASKS[task].kinds == 2:

@@ -66,12 +66,12 @@ class CNNDynamicsConfig:
 
     def __post_init__(self):
         check_fields(self)
-        if self.grid < 8 or self.grid % 4:
-            raise ValueError(f"grid must be a multiple of 4 and at least 8 (two stride-2 levels), got {self.grid}")
-        if self.channels < 1:
-            raise ValueError(f"channels must be positive, got {self.channels}")
-        if not (self.bin_half_width > 0 and self.length_scale > 0 and self.plate_half_width > 0):
-            raise ValueError("bin_half_width, plate_half_width and length_scale must be positive")
+        if not 8 <= self.grid <= 512 or self.grid % 4:
+            raise ValueError(f"grid must be a multiple of 4 in [8, 512] (two stride-2 levels), got {self.grid}")
+        if not 1 <= self.channels <= 4096:
+            raise ValueError(f"channels must be in [1, 4096], got {self.channels}")
+        if not all(0 < x <= 1 for x in (self.bin_half_width, self.length_scale, self.plate_half_width)):
+            raise ValueError("bin_half_width, plate_half_width and length_scale must be positive and at most 1 m")
 
 
 def cell_centres(grid: int, half_width: float):

@@ -94,6 +94,8 @@ from dynres_jax.models.graph import K_NEIGHBOURS, R_EDGE, build_edges, push_geom
 from dynres_jax.models.propagation import GNSStep, gather_rows, incoming_effects, mlp
 
 LENGTH_SCALE = 0.05  # m: displacements and relative positions are divided by this inside the model
+LIMITS = dict(hidden=4096, propagation_steps=64, k=64)  # the most of each a model may have: a card beyond is refused
+# at once, not after minutes of building it (k: neighbours among at most 100 particles)
 R_REF = 0.02  # m: covering radius whose resolution code is 0
 R_MIN = 1e-3  # m: radii below this (including the 0 of bad perception input) are clipped in ``resolution_code``
 NODE_IN = 5  # guessed displacement (3), attribute (1), resolution code (1)
@@ -127,12 +129,13 @@ class DynamicsConfig:
 
     def __post_init__(self):
         check_fields(self)
-        for name in ("hidden", "propagation_steps", "k"):
-            if getattr(self, name) < 1:
-                raise ValueError(f"DynamicsConfig.{name} must be at least 1, got {getattr(self, name)!r}")
+        for name, most in LIMITS.items():
+            if not 1 <= getattr(self, name) <= most:
+                raise ValueError(f"DynamicsConfig.{name} must be at least 1 and at most {most}, got "
+                                 f"{getattr(self, name)!r}")
         for name in ("plate_half_width", "edge_radius", "length_scale", "bin_half_width"):
-            if not getattr(self, name) > 0:
-                raise ValueError(f"DynamicsConfig.{name} must be positive (m), got {getattr(self, name)!r}")
+            if not 0 < getattr(self, name) <= 1:
+                raise ValueError(f"DynamicsConfig.{name} must be positive and at most 1 m, got {getattr(self, name)!r}")
         if self.processor not in PROCESSORS:
             raise ValueError(f"DynamicsConfig.processor must be one of {', '.join(PROCESSORS)}, got {self.processor!r}")
 
