@@ -23,10 +23,11 @@ every episode the user's goal (its pile still the task's, from (--seed, i)). Sor
 (``sort.SortEpisodes``) at a fixed ω or on the ladder at --best-omega; its d is to the true goals, its inside share
 the lower kind's, its success each kind at least 80 % inside and mixing below 5 % (``tasks.sort_succeeded``). Writes
 per method
-``METHOD.json`` (final d, inside share and success per episode, means per step; finished methods are skipped on a
-rerun),
-``summary.json`` (means with 95 % intervals, success rates, every method paired with adaptive or the first: Δ final d
-with a paired-bootstrap interval, McNemar's test), ``score.png`` and ``steps.png`` (mean d over the MPC steps).
+``METHOD.json`` (final d, inside share and success per episode, both at every step and their means per step;
+finished methods are skipped on a rerun),
+``summary.json`` (means with 95 % intervals, success rates and the share that met the rule at some step, every method
+paired with adaptive or the first: Δ final d with a paired-bootstrap interval, McNemar's test), ``score.png`` and
+``steps.png`` (mean d over the MPC steps).
 
 Several processes share the episodes through jax.distributed (a launcher, or --coordinator, --num-processes,
 --process-id): process I runs episodes I, I + K, ... of every method and writes ``parts/METHOD.I-of-K.json``;
