@@ -159,7 +159,7 @@ def test_training_spans_two_processes_and_resumes_in_both(tmp_path):
     metrics, process 0 alone writes the checkpoints and metrics, and with the last checkpoint deleted both restore the
     one before and train on to the same result (a batch depends on (seed, step) only)."""
     shards, out = str(tmp_path / "data"), str(tmp_path / "run")
-    data.generate(data.quick_config(episodes=20, pushes=3), shards, progress=False)
+    data.generate(data.quick_config(episodes=20, pushes=3, backend="mujoco"), shards, progress=False)  # C MuJoCo
 
     def job() -> list[dict]:
         port = free_port()

@@ -379,7 +379,7 @@ def test_warm_start_off_plans_every_step_from_fresh_samples(episode, monkeypatch
     from dynres_jax.control import mpc
 
     env, state, goal, *_ = episode
-    planner = PlannerConfig(samples=8, adam_steps=2, bound=env.action_bound, max_length=0.1)
+    planner = PlannerConfig(samples=8, adam_steps=20, bound=env.action_bound, max_length=0.1)
     seen = []
 
     def spy(*args, **kwargs):

@@ -272,7 +272,7 @@ def test_traced_step_counts_equal_plans_of_that_many_steps():
     runs that many steps (each compiled alone); the history past the steps run is NaN."""
     positions, mask = pile(jax.random.PRNGKey(4))
     key = jax.random.PRNGKey(5)
-    counts = jnp.array([25, 7, 0, 40])
+    counts = jnp.array([7, 0, 40])  # a part of the steps, none, all
     batched = jax.vmap(lambda n: plan(sweep_dynamics, centroid_cost, positions, mask, key, CFG, adam_steps=n))(counts)
     for i, n in enumerate(counts.tolist()):
         alone = plan(sweep_dynamics, centroid_cost, positions, mask, key, PlannerConfig(samples=16, adam_steps=n,

@@ -39,7 +39,7 @@ CFG = TrainConfig(steps=4, batch=4, horizon=2, n_max=8, max_points=256, eval_eve
 @pytest.fixture(scope="module")
 def shards(tmp_path_factory):
     out = tmp_path_factory.mktemp("data")
-    data.generate(data.quick_config(episodes=20, pushes=3), str(out), progress=False)
+    data.generate(data.quick_config(episodes=20, pushes=3, backend="mujoco"), str(out), progress=False)  # C MuJoCo
     return str(out)
 
 

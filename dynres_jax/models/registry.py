@@ -4,6 +4,7 @@ The one place where ω becomes what a model is conditioned on (``resolution_code
 
 from __future__ import annotations
 
+import functools
 import os
 import warnings
 from dataclasses import dataclass
@@ -115,8 +116,10 @@ def learned_dynamics(model: Dynamics, edge_dtype: str = "float32"):
     return lambda radius: Partial(_Learned(edge_dtype, pair_table), graphdef, state, resolution_code(radius))
 
 
+@functools.cache
 def sweep_dynamics(plate_half_width: float):
-    """radius -> planner dynamics of the sweep heuristic alone (the resolution is irrelevant to it)."""
+    """radius -> planner dynamics of the sweep heuristic alone (the resolution is irrelevant to it); one function per
+    plate, so a second run in one process reuses the planner compiled for the first."""
     return lambda radius: Partial(_sweep, jnp.float32(plate_half_width))
 
 
