@@ -36,7 +36,7 @@ def failures(result: dict) -> str:
     return " / ".join(str(int(np.sum(c))) for c in counts)
 
 
-def groups(task: str, n: int, letters: str | None) -> dict[str, np.ndarray]:
+def groups(n: int, letters: str | None) -> dict[str, np.ndarray]:
     """The rows of a kind's table: every episode, then, with letters, each character's episodes."""
     rows = {"all": np.ones(n, bool)}
     for c in letters or "":
@@ -63,10 +63,11 @@ def table(runs: str, task: str, variants: list[str], method: str, letters: str |
             continue
         first = results[variants[0]]
         n = min(len(r["final_distance"]) for r in results.values())  # a shorter run pairs on its first episodes
-        base = episode_success(task, first)[:n]
-        for name, rows in groups(task, n, letters).items():
+        success = {v: episode_success(task, r)[:n] for v, r in results.items()}
+        base = success[variants[0]]
+        for name, rows in groups(n, letters).items():
             for v, r in results.items():
-                ok = episode_success(task, r)[:n][rows]
+                ok = success[v][rows]
                 lo, hi = (max(0.0, x) for x in wilson(int(ok.sum()), len(ok)))  # no "-0 %"
                 row = f"| {kind} | {name} | {v} | {ok.mean():.0%} ({lo:.0%}-{hi:.0%}), {ok.sum()} of {len(ok)} |"
                 if sort:
