@@ -28,10 +28,11 @@ from dynres_jax.control.goals import disc_goal, make_goal
 from dynres_jax.control.judge import JudgeScored
 from dynres_jax.control.keep import scorer
 from dynres_jax.control.mpc import MPCConfig, run, run_episode
-from dynres_jax.control.objective import distribution_distance
+from dynres_jax.control.objective import distribution_distance, seen_inside
 from dynres_jax.control.planner import PlannerConfig, _plan_jit, plan
 from dynres_jax.io.draw import PUSH_COLOUR, goal_frames, overlay
 from dynres_jax.models.registry import sweep_dynamics
+from dynres_jax.sim.camera import Camera
 from dynres_jax.sim.env import PileEnv
 from dynres_jax.sim.pool import EnvWorlds, WorldPool
 
@@ -421,3 +422,51 @@ def test_a_decision_on_resamplings_plans_on_the_clouds_other_fps_starts(episode)
     np.testing.assert_allclose(np.asarray(particles.positions), np.asarray(sets[0].positions))
     np.testing.assert_allclose(np.asarray(result.best), np.asarray(by_hand.best), atol=1e-6)
     np.testing.assert_allclose(np.asarray(result.costs), np.asarray(by_hand.costs), rtol=1e-5)
+
+
+def test_seen_inside_is_the_share_of_foreground_pixels_on_the_goal():
+    """objective.seen_inside of a hand-made foreground: 4 pixels, one on the goal -> 1/4; none -> 0."""
+    camera = Camera.top_down(CameraConfig(width=16, height=16))
+    goal_mask = np.zeros((16, 16), bool)
+    goal_mask[2:4, 2:4] = True
+    goal, current = make_goal(goal_mask, camera, n_samples=4), np.zeros((16, 16), bool)
+    current[3, 3] = current[10, 10] = current[10, 11] = current[12, 5] = True
+    assert float(seen_inside(current, goal, camera)) == 0.25
+    assert float(seen_inside(np.zeros((16, 16), bool), goal, camera)) == 0.0
+
+
+@pytest.mark.parametrize("stop", ["some", "all"])
+def test_the_stop_rule_holds_an_episode_from_the_frame_that_met_it(stop):
+    """MPCConfig.stop_share: a run that stops equals, episode by episode, the same run without the rule up to the
+    first frame whose seen share met it (t*), and from t* on it pushes nothing: its pieces stay where they were
+    before push t* and its d and share inside are those after push t* - 1 ("all": every episode holds, and the steps
+    where all do are not planned)."""
+    sim = SimConfig(scene=SceneConfig(pieces=(6,)), pile=PileConfig(layout="spread"),
+                    push=PushConfig(max_length=0.1, settle_time=0.04), camera=CameraConfig(width=48, height=48))
+    pool = WorldPool(sim)
+    masks = [disc_goal(pool.camera, np.array(c), 0.06) for c in ([0.0, 0.0], [0.05, -0.03], [-0.04, 0.04])]
+    goals = jax.tree.map(lambda *x: np.stack(x), *[make_goal(m, pool.camera, n_samples=32) for m in masks])
+    planner = PlannerConfig(samples=4, adam_steps=3, bound=pool.env.action_bound, max_length=0.1)
+    cfg = MPCConfig(mpc_steps=4, buckets=(6,), max_points=256, planner=planner)
+    keys, starts = jax.random.split(jax.random.PRNGKey(2), 3), pool.reset(jax.random.split(jax.random.PRNGKey(3), 3))
+    before = []  # the pieces before each push
+    _, free = run(pool, starts, FixedOmega(goals, 6), sweep_dynamics(0.04), cfg, keys, log=lambda s: None,
+                  on_step=[lambda t, states, particles, record: before.append(np.asarray(states.pos))])
+    seen = np.array([r["seen_inside"] for r in free])  # [T, B]
+    share = 1e-6 if stop == "all" else float(np.max(seen[1:])) * 0.9  # met by some episode after a push
+    first = np.array([np.argmax(seen[:, b] >= share) if np.any(seen[:, b] >= share) else 4 for b in range(3)])
+    assert np.all(first >= 1) and (np.all(first < 4) if stop == "all" else np.any(first == 4))
+    lines = []
+    final, held = run(pool, starts, FixedOmega(goals, 6), sweep_dynamics(0.04),
+                      dataclasses.replace(cfg, stop_share=share), keys, log=lines.append)
+    assert len(held) == 4
+    for b in range(3):
+        for t in range(4):
+            assert held[t]["held"][b] == (t >= first[b])
+            source = free[min(t, first[b] - 1)]  # held from t*: the scores after push t* - 1
+            for k in ("distance", "inside", "seen_inside"):
+                np.testing.assert_allclose(held[t][k][b], source[k][b] if k != "seen_inside" else free[t][k][b]
+                                           if t <= first[b] else held[first[b]][k][b], atol=1e-6)
+            assert np.all(np.isnan(held[t]["action"][b])) == (t >= first[b])
+        if first[b] < 4:
+            np.testing.assert_allclose(np.asarray(final.pos)[b], before[first[b]][b], atol=1e-6)

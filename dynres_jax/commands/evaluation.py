@@ -28,22 +28,25 @@ def sort_records(records: list[dict]) -> list[dict]:
 def episode_results(records: list[dict], episodes, name: str, starts, finals) -> dict:
     """One process's episodes of a method (``run_episodes``' records): per-step arrays [T][B] and the final values
     [B], with the episode indices [B], and where every piece started and ended (starts, finals: State [B]). Sort's
-    records (``sort_records``) add kind_inside [T][B][2] and mixing [T][B]."""
+    records (``sort_records``) add kind_inside [T][B][2] and mixing [T][B]; one goal an episode, seen_inside
+    [T][B] (the share the camera saw inside the goal before each push)."""
     steps = lambda key: np.stack([x[key] for x in records]).tolist()  # noqa: E731
     xy = lambda states: np.round(np.asarray(states.pos)[..., :2], 5).tolist()  # noqa: E731  (0.01 mm)
     sort = dict(kind_inside=steps("kind_inside"), mixing=steps("mixing")) if "kind_inside" in records[0] else {}
+    seen = dict(seen_inside=steps("seen_inside")) if "seen_inside" in records[0] else {}
     return dict(episode=[int(i) for i in episodes], distance=steps("distance"), inside=steps("inside"),
                 start_pieces=xy(starts), final_pieces=xy(finals),
                 omega=steps("omega"), adam_steps=steps("adam_steps"), broken=records[-1]["broken"].tolist(),
                 seconds=float(sum(x["seconds"] for x in records)), dynamics=name,
-                device=jax.devices()[0].device_kind, **sort)
+                device=jax.devices()[0].device_kind, **sort, **seen)
 
 
 def merge(parts: list[dict]) -> dict:
     """The processes' ``episode_results`` of one method -> the method's results in episode order: final d and inside
     share [E], every step's [T][E] and their means per step [T], ω and Adam steps per step [T][E], broken [E],
     seconds (the slowest process's), and every piece's (x, y) at the start and the end [E][N][2] (m); Sort's adds
-    final_kind_inside [E][2], final_mixing [E], mean_mixing [T], kind_inside [T][E][2] and mixing [T][E]."""
+    final_kind_inside [E][2], final_mixing [E], mean_mixing [T], kind_inside [T][E][2] and mixing [T][E]; one goal
+    an episode, seen_inside [T][E]."""
     order = np.argsort(np.concatenate([p["episode"] for p in parts]))
     cat = lambda key: np.concatenate([np.asarray(p[key]) for p in parts], axis=-1)[..., order]  # noqa: E731
     distance, inside = cat("distance"), cat("inside")
@@ -55,6 +58,8 @@ def merge(parts: list[dict]) -> dict:
                   omega=cat("omega").tolist(), broken=cat("broken").tolist(), adam_steps=cat("adam_steps").tolist(),
                   seconds=max(p["seconds"] for p in parts), dynamics=parts[0]["dynamics"], device=parts[0]["device"],
                   processes=len(parts))
+    if "seen_inside" in parts[0]:
+        merged.update(seen_inside=cat("seen_inside").tolist())
     if "kind_inside" in parts[0]:  # Sort: [T][B][2] per part, episodes on axis 1
         kind = np.concatenate([np.asarray(p["kind_inside"]) for p in parts], axis=1)[:, order]
         mixing = cat("mixing")

@@ -11,6 +11,7 @@ camera's); GIF frames and other per-step work are ``on_step`` callbacks.
 
 from __future__ import annotations
 
+import functools
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -23,9 +24,10 @@ import numpy as np
 from dynres_jax.config import check_fields
 from dynres_jax.control import budget
 from dynres_jax.control.choosers import Candidate, Chooser
-from dynres_jax.control.decision import DecisionSpec, Situation, batch, decide_batch, episode, fold
-from dynres_jax.control.goals import Goal
+from dynres_jax.control.decision import DecisionSpec, Situation, batch, decide_batch, episode, fold, per_episode
+from dynres_jax.control.goals import Goal, KindGoals
 from dynres_jax.control.keep import KEEPS, keep_lowest_distance, planning_price, scorer
+from dynres_jax.control.objective import seen_inside
 from dynres_jax.control.planner import PlannerConfig
 from dynres_jax.control.views import ExactView
 from dynres_jax.errors import InputError
@@ -42,7 +44,9 @@ class MPCConfig:
     max_points: perception's point cap; planner: the shooting optimiser's settings (its steps: the Adam steps of a
     decision without a time budget, and the most with one); time_budget: seconds per decision on the planning device
     (None: planner.adam_steps every decision); real_depth: perception treats the depth as a real camera's
-    (``sim.sensor``); warm_start: each plan starts from the last, shifted (False: fresh samples, as the reference)."""
+    (``sim.sensor``); warm_start: each plan starts from the last, shifted (False: fresh samples, as the reference);
+    stop_share: an episode holds (pushes no more) from the first frame on which this share of the foreground its
+    camera sees lies inside the goal (``objective.seen_inside``; None: it pushes every step)."""
 
     mpc_steps: int = 20
     buckets: tuple[int, ...] = budget.BUCKETS
@@ -51,9 +55,12 @@ class MPCConfig:
     time_budget: float | None = None
     real_depth: bool = False
     warm_start: bool = True
+    stop_share: float | None = None
 
     def __post_init__(self):
         check_fields(self)
+        if self.stop_share is not None and not 0 < self.stop_share <= 1:
+            raise ValueError(f"stop_share must be in (0, 1] or None, got {self.stop_share}")
         object.__setattr__(self, "buckets", budget.check_buckets(self.buckets))
         if self.mpc_steps < 1:
             raise ValueError(f"mpc_steps must be positive, got {self.mpc_steps}")
@@ -157,18 +164,29 @@ def run(worlds: Worlds, states: State, chooser: Chooser, dynamics, cfg: MPCConfi
     line per step. Stops early when every world broke. A record holds arrays [B]: omega, bucket, adam_steps,
     planning_s (B = 1: the decision's wall time; else the table's price of it, NaN without a budget), objective (c
     before the push), predicted_objective, distance (d after the push) and inside (the share of pieces inside the
-    goal, on the true state), action, broken, the chooser's record fields and scores; and step and seconds."""
+    goal, on the true state), action, broken, the chooser's record fields and scores; and step and seconds. With
+    one goal an episode (not Sort's) it also holds seen_inside (the share its camera saw inside the goal before the
+    push, ``objective.seen_inside``) and held (cfg.stop_share: the episode pushed nothing this step; its action and
+    prediction NaN, its state and scores unchanged). Every run has cfg.mpc_steps records unless every world broke."""
     if cfg.time_budget is not None and timing is None:
         raise ValueError("a closed loop under a time budget needs a timing table (mpc.measure_timing, --timing FILE)")
     view = view or ExactView(worlds.camera)
     score = scorer(worlds.camera, tuple(np.asarray(worlds.scene.kind).tolist()))
-    records, warm = [], False
+    records, warm, held = [], False, np.zeros(len(keys), bool)
     init = jnp.zeros((len(keys), cfg.planner.horizon, 4), jnp.float32)  # no warm start at the first step
     for t in range(cfg.mpc_steps):
         t0 = time.perf_counter()
         step_keys = fold(keys, t)
         seen, camera = view(t, states, step_keys)
         orders = chooser(t, seen)
+        stop = _seen(seen, orders.goals, camera, cfg)
+        if stop and cfg.stop_share is not None:
+            held |= stop["seen_inside"] >= cfg.stop_share
+            if held.all() and records:  # nothing left to push: the last step's scores stand
+                records.append(dict(records[-1], step=t, seconds=time.perf_counter() - t0, **stop,
+                                    **_holding(held, records[-1])))
+                _log_step(log, records[-1], cfg.mpc_steps)
+                continue
         now = Situation(states, seen, camera, orders.goals, orders.kinds, step_keys, init, warm)
         for candidate in orders.candidates:
             announce(cfg, candidate.omega, log)
@@ -177,8 +195,14 @@ def run(worlds: Worlds, states: State, chooser: Chooser, dynamics, cfg: MPCConfi
         record = dict(step=t, **{k: np.asarray(kept[k]) for k in ("omega", "bucket", "adam_steps", "objective",
                                                                   "predicted_objective", "distance", "inside",
                                                                   "action")})
+        if held.any():  # held episodes keep their state: d and the share inside as before the push
+            kept = dict(kept, states=_where(held, states, kept["states"]))
+            before = score(states, orders.goals)
+            record.update({k: np.where(held, np.asarray(before[k]), record[k]) for k in ("distance", "inside")})
+        if cfg.stop_share is not None:
+            record.update(_holding(held, record))
         record.update(planning_s=_planning_seconds(kept, timing), broken=np.asarray(kept["states"].broken),
-                      **{k: np.asarray(v) for k, v in orders.record.items()},
+                      **stop, **{k: np.asarray(v) for k, v in orders.record.items()},
                       **{k: np.asarray(v) for k, v in chooser.score(kept["states"]).items()})
         for callback in on_step:
             callback(t, states, kept["particles"], record)
@@ -214,6 +238,35 @@ def announce(cfg: MPCConfig, omega, log) -> None:
         _planned.add((spec, len(omega)))
         log(f"compiling the decision at bucket {spec.capacity} for {len(omega)} episode(s) (once per bucket; "
             "tens of seconds on a CPU)")
+
+
+def _seen(seen, goals, camera, cfg: MPCConfig) -> dict:
+    """{seen_inside [B]}: the share of each frame's foreground its camera sees inside the goal; {} for Sort's goals
+    (refused with cfg.stop_share)."""
+    if isinstance(goals, KindGoals):
+        if cfg.stop_share is not None:
+            raise InputError("the stop rule (stop_share) reads one goal an episode; Sort's goals are one a kind")
+        return {}
+    return dict(seen_inside=np.asarray(_seen_inside(camera, cfg.real_depth)(seen, goals)))
+
+
+@functools.cache
+def _seen_inside(camera, real_depth: bool):
+    """A jitted ``(frames [B], goals [B]) -> seen_inside [B]`` (``objective.seen_inside``)."""
+    one = per_episode(functools.partial(seen_inside, camera=camera, real_depth=real_depth))
+    return jax.jit(lambda seen, goals: one(seen, goals))
+
+
+def _where(held, before: State, after: State) -> State:
+    """Per episode b, ``before``'s leaves [b] where held[b], else ``after``'s."""
+    return jax.tree.map(lambda x, y: jnp.where(jnp.reshape(held, held.shape + (1,) * (jnp.ndim(y) - 1)), x, y),
+                        before, after)
+
+
+def _holding(held, record: dict) -> dict:
+    """A record's fields under the stop rule: held [B], and the held episodes' action and predicted_objective NaN."""
+    return dict(held=held.copy(), action=np.where(held[:, None], np.nan, record["action"]),
+                predicted_objective=np.where(held, np.nan, record["predicted_objective"]))
 
 
 def _drawn(now: Situation, draw: int) -> Situation:

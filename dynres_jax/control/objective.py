@@ -158,15 +158,27 @@ def distribution_distance(observation_or_mask, goal: Goal, camera: Camera, **for
     the reference divides c by ω: a mean per foreground pixel. observation_or_mask: an Observation (its foreground by
     ``perception.foreground``, ``foreground_kw`` passed on: kind= for one kind of a Sort scene) or a foreground
     mask [H, W] bool. +inf when there is no foreground pixel. ``jax.vmap`` over observations and goals."""
+    return _mask_distance(_foreground_mask(observation_or_mask, camera, foreground_kw), goal.mask)
+
+
+def _foreground_mask(observation_or_mask, camera: Camera, foreground_kw: dict):
+    """An Observation's foreground (``perception.foreground``) or a given mask, checked, as [H, W] bool."""
     if isinstance(observation_or_mask, Observation):
         _, valid = foreground(observation_or_mask, camera, **foreground_kw)
-        current = valid.reshape(camera.height, camera.width)
-    else:
-        current = jnp.asarray(observation_or_mask, bool)
-        if current.shape != (camera.height, camera.width):
-            raise ValueError(f"foreground mask has shape {current.shape}, the camera's image is "
-                             f"{(camera.height, camera.width)}")
-    return _mask_distance(current, goal.mask)
+        return valid.reshape(camera.height, camera.width)
+    current = jnp.asarray(observation_or_mask, bool)
+    if current.shape != (camera.height, camera.width):
+        raise ValueError(f"foreground mask has shape {current.shape}, the camera's image is "
+                         f"{(camera.height, camera.width)}")
+    return current
+
+
+def seen_inside(observation_or_mask, goal: Goal, camera: Camera, **foreground_kw):
+    """What a camera can tell of success: the share of the frame's foreground pixels that lie on goal pixels -> scalar
+    in [0, 1] (0 without foreground). observation_or_mask: as ``distribution_distance`` takes it (``foreground_kw``:
+    real_depth= for a real camera's frame). ``jax.vmap`` over observations and goals."""
+    current = _foreground_mask(observation_or_mask, camera, foreground_kw)
+    return jnp.sum(current & goal.mask) / jnp.maximum(jnp.sum(current), 1)
 
 
 @functools.partial(jax.jit, static_argnames="camera")

@@ -46,7 +46,7 @@ from dynres_jax.control.decision import Situation, batch
 from dynres_jax.control.goals import Goal, make_goal
 from dynres_jax.control.keep import best_rate
 from dynres_jax.control.mpc import MPCConfig, announce, propose, shift
-from dynres_jax.control.objective import distribution_distance
+from dynres_jax.control.objective import distribution_distance, seen_inside
 from dynres_jax.errors import InputError
 from dynres_jax.io.frames import load_camera, load_frame
 from dynres_jax.perception import calibrate, foreground
@@ -162,8 +162,7 @@ def seen_scores(obs: Observation, goal: Goal, camera: Camera, real_depth: bool) 
     foreground pixels that lie on goal pixels."""
     _, valid = foreground(obs, camera, real_depth=real_depth)
     valid = jnp.reshape(valid, (camera.height, camera.width))
-    inside = float(jnp.sum(valid & goal.mask) / jnp.maximum(jnp.sum(valid), 1))
-    return float(distribution_distance(valid, goal, camera)), inside
+    return float(distribution_distance(valid, goal, camera)), float(seen_inside(valid, goal, camera))
 
 
 def run_robot(source: FrameSource, pusher: Pusher, goal_mask, dynamics, cfg: MPCConfig,
