@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from dynres_jax.config import CameraConfig, PileConfig, PushConfig, SceneConfig, SimConfig
+from dynres_jax.control import tasks
 from dynres_jax.control.budget import TimingTable
 from dynres_jax.control.choosers import (
     AdaptiveOmega,
@@ -470,3 +471,9 @@ def test_the_stop_rule_holds_an_episode_from_the_frame_that_met_it(stop):
             assert np.all(np.isnan(held[t]["action"][b])) == (t >= first[b])
         if first[b] < 4:
             np.testing.assert_allclose(np.asarray(final.pos)[b], before[first[b]][b], atol=1e-6)
+    steps = lambda records, k: np.stack([r[k] for r in records]).tolist()  # noqa: E731  (evaluate's [T][E])
+    replayed = tasks.stopped({k: steps(free, k) for k in ("inside", "distance", "seen_inside")}, share)
+    assert replayed["stopped_at"] == first.tolist()
+    for k in ("inside", "distance"):
+        np.testing.assert_allclose(replayed[k], steps(held, k), atol=1e-6)
+        np.testing.assert_allclose(replayed[f"final_{k}"], held[-1][k], atol=1e-6)

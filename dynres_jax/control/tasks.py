@@ -209,6 +209,27 @@ def step_success(task: str, results: dict) -> np.ndarray:
     return succeeded(results["inside"])
 
 
+def stopped(results: dict, share: float) -> dict:
+    """An evaluation's results (``evaluate``'s METHOD.json: inside, distance and seen_inside [T][E]) made without the
+    stop rule, as ``MPCConfig.stop_share = share`` would have left them: an episode holds from the first step t* whose
+    frame met the rule, so its scores after every step from t* on are those after push t* - 1 (a run with the rule
+    is the same run up to t*: tests/test_mpc). Returns a copy with inside, distance and their finals so replaced and
+    stopped_at [E] (t*; T: never). ValueError for an episode whose first frame met it (its start is not recorded)."""
+    seen = np.asarray(results["seen_inside"], np.float64)
+    met = seen >= share
+    first = np.where(met.any(axis=0), np.argmax(met, axis=0), len(seen))
+    if np.any(first == 0):
+        raise ValueError(f"episodes {np.flatnonzero(first == 0).tolist()} met a stop share of {share} before their "
+                         "first push: their start's scores are not recorded")
+    steps = np.arange(len(seen))[:, None]
+    source = np.minimum(steps, first[None] - 1)  # [T, E]: the step whose scores stand
+    out = dict(results, stopped_at=first.tolist())
+    for key in ("inside", "distance"):
+        values = np.take_along_axis(np.asarray(results[key]), source, axis=0)
+        out.update({key: values.tolist(), f"final_{key}": values[-1].tolist()})
+    return out
+
+
 def success_rule(task: str) -> str:
     """The task's success rule in words (what ``evaluate`` prints beside its success shares)."""
     if TASKS[task].kinds == 2:

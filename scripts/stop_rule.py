@@ -1,0 +1,79 @@
+"""The stop rule replayed on an evaluation made without it (``tasks.stopped``): for each stop share, the success an
+episode that holds from the first frame meeting it would have had, against no rule on the same episodes (successes
+only with the rule / only without, McNemar's p; final d's mean difference with its bootstrap interval), the mean step
+it stopped at and, with --letters, per goal character. The rule is chosen on tuning seeds (--choose: the highest
+success, ties to the larger share) and measured once on fresh ones (--shares S).
+
+    python scripts/stop_rule.py --run RUNS/r_tune/50.json --task redistribute --choose
+    python scripts/stop_rule.py --run RUNS/r_fresh/50.json --task redistribute --shares 0.95 --letters BDGPQV345689
+
+Writes the Markdown table to --out and prints it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+import numpy as np
+
+from dynres_jax.control.tasks import episode_success, step_success, stopped
+from dynres_jax.io import files
+from dynres_jax.stats import mcnemar, paired_bootstrap, wilson
+from scripts.variants import groups
+
+SHARES = tuple(np.round(np.arange(0.85, 1.0001, 0.01), 2))
+
+
+def rows(results: dict, task: str, shares, letters: str | None) -> tuple[list[str], float]:
+    """The table's rows (goal, stop share) and the share --choose keeps (over every episode)."""
+    base = episode_success(task, results)
+    reached = step_success(task, results).any(axis=0)
+    lines, best = [], (-1, 0.0)
+    runs = {share: results if share is None else stopped(results, share) for share in (None, *shares)}
+    for goal, pick in groups(len(base), letters).items():
+        for share, run in runs.items():
+            ok = episode_success(task, run)
+            k, n = int(ok[pick].sum()), int(pick.sum())
+            lo, hi = wilson(k, n)
+            line = (f"| {goal} | {'none' if share is None else f'{share:.2f}'} | {k / n:.0%} ({lo:.0%}-{hi:.0%}) | "
+                    f"{int(reached[pick].sum())} |")
+            if share is None:
+                lines.append(line + " | | |")
+                continue
+            stop = np.asarray(run["stopped_at"])[pick]
+            test = mcnemar(ok[pick], base[pick])
+            d = paired_bootstrap(np.asarray(run["final_distance"])[pick], np.asarray(results["final_distance"])[pick]) \
+                if n > 1 else dict(mean=np.nan, ci95=(np.nan, np.nan))
+            lines.append(line + f" {np.mean(stop):.1f} ({np.mean(stop < len(results['seen_inside'])):.0%} stop) | "
+                         f"{test['first_only']} / {test['second_only']} (p = {test['p']:.3f}) | "
+                         f"{d['mean']:+.2f} [{d['ci95'][0]:+.2f}, {d['ci95'][1]:+.2f}] |")
+            if goal == "all":
+                best = max(best, (k, share))
+    return lines, best[1]
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--run", required=True, help="an evaluation's METHOD.json made without the stop rule")
+    parser.add_argument("--task", default="redistribute")
+    parser.add_argument("--shares", type=float, nargs="+", default=SHARES)
+    parser.add_argument("--letters", default=None, help="per goal character too (episode i's: letters[i % len])")
+    parser.add_argument("--choose", action="store_true", help="print the share with the highest success")
+    parser.add_argument("--out", default=None, help="write the Markdown table here")
+    args = parser.parse_args(argv)
+    with open(args.run) as f:
+        results = json.load(f)
+    lines, best = rows(results, args.task, args.shares, args.letters)
+    text = "\n".join(["| goal | stop share | success (95 % CI) | reached success at some step | mean stop step | "
+                      "against none: only here / only there | Δ final d (95 % CI) |",
+                      "|---|---:|---:|---:|---:|---:|---:|", *lines]) + "\n"
+    print(text)
+    if args.choose:
+        print(f"chosen stop share (the highest success, ties to the larger): {best:.2f}")
+    if args.out:
+        files.write_text(args.out, text)
+
+
+if __name__ == "__main__":
+    main()
