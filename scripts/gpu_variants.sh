@@ -33,7 +33,8 @@ for variant in "${variants[@]}"; do
   for kind in $KINDS; do
     mkdir -p "$RUNS/$name"
     for j in $(seq 0 $((SPLIT - 1))); do
-      job=(); [ "$SPLIT" -gt 1 ] && job=(--coordinator "localhost:$((24000 + i))" --num-processes "$SPLIT" --process-id "$j")
+      [ "$j" -eq 0 ] && port=$(python -c "import socket; s = socket.socket(); s.bind(('', 0)); print(s.getsockname()[1])")
+      job=(); [ "$SPLIT" -gt 1 ] && job=(--coordinator "localhost:$port" --num-processes "$SPLIT" --process-id "$j")
       log="$RUNS/$name/$TASK-$kind.log"; [ "$j" -gt 0 ] && log="$RUNS/$name/$TASK-$kind.$j.log"
       # shellcheck disable=SC2086
       CUDA_VISIBLE_DEVICES=$(((i + j) % gpus)) XLA_PYTHON_CLIENT_MEM_FRACTION=$fraction python -m experiments.evaluate \
