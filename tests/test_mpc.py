@@ -29,7 +29,7 @@ from dynres_jax.control.goals import disc_goal, make_goal
 from dynres_jax.control.judge import JudgeScored
 from dynres_jax.control.keep import scorer
 from dynres_jax.control.mpc import MPCConfig, run, run_episode
-from dynres_jax.control.objective import distribution_distance, objective, seen_inside
+from dynres_jax.control.objective import distribution_distance, seen_inside
 from dynres_jax.control.planner import PlannerConfig, _plan_jit, plan
 from dynres_jax.io.draw import PUSH_COLOUR, goal_frames, overlay
 from dynres_jax.models.registry import sweep_dynamics
@@ -477,22 +477,3 @@ def test_the_stop_rule_holds_an_episode_from_the_frame_that_met_it(stop):
     for k in ("inside", "distance"):
         np.testing.assert_allclose(replayed[k], steps(held, k), atol=1e-6)
         np.testing.assert_allclose(replayed[f"final_{k}"], held[-1][k], atol=1e-6)
-
-
-def test_a_finishing_episode_plans_on_c_without_its_coverage_term(three):
-    """MPCConfig.finish_share: from the first frame whose seen share met it, the decision's c is the SDF term alone
-    (every goal sample masked), so the recorded c before the push equals ``objective`` on the perceived particles
-    with the goal's samples masked, and differs from c with them."""
-    pool, goals, planner, cfg, keys, starts = three
-    particles = []
-    cfg = dataclasses.replace(cfg, mpc_steps=2, finish_share=1e-6)
-    _, records = run(pool, starts, FixedOmega(goals, 6), sweep_dynamics(0.04), cfg, keys, log=lambda s: None,
-                     on_step=[lambda t, states, kept, record: particles.append(kept)])
-    finishing = records[1]["finishing"]
-    assert not records[0]["finishing"].any() and finishing.any()  # nothing of the pile on the goal at the start
-    for b in np.flatnonzero(finishing):
-        goal = jax.tree.map(lambda x, b=b: x[b], goals)
-        p, m = particles[1].positions[b], particles[1].mask[b]
-        sdf_only = objective(p, m, goal._replace(sample_mask=np.zeros_like(goal.sample_mask)), pool.camera)
-        np.testing.assert_allclose(records[1]["objective"][b], sdf_only, rtol=1e-5)
-        assert abs(float(objective(p, m, goal, pool.camera)) - float(sdf_only)) > 1e-3

@@ -105,9 +105,6 @@ def build_parser():
     parser.add_argument("--stop-share", type=checks.number(0, 1, above=True), default=None,
                         help="an episode pushes no more once this share of the foreground its camera sees lies inside "
                              "the goal (default: it pushes every step; not Sort)")
-    parser.add_argument("--finish-share", type=checks.number(0, 1, above=True), default=None,
-                        help="from the frame on which this share of the foreground its camera sees lies inside the "
-                             "goal, an episode plans on c without its coverage term (default: c throughout; not Sort)")
     parser.add_argument("--methods", nargs="+", default=None,
                         help=f"default {' '.join(METHODS)} (Sort: {' '.join(SORT_METHODS)}). "
                              "Fixed ω (integers), 'adaptive' (the regressor picks ω), 'probe' (every step plans at "
@@ -234,9 +231,8 @@ def check_args(parser, args):
         except ckpt.CheckpointError as e:
             parser.error(f"--regressor (method adaptive): {e}")
     env = PileEnv(sim, backend="mujoco")
-    for flag in ("stop_share", "finish_share"):
-        if sort and getattr(args, flag) is not None:
-            parser.error(f"--{flag.replace('_', '-')} reads one goal an episode; Sort's goals are one a kind")
+    if sort and args.stop_share is not None:
+        parser.error("--stop-share reads one goal an episode; Sort's goals are one a kind")
     if args.goal_png is not None:
         if sort:
             parser.error("--goal-png: Sort draws a goal disc per kind, it takes no goal mask")
@@ -275,7 +271,7 @@ def run_methods(args, rank: int, size: int, sim, main_model, cnn_model, judge=No
         pile_keys, keys = tasks.episode_keys(args.seed, mine)
         todo = [m for m in args.methods if not os.path.exists(os.path.join(args.out, f"{m}.json"))]
         cfg = mpc_config(pool.env, args, mpc_steps=args.mpc_steps, real_depth=args.sensor != "none",
-                         stop_share=args.stop_share, finish_share=args.finish_share)
+                         stop_share=args.stop_share)
         timing = None
         if args.time_budget is not None and todo:  # one table for every method: the main model on the first episode
             timing = timing_table(args, args.out, pool.reset(pile_keys[:1]).obs, goals, main_model.dynamics, cfg,

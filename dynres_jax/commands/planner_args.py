@@ -139,15 +139,15 @@ def add_planner_args(parser) -> None:
                         help="pushes per planned sequence (paper T = 1)")
 
 
-def mpc_config(env, args, mpc_steps: int = 1, real_depth: bool = False, stop_share: float | None = None,
-               finish_share: float | None = None) -> MPCConfig:
+def mpc_config(env, args, mpc_steps: int = 1, real_depth: bool = False, stop_share: float | None = None
+               ) -> MPCConfig:
     """The MPC settings the planner flags ask for (evaluate and label_resolution): mpc_steps per episode (1: a
-    single decision, as a label's plan), stop_share and finish_share (``MPCConfig``)."""
+    single decision, as a label's plan), stop_share (``MPCConfig``)."""
     planner = planner_config(env, samples=args.samples, adam_steps=args.adam_steps, horizon=args.horizon,
                              **planner_options(args, env))
     return MPCConfig(mpc_steps=mpc_steps, planner=planner, max_points=1024 if args.quick else 4096,
                      time_budget=args.time_budget, real_depth=real_depth, warm_start=args.warm_start,
-                     buckets=args.buckets, stop_share=stop_share, finish_share=finish_share)
+                     buckets=args.buckets, stop_share=stop_share)
 
 
 def timing_table(args, out_dir: str, obs, goal, dynamics, cfg: MPCConfig, camera, omegas

@@ -46,9 +46,7 @@ class MPCConfig:
     (None: planner.adam_steps every decision); real_depth: perception treats the depth as a real camera's
     (``sim.sensor``); warm_start: each plan starts from the last, shifted (False: fresh samples, as the reference);
     stop_share: an episode holds (pushes no more) from the first frame on which this share of the foreground its
-    camera sees lies inside the goal (``objective.seen_inside``; None: it pushes every step); finish_share: from the
-    first frame that meets this share, an episode plans on c without its coverage term (the goal's samples masked:
-    the pieces outside are pushed in, the ones inside no longer spread over the goal; None: c throughout)."""
+    camera sees lies inside the goal (``objective.seen_inside``; None: it pushes every step)."""
 
     mpc_steps: int = 20
     buckets: tuple[int, ...] = budget.BUCKETS
@@ -58,13 +56,11 @@ class MPCConfig:
     real_depth: bool = False
     warm_start: bool = True
     stop_share: float | None = None
-    finish_share: float | None = None
 
     def __post_init__(self):
         check_fields(self)
-        for name in ("stop_share", "finish_share"):
-            if getattr(self, name) is not None and not 0 < getattr(self, name) <= 1:
-                raise ValueError(f"{name} must be in (0, 1] or None, got {getattr(self, name)}")
+        if self.stop_share is not None and not 0 < self.stop_share <= 1:
+            raise ValueError(f"stop_share must be in (0, 1] or None, got {self.stop_share}")
         object.__setattr__(self, "buckets", budget.check_buckets(self.buckets))
         if self.mpc_steps < 1:
             raise ValueError(f"mpc_steps must be positive, got {self.mpc_steps}")
@@ -171,13 +167,12 @@ def run(worlds: Worlds, states: State, chooser: Chooser, dynamics, cfg: MPCConfi
     goal, on the true state), action, broken, the chooser's record fields and scores; and step and seconds. With
     one goal an episode (not Sort's) it also holds seen_inside (the share its camera saw inside the goal before the
     push, ``objective.seen_inside``) and held (cfg.stop_share: the episode pushed nothing this step; its action and
-    prediction NaN, its state and scores unchanged) and finishing (cfg.finish_share: the episode planned on c's SDF
-    term alone). Every run has cfg.mpc_steps records unless every world broke."""
+    prediction NaN, its state and scores unchanged). Every run has cfg.mpc_steps records unless every world broke."""
     if cfg.time_budget is not None and timing is None:
         raise ValueError("a closed loop under a time budget needs a timing table (mpc.measure_timing, --timing FILE)")
     view = view or ExactView(worlds.camera)
     score = scorer(worlds.camera, tuple(np.asarray(worlds.scene.kind).tolist()))
-    records, warm, held, finishing = [], False, np.zeros(len(keys), bool), np.zeros(len(keys), bool)
+    records, warm, held = [], False, np.zeros(len(keys), bool)
     init = jnp.zeros((len(keys), cfg.planner.horizon, 4), jnp.float32)  # no warm start at the first step
     for t in range(cfg.mpc_steps):
         t0 = time.perf_counter()
@@ -192,12 +187,7 @@ def run(worlds: Worlds, states: State, chooser: Chooser, dynamics, cfg: MPCConfi
                                     **_holding(held, records[-1])))
                 _log_step(log, records[-1], cfg.mpc_steps)
                 continue
-        goals = orders.goals
-        if stop and cfg.finish_share is not None:
-            finishing |= stop["seen_inside"] >= cfg.finish_share
-            stop = dict(stop, finishing=finishing.copy())
-            goals = goals._replace(sample_mask=goals.sample_mask & ~finishing[:, None])  # c's SDF term alone
-        now = Situation(states, seen, camera, goals, orders.kinds, step_keys, init, warm)
+        now = Situation(states, seen, camera, orders.goals, orders.kinds, step_keys, init, warm)
         for candidate in orders.candidates:
             announce(cfg, candidate.omega, log)
         plans = [propose(now, c, cfg=cfg, timing=timing, dynamics=dynamics) for c in orders.candidates]
@@ -254,8 +244,8 @@ def _seen(seen, goals, camera, cfg: MPCConfig) -> dict:
     """{seen_inside [B]}: the share of each frame's foreground its camera sees inside the goal; {} for Sort's goals
     (refused with cfg.stop_share)."""
     if isinstance(goals, KindGoals):
-        if cfg.stop_share is not None or cfg.finish_share is not None:
-            raise InputError("stop_share and finish_share read one goal an episode; Sort's goals are one a kind")
+        if cfg.stop_share is not None:
+            raise InputError("the stop rule (stop_share) reads one goal an episode; Sort's goals are one a kind")
         return {}
     return dict(seen_inside=np.asarray(_seen_inside(camera, cfg.real_depth)(seen, goals)))
 
