@@ -13,14 +13,13 @@ Writes the Markdown table to --out and prints it.
 from __future__ import annotations
 
 import argparse
-import json
 
 import numpy as np
 
 from dynres_jax.control.tasks import episode_success, step_success, stopped
 from dynres_jax.io import files
 from dynres_jax.stats import mcnemar, paired_bootstrap, wilson
-from scripts.variants import groups
+from scripts.variants import groups, read_results
 
 SHARES = tuple(np.round(np.arange(0.85, 1.0001, 0.01), 2))
 
@@ -55,15 +54,14 @@ def rows(results: dict, task: str, shares, letters: str | None) -> tuple[list[st
 
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--run", required=True, help="an evaluation's METHOD.json made without the stop rule")
+    parser.add_argument("--run", required=True, help="an evaluation's METHOD.json (or .json.gz) made without the rule")
     parser.add_argument("--task", default="redistribute")
     parser.add_argument("--shares", type=float, nargs="+", default=SHARES)
     parser.add_argument("--letters", default=None, help="per goal character too (episode i's: letters[i % len])")
     parser.add_argument("--choose", action="store_true", help="print the share with the highest success")
     parser.add_argument("--out", default=None, help="write the Markdown table here")
     args = parser.parse_args(argv)
-    with open(args.run) as f:
-        results = json.load(f)
+    results = read_results(args.run)
     lines, best = rows(results, args.task, args.shares, args.letters)
     text = "\n".join(["| goal | stop share | success (95 % CI) | reached success at some step | mean stop step | "
                       "against none: only here / only there | Δ final d (95 % CI) |",

@@ -6,17 +6,18 @@ d's mean difference with its bootstrap interval); Sort's failures by cause.
     python scripts/variants.py --runs RUNS/variants --variants base mix10 --out docs/sort/mixing/fresh.md
     python scripts/variants.py --runs RUNS/variants --task redistribute --letters F2O7 --variants s20 s40
 
-RUNS holds VARIANT/TASK-KIND/METHOD.json (``--method``, default 50). A Sort failure is "mixing" when both kinds are
-at least 80 % inside their goals but 5 % or more of the pieces lie in the other kind's goal, "short" when a kind is
-below 80 % with mixing under 5 %, "both" otherwise. With --letters, episode i's character is letters[i % len]
-(evaluate's rule). Writes the Markdown table to --out and prints it; --plot PNG draws each variant's mean inside
-share and d against the MPC step.
+RUNS holds VARIANT/TASK-KIND/METHOD.json or .json.gz (``--method``, default 50). A Sort failure is "mixing" when
+both kinds are at least 80 % inside their goals but 5 % or more of the pieces lie in the other kind's goal, "short"
+when a kind is below 80 % with mixing under 5 %, "both" otherwise. With --letters, episode i's character is
+letters[i % len] (evaluate's rule). Writes the Markdown table to --out and prints it; --plot PNG draws each
+variant's mean inside share and d against the MPC step.
 """
 
 from __future__ import annotations
 
 import argparse
 import glob
+import gzip
 import json
 import os
 
@@ -34,6 +35,12 @@ def failures(result: dict) -> str:
     failed = ~episode_success("sort", result)
     counts = failed & inside & mixed, failed & ~inside & ~mixed, failed & ~inside & mixed
     return " / ".join(str(int(np.sum(c))) for c in counts)
+
+
+def read_results(path: str) -> dict:
+    """An evaluation's METHOD.json, or its gzipped copy (METHOD.json.gz, as docs/ keeps them)."""
+    with (gzip.open if path.endswith(".gz") else open)(path, "rt") as f:
+        return json.load(f)
 
 
 def groups(n: int, letters: str | None) -> dict[str, np.ndarray]:
@@ -56,9 +63,10 @@ def table(runs: str, task: str, variants: list[str], method: str, letters: str |
         results = {}
         for v in variants:
             path = os.path.join(runs, v, f"{task}-{kind}", f"{method}.json")
-            if os.path.exists(path):
-                with open(path) as f:
-                    results[v] = json.load(f)
+            for name in (path, path + ".gz"):
+                if os.path.exists(name):
+                    results[v] = read_results(name)
+                    break
         if variants[0] not in results:
             continue
         first = results[variants[0]]

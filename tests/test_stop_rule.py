@@ -1,0 +1,39 @@
+"""scripts/stop_rule.py and tasks.stopped: the stop rule replayed on episodes built by hand."""
+
+import numpy as np
+import pytest
+
+from dynres_jax.control import tasks
+
+
+@pytest.fixture(scope="module")
+def stop_rule(script):
+    return script("stop_rule")
+
+
+def _results():
+    """Three episodes of four steps (seen_inside before each push; inside and d after it), made by hand: episode 0
+    reaches 0.9 after push 1 and loses it; episode 1 succeeds at the end only; episode 2 never sees 0.9."""
+    seen = [[0.2, 0.3, 0.1], [0.92, 0.5, 0.5], [0.95, 0.85, 0.6], [0.80, 0.93, 0.7]]
+    inside = [[0.5, 0.6, 0.2], [0.91, 0.7, 0.3], [0.85, 0.92, 0.4], [0.84, 0.95, 0.5]]
+    distance = [[5.0, 6.0, 9.0], [1.0, 4.0, 8.0], [2.0, 1.5, 7.0], [3.0, 1.0, 6.0]]
+    return dict(seen_inside=seen, inside=inside, distance=distance, final_inside=inside[-1],
+                final_distance=distance[-1])
+
+
+def test_stopped_keeps_the_scores_after_the_push_before_the_frame_that_met_it():
+    out = tasks.stopped(_results(), 0.9)
+    assert out["stopped_at"] == [1, 3, 4]  # episode 0's frame before push 1 met 0.9; episode 2 never
+    assert out["final_inside"] == [0.5, 0.92, 0.5] and out["final_distance"] == [5.0, 1.5, 6.0]
+    np.testing.assert_array_equal(np.asarray(out["inside"])[:, 0], [0.5, 0.5, 0.5, 0.5])
+    with pytest.raises(ValueError, match="before their first push"):
+        tasks.stopped(_results(), 0.15)  # episode 0's first frame already meets it
+
+
+def test_the_table_counts_gains_and_losses_and_chooses_the_best_share(stop_rule):
+    lines, best = stop_rule.rows(_results(), "redistribute", (0.9, 0.94), None)
+    assert "| all | none | 33% " in lines[0]  # episode 1 alone ends >= 90 % inside
+    # 0.90: episode 0 stops before push 1 (0.5 inside: failed either way), episode 1 before push 3 (0.92: kept)
+    assert "| all | 0.90 | 33% " in lines[1] and "| 0 / 0 " in lines[1]
+    # 0.94: episode 0 stops before push 2 with 0.91 inside (gained), episode 1 runs on to 0.95: 2 of 3
+    assert "| all | 0.94 | 67% " in lines[2] and "| 1 / 0 " in lines[2] and best == 0.94
