@@ -194,13 +194,15 @@ P = [  # plan: one frame of a real camera
     (["--dynamics", "sweep", "--ckpt", "{regressor}"], "--ckpt"), (["--out", "{foreign}"], "--out"),
     (["--out", "push.txt"], "--out"), (["--out", "{file}/x.png"], "--out"), (["--sensor", "kinect"], "--sensor"),
     (["--bin-half-width", "0"], "--bin-half-width"), (["--wall-height", "-1"], "--wall-height"),
+    (["--stop-share", "0"], "--stop-share"), (["--stop-share", "1.5"], "--stop-share"),
 ]
 E = [  # evaluate
     (["--episodes", "0"], "--episodes"), (["--episodes", "x"], "--episodes"), (["--mpc-steps", "0"], "--mpc-steps"),
     (["--methods", "0"], "--methods"), (["--methods", "101"], "--methods"), (["--methods", "foo"], "--methods"),
     (["--methods", "best0"], "--methods"), (["--methods", "50", "50"], "--methods"), (["--methods", "sim", "sim"], "--methods"),
     (["--methods", "50", "050"], "names a method twice"), (["--lr", "1e308"], "--lr"),
-    (["--methods", "reranked"], "--methods"),
+    (["--methods", "reranked"], "--methods"), (["--stop-share", "nan"], "--stop-share"),
+    (["--task", "sort", "--stop-share", "0.9"], "--stop-share"),
     (["--task", "redistribute", "--letters", "A B"], "--letters"), (["--letters", ""], "--letters"),
     (["--methods", "cnn", "--cnn-ckpt", "/nonexistent"], "--cnn-ckpt"),
     (["--methods", "cnn", "--cnn-ckpt", "{dynamics}"], "--cnn-ckpt"), (["--methods", "cnn", "--cnn-omega", "0"], "--cnn-omega"),

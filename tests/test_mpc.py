@@ -365,14 +365,19 @@ def test_evaluate_climbs_the_ladder_on_episodes_that_do_not_depend_on_the_count(
 
 def test_evaluate_quick_is_quick(tmp_path):
     """``evaluate --quick`` alone runs 4 episodes of 3 MPC steps of 8 samples x 10 Adam steps; a flag given beside it
-    wins."""
+    wins. --stop-share reaches the loop: from the first frame that met it, an episode's scores stand still."""
     from dynres_jax.commands import evaluate
 
     summary = evaluate.main(["--quick", "--methods", "50", "--dynamics", "sweep", "--workers", "2", "--pieces", "20",
-                             "--samples", "4", "--out", str(tmp_path)])
+                             "--samples", "4", "--stop-share", "0.01", "--out", str(tmp_path)])
     run = json.loads((tmp_path / "50.json").read_text())
     assert summary["methods"]["50"]["episodes"] == 4 and len(run["mean_distance"]) == 3
     assert summary["mpc_steps"] == 3 and summary["samples"] == 4 and np.all(np.array(run["adam_steps"]) == 10)
+    seen, inside = np.array(run["seen_inside"]), np.array(run["inside"])
+    first = [int(np.argmax(seen[:, e] >= 0.01)) if np.any(seen[:, e] >= 0.01) else 3 for e in range(4)]
+    assert min(first) < 2  # some episode held before its last push
+    for e, t in enumerate(first):
+        assert np.all(inside[max(t - 1, 0):, e] == inside[max(t - 1, 0), e]) if t < 3 else True
 
 
 def test_warm_start_off_plans_every_step_from_fresh_samples(episode, monkeypatch):
