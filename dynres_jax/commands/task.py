@@ -40,7 +40,7 @@ from dynres_jax.config import (
     SceneConfig,
     SimConfig,
 )
-from dynres_jax.control import budget, tasks
+from dynres_jax.control import budget, progress, tasks
 from dynres_jax.control.choosers import AdaptiveOmega, Chooser, FixedOmega
 from dynres_jax.control.decision import batch
 from dynres_jax.control.goals import make_goal
@@ -65,6 +65,8 @@ from dynres_jax.perception import visible_points
 from dynres_jax.sim import engines
 from dynres_jax.sim.camera import Camera
 from dynres_jax.sim.env import PileEnv
+
+PROGRESS = "progress.npz"  # an unfinished episode's last step (``control.progress``), gone once metrics.json is written
 
 
 def add_loop_args(parser: argparse.ArgumentParser, task: str, adaptive: bool = True) -> None:
@@ -275,8 +277,14 @@ def main(task: str, argv=None):
                                 omegas=None if loop.regressor else [loop.omega])
         check_budget(cfg, timing, [OMEGA_MIN] if loop.regressor else [loop.omega])
     frames = goal_frames(goal_mask, env.camera)
+    saved, resume = os.path.join(args.out, PROGRESS), None
+    if os.path.isfile(saved) and not args.fresh:  # an interrupted run of these settings: go on from its last step
+        resume, frames.frames = progress.load(saved, batch(state))
+        frames.last = resume.records[-1]
+        print(f"resuming the interrupted episode after step {len(resume.records)} of {cfg.mpc_steps} ({saved})")
     state, records = run_episode(env, state, loop.chooser(batch(goal)), loop.model.dynamics, cfg,
-                                 jax.random.PRNGKey(args.seed), timing=timing, on_step=[frames])
+                                 jax.random.PRNGKey(args.seed), timing=timing, on_step=[frames], resume=resume,
+                                 on_progress=lambda now: progress.save(saved, now, frames.frames))
     if timing is not None:
         timing.save(os.path.join(args.out, "timing.json"))
     write_episode(args.out, frames.finish(batch(state)))
@@ -287,6 +295,8 @@ def main(task: str, argv=None):
                    seconds=time.perf_counter() - t0, mpc=dataclasses.asdict(cfg),
                    timing=timing.to_json() if timing else None, steps=records)
     files.write_json(os.path.join(args.out, "metrics.json"), summary)
+    if os.path.exists(saved):
+        os.unlink(saved)  # the episode is finished: metrics.json holds it
     print(f"pieces inside the goal: {start_inside:.0%} -> {summary['final_inside']:.0%}; "
           f"wrote {args.out}/episode.gif, final.png, metrics.json")
     return summary

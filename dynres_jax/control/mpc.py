@@ -146,6 +146,18 @@ def act(worlds: Worlds, now: Situation, omega, *, cfg: MPCConfig, timing: budget
     return keep_lowest_distance(worlds, now, [plan], score)
 
 
+class Progress(NamedTuple):
+    """Where a closed loop stands after a step, enough to go on from it: the records so far (``run``'s), the worlds
+    after the last push, the next decision's warm start init [B, T, 4] and whether to use it, and held [B] (the stop
+    rule's)."""
+
+    records: list[dict]
+    states: State
+    init: jax.Array
+    warm: bool
+    held: np.ndarray
+
+
 class Episodes(NamedTuple):
     """What ``run`` returns: the final states [B] and one record per MPC step (arrays [B]; ``run``)."""
 
@@ -154,27 +166,33 @@ class Episodes(NamedTuple):
 
 
 def run(worlds: Worlds, states: State, chooser: Chooser, dynamics, cfg: MPCConfig, keys, *,
-        timing: budget.TimingTable | None = None, view=None, on_step: Sequence[Callable] = (), log=print) -> Episodes:
+        timing: budget.TimingTable | None = None, view=None, on_step: Sequence[Callable] = (), log=print,
+        resume: Progress | None = None, on_progress: Callable[[Progress], None] | None = None) -> Episodes:
     """The closed loop over a batch of episodes: states [B] in ``worlds``, keys [B]; every MPC step the chooser's
     orders (``choosers.Orders``), one compiled decision over all episodes per candidate (``propose``) and, per
     episode, the proposal the orders' keep rule keeps (``KEEPS``). dynamics: ``registry`` (radius -> the planner's
     model); timing: the table a time budget is spent by (required with cfg.time_budget; a batch of one refines it
-    from its decisions' wall times unless frozen); view: what the planner sees (``ExactView``; ``SensorView``); on_step:
-    callbacks ``(t, states before the push, kept Particles [B], record)`` (GIF frames: ``io.draw.Frames``); log: one
-    line per step. Stops early when every world broke. A record holds arrays [B]: omega, bucket, adam_steps,
-    planning_s (B = 1: the decision's wall time; else the table's price of it, NaN without a budget), objective (c
-    before the push), predicted_objective, distance (d after the push) and inside (the share of pieces inside the
-    goal, on the true state), action, broken, the chooser's record fields and scores; and step and seconds. With
-    one goal an episode (not Sort's) it also holds seen_inside (the share its camera saw inside the goal before the
-    push, ``objective.seen_inside``) and held (cfg.stop_share: the episode pushed nothing this step; its action and
-    prediction NaN, its state and scores unchanged). Every run has cfg.mpc_steps records unless every world broke."""
+    from its decisions' wall times unless frozen); view: what the planner sees (``ExactView``; ``SensorView``);
+    on_step: callbacks ``(t, states before the push, kept Particles [B], record)`` (GIF frames: ``io.draw.Frames``);
+    log: one line per step; resume: a ``Progress`` to go on from (its states replace ``states``; the steps it
+    recorded are not run again, and with the same keys the rest is decided as the whole run would); on_progress:
+    called with the ``Progress`` after every step (the task commands save it). Stops early when every world broke. A
+    record holds arrays [B]: omega, bucket, adam_steps, planning_s (B = 1: the decision's wall time; else the
+    table's price of it, NaN without a budget), objective (c before the push), predicted_objective, distance (d
+    after the push) and inside (the share of pieces inside the goal, on the true state), action, broken, the
+    chooser's record fields and scores; and step and seconds. With one goal an episode (not Sort's) it also holds
+    seen_inside (the share its camera saw inside the goal before the push, ``objective.seen_inside``) and held
+    (cfg.stop_share: the episode pushed nothing this step; its action and prediction NaN, its state and scores
+    unchanged). Every run has cfg.mpc_steps records unless every world broke."""
     if cfg.time_budget is not None and timing is None:
         raise ValueError("a closed loop under a time budget needs a timing table (mpc.measure_timing, --timing FILE)")
     view = view or ExactView(worlds.camera)
     score = scorer(worlds.camera, tuple(np.asarray(worlds.scene.kind).tolist()))
     records, warm, held = [], False, np.zeros(len(keys), bool)
     init = jnp.zeros((len(keys), cfg.planner.horizon, 4), jnp.float32)  # no warm start at the first step
-    for t in range(cfg.mpc_steps):
+    if resume is not None:
+        records, states, init, warm, held = list(resume.records), resume.states, resume.init, resume.warm, resume.held
+    for t in range(len(records), cfg.mpc_steps):
         t0 = time.perf_counter()
         step_keys = fold(keys, t)
         seen, camera = view(t, states, step_keys)
@@ -186,6 +204,8 @@ def run(worlds: Worlds, states: State, chooser: Chooser, dynamics, cfg: MPCConfi
                 records.append(dict(records[-1], step=t, seconds=time.perf_counter() - t0, **stop,
                                     **_holding(held, records[-1])))
                 _log_step(log, records[-1], cfg.mpc_steps)
+                if on_progress is not None:
+                    on_progress(Progress(records, states, init, warm, held))
                 continue
         now = Situation(states, seen, camera, orders.goals, orders.kinds, step_keys, init, warm)
         for candidate in orders.candidates:
@@ -209,6 +229,8 @@ def run(worlds: Worlds, states: State, chooser: Chooser, dynamics, cfg: MPCConfi
         states, init, warm = kept["states"], shift(kept["best"]), cfg.warm_start
         records.append(dict(record, seconds=time.perf_counter() - t0))
         _log_step(log, records[-1], cfg.mpc_steps)
+        if on_progress is not None:
+            on_progress(Progress(records, states, init, warm, held))
         if record["broken"].all():
             log("every simulated world broke (NaN or a piece out of the bin); stopping")
             break
@@ -218,7 +240,7 @@ def run(worlds: Worlds, states: State, chooser: Chooser, dynamics, cfg: MPCConfi
 def run_episode(env: PileEnv, state: State, chooser: Chooser, dynamics, cfg: MPCConfig, key, **kwargs
                 ) -> tuple[State, list[dict]]:
     """One episode in one PileEnv: ``run`` on a batch of one (the chooser's goals batched too), its records unbatched
-    to Python numbers (``episode_record``). kwargs: ``run``'s timing, view, on_step, log."""
+    to Python numbers (``episode_record``). kwargs: ``run``'s timing, view, on_step, log, resume, on_progress."""
     final, records = run(EnvWorlds(env), batch(state), chooser, dynamics, cfg, batch(key), **kwargs)
     return episode(final), [episode_record(r, 0) for r in records]
 
