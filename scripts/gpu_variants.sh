@@ -15,7 +15,7 @@
 #      e.g. "50 rerank"), STEPS (30; a variant's --mpc-steps wins), VARIANTS ("base=": NAME=FLAGS separated by ';',
 #      e.g. "base=;mix3=--mixing 3;old=--arrived 0.9"), FLAGS (more evaluate flags for every run), GPUS (a CPU dry
 #      run: GPUS=1 EPISODES=2 STEPS=1 FLAGS="--quick"), SPLIT (1: each run split over this many processes of one
-#      job, `evaluate --coordinator`, process j on GPU j mod GPUS; e.g. SPLIT=4 on a 4-GPU host for 256-episode
+#      job, `evaluate --coordinator`, the processes of all runs dealt over the GPUs in turn; e.g. SPLIT=4 on a 4-GPU host for 256-episode
 #      headlines: `TASK=sort EPISODES=256 SPLIT=4 bash scripts/gpu_variants.sh`).
 set -uo pipefail
 OUT=${OUT:-runs/sort_eval}; EPISODES=${EPISODES:-64}; SEED=${SEED:-60000}; METHODS=${METHODS:-50}
@@ -27,7 +27,7 @@ SPLIT=${SPLIT:-1}
 runs=$(( ${#variants[@]} * $(wc -w <<< "$KINDS") * SPLIT )); workers=$(( $(nproc) / runs )); [ "$workers" -ge 1 ] || workers=1
 fraction=$(python -c "print(round(0.9 / -(-$runs // $gpus), 2))")  # GPU memory a run: the runs on one GPU share 90 %
 export JAX_COMPILATION_CACHE_DIR=${JAX_COMPILATION_CACHE_DIR:-/tmp/jax_cache}
-RUNS=$OUT/variants; i=0; pids=()
+RUNS=$OUT/variants; i=0; p=0; pids=()  # i: runs, p: processes (process p on GPU p mod GPUS)
 for variant in "${variants[@]}"; do
   name=${variant%%=*}; flags=${variant#*=}
   for kind in $KINDS; do
@@ -37,11 +37,11 @@ for variant in "${variants[@]}"; do
       job=(); [ "$SPLIT" -gt 1 ] && job=(--coordinator "localhost:$port" --num-processes "$SPLIT" --process-id "$j")
       log="$RUNS/$name/$TASK-$kind.log"; [ "$j" -gt 0 ] && log="$RUNS/$name/$TASK-$kind.$j.log"
       # shellcheck disable=SC2086
-      CUDA_VISIBLE_DEVICES=$(((i + j) % gpus)) XLA_PYTHON_CLIENT_MEM_FRACTION=$fraction python -m experiments.evaluate \
+      CUDA_VISIBLE_DEVICES=$((p % gpus)) XLA_PYTHON_CLIENT_MEM_FRACTION=$fraction python -m experiments.evaluate \
         --task "$TASK" --kind ${kind/-/ } --episodes "$EPISODES" --seed "$SEED" --mpc-steps "$STEPS" --samples 50 \
         --adam-steps 100 --methods $METHODS --workers "$workers" $flags ${FLAGS:-} --out "$RUNS/$name/$TASK-$kind" \
-        "${job[@]}" > "$log" 2>&1 &
-      pids+=($!)
+        ${job[@]+"${job[@]}"} > "$log" 2>&1 &
+      pids+=($!); p=$((p + 1))
     done
     i=$((i + 1))
   done

@@ -94,6 +94,17 @@ def test_the_gif_draws_each_push_and_captions_the_end(episode):
     assert np.array_equal(frames[-1][24:], bare[24:]) and not np.array_equal(frames[-1][:24], bare[:24])
 
 
+def test_a_held_step_draws_no_push(episode):
+    """A step whose episode held (the stop rule: a NaN action) is drawn without an arrow, not refused."""
+    env, state, _, _, records, _, _ = episode
+    mask = disc_goal(env.camera, np.array([0.0, 0.0]), 0.06)
+    frames = goal_frames(mask, env.camera)
+    held = {k: v if k == "step" else [v] for k, v in records[0].items()} | {"action": [[np.nan] * 4]}
+    particles = np.asarray(state.pos)[:3]
+    frame = frames.draw(np.asarray(state.obs.rgb), particles, held)
+    assert not np.any(np.all(frame == PUSH_COLOUR, axis=-1))
+
+
 def test_episode_brings_the_pile_nearer_the_goal(episode):
     env, start, goal, _, records, _, _ = episode
     before = float(distribution_distance(start.obs, goal, env.camera))

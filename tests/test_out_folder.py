@@ -132,3 +132,12 @@ def test_a_run_without_input_hashes_is_not_resumed(tmp_path):
         json.dump({"command": "demo", "config": {}}, f)  # a run begun before inputs were recorded
     with pytest.raises(InputError, match="recorded no hashes of its inputs"):
         checks.claim(out, "demo", {}, inputs={"--goal": str(goal)})
+
+
+def test_a_flag_added_since_at_its_default_none_resumes_an_earlier_run(tmp_path):
+    """A run recorded before a flag existed resumes under that flag's default (None), and not under another value."""
+    out = str(tmp_path / "run")
+    assert not checks.claim(out, "demo", {"a": 1})
+    assert checks.claim(out, "demo", {"a": 1, "stop_share": None})
+    with pytest.raises(InputError, match="other settings"):
+        checks.claim(out, "demo", {"a": 1, "stop_share": 0.9})

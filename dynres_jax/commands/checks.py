@@ -284,15 +284,17 @@ def _earlier(out: str, command: str, config: dict, hashes: dict, fresh: bool) ->
     record = os.path.join(out, RUN)
     if not os.path.isfile(record):
         return None, False
+    now = json.loads(json.dumps(config))
     try:
         with open(record) as f:
             earlier = json.load(f)
-        earlier_command, earlier_config = earlier["command"], earlier["config"]
+        earlier_command = earlier["command"]  # a flag added since, at its default None, is what the earlier run did:
+        earlier_config = {**{k: None for k, v in now.items() if v is None}, **earlier["config"]}
     except (OSError, ValueError, KeyError, TypeError) as e:
         raise InputError(f"--out {out!r}: its {RUN} is damaged ({type(e).__name__}); choose another folder") from None
     if earlier_command != command:
         raise InputError(f"--out {out!r} holds a {earlier_command} run; choose another folder for {command}")
-    if earlier_config != json.loads(json.dumps(config)):
+    if earlier_config != now:
         why = f"of other settings ({_differences(earlier_config, config)}); rerun with its settings to resume"
     else:
         why = _changed(earlier.get("inputs"), hashes)

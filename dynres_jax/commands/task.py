@@ -272,21 +272,31 @@ def main(task: str, argv=None):
     print(f"{task}: {args.pieces} {args.kind} pieces, goal {goal_info}; dynamics: {loop.model.name}{judged}; "
           f"ω = {args.resolution}; {budget_text}")
     t0 = time.perf_counter()
+    frames = goal_frames(goal_mask, env.camera)
+    saved, table, resume = os.path.join(args.out, PROGRESS), os.path.join(args.out, "timing.json"), None
+    if os.path.isfile(saved) and args.fresh:
+        os.unlink(saved)
+    elif os.path.isfile(saved):  # an interrupted run of these settings: go on from its last step, its table as it was
+        resume, frames.frames = progress.load(saved, batch(state))
+        frames.last = resume.records[-1]
+        if cfg.time_budget is not None and os.path.isfile(table):  # refined as it was unless given frozen (--timing)
+            timing = budget.TimingTable.load(table, frozen=timing is not None and timing.frozen)
+        print(f"resuming the interrupted episode after step {len(resume.records)} of {cfg.mpc_steps} ({saved})")
     if cfg.time_budget is not None and timing is None:
         timing = measure_timing(state.obs, goal, loop.model.dynamics, cfg, env.camera,
                                 omegas=None if loop.regressor else [loop.omega])
         check_budget(cfg, timing, [OMEGA_MIN] if loop.regressor else [loop.omega])
-    frames = goal_frames(goal_mask, env.camera)
-    saved, resume = os.path.join(args.out, PROGRESS), None
-    if os.path.isfile(saved) and not args.fresh:  # an interrupted run of these settings: go on from its last step
-        resume, frames.frames = progress.load(saved, batch(state))
-        frames.last = resume.records[-1]
-        print(f"resuming the interrupted episode after step {len(resume.records)} of {cfg.mpc_steps} ({saved})")
+
+    def keep(now):  # after every step: the episode so far and the timing table its decisions refined
+        progress.save(saved, now, frames.frames)
+        if timing is not None:
+            timing.save(table)
+
     state, records = run_episode(env, state, loop.chooser(batch(goal)), loop.model.dynamics, cfg,
                                  jax.random.PRNGKey(args.seed), timing=timing, on_step=[frames], resume=resume,
-                                 on_progress=lambda now: progress.save(saved, now, frames.frames))
+                                 on_progress=keep)
     if timing is not None:
-        timing.save(os.path.join(args.out, "timing.json"))
+        timing.save(table)
     write_episode(args.out, frames.finish(batch(state)))
     summary = dict(task=task, seed=args.seed, kind=args.kind, pieces=args.pieces, dynamics=loop.model.name,
                    judge=None if loop.judge is None else loop.judge.name, goal=goal_info, resolution=args.resolution,

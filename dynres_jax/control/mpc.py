@@ -175,15 +175,16 @@ def run(worlds: Worlds, states: State, chooser: Chooser, dynamics, cfg: MPCConfi
     from its decisions' wall times unless frozen); view: what the planner sees (``ExactView``; ``SensorView``);
     on_step: callbacks ``(t, states before the push, kept Particles [B], record)`` (GIF frames: ``io.draw.Frames``);
     log: one line per step; resume: a ``Progress`` to go on from (its states replace ``states``; the steps it
-    recorded are not run again, and with the same keys the rest is decided as the whole run would); on_progress:
-    called with the ``Progress`` after every step (the task commands save it). Stops early when every world broke. A
-    record holds arrays [B]: omega, bucket, adam_steps, planning_s (B = 1: the decision's wall time; else the
-    table's price of it, NaN without a budget), objective (c before the push), predicted_objective, distance (d
-    after the push) and inside (the share of pieces inside the goal, on the true state), action, broken, the
-    chooser's record fields and scores; and step and seconds. With one goal an episode (not Sort's) it also holds
-    seen_inside (the share its camera saw inside the goal before the push, ``objective.seen_inside``) and held
+    recorded are not run again, and with the same keys and an ``ExactView`` the rest is decided as the whole run
+    would); on_progress: called with the ``Progress`` after every step (the task commands save it). Stops early when
+    every world broke. A record holds arrays [B]: omega, bucket, adam_steps, planning_s (B = 1: the decision's wall
+    time; else the table's price of it, NaN without a budget), objective (c before the push), predicted_objective,
+    distance (d after the push) and inside (the share of pieces inside the goal, on the true state), action, broken,
+    the chooser's record fields and scores; and step and seconds. With one goal an episode (not Sort's) it also
+    holds seen_inside (the share its camera saw inside the goal before the push, ``objective.seen_inside``) and held
     (cfg.stop_share: the episode pushed nothing this step; its action and prediction NaN, its state and scores
-    unchanged). Every run has cfg.mpc_steps records unless every world broke."""
+    unchanged; a step where every episode holds plans nothing: its adam_steps and planning_s 0, its objective NaN,
+    the rest as the step before). Every run has cfg.mpc_steps records unless every world broke."""
     if cfg.time_budget is not None and timing is None:
         raise ValueError("a closed loop under a time budget needs a timing table (mpc.measure_timing, --timing FILE)")
     view = view or ExactView(worlds.camera)
@@ -192,6 +193,8 @@ def run(worlds: Worlds, states: State, chooser: Chooser, dynamics, cfg: MPCConfi
     init = jnp.zeros((len(keys), cfg.planner.horizon, 4), jnp.float32)  # no warm start at the first step
     if resume is not None:
         records, states, init, warm, held = list(resume.records), resume.states, resume.init, resume.warm, resume.held
+        if records and np.all(records[-1]["broken"]):
+            return Episodes(states, records)  # it had stopped: every world broke
     for t in range(len(records), cfg.mpc_steps):
         t0 = time.perf_counter()
         step_keys = fold(keys, t)
@@ -199,10 +202,11 @@ def run(worlds: Worlds, states: State, chooser: Chooser, dynamics, cfg: MPCConfi
         orders = chooser(t, seen)
         stop = _seen(seen, orders.goals, camera, cfg)
         if stop and cfg.stop_share is not None:
-            held |= stop["seen_inside"] >= cfg.stop_share
+            held |= np.asarray(stop["seen_inside"], np.float64) >= cfg.stop_share  # as ``tasks.stopped`` compares
             if held.all() and records:  # nothing left to push: the last step's scores stand
                 records.append(dict(records[-1], step=t, seconds=time.perf_counter() - t0, **stop,
-                                    **_holding(held, records[-1])))
+                                    **_holding(held, records[-1]), adam_steps=np.zeros_like(records[-1]["adam_steps"]),
+                                    planning_s=np.zeros(len(held)), objective=np.full(len(held), np.nan)))
                 _log_step(log, records[-1], cfg.mpc_steps)
                 if on_progress is not None:
                     on_progress(Progress(records, states, init, warm, held))

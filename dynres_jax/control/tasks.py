@@ -213,7 +213,8 @@ def stopped(results: dict, share: float) -> dict:
     """An evaluation's results (``evaluate``'s METHOD.json: inside, distance and seen_inside [T][E]) made without the
     stop rule, as ``MPCConfig.stop_share = share`` would have left them: an episode holds from the first step t* whose
     frame met the rule, so its scores after every step from t* on are those after push t* - 1 (a run with the rule
-    is the same run up to t*: tests/test_mpc). Returns a copy with inside, distance and their finals so replaced and
+    is the same run up to t* at a fixed ω: tests/test_mpc; with ω chosen per episode a held episode may change its
+    batch's bucket). Returns a copy with inside, distance, their finals and their means per step so replaced, and
     stopped_at [E] (t*; T: never). ValueError for an episode whose first frame met it (its start is not recorded)."""
     seen = np.asarray(results["seen_inside"], np.float64)
     met = seen >= share
@@ -226,7 +227,7 @@ def stopped(results: dict, share: float) -> dict:
     out = dict(results, stopped_at=first.tolist())
     for key in ("inside", "distance"):
         values = np.take_along_axis(np.asarray(results[key]), source, axis=0)
-        out.update({key: values.tolist(), f"final_{key}": values[-1].tolist()})
+        out.update({key: values.tolist(), f"final_{key}": values[-1].tolist(), f"mean_{key}": values.mean(1).tolist()})
     return out
 
 

@@ -77,8 +77,11 @@ def caption(particles, record) -> str:
 
 
 def _push(particles, record):
-    """The push a step frame draws (record's action of episode 0), none on the final frame."""
-    return None if particles is None or record is None else np.asarray(record["action"])[0]
+    """The push a step frame draws (record's action of episode 0), none on the final frame nor on a step whose
+    episode held (the stop rule: a NaN action)."""
+    if particles is None or record is None or not np.all(np.isfinite(np.asarray(record["action"])[0])):
+        return None
+    return np.asarray(record["action"])[0]
 
 
 def goal_frames(goal_mask: np.ndarray, camera) -> Frames:
