@@ -111,13 +111,17 @@ def test_a_rerun_into_a_finished_folder_says_so_and_does_nothing(tmp_path, capsy
     assert "step  1/1" in capsys.readouterr().out and (tmp_path / "metrics.json").stat().st_mtime_ns > before
 
 
-def test_an_interrupted_episode_resumes_from_its_last_step_as_if_never_stopped(tmp_path, capsys, monkeypatch):
+@pytest.mark.parametrize("command", ["gather", "sort"])
+def test_an_interrupted_episode_resumes_from_its_last_step_as_if_never_stopped(command, tmp_path, capsys,
+                                                                                monkeypatch):
     """Ctrl-C after step 2 of 3 keeps the episode's progress (progress.npz); the same command then runs step 3 alone
     and ends where the uninterrupted episode ends: the same pushes, d and share inside, and a GIF of every step."""
     from dynres_jax.control import progress
 
-    tiny = ["--pieces", "20", "--mpc-steps", "3", "--samples", "4", "--adam-steps", "2", "--dynamics", "sweep"]
-    whole = gather.main([*tiny, "--out", str(tmp_path / "whole")])
+    main = {"gather": gather.main, "sort": sort.main}[command]
+    tiny = ["--pieces", *(["20"] if command == "gather" else ["12", "12"]), "--mpc-steps", "3", "--samples", "4",
+            "--adam-steps", "2", "--dynamics", "sweep"]
+    whole = main([*tiny, "--out", str(tmp_path / "whole")])
     save = progress.save
 
     def interrupted(path, now, frames):  # the user's Ctrl-C arrives once step 2 is saved
@@ -128,10 +132,10 @@ def test_an_interrupted_episode_resumes_from_its_last_step_as_if_never_stopped(t
     monkeypatch.setattr(progress, "save", interrupted)
     capsys.readouterr()
     with pytest.raises(SystemExit) as e:
-        gather.main([*tiny, "--out", str(tmp_path / "cut")])
+        main([*tiny, "--out", str(tmp_path / "cut")])
     assert e.value.code == 130 and "rerun the same command to resume" in capsys.readouterr().err
     assert (tmp_path / "cut" / "progress.npz").exists() and not (tmp_path / "cut" / "metrics.json").exists()
-    again = gather.main([*tiny, "--out", str(tmp_path / "cut")])
+    again = main([*tiny, "--out", str(tmp_path / "cut")])
     out = capsys.readouterr().out
     assert "resuming the interrupted episode after step 2 of 3" in out and "step  3/3" in out and "step  1/3" not in out
     assert [r["action"] for r in again["steps"]] == [r["action"] for r in whole["steps"]]

@@ -21,23 +21,28 @@ a step, slow) and ``rerank`` among its plans after the model's Adam steps.
 from __future__ import annotations
 
 import dataclasses
-import os
 import time
 
 import jax
 import numpy as np
 
 from dynres_jax.commands import checks
-from dynres_jax.commands.planner_args import check_budget
-from dynres_jax.commands.task import add_loop_args, build_loop, check_pile, finished, write_episode
+from dynres_jax.commands.task import (
+    add_loop_args,
+    build_loop,
+    check_pile,
+    finished,
+    run_resumable,
+    write_episode,
+    write_metrics,
+)
 from dynres_jax.config import KINDS, CameraConfig, PileConfig, SceneConfig, SimConfig
 from dynres_jax.control.choosers import climb, on_ladder
 from dynres_jax.control.decision import batch
 from dynres_jax.control.goals import make_goal
-from dynres_jax.control.mpc import measure_timing, run_episode
+from dynres_jax.control.mpc import measure_timing
 from dynres_jax.control.sort import ARRIVED, MIXING, SortPolicy
 from dynres_jax.control.tasks import sort_goal, sort_scores, sort_succeeded, success_rule
-from dynres_jax.io import files
 from dynres_jax.io.draw import sort_frames
 
 
@@ -94,17 +99,15 @@ def main(argv=None):
           f"{np.round(goals_xy, 3).tolist()} radius {radius:.3f} m; dynamics: {loop.model.name}; "
           f"ω = {args.resolution}; {args.samples} x {args.adam_steps} Adam steps")
     t0 = time.perf_counter()
-    if cfg.time_budget is not None and timing is None:
-        timing = measure_timing(state.obs, goals[0], loop.model.dynamics, cfg, env.camera, omegas=[loop.omega])
-        check_budget(cfg, timing, [loop.omega])
     key = jax.random.PRNGKey(args.seed)
     policy = SortPolicy(env, cfg, loop.omega, key, goals_xy, radius, grid_step=args.grid_step, arrived=args.arrived,
-                        mixing=args.mixing)
+                        mixing=args.mixing)  # its orders follow from each frame alone, so a resumed episode goes on
     frames = sort_frames(masks, lambda: policy.target_mask, env.camera)
     chooser = policy if args.method == "model" else climb(policy, args.method)
-    state, records = run_episode(env, state, chooser, loop.model.dynamics, cfg, key, timing=timing, on_step=[frames])
-    if timing is not None:
-        timing.save(os.path.join(args.out, "timing.json"))
+    state, records, timing = run_resumable(
+        args.out, args.fresh, env, state, chooser, loop.model.dynamics, cfg, key, timing, frames,
+        lambda: measure_timing(state.obs, goals[0], loop.model.dynamics, cfg, env.camera, omegas=[loop.omega]),
+        [loop.omega])
     write_episode(args.out, frames.finish(batch(state)))
     summary = dict(task="sort", seed=args.seed, method=args.method, dynamics=loop.model.name, kinds=args.kinds,
                    pieces=args.pieces,
@@ -114,7 +117,7 @@ def main(argv=None):
                    success=sort_succeeded(records[-1]["kind_inside"], records[-1]["mixing"]),
                    seconds=time.perf_counter() - t0, mpc=dataclasses.asdict(cfg),
                    timing=timing.to_json() if timing else None, steps=records)
-    files.write_json(os.path.join(args.out, "metrics.json"), summary)
+    write_metrics(args.out, summary)
     inside = summary["final_inside"]
     print(f"inside own goal: {args.kinds[0]} {start_inside[0]:.0%} -> {inside[0]:.0%}, {args.kinds[1]} "
           f"{start_inside[1]:.0%} -> {inside[1]:.0%}; mixing {start_mixing:.0%} -> {summary['final_mixing']:.0%}; "

@@ -213,6 +213,45 @@ def finished(out: str, resumed: bool, fresh: bool) -> dict | None:
         return json.load(f)
 
 
+def run_resumable(out: str, fresh: bool, env: PileEnv, state, chooser: Chooser, dynamics, cfg: MPCConfig, key,
+                  timing: budget.TimingTable | None, frames, measure: Callable[[], budget.TimingTable], omegas
+                  ) -> tuple:
+    """A task command's episode (``run_episode`` from ``state`` with GIF ``frames``), resumable: after every step its
+    progress (``control.progress``) and the timing table its decisions refined are saved in ``out``, and a rerun of
+    the same settings goes on from the last finished step (``fresh``: from the start). Under a time budget without a
+    table, ``measure()`` makes one (checked to afford ``omegas``). Returns (final state, records, timing table)."""
+    saved, table, resume = os.path.join(out, PROGRESS), os.path.join(out, "timing.json"), None
+    if os.path.isfile(saved) and fresh:
+        os.unlink(saved)
+    elif os.path.isfile(saved):  # an interrupted run of these settings: go on from its last step, its table as it was
+        resume, frames.frames = progress.load(saved, batch(state))
+        frames.last = resume.records[-1]
+        if cfg.time_budget is not None and os.path.isfile(table):  # refined as it was unless given frozen (--timing)
+            timing = budget.TimingTable.load(table, frozen=timing is not None and timing.frozen)
+        print(f"resuming the interrupted episode after step {len(resume.records)} of {cfg.mpc_steps} ({saved})")
+    if cfg.time_budget is not None and timing is None:
+        timing = measure()
+        check_budget(cfg, timing, omegas)
+
+    def keep(now):  # after every step: the episode so far and the timing table its decisions refined
+        progress.save(saved, now, frames.frames)
+        if timing is not None:
+            timing.save(table)
+
+    state, records = run_episode(env, state, chooser, dynamics, cfg, key, timing=timing, on_step=[frames],
+                                 resume=resume, on_progress=keep)
+    if timing is not None:
+        timing.save(table)
+    return state, records, timing
+
+
+def write_metrics(out: str, summary: dict) -> None:
+    """The finished episode's summary to ``out``/metrics.json; its progress file, no longer needed, removed."""
+    files.write_json(os.path.join(out, "metrics.json"), summary)
+    if os.path.exists(os.path.join(out, PROGRESS)):
+        os.unlink(os.path.join(out, PROGRESS))
+
+
 def write_episode(out: str, frames: list) -> None:
     """The episode's ``episode.gif`` (every frame) and ``final.png`` (the last) in ``out``, atomically."""
     files.atomic_write(os.path.join(out, "episode.gif"),
@@ -273,30 +312,12 @@ def main(task: str, argv=None):
           f"ω = {args.resolution}; {budget_text}")
     t0 = time.perf_counter()
     frames = goal_frames(goal_mask, env.camera)
-    saved, table, resume = os.path.join(args.out, PROGRESS), os.path.join(args.out, "timing.json"), None
-    if os.path.isfile(saved) and args.fresh:
-        os.unlink(saved)
-    elif os.path.isfile(saved):  # an interrupted run of these settings: go on from its last step, its table as it was
-        resume, frames.frames = progress.load(saved, batch(state))
-        frames.last = resume.records[-1]
-        if cfg.time_budget is not None and os.path.isfile(table):  # refined as it was unless given frozen (--timing)
-            timing = budget.TimingTable.load(table, frozen=timing is not None and timing.frozen)
-        print(f"resuming the interrupted episode after step {len(resume.records)} of {cfg.mpc_steps} ({saved})")
-    if cfg.time_budget is not None and timing is None:
-        timing = measure_timing(state.obs, goal, loop.model.dynamics, cfg, env.camera,
-                                omegas=None if loop.regressor else [loop.omega])
-        check_budget(cfg, timing, [OMEGA_MIN] if loop.regressor else [loop.omega])
-
-    def keep(now):  # after every step: the episode so far and the timing table its decisions refined
-        progress.save(saved, now, frames.frames)
-        if timing is not None:
-            timing.save(table)
-
-    state, records = run_episode(env, state, loop.chooser(batch(goal)), loop.model.dynamics, cfg,
-                                 jax.random.PRNGKey(args.seed), timing=timing, on_step=[frames], resume=resume,
-                                 on_progress=keep)
-    if timing is not None:
-        timing.save(table)
+    state, records, timing = run_resumable(
+        args.out, args.fresh, env, state, loop.chooser(batch(goal)), loop.model.dynamics, cfg,
+        jax.random.PRNGKey(args.seed), timing, frames,
+        lambda: measure_timing(state.obs, goal, loop.model.dynamics, cfg, env.camera,
+                               omegas=None if loop.regressor else [loop.omega]),
+        [OMEGA_MIN] if loop.regressor else [loop.omega])
     write_episode(args.out, frames.finish(batch(state)))
     summary = dict(task=task, seed=args.seed, kind=args.kind, pieces=args.pieces, dynamics=loop.model.name,
                    judge=None if loop.judge is None else loop.judge.name, goal=goal_info, resolution=args.resolution,
@@ -304,9 +325,7 @@ def main(task: str, argv=None):
                    final_inside=records[-1]["inside"], final_distance=records[-1]["distance"],
                    seconds=time.perf_counter() - t0, mpc=dataclasses.asdict(cfg),
                    timing=timing.to_json() if timing else None, steps=records)
-    files.write_json(os.path.join(args.out, "metrics.json"), summary)
-    if os.path.exists(saved):
-        os.unlink(saved)  # the episode is finished: metrics.json holds it
+    write_metrics(args.out, summary)
     print(f"pieces inside the goal: {start_inside:.0%} -> {summary['final_inside']:.0%}; "
           f"wrote {args.out}/episode.gif, final.png, metrics.json")
     return summary
