@@ -383,7 +383,7 @@ def test_evaluate_quick_is_quick(tmp_path):
                              "--samples", "4", "--stop-share", "0.01", "--out", str(tmp_path)])
     run = json.loads((tmp_path / "50.json").read_text())
     assert summary["methods"]["50"]["episodes"] == 4 and len(run["mean_distance"]) == 3
-    assert summary["mpc_steps"] == 3 and summary["samples"] == 4 and np.all(np.array(run["adam_steps"]) == 10)
+    assert summary["mpc_steps"] == 3 and summary["samples"] == 4 and np.all(np.array(run["adam_steps"])[0] == 10)
     seen, inside = np.array(run["seen_inside"]), np.array(run["inside"])
     first = [int(np.argmax(seen[:, e] >= 0.01)) if np.any(seen[:, e] >= 0.01) else 3 for e in range(4)]
     assert min(first) < 2  # some episode held before its last push
@@ -452,23 +452,24 @@ def test_seen_inside_is_the_share_of_foreground_pixels_on_the_goal():
     assert float(seen_inside(np.zeros((16, 16), bool), goal, camera)) == 0.0
 
 
+@pytest.fixture(scope="module")
+def free(three):
+    """The three scenes over 4 MPC steps without the stop rule: (pool, goals, cfg, keys, starts, records, the pieces
+    before each push)."""
+    pool, goals, _, cfg, keys, starts = three
+    cfg, before = dataclasses.replace(cfg, mpc_steps=4), []
+    _, records = run(pool, starts, FixedOmega(goals, 6), sweep_dynamics(0.04), cfg, keys, log=lambda s: None,
+                     on_step=[lambda t, states, particles, record: before.append(np.asarray(states.pos))])
+    return pool, goals, cfg, keys, starts, records, before
+
+
 @pytest.mark.parametrize("stop", ["some", "all"])
-def test_the_stop_rule_holds_an_episode_from_the_frame_that_met_it(stop):
+def test_the_stop_rule_holds_an_episode_from_the_frame_that_met_it(free, stop):
     """MPCConfig.stop_share: a run that stops equals, episode by episode, the same run without the rule up to the
     first frame whose seen share met it (t*), and from t* on it pushes nothing: its pieces stay where they were
     before push t* and its d and share inside are those after push t* - 1 ("all": every episode holds, and the steps
     where all do are not planned)."""
-    sim = SimConfig(scene=SceneConfig(pieces=(6,)), pile=PileConfig(layout="spread"),
-                    push=PushConfig(max_length=0.1, settle_time=0.04), camera=CameraConfig(width=48, height=48))
-    pool = WorldPool(sim)
-    masks = [disc_goal(pool.camera, np.array(c), 0.06) for c in ([0.0, 0.0], [0.05, -0.03], [-0.04, 0.04])]
-    goals = jax.tree.map(lambda *x: np.stack(x), *[make_goal(m, pool.camera, n_samples=32) for m in masks])
-    planner = PlannerConfig(samples=4, adam_steps=3, bound=pool.env.action_bound, max_length=0.1)
-    cfg = MPCConfig(mpc_steps=4, buckets=(6,), max_points=256, planner=planner)
-    keys, starts = jax.random.split(jax.random.PRNGKey(2), 3), pool.reset(jax.random.split(jax.random.PRNGKey(3), 3))
-    before = []  # the pieces before each push
-    _, free = run(pool, starts, FixedOmega(goals, 6), sweep_dynamics(0.04), cfg, keys, log=lambda s: None,
-                  on_step=[lambda t, states, particles, record: before.append(np.asarray(states.pos))])
+    pool, goals, cfg, keys, starts, free, before = free
     seen = np.array([r["seen_inside"] for r in free])  # [T, B]
     share = 1e-6 if stop == "all" else float(np.max(seen[1:])) * 0.9  # met by some episode after a push
     first = np.array([np.argmax(seen[:, b] >= share) if np.any(seen[:, b] >= share) else 4 for b in range(3)])
@@ -487,6 +488,9 @@ def test_the_stop_rule_holds_an_episode_from_the_frame_that_met_it(stop):
             assert np.all(np.isnan(held[t]["action"][b])) == (t >= first[b])
         if first[b] < 4:
             np.testing.assert_allclose(np.asarray(final.pos)[b], before[first[b]][b], atol=1e-6)
+    for t in range(1, 4):  # a step where every episode holds plans nothing
+        assert np.all(held[t]["adam_steps"] == 0) == np.all(t >= first)
+    assert (stop == "all") == any(np.all(t >= first) for t in range(1, 4))
     steps = lambda records, k: np.stack([r[k] for r in records]).tolist()  # noqa: E731  (evaluate's [T][E])
     replayed = tasks.stopped({k: steps(free, k) for k in ("inside", "distance", "seen_inside")}, share)
     assert replayed["stopped_at"] == first.tolist()
