@@ -239,9 +239,7 @@ def run_resumable(out: str, fresh: bool, env: PileEnv, state, chooser: Chooser, 
             timing.save(table)
 
     state, records = run_episode(env, state, chooser, dynamics, cfg, key, timing=timing, on_step=[frames],
-                                 resume=resume, on_progress=keep)
-    if timing is not None:
-        timing.save(table)
+                                 resume=resume, on_progress=keep)  # keep saved the table after the last step too
     return state, records, timing
 
 
