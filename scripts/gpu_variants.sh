@@ -16,7 +16,8 @@
 #      e.g. "base=;mix3=--mixing 3;old=--arrived 0.9"), FLAGS (more evaluate flags for every run), GPUS (a CPU dry
 #      run: GPUS=1 EPISODES=2 STEPS=1 FLAGS="--quick"), SPLIT (1: each run split over this many processes of one
 #      job, `evaluate --coordinator`, the processes of all runs dealt over the GPUs in turn; e.g. SPLIT=4 on a 4-GPU host for 256-episode
-#      headlines: `TASK=sort EPISODES=256 SPLIT=4 bash scripts/gpu_variants.sh`).
+#      headlines: `TASK=sort EPISODES=256 SPLIT=4 bash scripts/gpu_variants.sh`), FIRST_GPU (0: with GPUS, the block of
+#      GPUs FIRST_GPU .. FIRST_GPU + GPUS - 1, so that several invocations share a host side by side).
 set -uo pipefail
 OUT=${OUT:-runs/sort_eval}; EPISODES=${EPISODES:-64}; SEED=${SEED:-60000}; METHODS=${METHODS:-50}
 STEPS=${STEPS:-30}; TASK=${TASK:-sort}; VARIANTS=${VARIANTS:-"base="}
@@ -37,7 +38,7 @@ for variant in "${variants[@]}"; do
       job=(); [ "$SPLIT" -gt 1 ] && job=(--coordinator "localhost:$port" --num-processes "$SPLIT" --process-id "$j")
       log="$RUNS/$name/$TASK-$kind.log"; [ "$j" -gt 0 ] && log="$RUNS/$name/$TASK-$kind.$j.log"
       # shellcheck disable=SC2086
-      CUDA_VISIBLE_DEVICES=$((p % gpus)) XLA_PYTHON_CLIENT_MEM_FRACTION=$fraction python -m experiments.evaluate \
+      CUDA_VISIBLE_DEVICES=$((${FIRST_GPU:-0} + p % gpus)) XLA_PYTHON_CLIENT_MEM_FRACTION=$fraction python -m experiments.evaluate \
         --task "$TASK" --kind ${kind/-/ } --episodes "$EPISODES" --seed "$SEED" --mpc-steps "$STEPS" --samples 50 \
         --adam-steps 100 --methods $METHODS --workers "$workers" $flags ${FLAGS:-} --out "$RUNS/$name/$TASK-$kind" \
         ${job[@]+"${job[@]}"} > "$log" 2>&1 &
