@@ -2,10 +2,14 @@
 episode that holds from the first frame meeting it would have had, against no rule on the same episodes (successes
 only with the rule / only without, McNemar's p; final d's mean difference with its bootstrap interval), the mean step
 it stopped at and, with --letters, per goal character. The rule is chosen on tuning seeds (--choose: the highest
-success, ties to the larger share) and measured once on fresh ones (--shares S).
+success, ties to the larger share) and measured once on fresh ones (--shares S). With --steps, the same for the
+first T MPC steps of each episode (an MPC step's keys depend on the step alone, so the first T steps of a longer run
+are the T-step run), and --choose picks (T, share) by the highest success, ties to fewer steps, then the larger share.
+Sort records no seen share: its table has no rule, only the steps.
 
     python scripts/stop_rule.py --run RUNS/r_tune/50.json --task redistribute --choose
     python scripts/stop_rule.py --run RUNS/r_fresh/50.json --task redistribute --shares 0.95 --letters BDGPQV345689
+    python scripts/stop_rule.py --run RUNS/r_tune/50.json --task redistribute --steps 60 80 100 --choose
 
 Writes the Markdown table to --out and prints it.
 """
@@ -22,13 +26,33 @@ from dynres_jax.stats import mcnemar, paired_bootstrap, wilson
 from scripts.variants import groups, read_results
 
 SHARES = tuple(np.round(np.arange(0.85, 1.0001, 0.01), 2))
+PER_STEP = ("inside", "distance", "seen_inside", "kind_inside", "mixing", "omega", "adam_steps")
 
 
-def rows(results: dict, task: str, shares, letters: str | None) -> tuple[list[str], float]:
-    """The table's rows (goal, stop share) and the share --choose keeps (over every episode)."""
+def first_steps(results: dict, steps: int) -> dict:
+    """An evaluation's results as if its episodes had ended after their first ``steps`` MPC steps: the per-step
+    records [T][E] cut to [steps][E], the finals and means per episode taken from them (the final pieces dropped)."""
+    total = len(results["inside"])
+    if not 1 <= steps <= total:
+        raise ValueError(f"--steps must be in 1..{total} (the run's MPC steps), got {steps}")
+    out = {k: v for k, v in results.items() if k != "final_pieces"}
+    out.update({k: np.asarray(results[k])[:steps].tolist() for k in PER_STEP if k in results})
+    for key in ("inside", "distance", "kind_inside", "mixing"):
+        if key in results:
+            values = np.asarray(out[key])
+            out[f"final_{key}"] = values[-1].tolist()
+            if key != "kind_inside":
+                out[f"mean_{key}"] = values.mean(0).tolist()
+    return out
+
+
+def rows(results: dict, task: str, shares, letters: str | None) -> tuple[list[str], tuple[int, float]]:
+    """The table's rows (goal, stop share) and (successes, share) of the share --choose keeps (over every episode;
+    inf for no rule, the largest share: it never stops)."""
     base = episode_success(task, results)
     reached = step_success(task, results).any(axis=0)
     lines, best = [], (-1, 0.0)
+    shares = shares if "seen_inside" in results else ()
     runs = {share: results if share is None else stopped(results, share) for share in (None, *shares)}
     for goal, pick in groups(len(base), letters).items():
         for share, run in runs.items():
@@ -39,6 +63,8 @@ def rows(results: dict, task: str, shares, letters: str | None) -> tuple[list[st
                     f"{int(reached[pick].sum())} |")
             if share is None:
                 lines.append(line + " | | |")
+                if goal == "all":
+                    best = max(best, (k, np.inf))
                 continue
             stop = np.asarray(run["stopped_at"])[pick]
             test = mcnemar(ok[pick], base[pick])
@@ -49,7 +75,7 @@ def rows(results: dict, task: str, shares, letters: str | None) -> tuple[list[st
                          f"{d['mean']:+.2f} [{d['ci95'][0]:+.2f}, {d['ci95'][1]:+.2f}] |")
             if goal == "all":
                 best = max(best, (k, share))
-    return lines, best[1]
+    return lines, best
 
 
 def main(argv=None) -> None:
@@ -58,17 +84,24 @@ def main(argv=None) -> None:
     parser.add_argument("--task", default="redistribute")
     parser.add_argument("--shares", type=float, nargs="+", default=SHARES)
     parser.add_argument("--letters", default=None, help="per goal character too (episode i's: letters[i % len])")
-    parser.add_argument("--choose", action="store_true", help="print the share with the highest success")
+    parser.add_argument("--steps", type=int, nargs="+", default=None, help="tables for the first T MPC steps too")
+    parser.add_argument("--choose", action="store_true", help="print the share (and T) with the highest success")
     parser.add_argument("--out", default=None, help="write the Markdown table here")
     args = parser.parse_args(argv)
     results = read_results(args.run)
-    lines, best = rows(results, args.task, args.shares, args.letters)
-    text = "\n".join(["| goal | stop share | success (95 % CI) | reached success at some step | mean stop step | "
-                      "against none: only here / only there | Δ final d (95 % CI) |",
-                      "|---|---:|---:|---:|---:|---:|---:|", *lines]) + "\n"
+    text, best = "", (-1, 0, 0.0)
+    for steps in args.steps or [len(results["inside"])]:
+        lines, (k, share) = rows(first_steps(results, steps), args.task, args.shares, args.letters)
+        best = max(best, (k, -steps, share))
+        text += "\n".join([f"{steps} MPC steps:", "",
+                           "| goal | stop share | success (95 % CI) | reached success at some step | mean stop step | "
+                           "against none: only here / only there | Δ final d (95 % CI) |",
+                           "|---|---:|---:|---:|---:|---:|---:|", *lines]) + "\n\n"
     print(text)
     if args.choose:
-        print(f"chosen stop share (the highest success, ties to the larger): {best:.2f}")
+        k, steps, share = best
+        print(f"chosen (the highest success, ties to fewer steps, then the larger share): {-steps} MPC steps, "
+              f"stop share {'none' if share == np.inf else f'{share:.2f}'}, {k} successes")
     if args.out:
         files.write_text(args.out, text)
 

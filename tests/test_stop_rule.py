@@ -36,4 +36,14 @@ def test_the_table_counts_gains_and_losses_and_chooses_the_best_share(stop_rule)
     # 0.90: episode 0 stops before push 1 (0.5 inside: failed either way), episode 1 before push 3 (0.92: kept)
     assert "| all | 0.90 | 33% " in lines[1] and "| 0 / 0 " in lines[1]
     # 0.94: episode 0 stops before push 2 with 0.91 inside (gained), episode 1 runs on to 0.95: 2 of 3
-    assert "| all | 0.94 | 67% " in lines[2] and "| 1 / 0 " in lines[2] and best == 0.94
+    assert "| all | 0.94 | 67% " in lines[2] and "| 1 / 0 " in lines[2] and best == (2, 0.94)
+
+
+def test_the_first_steps_of_a_run_are_the_shorter_run(stop_rule):
+    out = stop_rule.first_steps(_results(), 2)
+    assert out["final_inside"] == [0.91, 0.7, 0.3] and out["final_distance"] == [1.0, 4.0, 8.0]
+    assert np.shape(out["seen_inside"]) == (2, 3) and out["mean_inside"] == pytest.approx([0.705, 0.65, 0.25])
+    lines, best = stop_rule.rows(out, "redistribute", (0.9,), None)
+    assert "| all | none | 33% " in lines[0] and best == (1, np.inf)  # episode 0 alone; the rule changes nothing
+    with pytest.raises(ValueError, match="--steps must be in 1..4"):
+        stop_rule.first_steps(_results(), 5)
