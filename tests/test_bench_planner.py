@@ -5,6 +5,8 @@ import pytest
 
 from benchmarks import bench_planner
 
+pytestmark = pytest.mark.slow  # end to end: CI's second tier (python -m pytest -m slow)
+
 
 @pytest.fixture(scope="module")
 def result():

@@ -52,6 +52,7 @@ def _decide(state, goal, key, dynamics, cfg, camera, omega, bucket, steps=None):
                                dynamics=dynamics, camera=camera)
 
 
+@pytest.mark.slow
 def test_padding_is_inert_across_buckets(scene):
     """A decision at ω = 10 in bucket 16 equals the same decision in bucket 32 (same key): the particles, c, the
     plan and its cost, with the shipped model."""
@@ -113,6 +114,7 @@ def test_timing_table_formula_refine_and_round_trip(tmp_path):
         TimingTable("x", 1, 1, fixed_s={16: 0.0}, step_s={16: float("nan")})
 
 
+@pytest.mark.slow
 def test_time_budgeted_decisions_return_within_budget_plus_one_step(scene):
     """measure_timing on this CPU, then a budgeted episode: each decision runs the steps the table affords and
     returns within the budget plus one Adam step (the median decision, with an allowance for the host's jitter)."""
@@ -225,6 +227,7 @@ def test_reference_planner_flags_resolve_to_the_authors_options_and_a_flag_besid
         assert says in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_a_fixed_omega_times_only_its_bucket(scene, monkeypatch, tmp_path):
     """measure_timing for the ω a run decides at times their buckets alone; a task command at a fixed ω asks for
     its ω only (was: every bucket, 43 of a 60 s run)."""

@@ -165,6 +165,7 @@ def cnn_run(shards, tmp_path_factory):  # noqa: F811
     return str(out), train(CNN_CFG, shards, str(out), progress=False)
 
 
+@pytest.mark.slow
 def test_training_reduces_the_loss_and_the_checkpoint_restores(cnn_run, shards):  # noqa: F811
     """The rollout loss over the batches training saw (replayed: a step's batch depends on (seed, step) only) is
     lower with the checkpoint's parameters than with the initial ones (the sweep heuristic)."""

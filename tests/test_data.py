@@ -73,6 +73,7 @@ def read(path):
 # ----------------------------------------------------------------------------------------------------------------
 # Generation
 # ----------------------------------------------------------------------------------------------------------------
+@pytest.mark.slow
 def test_generation_writes_shards_and_summary(generated):
     out, summary = generated
     assert sorted(os.listdir(out)) == ["config.json", "shard_00000.npz", "shard_00001.npz", "summary.json"]
@@ -419,6 +420,7 @@ def test_cli_rejects_bad_flags(capsys):
     assert "DataConfig.episodes must be a positive int" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_c_backend_in_worker_processes_equals_in_process():
     """Backend "mujoco": episodes run in spawned worker processes equal the same episodes run here, frame by frame
     (poses, renders, pushes), and every frame is a settled, unbroken pile inside the bin."""

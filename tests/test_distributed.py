@@ -17,6 +17,8 @@ from dynres_jax import distributed
 from dynres_jax.io import shards
 from dynres_jax.learn import data
 
+pytestmark = pytest.mark.slow  # end to end: CI's second tier (python -m pytest -m slow)
+
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 QUICK = data.quick_config(episodes=7)  # 2 shards: 4 episodes, then 3
 
@@ -216,6 +218,7 @@ import jax
 import numpy as np
 sys.path.insert(0, "tests")
 from test_distributed import regressor_run
+
 assert len(jax.devices()) == 4
 print(json.dumps(regressor_run()))
 """

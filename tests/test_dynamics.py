@@ -113,6 +113,7 @@ def perturbed(config, scale=0.02, seed=1):
         leaves, keys, strict=True)])
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("config", [reference(hidden=H), reference(residual=True, push_frame=True)])
 def test_bfloat16_edges_agree_with_float32(config):
     """bfloat16 edges move predictions by a small fraction of the displacement (measured here: 0.1-0.2 % on average,

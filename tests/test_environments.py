@@ -38,6 +38,7 @@ def test_the_planner_runs_under_x64(model):
     assert done.returncode == 0 and "planned float32 True" in done.stdout, done.stderr[-2000:]
 
 
+@pytest.mark.slow
 def test_a_command_under_x64_plans_in_float32(tmp_path):
     """A command computes in float32 whatever JAX_ENABLE_X64 says (``checks.guarded``): the goal and a plan on a
     saved frame run and print their JSON."""

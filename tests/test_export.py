@@ -85,6 +85,7 @@ def reloaded(exported_file):
     return ex.load(exported_file)
 
 
+@pytest.mark.slow
 def test_the_file_decides_like_the_library_where_only_jax_and_flatbuffers_are(tiny_ckpt, exported_file, tmp_path):
     calls = [inputs(i) for i in range(FRAMES)]
     np.savez(tmp_path / "frames.npz", **{n: np.stack([c[k] for c in calls]) for k, n in enumerate(ex.INPUT_NAMES)})
@@ -236,6 +237,7 @@ def test_cli_refuses_before_work(tiny_ckpt, tmp_path, capsys):
     assert exit_info.value.code == 0 and "pip install jax flatbuffers" in capsys.readouterr().out
 
 
+@pytest.mark.slow
 def test_plan_gives_the_exported_files_push(tiny_ckpt, tmp_path, capsys):
     """``dynres plan`` on a saved frame and the exported decision on the same frame, goal, key, ω and Adam steps: the
     same push (both decide through ``decision.perceive_and_decide``; the planner's defaults the export's)."""

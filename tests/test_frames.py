@@ -37,6 +37,7 @@ def test_round_trip_keeps_depth_to_a_millimetre(saved):
 
 @pytest.mark.parametrize("camera_flags", [[], ["--no-real-depth"], ["--sensor", "realsense"],
                                           ["--sensor", "realsense", "--calibrate"]])
+@pytest.mark.slow
 def test_plan_command_prints_a_push_of_the_action_space(saved, tmp_path, capsys, camera_flags):
     _, _, paths = saved
     out = plan.main(["--depth", paths["depth.png"], "--rgb", paths["rgb.png"], "--camera", paths["camera.json"],

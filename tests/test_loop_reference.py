@@ -12,6 +12,8 @@ from loop_reference import REFERENCE, record
 from dynres_jax.config import OMEGA_MIN
 from dynres_jax.models.registry import SHIPPED_DYNAMICS, shipped_dynamics
 
+pytestmark = pytest.mark.slow  # end to end: CI's second tier (python -m pytest -m slow)
+
 
 @pytest.fixture(scope="module")
 def folder(tmp_path_factory):

@@ -35,6 +35,7 @@ def _squeezed_world(env: PileEnv):
     return env._data0().replace(qpos=qpos, qvel=qvel, mocap_pos=plate, mocap_quat=jnp.array([[1.0, 0, 0, 0]]))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", list(SCENES))
 def test_sparse_step_equals_mjx_step(name):
     env = PileEnv(SimConfig(scene=SCENES[name]), backend="mjx", render=False)

@@ -164,6 +164,7 @@ def test_batched_episodes_equal_one_at_a_time():
         np.testing.assert_allclose(records[0]["inside"][b], one[0]["inside"], atol=1 / 6 + 1e-6)
 
 
+@pytest.mark.slow
 def test_pool_episodes_with_per_episode_omega_and_budget_equal_one_at_a_time():
     """run on a WorldPool with ω chosen per episode (adaptive) in different buckets and a time budget makes the same
     decisions as run_episode at each episode's ω in its own bucket: every episode runs the Adam steps its bucket
@@ -209,6 +210,7 @@ def three():
     return pool, goals, planner, cfg, keys, pool.reset(jax.random.split(jax.random.PRNGKey(3), 3))
 
 
+@pytest.mark.slow
 def test_oracle_keeps_the_best_candidate_per_episode(three):
     """The oracle over (2, 6): each episode keeps the ω whose push left the lower d, and its record equals that of the
     run at that fixed ω (same keys); an ω beyond the pile's points is named, not planned on empty particles."""
@@ -351,6 +353,7 @@ def test_a_chooser_that_repeats_the_goals_changes_nothing(episode):
     assert np.isfinite(repeated[-1]["pieces_x"])
 
 
+@pytest.mark.slow
 def test_evaluate_climbs_the_ladder_on_episodes_that_do_not_depend_on_the_count(tmp_path):
     """``evaluate --methods 50 best2 sim rerank``, one MPC step: best-of-2 (draw 0 is ω = 50's plan) and rerank (the
     model's plans, its own best among them, chosen by the simulator) leave no episode worse than ω = 50; sim runs no
@@ -374,6 +377,7 @@ def test_evaluate_climbs_the_ladder_on_episodes_that_do_not_depend_on_the_count(
     assert not np.allclose(runs["sim"]["final_pieces"][0], runs["sim"]["start_pieces"][0], atol=1e-3)  # it pushed
 
 
+@pytest.mark.slow
 def test_evaluate_quick_is_quick(tmp_path):
     """``evaluate --quick`` alone runs 4 episodes of 3 MPC steps of 8 samples x 10 Adam steps; a flag given beside it
     wins. --stop-share reaches the loop: from the first frame that met it, an episode's scores stand still."""

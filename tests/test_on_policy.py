@@ -35,6 +35,7 @@ def episodes():
     return worlds, keys, runs
 
 
+@pytest.mark.slow
 def test_planned_pushes_move_piles_into_their_goals(episodes):
     worlds, keys, runs = episodes
     goals = [make_goal(on_policy.episode_goal(k, worlds.env), worlds.camera) for k in on_policy.fold(keys, 0)]
@@ -90,6 +91,7 @@ def test_every_key_draws_a_goal_inside_the_bin_even_for_a_large_pile():
     np.testing.assert_array_equal(on_policy.episode_goals(keys, env), np.stack(masks))  # on threads, the same
 
 
+@pytest.mark.slow
 def test_lanes_step_each_group_as_it_would_alone():
     """Two lanes on C workers (one group pushes while the other plans): each world's episode is the one its group of
     worlds makes alone, and the groups' worlds are not mixed up; lanes are checked."""

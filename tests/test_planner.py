@@ -211,6 +211,7 @@ def test_real_dynamics_end_to_end():
     assert np.all((lengths(best) >= MIN_LEN - 1e-6) & (lengths(best) <= MAX_LEN + 1e-6))
 
 
+@pytest.mark.slow
 def test_pair_table_prepared_once_per_plan_plans_the_same():
     """``learned_dynamics`` builds each re-sampling's pair table once per plan (the planner's ``prepare`` hook, outside
     the step loop); the plan equals one through the same model that builds no table (per-edge codes), to float

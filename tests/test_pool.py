@@ -49,6 +49,7 @@ def test_pool_names_a_bad_action():
         pool.push(states, np.array([[0.0, 0.0, 0.5, 0.0]]))
 
 
+@pytest.mark.slow
 def test_mjx_pool_equals_one_mjx_world_at_a_time():
     """MJXPool: one vmapped reset and push of 2 worlds equal PileEnv's MJX backend world by world (to float32 rounding
     of a batched program: 590 contact steps amplify it to tens of micrometres; a world mixed up with another would be

@@ -75,6 +75,7 @@ def tiny_set(tmp_path_factory):
     return str(out)
 
 
+@pytest.mark.slow
 def test_a_tiny_set_is_built_from_the_closed_loop_and_scored(tiny_set, tmp_path):
     from studies import ranking as study
 
@@ -127,6 +128,7 @@ def test_listwise_loss_is_listnets_cross_entropy_by_hand():
     assert float(listwise(pred, true * 2, 2.0)) == pytest.approx(-np.sum(p * np.log(q)), rel=1e-5)
 
 
+@pytest.mark.slow
 def test_rank_finetuning_lowers_the_listwise_loss_it_trains():
     """Fine-tuning on the ranking alone (no position loss) lowers that loss on the states it trained on (six states
     of the committed M&M set, all their 51 candidates), from a fresh small model (the shipped one is already
@@ -168,6 +170,7 @@ def test_a_set_without_twins_is_scored_without_the_ceiling(tiny_set, tmp_path):
     assert list(results) == ["sweep"]
 
 
+@pytest.mark.slow
 def test_rank_finetune_saves_a_checkpoint_the_planner_loads(tiny_set, tmp_path):
     """--save writes the fine-tuned model with the source's card: it loads as a planner model, predicts otherwise than
     the source, and a second run refuses to overwrite it."""

@@ -19,6 +19,8 @@ from dynres_jax.errors import InputError
 from dynres_jax.models.registry import sweep_dynamics
 from dynres_jax.sim.env import PileEnv
 
+pytestmark = pytest.mark.slow  # end to end: CI's second tier (python -m pytest -m slow)
+
 TINY = ["--steps", "2", "--samples", "4", "--adam-steps", "3", "--dynamics", "sweep", "--pieces", "30"]
 
 

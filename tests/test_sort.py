@@ -170,6 +170,7 @@ def test_sort_goal_gives_two_disjoint_discs_in_the_bin(env, seed):
     assert masks[0].any() and masks[1].any() and not np.any(masks[0] & masks[1])
 
 
+@pytest.mark.slow
 def test_tiny_sort_episode_runs_and_records_every_step(env):
     goals, radius, _ = sort_goal(np.random.default_rng(0), env)
     planner = PlannerConfig(samples=8, adam_steps=10, bound=env.action_bound, max_length=0.1)
@@ -211,6 +212,7 @@ def test_a_pile_inside_its_goal_counts_as_arrived(env, monkeypatch):
         assert np.allclose(record["perceived_inside"], [inside])
 
 
+@pytest.mark.slow
 def test_sort_climbs_the_ladder(env):
     """Sort's waypoints under the ladder's wrappers: one plan of K = 1 is the policy's own push; the best of two
     plans (draw 0 the policy's) and the simulator's pick among the model's plans leave d no higher than the

@@ -20,6 +20,8 @@ from dynres_jax.control.planner import PlannerConfig
 from dynres_jax.models.registry import SHIPPED_DYNAMICS, load_dynamics
 from dynres_jax.sim.pool import WorldPool
 
+pytestmark = pytest.mark.slow  # end to end: CI's second tier (python -m pytest -m slow)
+
 TINY = ["--mpc-steps", "2", "--samples", "4", "--adam-steps", "2", "--pieces", "40"]
 
 

@@ -28,6 +28,7 @@ def uniform_pushes(key, n, reach):
     return jax.random.uniform(key, (n, 4), minval=-reach, maxval=reach)
 
 
+@pytest.mark.slow
 def test_a_batch_of_random_policies_steps_it(env):
     """vmap'd reset and step: every field batched, rewards are the fall in d measured independently, done after
     episode_length steps, the step counter counts."""

@@ -49,6 +49,7 @@ def run(shards, tmp_path_factory):
     return str(out), train(CFG, shards, str(out), progress=False)
 
 
+@pytest.mark.slow
 def test_training_writes_metrics_curves_and_checkpoints(run):
     out, last = run
     rows = [json.loads(line) for line in open(f"{out}/metrics.jsonl")]
@@ -214,6 +215,7 @@ def max_gap(a, b) -> float:
     return max(jax.tree.leaves(jax.tree.map(lambda x, y: float(np.max(np.abs(np.asarray(x) - np.asarray(y)))), a, b)))
 
 
+@pytest.mark.slow
 def test_four_devices_train_as_one(shards, run, tmp_path):
     """Data-parallel: the same run on 4 forced CPU devices (each batch split 1 + 1 + 1 + 1) gives the one-device
     run's parameters and metrics to float tolerance, and its checkpoint restores on one device; a batch that does not
@@ -236,6 +238,7 @@ def test_four_devices_train_as_one(shards, run, tmp_path):
     assert max_gap(ckpt.restore(f"{one_dir}/ckpt", abstract, step=2)[0], a) > 1e-4  # training moved them
 
 
+@pytest.mark.slow
 def test_quick_data_trains_with_the_quick_recipe(tmp_path, capsys):
     """``generate_data --quick``'s data train as they are with ``--recipe quick``; the default recipe's horizon is
     refused in one line that names the quick recipe."""
