@@ -15,6 +15,8 @@ from dynres_jax.learn import labels as labels_lib
 from dynres_jax.learn import regressor as g_training
 from dynres_jax.sim import engines
 
+pytestmark = pytest.mark.slow  # end to end: CI's second tier (python -m pytest -m slow)
+
 QUICK = ["--quick", "--dynamics", "sweep", "--workers", "2"]
 # A hand-made timing table: under a 20 ms budget, buckets 16, 32, 64, 100 afford 10, 5, 2 and 1 Adam steps
 TABLE = TimingTable("test", 4, 1, fixed_s={16: 0.01, 32: 0.01, 64: 0.01, 100: 0.01},
@@ -52,7 +54,6 @@ def regressor(labels, tmp_path_factory):
                                       "--width", "4"])
 
 
-@pytest.mark.slow
 def test_labels_follow_the_bo_recipe_and_resume(labels, timing, capsys):
     out, summary, keys = labels
     assert summary["scenes"] == 8 and summary["shards_written"] == 2
@@ -133,7 +134,6 @@ def test_mid_episode_labels_start_from_pushed_piles(labels, timing, tmp_path):
         assert np.all(np.abs(mid["d0"] - fresh["d0"]) > 1e-6)
 
 
-@pytest.mark.slow
 def test_regressor_checkpoint_and_metrics(regressor):
     out, metrics = regressor
     assert metrics["train"] + metrics["validation"] + metrics["held_out"] == 8 and np.isfinite(metrics["mae"])
@@ -142,7 +142,6 @@ def test_regressor_checkpoint_and_metrics(regressor):
         assert json.load(f)["params"] == metrics["params"]
 
 
-@pytest.mark.slow
 def test_evaluation_fixed_and_adaptive(regressor, timing, tmp_path):
     # 60 pieces: enough foreground points at 64 x 64 for any ω up to 100 (the regressor may pick any)
     summary = evaluate.main(["--quick", "--episodes", "2", "--mpc-steps", "2", "--pieces", "60", "--samples", "4",

@@ -14,14 +14,18 @@ def test_an_interrupted_command_ends_with_one_line_and_the_signals_status(tmp_pa
     out = tmp_path / "sim"
     run = subprocess.Popen([sys.executable, "-m", "experiments.simulate", "--pieces", "20", "--pushes", "10000",
                             "--image-size", "32", "--out", str(out)], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                           text=True, env=dict(os.environ, JAX_PLATFORMS="cpu"))
+                           text=True, env=dict(os.environ, JAX_PLATFORMS="cpu", PYTHONFAULTHANDLER="1"))
     deadline = time.monotonic() + 120
     while not (out / "run.json").exists() and run.poll() is None and time.monotonic() < deadline:
         time.sleep(0.1)
     assert run.poll() is None, run.communicate()
     time.sleep(1.0)  # into the pushes
     run.send_signal(signum)  # Python runs the handler between bytecodes: after a compile in progress, which on a loaded
-    _, err = run.communicate(timeout=180)  # 2-core CI machine took over 60 s once (idle: the command ends in < 1 s)
+    try:  # 2-core CI machine took over 60 s once (idle: the command ends in < 1 s)
+        _, err = run.communicate(timeout=180)
+    except subprocess.TimeoutExpired:  # where it hangs: SIGABRT makes faulthandler print every thread's stack
+        run.send_signal(signal.SIGABRT)
+        pytest.fail(f"no exit 180 s after the signal; its stacks:\n{run.communicate()[1][-6000:]}")
     assert run.returncode == status, err
     assert "Traceback" not in err, err
     said = [line for line in err.splitlines() if ": interrupted" in line]  # the test's folder says it too

@@ -133,6 +133,7 @@ def test_the_judge_recipe_is_the_issues_learned_simulator():
     assert recipe.noise > 0 and recipe.steps * recipe.batch * recipe.horizon >= 10_000_000
 
 
+@pytest.mark.slow
 def test_evaluate_runs_the_judge_beside_the_model(tmp_path):
     """evaluate --methods 10 judge --judge CKPT: both on the same episodes, paired; the judge's name in the summary;
     method and checkpoint go together, else one line before any work."""

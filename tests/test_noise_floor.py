@@ -13,6 +13,8 @@ from dynres_jax.models.dynamics import Dynamics, DynamicsConfig
 from dynres_jax.sim.env import State
 from studies import noise_floor
 
+pytestmark = pytest.mark.slow  # end to end: CI's second tier (python -m pytest -m slow)
+
 CONFIG = data.quick_config(backend="mujoco")
 
 

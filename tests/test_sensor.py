@@ -135,6 +135,7 @@ def test_perception_through_the_profile_sees_the_pile_it_sees_without(kind):
     assert abs(r_robust / r_clean - 1) < 0.15, (r_clean, r_robust)
 
 
+@pytest.mark.slow
 def test_evaluate_runs_through_the_sensor(tmp_path):
     """``evaluate --sensor realsense`` plans on the camera's depth and records it; d is measured on the true state."""
     from dynres_jax.commands import evaluate

@@ -17,6 +17,8 @@ from dynres_jax.control.mpc import MPCConfig
 from dynres_jax.control.planner import PlannerConfig
 from dynres_jax.sim.env import PileEnv
 
+pytestmark = pytest.mark.slow  # end to end: CI's second tier (python -m pytest -m slow)
+
 
 @pytest.fixture(scope="module")
 def env():

@@ -13,6 +13,8 @@ from dynres_jax.control.objective import distribution_distance
 from dynres_jax.control.task_env import State, TaskEnv
 from dynres_jax.sim.camera import Camera
 
+pytestmark = pytest.mark.slow  # end to end: CI's second tier (python -m pytest -m slow)
+
 WORLDS = 8  # worlds stepped at once, and the random-shooting loop's candidates
 
 
@@ -28,7 +30,6 @@ def uniform_pushes(key, n, reach):
     return jax.random.uniform(key, (n, 4), minval=-reach, maxval=reach)
 
 
-@pytest.mark.slow
 def test_a_batch_of_random_policies_steps_it(env):
     """vmap'd reset and step: every field batched, rewards are the fall in d measured independently, done after
     episode_length steps, the step counter counts."""
