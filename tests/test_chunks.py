@@ -34,6 +34,7 @@ def test_chunks_equal_a_loop_and_drop_their_padding(size):
         in_chunks(fn, x, np.arange(5.0), size=0)
 
 
+@pytest.mark.slow
 def test_an_episode_decides_and_renders_alike_beside_one_or_four_others():
     sim = SimConfig(scene=SceneConfig(pieces=(40,)), camera=CameraConfig(width=64, height=64),
                     pile=PileConfig(layout="spread"))

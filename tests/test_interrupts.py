@@ -9,12 +9,19 @@ import time
 import pytest
 
 
+def _default_sigint():
+    """In the child before it starts: SIGINT's default action. A child inherits an ignored SIGINT (as an xdist
+    worker's may have it), and Python then installs no KeyboardInterrupt handler (a shell's background job)."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 @pytest.mark.parametrize("signum, status", [(signal.SIGINT, 130), (signal.SIGTERM, 143)])
 def test_an_interrupted_command_ends_with_one_line_and_the_signals_status(tmp_path, signum, status):
     out = tmp_path / "sim"
     run = subprocess.Popen([sys.executable, "-m", "experiments.simulate", "--pieces", "20", "--pushes", "10000",
                             "--image-size", "32", "--out", str(out)], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                           text=True, env=dict(os.environ, JAX_PLATFORMS="cpu", PYTHONFAULTHANDLER="1"))
+                           text=True, env=dict(os.environ, JAX_PLATFORMS="cpu", PYTHONFAULTHANDLER="1"),
+                           preexec_fn=_default_sigint)
     deadline = time.monotonic() + 120
     while not (out / "run.json").exists() and run.poll() is None and time.monotonic() < deadline:
         time.sleep(0.1)

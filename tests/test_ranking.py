@@ -107,6 +107,7 @@ def test_a_tiny_set_is_built_from_the_closed_loop_and_scored(tiny_set, tmp_path)
         np.testing.assert_allclose(np.asarray(again), s.true_c[i], rtol=1e-5)
 
 
+@pytest.mark.slow
 def test_concatenate_pads_slots_and_refuses_other_cameras(tiny_set):
     s = ranking.load(tiny_set)
     narrow = s._replace(positions=s.positions[:, :50], mask=s.mask[:, :50], true_positions=s.true_positions[:, :, :50])

@@ -132,6 +132,7 @@ def wall_episode(env, reach):
     return np.linalg.norm(np.asarray(final.pos)[:, :2], axis=1)
 
 
+@pytest.mark.slow
 def test_a_piece_at_a_wall_is_brought_to_the_centre(env):
     assert np.all(wall_episode(env, env.reach) < 0.06)
     assert np.sum(wall_episode(env, None) < 0.06) < 3  # pushes that start inside cannot get behind them
