@@ -171,6 +171,11 @@ def number(low: float = -math.inf, high: float = math.inf, *, above: bool = Fals
     return parse
 
 
+def stop_share(text: str) -> float | str:
+    """A stop share in (0, 1], or "off" (no stop rule, where the task has one by default)."""
+    return "off" if text == "off" else number(0, 1, above=True)(text)
+
+
 seed = count(0, 2**32 - 1)  # NumPy's and JAX's seeds are unsigned 32-bit words
 positive = number(0.0, above=True)
 omega = count(OMEGA_MIN, OMEGA_MAX)

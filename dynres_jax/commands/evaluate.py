@@ -102,9 +102,11 @@ def build_parser():
     parser.add_argument("--mpc-steps", type=checks.count(1), default=None,
                         help="MPC steps per episode (default: the task's, " + ", ".join(
                             f"{name} {task.mpc_steps}" for name, task in sorted(tasks.TASKS.items())) + ")")
-    parser.add_argument("--stop-share", type=checks.number(0, 1, above=True), default=None,
+    parser.add_argument("--stop-share", type=checks.stop_share, default=None,
                         help="an episode pushes no more once this share of the foreground its camera sees lies inside "
-                             "the goal (default: it pushes every step; not Sort)")
+                             "the goal, or 'off' (default: the task's, " + ", ".join(
+                                 f"{name} {task.stop_share or 'off'}" for name, task in sorted(tasks.TASKS.items())
+                                 if task.kinds == 1) + "; not Sort)")
     parser.add_argument("--methods", nargs="+", default=None,
                         help=f"default {' '.join(METHODS)} (Sort: {' '.join(SORT_METHODS)}). "
                              "Fixed ω (integers), 'adaptive' (the regressor picks ω), 'probe' (every step plans at "
@@ -183,12 +185,16 @@ def resolve_scene(parser, args) -> tuple[tuple[str, ...], tuple[int, ...]]:
 
 def apply_defaults(parser, args) -> None:
     """The defaults that depend on other flags: --quick's sizes (``QUICK``) where a flag does not set them, then the
-    task's MPC steps (``tasks.Task.mpc_steps``) where neither does."""
+    task's MPC steps and stop share (``tasks.Task``) where neither does ("off": no stop rule)."""
     for name, value in QUICK.items() if args.quick else ():
         if getattr(args, name) == parser.get_default(name):
             setattr(args, name, value)
     if args.mpc_steps is None:
         args.mpc_steps = tasks.TASKS[args.task].mpc_steps
+    if args.stop_share is None:
+        args.stop_share = tasks.TASKS[args.task].stop_share
+    elif args.stop_share == "off":
+        args.stop_share = None
 
 
 def check_args(parser, args):

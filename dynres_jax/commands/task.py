@@ -69,6 +69,11 @@ from dynres_jax.sim.env import PileEnv
 PROGRESS = "progress.npz"  # an unfinished episode's last step (``control.progress``), gone once metrics.json is written
 
 
+def _share(stop_share):
+    """--stop-share's value as ``MPCConfig.stop_share``: "off" -> None."""
+    return None if stop_share == "off" else stop_share
+
+
 def add_loop_args(parser: argparse.ArgumentParser, task: str, adaptive: bool = True) -> None:
     """The flags every closed-loop task command takes (``--out`` defaults to out/TASK); adaptive: whether
     ``--resolution`` may be 'adaptive' (Sort plans at one ω)."""
@@ -76,10 +81,11 @@ def add_loop_args(parser: argparse.ArgumentParser, task: str, adaptive: bool = T
     parser.add_argument("--mpc-steps", type=checks.count(1), default=tasks.TASKS[task].mpc_steps,
                         help=f"MPC steps per episode (default {tasks.TASKS[task].mpc_steps})")
     if tasks.TASKS[task].kinds == 1:
-        parser.add_argument("--stop-share", type=checks.number(0, 1, above=True), default=None,
-                            help="stop pushing once this share of the foreground the camera sees lies inside the goal "
-                                 "(default: every MPC step pushes; docs/redistribute: 0.91-0.92 adds 1-3 points of "
-                                 "success and ends a Gather episode after 14 of 20 pushes)")
+        default = tasks.TASKS[task].stop_share
+        parser.add_argument("--stop-share", type=checks.stop_share, default=default,
+                            help="stop pushing once this share of the foreground the camera sees lies inside the goal, "
+                                 f"or 'off' (default {default or 'off'}; docs/redistribute: 0.91-0.92 adds 1-3 points "
+                                 "of success and ends a Gather episode after 14 of 20 pushes)")
     if not adaptive:
         parser.add_argument("--resolution", type=checks.omega, default=50, help="ω: particles the planner reasons with")
     else:
@@ -186,7 +192,7 @@ def build_loop(args, sim: SimConfig, parser: argparse.ArgumentParser, task: str)
     try:
         planner = planner_config(env, samples=args.samples, adam_steps=args.adam_steps, seed=args.seed)
         cfg = MPCConfig(mpc_steps=args.mpc_steps, planner=planner, time_budget=args.time_budget,
-                        stop_share=getattr(args, "stop_share", None))  # Sort has no stop rule
+                        stop_share=_share(getattr(args, "stop_share", None)))  # Sort has none
     except ValueError as e:
         parser.error(str(e))
     check_budget(cfg, timing, [OMEGA_MIN] if regressor else [int(omega)])
