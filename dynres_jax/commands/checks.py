@@ -172,8 +172,13 @@ def number(low: float = -math.inf, high: float = math.inf, *, above: bool = Fals
 
 
 def stop_share(text: str) -> float | str:
-    """A stop share in (0, 1], or "off" (no stop rule, where the task has one by default)."""
+    """A stop share in (0, 1], or "off" (no stop rule, where the task has one by default): ``stop_rule`` reads it."""
     return "off" if text == "off" else number(0, 1, above=True)(text)
+
+
+def stop_rule(value: float | str | None) -> float | None:
+    """--stop-share's parsed value as ``MPCConfig.stop_share``: "off" -> None (no rule)."""
+    return None if value == "off" else value
 
 
 seed = count(0, 2**32 - 1)  # NumPy's and JAX's seeds are unsigned 32-bit words

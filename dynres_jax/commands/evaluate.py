@@ -191,10 +191,8 @@ def apply_defaults(parser, args) -> None:
             setattr(args, name, value)
     if args.mpc_steps is None:
         args.mpc_steps = tasks.TASKS[args.task].mpc_steps
-    if args.stop_share is None:
-        args.stop_share = tasks.TASKS[args.task].stop_share
-    elif args.stop_share == "off":
-        args.stop_share = None
+    task_share = tasks.TASKS[args.task].stop_share
+    args.stop_share = task_share if args.stop_share is None else checks.stop_rule(args.stop_share)
 
 
 def check_args(parser, args):

@@ -69,11 +69,6 @@ from dynres_jax.sim.env import PileEnv
 PROGRESS = "progress.npz"  # an unfinished episode's last step (``control.progress``), gone once metrics.json is written
 
 
-def _share(stop_share):
-    """--stop-share's value as ``MPCConfig.stop_share``: "off" -> None."""
-    return None if stop_share == "off" else stop_share
-
-
 def add_loop_args(parser: argparse.ArgumentParser, task: str, adaptive: bool = True) -> None:
     """The flags every closed-loop task command takes (``--out`` defaults to out/TASK); adaptive: whether
     ``--resolution`` may be 'adaptive' (Sort plans at one ω)."""
@@ -192,7 +187,7 @@ def build_loop(args, sim: SimConfig, parser: argparse.ArgumentParser, task: str)
     try:
         planner = planner_config(env, samples=args.samples, adam_steps=args.adam_steps, seed=args.seed)
         cfg = MPCConfig(mpc_steps=args.mpc_steps, planner=planner, time_budget=args.time_budget,
-                        stop_share=_share(getattr(args, "stop_share", None)))  # Sort has none
+                        stop_share=checks.stop_rule(getattr(args, "stop_share", None)))  # Sort: none
     except ValueError as e:
         parser.error(str(e))
     check_budget(cfg, timing, [OMEGA_MIN] if regressor else [int(omega)])
