@@ -69,7 +69,7 @@ from dynres_jax.commands.task import check_pile, check_visible, load_model
 from dynres_jax.config import DEFAULT_PIECES, KINDS, CameraConfig, PileConfig, SceneConfig, SimConfig
 from dynres_jax.control import resolution, tasks
 from dynres_jax.control.choosers import ORACLE_OMEGAS, PROBE_OMEGAS
-from dynres_jax.control.goals import make_goals
+from dynres_jax.control.goals import OBJECTIVES, make_goals, with_objective
 from dynres_jax.control.mpc import run
 from dynres_jax.control.sort import ARRIVED, MIXING
 from dynres_jax.control.views import SensorView
@@ -107,6 +107,9 @@ def build_parser():
                              "the goal, or 'off' (default: the task's, " + ", ".join(
                                  f"{name} {task.stop_share or 'off'}" for name, task in sorted(tasks.TASKS.items())
                                  if task.kinds == 1) + "; not Sort)")
+    parser.add_argument("--objective", default="paper", choices=OBJECTIVES,
+                        help="c's first term: 'paper' (Σ SDF, rewards depth inside the goal) or 'hinge' (Σ max(0, "
+                             "SDF): only particles outside cost; goals.with_objective); not Sort")
     parser.add_argument("--methods", nargs="+", default=None,
                         help=f"default {' '.join(METHODS)} (Sort: {' '.join(SORT_METHODS)}). "
                              "Fixed ω (integers), 'adaptive' (the regressor picks ω), 'probe' (every step plans at "
@@ -237,6 +240,8 @@ def check_args(parser, args):
     env = PileEnv(sim, backend="mujoco")
     if sort and args.stop_share is not None:
         parser.error("--stop-share reads one goal an episode; Sort's goals are one a kind")
+    if sort and args.objective != "paper":
+        parser.error("--objective: Sort plans on its own per-kind objective (objective.kind_objective)")
     if args.goal_png is not None:
         if sort:
             parser.error("--goal-png: Sort draws a goal disc per kind, it takes no goal mask")
@@ -270,7 +275,8 @@ def run_methods(args, rank: int, size: int, sim, main_model, cnn_model, judge=No
                  if args.goal_png is None else  # the user's goal, every episode's
                  [tasks.mask_goal(pool.env, load_goal(args.goal_png, pool.camera))] * len(mine))
         sort = tasks.TASKS[args.task].kinds == 2  # its goals: a disc per kind; d and the timing table: kind 0's
-        goals = make_goals([mask[0] if sort else mask for mask, _ in drawn], pool.camera)  # episode i's goal
+        goals = with_objective(make_goals([mask[0] if sort else mask for mask, _ in drawn], pool.camera),
+                               args.objective)  # episode i's goal
         # depends on (seed, i) alone: each process draws its own
         pile_keys, keys = tasks.episode_keys(args.seed, mine)
         todo = [m for m in args.methods if not os.path.exists(os.path.join(args.out, f"{m}.json"))]
