@@ -20,32 +20,12 @@ import argparse
 
 import numpy as np
 
-from dynres_jax.control.tasks import episode_success, step_success, stopped
+from dynres_jax.control.tasks import episode_success, first_steps, step_success, stopped
 from dynres_jax.io import files
 from dynres_jax.stats import mcnemar, paired_bootstrap, wilson
 from scripts.variants import groups, read_results
 
 SHARES = tuple(np.round(np.arange(0.85, 1.0001, 0.01), 2))
-PER_STEP = ("inside", "distance", "seen_inside", "kind_inside", "mixing", "omega", "adam_steps")
-
-
-def first_steps(results: dict, steps: int) -> dict:
-    """An evaluation's results as if its episodes had ended after their first ``steps`` MPC steps: the per-step
-    records [T][E] cut to [steps][E], the finals and means per episode taken from them (the final pieces dropped)."""
-    total = len(results["inside"])
-    if not 1 <= steps <= total:
-        raise ValueError(f"--steps must be in 1..{total} (the run's MPC steps), got {steps}")
-    out = {k: v for k, v in results.items() if k != "final_pieces"}
-    out.update({k: np.asarray(results[k])[:steps].tolist() for k in PER_STEP if k in results})
-    for key in ("inside", "distance", "kind_inside", "mixing"):
-        if key in results:
-            values = np.asarray(out[key])
-            out[f"final_{key}"] = values[-1].tolist()
-            if key != "kind_inside":
-                out[f"mean_{key}"] = values.mean(0).tolist()
-    return out
-
-
 def rows(results: dict, task: str, shares, letters: str | None) -> tuple[list[str], tuple[int, float]]:
     """The table's rows (goal, stop share) and (successes, share) of the share --choose keeps (over every episode;
     inf for no rule, the largest share: it never stops)."""

@@ -6,11 +6,16 @@ d's mean difference with its bootstrap interval); Sort's failures by cause.
     python scripts/variants.py --runs RUNS/variants --variants base mix10 --out docs/sort/mixing/fresh.md
     python scripts/variants.py --runs RUNS/variants --task redistribute --letters F2O7 --variants s20 s40
 
-RUNS holds VARIANT/TASK-KIND/METHOD.json or .json.gz (``--method``, default 50). A Sort failure is "mixing" when
-both kinds are at least 80 % inside their goals but 5 % or more of the pieces lie in the other kind's goal, "short"
-when a kind is below 80 % with mixing under 5 %, "both" otherwise. With --letters, episode i's character is
-letters[i % len] (evaluate's rule). Writes the Markdown table to --out and prints it; --plot PNG draws each
-variant's mean inside share and d against the MPC step.
+RUNS holds VARIANT/TASK-KIND/METHOD.json or .json.gz (``--method``, default 50). ``--at VARIANT=T`` or
+``VARIANT=T:SHARE`` reads a variant as its first T MPC steps (``tasks.first_steps``), with the stop rule at SHARE
+replayed (``tasks.stopped``): one run at the most steps, without a rule, gives every shorter or stopped setting.
+
+    python scripts/variants.py --runs RUNS --task redistribute --variants base hinge --at base=80:0.92 hinge=90
+
+A Sort failure is "mixing" when both kinds are at least 80 % inside their goals but 5 % or more of the pieces lie in
+the other kind's goal, "short" when a kind is below 80 % with mixing under 5 %, "both" otherwise. With --letters,
+episode i's character is letters[i % len] (evaluate's rule). Writes the Markdown table to --out and prints it;
+--plot PNG draws each variant's mean inside share and d against the MPC step.
 """
 
 from __future__ import annotations
@@ -23,7 +28,7 @@ import os
 
 import numpy as np
 
-from dynres_jax.control.tasks import SORT_INSIDE, SORT_MIXING, episode_success
+from dynres_jax.control.tasks import SORT_INSIDE, SORT_MIXING, episode_success, first_steps, stopped
 from dynres_jax.io import files
 from dynres_jax.stats import mcnemar, paired_bootstrap, wilson
 
@@ -51,8 +56,28 @@ def groups(n: int, letters: str | None) -> dict[str, np.ndarray]:
     return rows
 
 
-def table(runs: str, task: str, variants: list[str], method: str, letters: str | None = None) -> str:
-    """The Markdown table: rows (kind, goal character, variant)."""
+def at(text: str) -> tuple[str, tuple[int, float | None]]:
+    """--at's VARIANT=T[:SHARE] -> (variant, (T, share or None))."""
+    try:
+        name, setting = text.split("=", 1)
+        steps, _, share = setting.partition(":")
+        return name, (int(steps), float(share) if share else None)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"--at takes VARIANT=T or VARIANT=T:SHARE, got {text!r}") from None
+
+
+def cut(results: dict, setting: tuple[int, float | None] | None) -> dict:
+    """A variant's results at its --at setting (T steps, the stop rule at SHARE), or as they are (None)."""
+    if setting is None:
+        return results
+    steps, share = setting
+    results = first_steps(results, steps)
+    return results if share is None else stopped(results, share)
+
+
+def table(runs: str, task: str, variants: list[str], method: str, letters: str | None = None,
+          settings: dict | None = None) -> str:
+    """The Markdown table: rows (kind, goal character, variant); settings: {variant: (T, share)} (``cut``)."""
     sort = task == "sort"
     lines = ["| kind | goal | variant | success (95 % CI) |" + (" failures: mixing / short / both |" if sort else "")
              + f" against {variants[0]}: only here / only there (McNemar p) | Δ final d (95 % CI) |",
@@ -65,7 +90,7 @@ def table(runs: str, task: str, variants: list[str], method: str, letters: str |
             path = os.path.join(runs, v, f"{task}-{kind}", f"{method}.json")
             for name in (path, path + ".gz"):
                 if os.path.exists(name):
-                    results[v] = read_results(name)
+                    results[v] = cut(read_results(name), (settings or {}).get(v))
                     break
         if variants[0] not in results:
             continue
@@ -128,10 +153,12 @@ def main(argv=None):
     parser.add_argument("--task", default="sort", choices=("gather", "redistribute", "sort"))
     parser.add_argument("--method", default="50")
     parser.add_argument("--letters", default=None, help="Redistribute: rows per goal character (evaluate's --letters)")
+    parser.add_argument("--at", type=at, nargs="+", default=[], metavar="VARIANT=T[:SHARE]",
+                        help="read a variant as its first T MPC steps, with the stop rule at SHARE replayed")
     parser.add_argument("--out", default=None, help="write the table here (Markdown)")
     parser.add_argument("--plot", default=None, metavar="PNG", help="draw the variants' means over the MPC steps here")
     args = parser.parse_args(argv)
-    text = table(args.runs, args.task, args.variants, args.method, args.letters)
+    text = table(args.runs, args.task, args.variants, args.method, args.letters, dict(args.at))
     if args.out:
         os.makedirs(os.path.dirname(args.out) or ".", exist_ok=True)
         files.write_text(args.out, text)

@@ -20,6 +20,7 @@ from dynres_jax.control.goals import (
     sort_goals,
     squared_distance_to,
     text_goal,
+    with_objective,
 )
 from dynres_jax.control.objective import bilinear, distribution_distance, inside_share
 from dynres_jax.perception import foreground
@@ -53,9 +54,10 @@ def np_bilinear(image, u, v):
             + fy * ((1 - fx) * image[i + 1, j] + fx * image[i + 1, j + 1]))
 
 
-def np_cost(pixels, goal):
-    """The formula by loops: pixels [ω, 2] of the valid points."""
+def np_cost(pixels, goal, hinge=False):
+    """The formula by loops: pixels [ω, 2] of the valid points; hinge: the SDF clipped at 0 before its lookup."""
     distance, samples = np.asarray(goal.distance, np.float64), np.asarray(goal.samples, np.float64)
+    distance = np.maximum(distance, 0.0) if hinge else distance
     omega = len(pixels)
     n_active = min(5 * omega, int(np.sum(goal.sample_mask)))
     sdf_term = sum(np_bilinear(distance, u, v) for u, v in pixels)
@@ -214,6 +216,28 @@ def test_objective_matches_loop_reference(disc, seed, omega):
     pos, mask = random_particles(seed, omega=omega)
     got = float(obj.objective(pos, mask, disc, CAM))
     np.testing.assert_allclose(got, np_cost(np_project(CAM, pos[mask]), disc), rtol=1e-5)
+
+
+@pytest.mark.parametrize("seed,omega", [(0, 8), (2, 12)])
+def test_hinge_objective_matches_loop_reference_and_costs_only_particles_outside(disc, seed, omega):
+    """c on a hinged goal (``with_objective``) is the loop formula with the SDF clipped at 0; the mask and samples are
+    the goal's own; particles all inside the goal cost their coverage alone, where the paper's c rewards their depth."""
+    hinge = with_objective(disc, "hinge")
+    assert with_objective(disc, "paper") is disc
+    for a, b in ((hinge.mask, disc.mask), (hinge.samples, disc.samples), (hinge.sample_mask, disc.sample_mask)):
+        np.testing.assert_array_equal(a, b)
+    pos, mask = random_particles(seed, omega=omega)
+    pixels = np_project(CAM, pos[mask])
+    np.testing.assert_allclose(float(obj.objective(pos, mask, hinge, CAM)), np_cost(pixels, disc, hinge=True),
+                               rtol=1e-5)
+    inside, _ = random_particles(seed, omega=omega, spread=0.02)
+    inside[:, :2] += np.array([0.03, -0.02], np.float32)  # within 2.9 cm of the disc's centre, radius 6 cm
+    paper, hinged = (float(obj.objective(inside, mask, g, CAM)) for g in (disc, hinge))
+    coverage = np_cost(np_project(CAM, inside[mask]), disc, hinge=True)  # its SDF term is 0 inside
+    np.testing.assert_allclose(hinged, coverage, rtol=1e-5)
+    assert paper < hinged - 5  # the paper's SDF term is negative there: several pixels deep on average
+    with pytest.raises(ValueError, match="objective must be one of"):
+        with_objective(disc, "hinged")
 
 
 def test_objective_truncates_goal_samples():

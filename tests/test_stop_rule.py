@@ -40,10 +40,28 @@ def test_the_table_counts_gains_and_losses_and_chooses_the_best_share(stop_rule)
 
 
 def test_the_first_steps_of_a_run_are_the_shorter_run(stop_rule):
-    out = stop_rule.first_steps(_results(), 2)
+    out = tasks.first_steps(_results(), 2)
     assert out["final_inside"] == [0.91, 0.7, 0.3] and out["final_distance"] == [1.0, 4.0, 8.0]
     assert np.shape(out["seen_inside"]) == (2, 3) and out["mean_inside"] == pytest.approx([0.705, 0.65, 0.25])
     lines, best = stop_rule.rows(out, "redistribute", (0.9,), None)
     assert "| all | none | 33% " in lines[0] and best == (1, np.inf)  # episode 0 alone; the rule changes nothing
-    with pytest.raises(ValueError, match="--steps must be in 1..4"):
-        stop_rule.first_steps(_results(), 5)
+    with pytest.raises(ValueError, match="steps must be in 1..4"):
+        tasks.first_steps(_results(), 5)
+
+
+def test_variants_compares_each_variant_at_its_own_steps_and_share(script, tmp_path):
+    """scripts/variants.py --at: a variant read at T steps with the stop rule replayed, paired against another at its
+    own T, by hand: "a" at 4 steps with the rule at 0.94 succeeds on episodes 0 and 1, "b" (the same run) at 2 steps on
+    episode 0 alone: 2 of 3 against 1 of 3, one episode only in "a"."""
+    import json
+
+    variants = script("variants")
+    for name in ("a", "b"):
+        (tmp_path / name / "redistribute-coffee").mkdir(parents=True)
+        (tmp_path / name / "redistribute-coffee" / "50.json").write_text(json.dumps(_results()))
+    text = variants.table(str(tmp_path), "redistribute", ["a", "b"], "50", settings=dict(a=(4, 0.94), b=(2, None)))
+    a, b = (line for line in text.splitlines() if line.startswith("| coffee | all |"))
+    assert "| a | 67% " in a and "| b | 33% " in b and "| 0 / 1 " in b  # only in b / only in a
+    assert variants.at("hinge=90") == ("hinge", (90, None)) and variants.at("base=80:0.92") == ("base", (80, 0.92))
+    with pytest.raises(Exception, match="VARIANT=T"):
+        variants.at("base80")

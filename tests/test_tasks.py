@@ -48,30 +48,34 @@ def test_disc_and_letter_share_centre_and_area(env, letter):
 
 
 def test_each_task_sets_its_episode_length_where_no_flag_does(tmp_path):
-    """The commands' and evaluate's --mpc-steps and --stop-share default to the task's (Gather the paper's 20 and no
-    rule, Redistribute 80 and 0.92, Sort 50); a flag wins ("off" turns the rule off), and --quick's 3 wins over the
-    task's steps."""
+    """The commands' and evaluate's --mpc-steps, --stop-share and --objective default to the task's (Gather the paper's
+    20, no rule, the paper's c; Redistribute 90, no rule, the hinge; Sort 50); a flag wins ("off" turns the rule off),
+    and --quick's 3 wins over the task's steps."""
     import argparse
 
     from dynres_jax.commands import evaluate, sort
     from dynres_jax.commands.task import add_loop_args
 
-    assert {name: t.mpc_steps for name, t in tasks.TASKS.items()} == dict(gather=20, redistribute=80, sort=50)
+    assert {name: t.mpc_steps for name, t in tasks.TASKS.items()} == dict(gather=20, redistribute=90, sort=50)
     for name in tasks.TASKS:  # the flags every task command takes
         parser = argparse.ArgumentParser()
         add_loop_args(parser, name)
         assert parser.parse_args([]).mpc_steps == tasks.TASKS[name].mpc_steps
         if tasks.TASKS[name].kinds == 1:
-            assert parser.parse_args([]).stop_share == (0.92 if name == "redistribute" else None)
+            assert parser.parse_args([]).stop_share is None
+            assert parser.parse_args([]).objective == ("hinge" if name == "redistribute" else "paper")
+            assert parser.parse_args(["--objective", "paper"]).objective == "paper"
             assert parser.parse_args(["--stop-share", "off"]).stop_share == "off"
     assert sort.build_parser().parse_args([]).mpc_steps == 50
     parser = evaluate.build_parser()
-    for argv, want, share in ((["--task", "redistribute"], 80, 0.92), (["--task", "sort"], 50, None), ([], 20, None),
-                              (["--task", "redistribute", "--mpc-steps", "7", "--stop-share", "off"], 7, None),
-                              (["--task", "redistribute", "--quick"], 3, 0.92), (["--stop-share", "0.9"], 20, 0.9)):
+    for argv, want in ((["--task", "redistribute"], (90, None, "hinge")), (["--task", "sort"], (50, None, "paper")),
+                       ([], (20, None, "paper")), (["--stop-share", "0.9"], (20, 0.9, "paper")),
+                       (["--task", "redistribute", "--mpc-steps", "7", "--stop-share", "0.92", "--objective", "paper"],
+                        (7, 0.92, "paper")), (["--task", "redistribute", "--quick"], (3, None, "hinge")),
+                       (["--task", "gather", "--objective", "hinge", "--stop-share", "off"], (20, None, "hinge"))):
         args = parser.parse_args([*argv, "--out", str(tmp_path)])
         evaluate.apply_defaults(parser, args)
-        assert (args.mpc_steps, args.stop_share) == (want, share), argv
+        assert (args.mpc_steps, args.stop_share, args.objective) == want, argv
 
 
 def test_a_summary_counts_the_episodes_that_met_the_rule_at_some_step():

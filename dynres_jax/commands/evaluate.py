@@ -107,9 +107,11 @@ def build_parser():
                              "the goal, or 'off' (default: the task's, " + ", ".join(
                                  f"{name} {task.stop_share or 'off'}" for name, task in sorted(tasks.TASKS.items())
                                  if task.kinds == 1) + "; not Sort)")
-    parser.add_argument("--objective", default="paper", choices=OBJECTIVES,
-                        help="c's first term: 'paper' (Σ SDF, rewards depth inside the goal) or 'hinge' (Σ max(0, "
-                             "SDF): only particles outside cost; goals.with_objective); not Sort")
+    parser.add_argument("--objective", default=None, choices=OBJECTIVES,
+                        help="c's SDF term: 'paper' (Σ SDF, rewards depth inside the goal) or 'hinge' (Σ max(0, SDF): "
+                             "only particles outside cost; goals.with_objective); default: the task's, " + ", ".join(
+                                 f"{name} {task.objective}" for name, task in sorted(tasks.TASKS.items())
+                                 if task.kinds == 1) + "; not Sort")
     parser.add_argument("--methods", nargs="+", default=None,
                         help=f"default {' '.join(METHODS)} (Sort: {' '.join(SORT_METHODS)}). "
                              "Fixed ω (integers), 'adaptive' (the regressor picks ω), 'probe' (every step plans at "
@@ -188,7 +190,7 @@ def resolve_scene(parser, args) -> tuple[tuple[str, ...], tuple[int, ...]]:
 
 def apply_defaults(parser, args) -> None:
     """The defaults that depend on other flags: --quick's sizes (``QUICK``) where a flag does not set them, then the
-    task's MPC steps and stop share (``tasks.Task``) where neither does ("off": no stop rule)."""
+    task's MPC steps, stop share and objective (``tasks.Task``) where neither does ("off": no stop rule)."""
     for name, value in QUICK.items() if args.quick else ():
         if getattr(args, name) == parser.get_default(name):
             setattr(args, name, value)
@@ -196,6 +198,7 @@ def apply_defaults(parser, args) -> None:
         args.mpc_steps = tasks.TASKS[args.task].mpc_steps
     task_share = tasks.TASKS[args.task].stop_share
     args.stop_share = task_share if args.stop_share is None else checks.stop_rule(args.stop_share)
+    args.objective = args.objective or tasks.TASKS[args.task].objective
 
 
 def check_args(parser, args):

@@ -43,7 +43,7 @@ from dynres_jax.config import (
 from dynres_jax.control import budget, progress, tasks
 from dynres_jax.control.choosers import AdaptiveOmega, Chooser, FixedOmega
 from dynres_jax.control.decision import batch
-from dynres_jax.control.goals import make_goal
+from dynres_jax.control.goals import OBJECTIVES, make_goal, with_objective
 from dynres_jax.control.judge import JudgeScored
 from dynres_jax.control.mpc import MPCConfig, measure_timing, run_episode
 from dynres_jax.control.objective import inside_share
@@ -81,6 +81,10 @@ def add_loop_args(parser: argparse.ArgumentParser, task: str, adaptive: bool = T
                             help="stop pushing once this share of the foreground the camera sees lies inside the goal, "
                                  f"or 'off' (default {default or 'off'}; docs/redistribute: 0.91-0.92 adds 1-3 points "
                                  "of success and ends a Gather episode after 14 of 20 pushes)")
+        objective = tasks.TASKS[task].objective
+        parser.add_argument("--objective", default=objective, choices=OBJECTIVES,
+                            help=f"c's SDF term: 'paper' (Σ SDF: rewards depth inside the goal) or 'hinge' (Σ max(0, "
+                                 f"SDF): only particles outside cost); default {objective} (docs/redistribute)")
     if not adaptive:
         parser.add_argument("--resolution", type=checks.omega, default=50, help="ω: particles the planner reasons with")
     else:
@@ -302,13 +306,14 @@ def main(task: str, argv=None):
     done = finished(args.out, checks.claim(args.out, task, checks.settings(args), args.fresh, loop.inputs), args.fresh)
     if done is not None:
         return done
-    goal = make_goal(goal_mask, env.camera)
+    objective = getattr(args, "objective", "paper")  # Sort plans on its own
+    goal = with_objective(make_goal(goal_mask, env.camera), objective)
     start_inside = float(inside_share(state.pos, np.ones(env.scene.n_pieces, bool), goal, env.camera))
     budget_text = (f"{args.samples} samples, {args.adam_steps} Adam steps" if args.time_budget is None else
                    f"{args.samples} samples, {args.time_budget} s per decision (at most {args.adam_steps} Adam steps)")
     judged = "" if loop.judge is None else f"; judge: {loop.judge.name}"
     print(f"{task}: {args.pieces} {args.kind} pieces, goal {goal_info}; dynamics: {loop.model.name}{judged}; "
-          f"ω = {args.resolution}; {budget_text}")
+          f"ω = {args.resolution}; {budget_text}; c: {objective}")
     t0 = time.perf_counter()
     frames = goal_frames(goal_mask, env.camera)
     state, records, timing = run_resumable(

@@ -164,11 +164,12 @@ class Task:
     goal(rng, env, letter) -> (mask [H, W] bool, description dict; Sort: masks [2, H, W], one per kind); letter:
     whether the goal is drawn from text (the command takes ``--letter``, ``evaluate`` its ``--letters``); kinds: the
     piece kinds of its scene (1; Sort's 2: each kind to its own goal, planned by ``sort.SortPolicy``); mpc_steps: the
-    pushes an episode may take (the commands' and ``evaluate``'s default): the paper's 20 for Gather; 80 for
+    pushes an episode may take (the commands' and ``evaluate``'s default): the paper's 20 for Gather; 90 for
     Redistribute, whose letters 20 pushes leave unfinished; 50 for Sort; stop_share: the default stop rule
-    (``MPCConfig.stop_share``; None: every step pushes): 0.92 for Redistribute. Chosen on tuning seeds, measured once on
-    fresh ones: Redistribute 60 % -> 68 % on unseen characters (docs/redistribute), Sort 79 % -> 85 % against 30 steps
-    (docs/sort)."""
+    (``MPCConfig.stop_share``; None: every step pushes); objective: the form of c's SDF term (``goals.with_objective``:
+    "paper", or "hinge" for Redistribute: only pieces outside the goal cost). Chosen on tuning seeds, measured once on
+    fresh ones: Redistribute 69 % -> 77 % on unseen characters with the hinge and 90 steps (docs/redistribute), Sort
+    79 % -> 85 % against 30 steps (docs/sort)."""
 
     description: str
     layout: str
@@ -177,13 +178,14 @@ class Task:
     kinds: int = 1
     mpc_steps: int = 20
     stop_share: float | None = None
+    objective: str = "paper"
 
 
 TASKS: dict[str, Task] = {
     "gather": Task("Gather (paper Sec. V): push a spread-out pile into a disc of random centre and radius.", "spread",
                    lambda rng, env, letter: gather_goal(rng, env)),
     "redistribute": Task("Redistribute (paper Sec. V): push a pile into a letter shape.", "blob",
-                         redistribute_goal, letter=True, mpc_steps=80, stop_share=0.92),
+                         redistribute_goal, letter=True, mpc_steps=90, objective="hinge"),
     "sort": Task("Sort (paper Sec. V): two piles of different kinds, each pushed into its own disc without mixing, "
                  "guided by A* over the piles' centres.", "two_blobs", _sort_task_goal, kinds=2, mpc_steps=50),
 }
@@ -210,6 +212,26 @@ def step_success(task: str, results: dict) -> np.ndarray:
     if TASKS[task].kinds == 2:
         return sort_succeeded(results["kind_inside"], results["mixing"])
     return succeeded(results["inside"])
+
+
+PER_STEP = ("inside", "distance", "seen_inside", "kind_inside", "mixing", "omega", "adam_steps")  # [T][E] records
+
+
+def first_steps(results: dict, steps: int) -> dict:
+    """An evaluation's results as if its episodes had ended after their first ``steps`` MPC steps: the per-step
+    records [T][E] cut to [steps][E], the finals and means per episode taken from them (the final pieces dropped)."""
+    total = len(results["inside"])
+    if not 1 <= steps <= total:
+        raise ValueError(f"steps must be in 1..{total} (the run's MPC steps), got {steps}")
+    out = {k: v for k, v in results.items() if k != "final_pieces"}
+    out.update({k: np.asarray(results[k])[:steps].tolist() for k in PER_STEP if k in results})
+    for key in ("inside", "distance", "kind_inside", "mixing"):
+        if key in results:
+            values = np.asarray(out[key])
+            out[f"final_{key}"] = values[-1].tolist()
+            if key != "kind_inside":
+                out[f"mean_{key}"] = values.mean(0).tolist()
+    return out
 
 
 def stopped(results: dict, share: float) -> dict:
