@@ -310,6 +310,10 @@ GO = [  # goal
     (["--disc", "0", "0", "0.05", "--camera", "{cam_negative_f}"], "camera file"),
     (["--disc", "0", "0", "0.05", "--out", "goal.txt"], "--out"), (["--disc", "0", "0", "0.05", "--out", "{file}/g.png"], "--out"),
 ]
+RO = [  # robot: a goal of another size than the simulator's frames names --image-size, square or not
+    (["--goal", "{small_goal}"], "--image-size 64"), (["--goal", "{wide_goal}"], "--goal"),
+    (["--image-size", "8"], "--image-size"), (["--steps", "0"], "--steps"),
+]
 CASES = ([("gather", a, n) for a, n in G] + [("redistribute", a, n) for a, n in R] + [("sort", a, n) for a, n in S]
          + [("plan", FRAME + a, n) for a, n in P] + [("evaluate", a, n) for a, n in E]
          + [("label_resolution", a, n) for a, n in L] + [("generate_data", a, n) for a, n in D]
@@ -317,7 +321,7 @@ CASES = ([("gather", a, n) for a, n in G] + [("redistribute", a, n) for a, n in 
          + [("train_regressor", ["--labels", "{labels}", *a], n) for a, n in TR] + [("tradeoff", a, n) for a, n in TO]
          + [("simulate", a, n) for a, n in SI] + [("eval_dynamics", ["--ckpt", "{dynamics}", "--data", "{data_few}", *a], n)
                                                   for a, n in ED]
-         + [("export", a, n) for a, n in X] + [("goal", a, n) for a, n in GO])
+         + [("export", a, n) for a, n in X] + [("goal", a, n) for a, n in GO] + [("robot", a, n) for a, n in RO])
 OUT_FILE = {"plan": "push.png", "export": "planner.jaxexport", "goal": "goal.png"}
 
 

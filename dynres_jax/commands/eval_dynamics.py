@@ -115,6 +115,9 @@ def plot(result: dict, path: str) -> None:
     plt.close(fig)
 
 
+OMEGAS = (10, 25, 50, 100)  # the default ω of the error tables
+
+
 @checks.guarded("eval_dynamics")
 def main(argv=None):
     parser = checks.parser("eval_dynamics", __doc__)
@@ -122,7 +125,9 @@ def main(argv=None):
     parser.add_argument("--data", required=True, help="shards; their held-out episodes are used")
     parser.add_argument("--out", required=True)
     checks.add_fresh(parser)
-    parser.add_argument("--omegas", nargs="+", type=checks.omega, default=[10, 25, 50, 100])
+    parser.add_argument("--omegas", nargs="+", type=checks.omega, default=None,
+                        help=f"the resolutions ω to measure at (default {' '.join(map(str, OMEGAS))}, those up to the "
+                             "model's n_max, or n_max alone when none is)")
     parser.add_argument("--windows", type=checks.count(1), default=256, help="held-out windows per ω")
     parser.add_argument("--seed", type=checks.seed, default=0)
     args = parser.parse_args(argv)
@@ -132,6 +137,8 @@ def main(argv=None):
     except ckpt.CheckpointError as e:
         parser.error(f"--ckpt: {e}")
     tcfg = meta["train"]
+    if args.omegas is None:  # a quick model (n_max 8) is measured at its own ω, not refused for 10
+        args.omegas = [w for w in OMEGAS if w <= n_max] or [n_max]
     if max(args.omegas) > n_max:
         parser.error(f"--omegas must be at most the model's n_max = {n_max}")
     if len(set(args.omegas)) < len(args.omegas):

@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import contextlib
 import functools
+import json
 import os
 import time
 
@@ -157,7 +158,7 @@ def main(argv=None):
                    .tolist())
     if distributed.is_writer():
         files.write_json(os.path.join(args.out, "summary.json"), summary)
-    print(summary)
+    print(json.dumps(summary))  # JSON, as every command prints a record
     return summary
 
 

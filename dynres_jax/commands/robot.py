@@ -1,7 +1,7 @@
 """A robot's closed loop (``control.robot``) on the simulator as camera and arm, or on recorded frames:
 
     python -m experiments.robot --out out/robot                             # the simulator, a RealSense's profile
-    python -m experiments.robot --goal out/G.png --steps 30 --out out/robot     # any goal PNG (experiments.goal)
+    python -m experiments.robot --goal out/G.png --image-size 256 --out out/robot   # a goal PNG of 256 x 256 pixels
     python -m experiments.robot --replay out/robot/frames --out out/replay  # recorded frames: a dry run
 
 Each step reads a frame, stops when ``--success`` of its foreground lies inside the goal (or after ``--steps``
@@ -20,6 +20,7 @@ from __future__ import annotations
 import json
 import os
 
+import cv2
 import jax
 import numpy as np
 
@@ -33,8 +34,10 @@ from dynres_jax.control.planner import planner_config
 from dynres_jax.control.robot import STOP_SHARE, DryRun, ReplaySource, SimulatedRobot, Workspace, run_robot
 from dynres_jax.io import files
 from dynres_jax.io.draw import caption, overlay
-from dynres_jax.io.frames import load_goal, save_frame
+from dynres_jax.io.frames import load_goal, read_image, save_frame
 from dynres_jax.models.registry import SHIPPED_DYNAMICS
+from dynres_jax.perception import visible_points
+from dynres_jax.sim.camera import MAX_IMAGE, MIN_IMAGE
 from dynres_jax.sim.env import PileEnv
 from dynres_jax.sim.sensor import SENSORS
 
@@ -49,6 +52,9 @@ def build_parser():
     parser.add_argument("--kind", default="coffee", choices=sorted(KINDS), help="the simulator's pieces")
     parser.add_argument("--pieces", type=checks.count(1), default=None, help="default: the kind's count")
     parser.add_argument("--sensor", default="realsense", choices=sorted(SENSORS), help="the simulator's camera profile")
+    parser.add_argument("--image-size", type=checks.count(MIN_IMAGE, MAX_IMAGE), default=CameraConfig().width,
+                        help="the simulator camera's width and height, pixels (a goal PNG's size: 256 for one "
+                             "`goal` made from `simulate`'s frame)")
     parser.add_argument("--calibrate", action="store_true", help="refine the camera's pose from the first frame")
     parser.add_argument("--steps", type=checks.count(1), default=20, help="pushes at most")
     parser.add_argument("--success", type=checks.number(0.01, 1.0), default=STOP_SHARE,
@@ -70,7 +76,7 @@ def main(argv=None):
     args = parser.parse_args(argv)
     resolve_pieces(parser, args)
     sim = SimConfig(scene=SceneConfig(kinds=(args.kind,), pieces=(args.pieces,)), pile=PileConfig(layout="spread"),
-                    camera=CameraConfig())
+                    camera=CameraConfig(width=args.image_size, height=args.image_size))
     model = load_model(parser, args.dynamics, args.ckpt, sim.scene.plate_half_width)
     if args.resolution > model.n_max:
         parser.error(f"--resolution {args.resolution} exceeds the model's n_max = {model.n_max}")
@@ -82,12 +88,20 @@ def main(argv=None):
         goal_mask = load_goal(args.goal, camera) if args.goal else disc_goal(camera, np.zeros(2), 0.08)
         make_goal(goal_mask, camera)
     except ValueError as e:
-        parser.error(f"--goal: {e}")
+        size = read_image(args.goal, "goal file", cv2.IMREAD_GRAYSCALE).shape if "camera's images are" in str(e) else ()
+        hint = (f" (--image-size {size[0]}: the simulator's frames at the goal's size)"
+                if len(size) == 2 and size[0] == size[1] and not args.replay else "")
+        parser.error(f"--goal: {e}{hint}")
+    cfg = MPCConfig(mpc_steps=args.steps, real_depth=True, planner=planner_config(
+        env, samples=args.samples, adam_steps=args.adam_steps, seed=args.seed))
+    if isinstance(source, SimulatedRobot):  # the first frame (before the sensor's errors) can hold ω particles
+        points = visible_points(source.state.obs, camera, cfg.max_points)
+        if points < args.resolution:
+            parser.error(f"the first frame shows {points} foreground points, fewer than the ω = {args.resolution} "
+                         "particles to sample from them: a larger --image-size, more --pieces or a lower --resolution")
     checks.claim(args.out, "robot", checks.settings(args), args.fresh,
                  {"--ckpt": args.ckpt, "--goal": args.goal, "--replay": args.replay})
     pusher = DryRun() if args.dry_run or args.replay else source
-    cfg = MPCConfig(mpc_steps=args.steps, real_depth=True, planner=planner_config(
-        env, samples=args.samples, adam_steps=args.adam_steps, seed=args.seed))
     frames = []
 
     def record(t, obs, particles, step):  # the robot's view: saved as a camera saves it, and a GIF frame

@@ -127,7 +127,7 @@ def main(argv=None):
     os.makedirs(args.out, exist_ok=True)
     files.write_json(os.path.join(args.out, "tradeoff.json"), result)
     _plot(examples, os.path.join(args.out, "tradeoff.png"))
-    print(result)
+    print(json.dumps(result))  # JSON, as every command prints a record
     return result
 
 
@@ -211,7 +211,7 @@ def reliability(first: str, second: str, out_dir: str) -> dict:
                   label_mean=float(np.concatenate([x, y]).mean()))
     os.makedirs(out_dir, exist_ok=True)
     files.write_json(os.path.join(out_dir, "reliability.json"), result)
-    print(result)
+    print(json.dumps(result))  # JSON, as every command prints a record
     return result
 
 

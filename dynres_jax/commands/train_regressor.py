@@ -14,6 +14,7 @@ unchanged (all six channels are images of a square bin seen from above). Reports
 
 from __future__ import annotations
 
+import json
 import os
 
 from dynres_jax import distributed
@@ -54,7 +55,7 @@ def main(argv=None):
     ckpt.save(os.path.join(args.out, "ckpt"), args.steps, {"module": params}, dict(width=args.width, **metrics))
     files.write_json(os.path.join(args.out, "metrics.json"), metrics)
     _scatter(truth, pred, os.path.join(args.out, "heldout.png"))
-    print(metrics)
+    print(json.dumps(metrics))  # JSON, as every command prints a record
     return metrics
 
 
