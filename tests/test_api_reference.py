@@ -9,6 +9,7 @@ from pathlib import Path
 
 import pytest
 
+pytestmark = pytest.mark.slow  # pdoc imports every module: CI's second tier
 README = (Path(__file__).resolve().parents[1] / "README.md").read_text()
 
 

@@ -210,6 +210,7 @@ def test_shipped_gnn_card_still_builds_a_dynamics():
         TrainConfig(model=dict(hidden=3))
 
 
+@pytest.mark.slow  # 60 s on the 2-core CPU: CI's second tier
 def test_eval_dynamics_on_a_cnn_checkpoint(cnn_run, shards, tmp_path):  # noqa: F811
     out, _ = cnn_run
     result = eval_dynamics.main(["--ckpt", f"{out}/ckpt", "--data", shards, "--out", str(tmp_path),

@@ -128,6 +128,7 @@ def test_finish_shard_cuts_and_drops_broken():
     assert int(flagged["dropped"]) == 0 and flagged["broken"][1, 2]
 
 
+@pytest.mark.slow  # 93 s on the 2-core CPU: CI's second tier
 def test_resume_rewrites_missing_shard_identically(generated, tmp_path):
     original, _ = generated
     out = str(tmp_path / "run")
