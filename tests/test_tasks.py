@@ -95,3 +95,14 @@ def test_a_summary_counts_the_episodes_that_met_the_rule_at_some_step():
     mixing = [[0.06, 0.0], [0.01, 0.04]]
     np.testing.assert_array_equal(tasks.step_success("sort", dict(kind_inside=kind_inside, mixing=mixing)),
                                   [[False, False], [True, True]])
+
+
+def test_a_step_line_reads_the_share_inside_as_the_task_does():
+    """Sort's line gives each kind's share in its own goal (was: one share that no record held), by hand; the other
+    tasks' the pieces inside, averaged over a batch."""
+    from dynres_jax.control.mpc import _inside_text
+
+    assert _inside_text(dict(kind_inside=[[0.0, 0.2]], inside=[0.733])) == "inside each kind's goal 0% / 20%"
+    assert _inside_text(dict(kind_inside=[[0.0, 0.2], [0.5, 0.4]], inside=[0.7, 0.1])) == \
+        "inside each kind's goal 25% / 30%"
+    assert _inside_text(dict(inside=np.array([0.5, 0.7]))) == "inside=60.0%"

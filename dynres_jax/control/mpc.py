@@ -318,14 +318,22 @@ def _planning_seconds(kept: dict, timing: budget.TimingTable | None) -> np.ndarr
     return planning_price(kept, timing)
 
 
+def _inside_text(r: dict) -> str:
+    """The share inside as the task's success reads it: Sort's per kind, each in its own goal (kind_inside [B, 2],
+    averaged over a batch), else the pieces inside the goal."""
+    if "kind_inside" in r:
+        return "inside each kind's goal " + " / ".join(f"{x:.0%}" for x in np.mean(r["kind_inside"], axis=0))
+    return f"inside={float(np.mean(r['inside'])):5.1%}"
+
+
 def _log_step(log, r: dict, steps: int) -> None:
     """One line per MPC step: the episode's values, or the means of a batch."""
     if len(r["omega"]) == 1:
         log(f"step {r['step'] + 1:2d}/{steps}  ω={int(r['omega'][0]):3d} (bucket {int(r['bucket'][0]):3d}, "
             f"{int(r['adam_steps'][0]):3d} Adam steps)  c={float(r['objective'][0]):7.2f} -> predicted "
             f"{float(r['predicted_objective'][0]):7.2f}  d={float(r['distance'][0]):7.2f}  "
-            f"inside={float(r['inside'][0]):5.1%}  plan {float(r['planning_s'][0]):5.2f}s")
+            f"{_inside_text(r)}  plan {float(r['planning_s'][0]):5.2f}s")
     else:
         log(f"step {r['step'] + 1:2d}/{steps}  {len(r['omega'])} episodes  mean ω={r['omega'].mean():5.1f}  mean "
             f"Adam steps={r['adam_steps'].mean():5.1f}  mean d={r['distance'].mean():7.2f}  "
-            f"mean inside={r['inside'].mean():5.1%}  {r['seconds']:5.2f}s")
+            f"mean {_inside_text(r)}  {r['seconds']:5.2f}s")

@@ -131,6 +131,7 @@ def evaluation_plots(results: dict, task: str, out_dir: str, names: dict[str, st
     for method, r in results.items():
         ax.plot(np.arange(1, len(r["mean_distance"]) + 1), r["mean_distance"], label=names[method])
     ax.set(xlabel="MPC step", ylabel="mean d", title=task)
+    ax.xaxis.set_major_locator(matplotlib.ticker.MaxNLocator(integer=True))  # whole steps, not 1.25
     ax.legend(fontsize=8)
     fig.tight_layout()
     fig.savefig(os.path.join(out_dir, "steps.png"), dpi=120)
