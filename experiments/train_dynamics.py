@@ -1,6 +1,9 @@
-"""``python -m experiments.train_dynamics``, the command ``dynres_jax.commands.train_dynamics``."""
+"""``python -m experiments.train_dynamics``: the command ``dynres_jax.commands.train_dynamics``, its flags checked first
+(``commands.flags``: a bad flag is refused before the heavy imports)."""
 
-from dynres_jax.commands.train_dynamics import main
+from dynres_jax.commands import entry
+
+main = entry("train_dynamics")
 
 if __name__ == "__main__":
     main()

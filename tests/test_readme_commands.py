@@ -56,7 +56,7 @@ def parse(monkeypatch, module: str, argv: list[str]) -> argparse.Namespace:
         raise Parsed(original(self, args, namespace))
 
     monkeypatch.setattr(argparse.ArgumentParser, "parse_args", parse_only)
-    main = importlib.import_module(module).main
+    main = importlib.import_module(f"dynres_jax.commands.{module.split('.')[1]}").main  # the command's own parser
     with pytest.raises(Parsed) as parsed:
         main(argv)
     return parsed.value.args[0]

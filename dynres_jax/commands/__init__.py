@@ -47,4 +47,17 @@ def main(argv=None) -> None:
     if name not in COMMANDS:
         print(f"dynres: error: unknown command {argv[0]!r}; the commands: {', '.join(COMMANDS)}", file=sys.stderr)
         raise SystemExit(2)
-    importlib.import_module(f"dynres_jax.commands.{name}").main(argv[1:])
+    entry(name)(argv[1:])
+
+
+def entry(name: str):
+    """Command ``name``'s main, its flags first checked against the flag table (``flags.precheck``: a bad flag is
+    refused before the command's heavy imports), then the command itself."""
+
+    def main(argv=None):
+        from dynres_jax.commands.flags import precheck
+
+        precheck(name, sys.argv[1:] if argv is None else list(argv))
+        return importlib.import_module(f"dynres_jax.commands.{name}").main(argv)
+
+    return main

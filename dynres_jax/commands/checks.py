@@ -24,6 +24,7 @@ import jax
 
 from dynres_jax import distributed
 from dynres_jax.commands import docstring
+from dynres_jax.commands.flags import OneLineParser, prog  # noqa: F401 (prog: the commands' import of it)
 from dynres_jax.commands.folder_lock import LOCK, hold, holder
 from dynres_jax.config import OMEGA_MAX, OMEGA_MIN
 from dynres_jax.errors import InputError, JobError
@@ -33,18 +34,9 @@ from dynres_jax.sim import engines
 RUN = "run.json"
 
 
-def prog(name: str) -> str:
-    """How the user called command ``name``: ``dynres NAME`` from the installed script, else ``python -m
-    experiments.NAME``."""
-    return f"dynres {name}" if os.path.basename(sys.argv[0]) == "dynres" else f"python -m experiments.{name}"
-
-
-class Parser(argparse.ArgumentParser):
+class Parser(OneLineParser):
     """A command's parser: a mistake is one line (``PROG: error: ...`` and where the options are), exit status 2; the
     ``--out`` it parsed is kept for ``guarded``'s line on an interrupt."""
-
-    def error(self, message: str):
-        self.exit(2, f"{self.prog}: error: {message} (options: {self.prog} --help)\n")
 
     def parse_known_args(self, args=None, namespace=None):
         global _out
