@@ -52,6 +52,7 @@ def test_planned_pushes_move_piles_into_their_goals(episodes):
     assert not np.allclose(runs[0.0]["action"], runs[1.0]["action"])
 
 
+@pytest.mark.slow  # the planned episodes fixture (49 s on the 2-core CPU): CI's second tier
 def test_random_share_follows_the_piles_sampler(episodes):
     """planned = 0: every push is ``PileEnv.sample_push`` of the frame it starts from, under the step's key."""
     worlds, keys, runs = episodes
@@ -62,6 +63,7 @@ def test_random_share_follows_the_piles_sampler(episodes):
         np.testing.assert_allclose(run["action"][:, t], np.asarray(expected), atol=1e-6)
 
 
+@pytest.mark.slow  # the planned episodes fixture (49 s on the 2-core CPU): CI's second tier
 def test_episode_arrays_have_the_random_episodes_layout(episodes):
     _, _, runs = episodes
     run = runs[1.0]

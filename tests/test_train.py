@@ -75,6 +75,7 @@ def test_speed_leaves_out_the_first_step_and_pauses(monkeypatch):
     assert speed.samples_per_s() == pytest.approx(3 * 8 / 7)
 
 
+@pytest.mark.slow  # trains the module's run (72 s on the 2-core CPU): CI's second tier
 def test_resumed_run_equals_an_uninterrupted_one(shards, run, tmp_path):
     """Stop on the time limit after step 1 (a checkpoint there), leave a metrics line past it as a kill would,
     resume to 4: the same parameters as the uninterrupted run."""
