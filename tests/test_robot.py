@@ -39,6 +39,7 @@ def test_a_simulated_episode_pushes_and_records_every_frame(episode):
     assert set(os.listdir(os.path.join(out, "frames", "000"))) == {"depth.png", "rgb.png", "camera.json"}
     assert open(os.path.join(out, "episode.gif"), "rb").read(3) == b"GIF"
     assert steps[2]["distance"] != steps[0]["distance"] and 0 <= summary["true_inside"] <= 1  # the pushes moved it
+    assert summary["succeeded"] == (summary["true_inside"] >= 0.9 - 1e-6)  # Gather's rule on the true state
     with open(os.path.join(out, "metrics.json")) as f:
         assert json.load(f)["steps"] == steps
 

@@ -8,11 +8,12 @@ Each step reads a frame, stops when ``--success`` of its foreground lies inside 
 pushes), plans one push at ω with the dynamics model, checks it against the bin's workspace and sends it. The
 simulator's frames pass through ``--sensor`` (default: a RealSense D455's noise, holes and calibration error) and
 ``--calibrate`` refines the camera's pose from the first frame, as on a real setup. ``--dry-run`` plans and records
-but pushes nothing (always so with ``--replay``). Writes ``frames/NNN/`` (each frame as a camera saves it:
-depth.png in mm, rgb.png, camera.json; a replay source), ``episode.gif`` (the goal green, the particles red, the
-push blue) and ``metrics.json`` (per frame: d and the share inside as the robot saw them, the push; for the simulator
-also the true share of pieces inside at the end). A real camera and arm plug into ``control.robot.run_robot``
-(its docstring shows a RealSense and an arm in a few lines).
+but pushes nothing (always so with ``--replay``). Writes ``frames/NNN/`` (each frame as a camera saves it: depth.png
+in mm, rgb.png, camera.json; a replay source), ``episode.gif`` (the goal green, the particles red, the push blue)
+and ``metrics.json`` (per frame: d and the share inside as the robot saw them, the push; for the simulator also the
+true share of pieces inside at the end and ``succeeded``, whether it meets the task's success rule; ``reached`` is
+the camera's stop rule). A real camera and arm plug into ``control.robot.run_robot`` (its docstring shows a
+RealSense and an arm in a few lines).
 """
 
 from __future__ import annotations
@@ -32,6 +33,7 @@ from dynres_jax.control.mpc import MPCConfig
 from dynres_jax.control.objective import inside_share
 from dynres_jax.control.planner import planner_config
 from dynres_jax.control.robot import STOP_SHARE, DryRun, ReplaySource, SimulatedRobot, Workspace, run_robot
+from dynres_jax.control.tasks import succeeded
 from dynres_jax.io import files
 from dynres_jax.io.draw import caption, overlay
 from dynres_jax.io.frames import load_goal, read_image, save_frame
@@ -124,6 +126,7 @@ def main(argv=None):
         true_goal = make_goal(goal_mask if args.goal else disc_goal(env.camera, np.zeros(2), 0.08), env.camera)
         pos = source.state.pos
         summary["true_inside"] = float(inside_share(pos, np.ones(len(pos), bool), true_goal, env.camera))
+        summary["succeeded"] = bool(succeeded(summary["true_inside"]))  # the task's rule (reached: the camera's)
     files.write_json(os.path.join(args.out, "metrics.json"), summary)
     print(json.dumps({k: v for k, v in summary.items() if k != "steps"}))
     return summary
