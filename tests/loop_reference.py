@@ -56,6 +56,7 @@ def record(folder: str) -> dict:
                                                    SHIPPED_REGRESSOR, "--ckpt", SHIPPED_DYNAMICS,
                                                    "--out", out("adaptive")]))
     runs["redistribute"] = _steps(redistribute.main([*TINY, "--pieces", "40", "--letter", "J", "--resolution", "25",
+                                                      "--objective", "paper",  # as recorded (the hinge: test_objective)
                                                       "--seed", "5", "--out", out("letter")]))
     runs["sort"] = _steps(sort.main([*TINY, "--pieces", "20", "20", "--seed", "6", "--out", out("sort")]))
     summary = evaluate.main(["--quick", "--episodes", "2", "--mpc-steps", "2", "--pieces", "40", "--samples", "4",
