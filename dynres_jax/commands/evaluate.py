@@ -65,7 +65,7 @@ from dynres_jax.commands.planner_args import (
     resolve_planner_args,
     timing_table,
 )
-from dynres_jax.commands.task import check_pile, check_visible, load_model
+from dynres_jax.commands.task import check_pile, check_visible, load_model, objectives_text
 from dynres_jax.config import DEFAULT_PIECES, KINDS, CameraConfig, PileConfig, SceneConfig, SimConfig
 from dynres_jax.control import resolution, tasks
 from dynres_jax.control.choosers import ORACLE_OMEGAS, PROBE_OMEGAS
@@ -108,8 +108,7 @@ def build_parser():
                                  f"{name} {task.stop_share or 'off'}" for name, task in sorted(tasks.TASKS.items())
                                  if task.kinds == 1) + "; not Sort)")
     parser.add_argument("--objective", default=None, choices=OBJECTIVES,
-                        help="c's SDF term: 'paper' (Σ SDF, rewards depth inside the goal) or 'hinge' (Σ max(0, SDF): "
-                             "only particles outside cost; goals.with_objective); default: the task's, " + ", ".join(
+                        help=f"c's SDF term: {objectives_text()}; default: the task's, " + ", ".join(
                                  f"{name} {task.objective}" for name, task in sorted(tasks.TASKS.items())
                                  if task.kinds == 1) + "; not Sort")
     parser.add_argument("--methods", nargs="+", default=None,

@@ -26,7 +26,7 @@ import jax
 import numpy as np
 
 from dynres_jax.commands import checks
-from dynres_jax.commands.task import load_model, resolve_pieces, write_episode
+from dynres_jax.commands.task import check_visible, load_model, resolve_pieces, write_episode
 from dynres_jax.config import KINDS, CameraConfig, PileConfig, SceneConfig, SimConfig
 from dynres_jax.control.goals import disc_goal, make_goal
 from dynres_jax.control.mpc import MPCConfig
@@ -38,7 +38,6 @@ from dynres_jax.io import files
 from dynres_jax.io.draw import caption, overlay
 from dynres_jax.io.frames import load_goal, read_image, save_frame
 from dynres_jax.models.registry import SHIPPED_DYNAMICS
-from dynres_jax.perception import visible_points
 from dynres_jax.sim.camera import MAX_IMAGE, MIN_IMAGE
 from dynres_jax.sim.env import PileEnv
 from dynres_jax.sim.sensor import SENSORS
@@ -97,10 +96,8 @@ def main(argv=None):
     cfg = MPCConfig(mpc_steps=args.steps, real_depth=True, planner=planner_config(
         env, samples=args.samples, adam_steps=args.adam_steps, seed=args.seed))
     if isinstance(source, SimulatedRobot):  # the first frame (before the sensor's errors) can hold ω particles
-        points = visible_points(source.state.obs, camera, cfg.max_points)
-        if points < args.resolution:
-            parser.error(f"the first frame shows {points} foreground points, fewer than the ω = {args.resolution} "
-                         "particles to sample from them: a larger --image-size, more --pieces or a lower --resolution")
+        check_visible(parser, source.state.obs, camera, args.resolution, cfg, flag="--image-size",
+                      remedy="a larger --image-size, more --pieces or a lower --resolution")
     checks.claim(args.out, "robot", checks.settings(args), args.fresh,
                  {"--ckpt": args.ckpt, "--goal": args.goal, "--replay": args.replay})
     pusher = DryRun() if args.dry_run or args.replay else source

@@ -69,6 +69,11 @@ from dynres_jax.sim.env import PileEnv
 PROGRESS = "progress.npz"  # an unfinished episode's last step (``control.progress``), gone once metrics.json is written
 
 
+def objectives_text() -> str:
+    """--objective's choices in words (``goals.OBJECTIVES``), for the help of the commands that take it."""
+    return " or ".join(f"'{name}' ({words})" for name, words in OBJECTIVES.items())
+
+
 def add_loop_args(parser: argparse.ArgumentParser, task: str, adaptive: bool = True) -> None:
     """The flags every closed-loop task command takes (``--out`` defaults to out/TASK); adaptive: whether
     ``--resolution`` may be 'adaptive' (Sort plans at one ω)."""
@@ -83,8 +88,7 @@ def add_loop_args(parser: argparse.ArgumentParser, task: str, adaptive: bool = T
                                  "of success and ends a Gather episode after 14 of 20 pushes)")
         objective = tasks.TASKS[task].objective
         parser.add_argument("--objective", default=objective, choices=OBJECTIVES,
-                            help=f"c's SDF term: 'paper' (Σ SDF: rewards depth inside the goal) or 'hinge' (Σ max(0, "
-                                 f"SDF): only particles outside cost); default {objective} (docs/redistribute)")
+                            help=f"c's SDF term: {objectives_text()}; default {objective} (docs/redistribute)")
     if not adaptive:
         parser.add_argument("--resolution", type=checks.omega, default=50, help="ω: particles the planner reasons with")
     else:
@@ -198,13 +202,14 @@ def build_loop(args, sim: SimConfig, parser: argparse.ArgumentParser, task: str)
     return Loop(env, model, cfg, timing, None if regressor else int(omega), regressor, inputs, judge)
 
 
-def check_visible(parser: argparse.ArgumentParser, obs, camera: Camera, omega: int, cfg: MPCConfig) -> None:
-    """parser.error naming --pieces, before any work, when the first frame shows fewer foreground points than the ω
-    particles perception must sample (a pile of one or two pieces at ω = 50)."""
+def check_visible(parser: argparse.ArgumentParser, obs, camera: Camera, omega: int, cfg: MPCConfig,
+                  flag: str = "--pieces", remedy: str = "use more pieces or a lower ω") -> None:
+    """parser.error naming ``flag``, before any work, when the first frame shows fewer foreground points than the ω
+    particles perception must sample (a pile of one or two pieces at ω = 50; the robot's frame of a few pixels)."""
     points = visible_points(obs, camera, cfg.max_points)
     if points < omega:
-        parser.error(f"--pieces: the pile shows {points} foreground points, fewer than the ω = {omega} particles to "
-                     "sample from them; use more pieces or a lower ω")
+        parser.error(f"{flag}: the pile shows {points} foreground points, fewer than the ω = {omega} particles to "
+                     f"sample from them; {remedy}")
 
 
 def finished(out: str, resumed: bool, fresh: bool) -> dict | None:

@@ -318,7 +318,10 @@ def make_goal(mask, camera: Camera, n_samples: int = 500) -> Goal:
     return goal_fields(mask, camera, _check_samples(n_samples))
 
 
-OBJECTIVES = ("paper", "hinge")  # the forms of c's first term a goal can carry (``with_objective``)
+OBJECTIVES = {  # the forms of c's first term a goal can carry (``with_objective``), each in words for --help
+    "paper": "Σ SDF: rewards depth inside the goal",
+    "hinge": "Σ max(0, SDF): only particles outside cost",
+}
 
 
 def with_objective(goal: Goal, objective: str) -> Goal:
