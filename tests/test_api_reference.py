@@ -5,12 +5,11 @@ documented on theirs."""
 import importlib
 import pkgutil
 import re
-from pathlib import Path
 
 import pytest
+from test_readme_commands import README
 
 pytestmark = pytest.mark.slow  # pdoc imports every module: CI's second tier
-README = (Path(__file__).resolve().parents[1] / "README.md").read_text()
 
 
 def readme_modules() -> list[str]:
