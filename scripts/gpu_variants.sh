@@ -25,6 +25,7 @@ if [ "$TASK" = sort ]; then KINDS=${KINDS:-"coffee-candy almond-mnm rice-granola
 gpus=${GPUS:-$(n=$(nvidia-smi -L 2>/dev/null | grep -c "^GPU"); echo $(( n > 0 ? n : 1 )))}
 IFS=';' read -ra variants <<< "$VARIANTS"
 SPLIT=${SPLIT:-1}
+[ "$SPLIT" -le "$gpus" ] || { echo "SPLIT=$SPLIT: a job's processes need a GPU each (NCCL refuses two on one GPU); this host has $gpus" >&2; exit 2; }
 runs=$(( ${#variants[@]} * $(wc -w <<< "$KINDS") * SPLIT )); workers=$(( $(nproc) / runs )); [ "$workers" -ge 1 ] || workers=1
 fraction=$(python -c "print(round(0.9 / -(-$runs // $gpus), 2))")  # GPU memory a run: the runs on one GPU share 90 %
 export JAX_COMPILATION_CACHE_DIR=${JAX_COMPILATION_CACHE_DIR:-/tmp/jax_cache}

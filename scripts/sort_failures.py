@@ -49,7 +49,7 @@ def trace(metrics: dict) -> dict:
     flags = []
     if not success:
         flags += ["stalled"] * (stalled >= STALLED_STEPS) + ["unfinished"] * (left >= UNFINISHED_STEPS)
-        flags += ["mixing"] * (min(inside) >= SORT_INSIDE - 1e-6 and mixing >= SORT_MIXING)
+        flags += ["mixing"] * (min(inside) >= SORT_INSIDE - 1e-6 and mixing >= SORT_MIXING - 1e-6)
         flags = flags or ["short"]
     return dict(success=success, flags=flags, astar=(steps[0]["astar_steps"], left), inside=inside, mixing=mixing,
                 phases=dict(collections.Counter(s["phase"] for s in steps)),

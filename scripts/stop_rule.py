@@ -5,7 +5,8 @@ it stopped at and, with --letters, per goal character. The rule is chosen on tun
 success, ties to the larger share) and measured once on fresh ones (--shares S). With --steps, the same for the
 first T MPC steps of each episode (an MPC step's keys depend on the step alone, so the first T steps of a longer run
 are the T-step run), and --choose picks (T, share) by the highest success, ties to fewer steps, then the larger share.
-Sort records no seen share: its table has no rule, only the steps.
+Sort's seen share is the lower kind's perceived share inside its goal (runs before 2026-11-29 record none: their
+table has no rule, only the steps). Several --run files (blocks of seeds) are read as one run, episodes in turn.
 
     python scripts/stop_rule.py --run RUNS/r_tune/50.json --task redistribute --choose
     python scripts/stop_rule.py --run RUNS/r_fresh/50.json --task redistribute --shares 0.95 --letters BDGPQV345689
@@ -20,7 +21,7 @@ import argparse
 
 import numpy as np
 
-from dynres_jax.control.tasks import episode_success, first_steps, step_success, stopped
+from dynres_jax.control.tasks import PER_STEP, episode_success, first_steps, step_success, stopped
 from dynres_jax.io import files
 from dynres_jax.stats import mcnemar, paired_bootstrap, wilson
 from scripts.variants import groups, read_results
@@ -58,9 +59,28 @@ def rows(results: dict, task: str, shares, letters: str | None) -> tuple[list[st
     return lines, best
 
 
+PER_EPISODE = ("broken", "success", "start_pieces", "final_pieces")  # [E] beside the finals (final_*)
+
+
+def join(runs: list[dict]) -> dict:
+    """Evaluations of one method on blocks of seeds -> one evaluation, the blocks' episodes in turn: the per-step
+    records [T][E] (``tasks.PER_STEP``) joined on the episode axis, the per-episode ones [E] on the first, the means
+    per step recomputed; the rest (device, dynamics) as the first block's."""
+    out = dict(runs[0])
+    for key in runs[0]:
+        if key in PER_STEP:
+            out[key] = np.concatenate([np.asarray(r[key]) for r in runs], axis=1).tolist()
+        elif key in PER_EPISODE or key.startswith("final_"):
+            out[key] = np.concatenate([np.asarray(r[key]) for r in runs]).tolist()
+        elif key.startswith("mean_"):
+            out[key] = np.concatenate([np.asarray(r[key[5:]]) for r in runs], axis=1).mean(axis=1).tolist()
+    return out
+
+
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--run", required=True, help="an evaluation's METHOD.json (or .json.gz) made without the rule")
+    parser.add_argument("--run", required=True, nargs="+",
+                        help="an evaluation's METHOD.json (or .json.gz) made without the rule; several: one run")
     parser.add_argument("--task", default="redistribute")
     parser.add_argument("--shares", type=float, nargs="+", default=SHARES)
     parser.add_argument("--letters", default=None, help="per goal character too (episode i's: letters[i % len])")
@@ -68,7 +88,7 @@ def main(argv=None) -> None:
     parser.add_argument("--choose", action="store_true", help="print the share (and T) with the highest success")
     parser.add_argument("--out", default=None, help="write the Markdown table here")
     args = parser.parse_args(argv)
-    results = read_results(args.run)
+    results = join([read_results(path) for path in args.run])
     text, best = "", (-1, 0, 0.0)
     for steps in args.steps or [len(results["inside"])]:
         lines, (k, share) = rows(first_steps(results, steps), args.task, args.shares, args.letters)

@@ -36,7 +36,7 @@ from dynres_jax.stats import mcnemar, paired_bootstrap, wilson
 def failures(result: dict) -> str:
     """A Sort method's results -> its failures by cause, "mixing / short / both"."""
     inside = np.asarray(result["final_kind_inside"]).min(axis=1) >= SORT_INSIDE - 1e-6
-    mixed = np.asarray(result["final_mixing"]) >= SORT_MIXING
+    mixed = np.asarray(result["final_mixing"]) >= SORT_MIXING - 1e-6  # as tasks.sort_succeeded
     failed = ~episode_success("sort", result)
     counts = failed & inside & mixed, failed & ~inside & ~mixed, failed & ~inside & mixed
     return " / ".join(str(int(np.sum(c))) for c in counts)

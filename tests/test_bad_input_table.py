@@ -170,6 +170,7 @@ S = [
     (["--resolution", "101"], "--resolution"), (["--mpc-steps", "0"], "--mpc-steps"), (["--samples", "0"], "--samples"),
     (["--time-budget", "0"], "--time-budget"), (["--ckpt", "/nonexistent"], "--ckpt"), (["--out", "{file}"], "--out"),
     (["--out", "{gather_run}"], "--out"), (["--method", "best0"], "--method"), (["--method", "oracle"], "--method"),
+    (["--stop-share", "0"], "--stop-share"), (["--objective", "hinged"], "--objective"),
 ]
 FRAME = ["--depth", "{depth}", "--rgb", "{rgb}", "--camera", "{camera}", "--goal", "{goal}"]
 P = [  # plan: one frame of a real camera
@@ -202,7 +203,7 @@ E = [  # evaluate
     (["--methods", "best0"], "--methods"), (["--methods", "50", "50"], "--methods"), (["--methods", "sim", "sim"], "--methods"),
     (["--methods", "50", "050"], "names a method twice"), (["--lr", "1e308"], "--lr"),
     (["--methods", "reranked"], "--methods"), (["--stop-share", "nan"], "--stop-share"),
-    (["--task", "sort", "--stop-share", "0.9"], "--stop-share"), (["--task", "sort", "--objective", "hinge"], "--objective"),
+    (["--task", "sort", "--stop-share", "1.5"], "--stop-share"), (["--task", "sort", "--objective", "x"], "--objective"),
     (["--objective", "hinged"], "--objective"),
     (["--task", "redistribute", "--letters", "A B"], "--letters"), (["--letters", ""], "--letters"),
     (["--methods", "cnn", "--cnn-ckpt", "/nonexistent"], "--cnn-ckpt"),

@@ -4,6 +4,7 @@ its recorded frames replayed as a dry run, the workspace check before any push, 
 import json
 import os
 
+import imageio.v3 as iio
 import jax
 import numpy as np
 import pytest
@@ -52,6 +53,34 @@ def test_the_recorded_frames_replay_as_a_dry_run(episode, tmp_path):
     assert replay["dry_run"] and replay["pushes"] == 2 and "true_inside" not in replay
     for seen, live in zip(replay["steps"], summary["steps"], strict=True):
         assert seen["distance"] == pytest.approx(live["distance"], rel=0.05)
+
+
+def test_an_interrupted_robot_episode_resumes_after_its_last_push(tmp_path, capsys, monkeypatch):
+    """Ctrl-C once push 1 of 2 is saved keeps the episode's progress; the same command then reads the frame after that
+    push (the simulator's world as it was left, its sensor's next frame) and ends where the uninterrupted episode
+    ends: the same pushes, the same true share inside, a GIF of every frame."""
+    from dynres_jax.control import progress
+
+    whole = robot.main([*TINY, "--out", str(tmp_path / "whole")])
+    save = progress.save
+
+    def interrupted(path, now, frames):  # the user's Ctrl-C arrives once push 1 is saved
+        save(path, now, frames)
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(progress, "save", interrupted)
+    capsys.readouterr()
+    with pytest.raises(SystemExit) as e:
+        robot.main([*TINY, "--out", str(tmp_path / "cut")])
+    assert e.value.code == 130 and "rerun the same command to resume" in capsys.readouterr().err
+    assert (tmp_path / "cut" / "progress.npz").exists() and not (tmp_path / "cut" / "metrics.json").exists()
+    monkeypatch.setattr(progress, "save", save)
+    again = robot.main([*TINY, "--out", str(tmp_path / "cut")])
+    assert "resuming the interrupted episode after push 1 of 2" in capsys.readouterr().out
+    assert [s.get("action") for s in again["steps"]] == [s.get("action") for s in whole["steps"]]
+    assert again["true_inside"] == whole["true_inside"] and again["pushes"] == 2
+    assert not (tmp_path / "cut" / "progress.npz").exists()
+    assert len(iio.imread(tmp_path / "cut" / "episode.gif", index=None)) == 3  # two pushes and the end
 
 
 def test_the_workspace_check_refuses_pushes_outside_and_a_dry_run_moves_nothing():

@@ -1,6 +1,7 @@
 """Sort: the A* blob planner against a brute-force BFS, goal sampling, each kind scored against its own goal, and a tiny
 closed-loop episode (CPU)."""
 
+import dataclasses
 from collections import deque
 
 import jax
@@ -212,6 +213,63 @@ def test_a_pile_inside_its_goal_counts_as_arrived(env, monkeypatch):
         assert np.allclose(record["perceived_inside"], [inside])
 
 
+def test_the_stop_rule_holds_a_sort_episode_from_the_frame_whose_kinds_met_it(env, monkeypatch):
+    """MPCConfig.stop_share on Sort reads the lower kind's perceived share inside its goal (seen_inside): with the
+    shares scripted to first meet 0.85 on the frame before push 2, the episode pushes nothing from then on, its pieces
+    stay where push 1 left them, and its scores are those after push 1, as ``tasks.stopped`` replays the free run."""
+    goals, radius, _ = sort_goal(np.random.default_rng(0), env)
+    cfg = MPCConfig(mpc_steps=4, buckets=(32,), max_points=512,
+                    planner=PlannerConfig(samples=4, adam_steps=2, bound=env.action_bound, max_length=0.1))
+    shares = [[0.1, 0.2], [0.5, 0.9], [0.95, 0.9], [0.3, 0.3]]  # perceived per kind before each push: min 0.9 at t = 2
+    real = sort._kind_centres
+
+    def scripted(obs, camera, omega, max_points, buckets, key, *rest):
+        centres, _, points = real(obs, camera, omega, max_points, buckets, key, *rest)
+        return centres, np.array(shares[calls.popleft()]), points
+
+    monkeypatch.setattr(sort, "_kind_centres", scripted)
+    runs = {}
+    for name, share in (("free", None), ("held", 0.85)):
+        calls, before = deque(range(4)), []
+        policy = SortPolicy(env, dataclasses.replace(cfg, stop_share=share), 20, jax.random.PRNGKey(1), goals, radius,
+                            lambda s: None)
+        runs[name] = run_episode(env, env.reset(jax.random.PRNGKey(0)), policy, sweep_dynamics(0.04),
+                                 dataclasses.replace(cfg, stop_share=share), jax.random.PRNGKey(1), log=lambda s: None,
+                                 on_step=[lambda t, states, *_, b=before: b.append(np.asarray(states.pos))])
+        runs[name] += (before,)
+    (pushed_on, free, before), (final, held, _) = runs["free"], runs["held"]
+    assert [r["seen_inside"] for r in free] == pytest.approx([0.1, 0.5, 0.9, 0.3])
+    assert [r["held"] for r in held] == [False, False, True, True]
+    assert np.all(np.isnan(held[3]["action"])) and not np.any(np.isnan(held[1]["action"]))
+    np.testing.assert_allclose(np.asarray(final.pos), before[2][0], atol=1e-6)  # where push 1 left them
+    steps = lambda records, k: np.stack([[r[k]] for r in records]).tolist()  # noqa: E731  (evaluate's [T][E])
+    replayed = tasks.stopped({k: steps(free, k) for k in ("inside", "distance", "seen_inside", "kind_inside",
+                                                          "mixing")}, 0.85)
+    assert replayed["stopped_at"] == [2]
+    for k in ("kind_inside", "mixing"):
+        np.testing.assert_allclose(replayed[k], steps(held, k), atol=1e-6)
+        np.testing.assert_allclose(replayed[f"final_{k}"], [held[-1][k]], atol=1e-6)
+    assert not np.allclose(np.asarray(pushed_on.pos), np.asarray(final.pos), atol=1e-4)  # the free run pushed on
+
+
+def test_the_hinge_clips_each_target_discs_distance_at_zero(env):
+    """objective="hinge": the orders' per-kind goals are the paper's with the distance field clipped at 0 (pieces
+    inside a target disc cost nothing), everything else alike; an unknown objective is refused before any step."""
+    goals, radius, _ = sort_goal(np.random.default_rng(0), env)
+    cfg = MPCConfig(mpc_steps=1, buckets=(32,), max_points=512,
+                    planner=PlannerConfig(samples=4, adam_steps=1, bound=env.action_bound, max_length=0.1))
+    obs = batch(env.reset(jax.random.PRNGKey(0)).obs)
+    paper, hinge = (SortPolicy(env, cfg, 20, jax.random.PRNGKey(1), goals, radius, lambda s: None, objective=o)(0, obs)
+                    for o in ("paper", "hinge"))
+    assert np.min(paper.goals.goals.distance) < 0  # the paper's c rewards depth inside a disc
+    assert np.array_equal(hinge.goals.goals.distance, np.maximum(paper.goals.goals.distance, 0))
+    assert np.array_equal(hinge.goals.avoid, paper.goals.avoid)
+    assert np.array_equal(hinge.goals.hold, paper.goals.hold)
+    assert np.array_equal(hinge.record["waypoint"], paper.record["waypoint"])
+    with pytest.raises(ValueError, match="objective"):
+        SortPolicy(env, cfg, 20, jax.random.PRNGKey(1), goals, radius, objective="hinged")
+
+
 @pytest.mark.slow
 def test_sort_climbs_the_ladder(env):
     """Sort's waypoints under the ladder's wrappers: one plan of K = 1 is the policy's own push; the best of two
@@ -345,7 +403,11 @@ def test_a_step_against_kind_goals_is_scored_per_kind(env):
 
 
 def test_sorts_target_by_hand():
-    """Both kinds at least 80 % inside (8 of 10 as float32 rounds it counts) and mixing below 5 %."""
+    """Both kinds at least 80 % inside (8 of 10 as float32 rounds it counts) and mixing below 5 %: 3 of 60 pieces, which
+    float32 sums may round to either side of 0.05 (a run read 0.0499999989), are 5 %, not below; 2 of 60 are."""
     eight_of_ten = float(np.float32(8) / np.float32(10))
     assert tasks.sort_succeeded([eight_of_ten, 1.0], 0.0) and tasks.sort_succeeded([0.9, 0.95], 0.049)
     assert not tasks.sort_succeeded([0.79, 1.0], 0.0) and not tasks.sort_succeeded([0.9, 0.9], 0.05)
+    for side in (0.0, 1.0):  # the float32 neighbours of 0.05
+        assert not tasks.sort_succeeded([0.9, 0.9], float(np.nextafter(np.float32(0.05), np.float32(side))))
+    assert tasks.sort_succeeded([0.9, 0.9], float(np.float32(2) / np.float32(60)))

@@ -49,7 +49,8 @@ def test_disc_and_letter_share_centre_and_area(env, letter):
 
 def test_each_task_sets_its_episode_length_where_no_flag_does(tmp_path):
     """The commands' and evaluate's --mpc-steps, --stop-share and --objective default to the task's (Gather the paper's
-    20, no rule, the paper's c; Redistribute 90, no rule, the hinge; Sort 50); a flag wins ("off" turns the rule off),
+    20, no rule, the paper's c; Redistribute 90, no rule, the hinge; Sort 50, the rule at 0.9); a flag wins ("off"
+    turns the rule off),
     and --quick's 3 wins over the task's steps."""
     import argparse
 
@@ -61,18 +62,18 @@ def test_each_task_sets_its_episode_length_where_no_flag_does(tmp_path):
         parser = argparse.ArgumentParser()
         add_loop_args(parser, name)
         assert parser.parse_args([]).mpc_steps == tasks.TASKS[name].mpc_steps
-        if tasks.TASKS[name].kinds == 1:
-            assert parser.parse_args([]).stop_share is None
-            assert parser.parse_args([]).objective == ("hinge" if name == "redistribute" else "paper")
-            assert parser.parse_args(["--objective", "paper"]).objective == "paper"
-            assert parser.parse_args(["--stop-share", "off"]).stop_share == "off"
+        assert parser.parse_args([]).stop_share == (0.9 if name == "sort" else None)
+        assert parser.parse_args([]).objective == ("hinge" if name == "redistribute" else "paper")
+        assert parser.parse_args(["--objective", "hinge"]).objective == "hinge"
+        assert parser.parse_args(["--stop-share", "off"]).stop_share == "off"
     assert sort.build_parser().parse_args([]).mpc_steps == 50
     parser = evaluate.build_parser()
-    for argv, want in ((["--task", "redistribute"], (90, None, "hinge")), (["--task", "sort"], (50, None, "paper")),
+    for argv, want in ((["--task", "redistribute"], (90, None, "hinge")), (["--task", "sort"], (50, 0.9, "paper")),
                        ([], (20, None, "paper")), (["--stop-share", "0.9"], (20, 0.9, "paper")),
                        (["--task", "redistribute", "--mpc-steps", "7", "--stop-share", "0.92", "--objective", "paper"],
                         (7, 0.92, "paper")), (["--task", "redistribute", "--quick"], (3, None, "hinge")),
-                       (["--task", "gather", "--objective", "hinge", "--stop-share", "off"], (20, None, "hinge"))):
+                       (["--task", "gather", "--objective", "hinge", "--stop-share", "off"], (20, None, "hinge")),
+                       (["--task", "sort", "--stop-share", "off", "--objective", "hinge"], (50, None, "hinge"))):
         args = parser.parse_args([*argv, "--out", str(tmp_path)])
         evaluate.apply_defaults(parser, args)
         assert (args.mpc_steps, args.stop_share, args.objective) == want, argv

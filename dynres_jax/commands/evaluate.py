@@ -104,9 +104,9 @@ def build_parser():
                             f"{name} {task.mpc_steps}" for name, task in sorted(tasks.TASKS.items())) + ")")
     parser.add_argument("--stop-share", type=checks.stop_share, default=None,
                         help="an episode pushes no more once this share of the foreground its camera sees lies inside "
-                             "the goal, or 'off' (default: the task's, " + ", ".join(
-                                 f"{name} {task.stop_share or 'off'}" for name, task in sorted(tasks.TASKS.items())
-                                 if task.kinds == 1) + "; not Sort)")
+                             "the goal (Sort: of each kind's perceived pieces inside its own), or 'off' (default: the "
+                             "task's, " + ", ".join(f"{name} {task.stop_share or 'off'}"
+                                                    for name, task in sorted(tasks.TASKS.items())) + ")")
     parser.add_argument("--objective", default=None, choices=OBJECTIVES,
                         help=f"c's SDF term: {objectives_text()}; default: the task's, " + ", ".join(
                                  f"{name} {task.objective}" for name, task in sorted(tasks.TASKS.items())
@@ -240,10 +240,6 @@ def check_args(parser, args):
         except ckpt.CheckpointError as e:
             parser.error(f"--regressor (method adaptive): {e}")
     env = PileEnv(sim, backend="mujoco")
-    if sort and args.stop_share is not None:
-        parser.error("--stop-share reads one goal an episode; Sort's goals are one a kind")
-    if sort and args.objective != "paper":
-        parser.error("--objective: Sort plans on its own per-kind objective (objective.kind_objective)")
     if args.goal_png is not None:
         if sort:
             parser.error("--goal-png: Sort draws a goal disc per kind, it takes no goal mask")

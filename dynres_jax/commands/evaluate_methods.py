@@ -90,7 +90,7 @@ def sort_chooser(method: str, drawn: list[dict], env, cfg, keys, episodes, args)
     goals' descriptions, and its planner key) at a fixed ω, or at --best-omega on the ladder's rung."""
     omega = args.best_omega if on_ladder(method) else int(method)
     policies = [SortPolicy(env, cfg, omega, key, goal["centres"], goal["radius"], grid_step=args.grid_step,
-                           arrived=args.arrived, mixing=args.mixing,
+                           arrived=args.arrived, mixing=args.mixing, objective=args.objective,
                            log=lambda line, i=int(i): print(f"episode {i}: {line}"))
                 for i, key, goal in zip(episodes, keys, drawn, strict=True)]
     chooser = SortEpisodes(policies)

@@ -12,8 +12,9 @@ but pushes nothing (always so with ``--replay``). Writes ``frames/NNN/`` (each f
 in mm, rgb.png, camera.json; a replay source), ``episode.gif`` (the goal green, the particles red, the push blue)
 and ``metrics.json`` (per frame: d and the share inside as the robot saw them, the push; for the simulator also the
 true share of pieces inside at the end and ``succeeded``, whether it meets the task's success rule; ``reached`` is
-the camera's stop rule). A real camera and arm plug into ``control.robot.run_robot`` (its docstring shows a
-RealSense and an arm in a few lines).
+the camera's stop rule). Interrupted (Ctrl-C), the same command goes on after the last push (``progress.npz``;
+``--calibrate`` then refines the pose from the frame it resumes on). A real camera and arm plug into
+``control.robot.run_robot`` (its docstring shows a RealSense and an arm in a few lines).
 """
 
 from __future__ import annotations
@@ -26,15 +27,15 @@ import jax
 import numpy as np
 
 from dynres_jax.commands import checks
-from dynres_jax.commands.task import check_visible, load_model, resolve_pieces, write_episode
+from dynres_jax.commands.task import PROGRESS, check_visible, load_model, resolve_pieces, write_episode, write_metrics
 from dynres_jax.config import KINDS, CameraConfig, PileConfig, SceneConfig, SimConfig
+from dynres_jax.control import progress
 from dynres_jax.control.goals import disc_goal, make_goal
 from dynres_jax.control.mpc import MPCConfig
 from dynres_jax.control.objective import inside_share
 from dynres_jax.control.planner import planner_config
 from dynres_jax.control.robot import STOP_SHARE, DryRun, ReplaySource, SimulatedRobot, Workspace, run_robot
 from dynres_jax.control.tasks import succeeded
-from dynres_jax.io import files
 from dynres_jax.io.draw import caption, overlay
 from dynres_jax.io.frames import load_goal, read_image, save_frame
 from dynres_jax.models.registry import SHIPPED_DYNAMICS
@@ -101,7 +102,7 @@ def main(argv=None):
     checks.claim(args.out, "robot", checks.settings(args), args.fresh,
                  {"--ckpt": args.ckpt, "--goal": args.goal, "--replay": args.replay})
     pusher = DryRun() if args.dry_run or args.replay else source
-    frames = []
+    resume, frames, kept = resumed(args.out, source, args.steps)
 
     def record(t, obs, particles, step):  # the robot's view: saved as a camera saves it, and a GIF frame
         save_frame(os.path.join(args.out, "frames", f"{t:03d}"), obs, camera)
@@ -114,7 +115,8 @@ def main(argv=None):
           f"{'dry run' if isinstance(pusher, DryRun) else 'pushing'}; dynamics {model.name}; ω = {args.resolution}")
     steps = run_robot(source, pusher, goal_mask, model.dynamics, cfg, args.resolution, jax.random.PRNGKey(args.seed),
                       workspace=Workspace.of(env), success=args.success, on_step=record,
-                      bin_size=(sim.scene.bin_half_width, sim.scene.wall_height) if args.calibrate else None)
+                      bin_size=(sim.scene.bin_half_width, sim.scene.wall_height) if args.calibrate else None,
+                      resume=resume, on_progress=lambda now: kept(now, frames))
     write_episode(args.out, frames)
     summary = dict(source=args.replay or "simulator", sensor=args.sensor, dry_run=isinstance(pusher, DryRun),
                    dynamics=model.name, resolution=args.resolution, pushes=sum("action" in s for s in steps),
@@ -124,9 +126,30 @@ def main(argv=None):
         pos = source.state.pos
         summary["true_inside"] = float(inside_share(pos, np.ones(len(pos), bool), true_goal, env.camera))
         summary["succeeded"] = bool(succeeded(summary["true_inside"]))  # the task's rule (reached: the camera's)
-    files.write_json(os.path.join(args.out, "metrics.json"), summary)
+    write_metrics(args.out, summary)
     print(json.dumps({k: v for k, v in summary.items() if k != "steps"}))
     return summary
+
+
+def resumed(out: str, source, steps: int):
+    """An interrupted episode in ``out`` (``PROGRESS``): (its ``Progress`` or None, the GIF frames drawn so far, and
+    ``kept(now, frames)``, which saves the progress after every push), the source moved on to the frame after the last
+    push (the simulator's world as it was left). A real camera needs nothing: its world stayed where the arm left it."""
+    saved, simulated = os.path.join(out, PROGRESS), isinstance(source, SimulatedRobot)
+
+    def kept(now, frames):
+        progress.save(saved, now._replace(states=source.state if simulated else None), frames)
+
+    if not os.path.isfile(saved):
+        return None, [], kept
+    now, frames = progress.load(saved, source.state if simulated else None)
+    now = now._replace(records=[{k: np.asarray(v).tolist() for k, v in r.items()} for r in now.records])
+    if simulated:  # frame t is the world's read t + 1 (its sensor's key)
+        source.state, source.frames = now.states, len(now.records)
+    elif isinstance(source, ReplaySource):
+        source.next = len(now.records)
+    print(f"resuming the interrupted episode after push {len(now.records)} of {steps} ({saved})")
+    return now, frames, kept
 
 
 if __name__ == "__main__":

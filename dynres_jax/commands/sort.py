@@ -101,7 +101,7 @@ def main(argv=None):
     t0 = time.perf_counter()
     key = jax.random.PRNGKey(args.seed)
     policy = SortPolicy(env, cfg, loop.omega, key, goals_xy, radius, grid_step=args.grid_step, arrived=args.arrived,
-                        mixing=args.mixing)  # its orders follow from each frame alone, so a resumed episode goes on
+                        mixing=args.mixing, objective=args.objective)  # orders from each frame alone: resumable
     frames = sort_frames(masks, lambda: policy.target_mask, env.camera)
     chooser = policy if args.method == "model" else climb(policy, args.method)
     state, records, timing = run_resumable(

@@ -80,15 +80,16 @@ def add_loop_args(parser: argparse.ArgumentParser, task: str, adaptive: bool = T
     parser.add_argument("--seed", type=checks.seed, default=0)
     parser.add_argument("--mpc-steps", type=checks.count(1), default=tasks.TASKS[task].mpc_steps,
                         help=f"MPC steps per episode (default {tasks.TASKS[task].mpc_steps})")
-    if tasks.TASKS[task].kinds == 1:
-        default = tasks.TASKS[task].stop_share
-        parser.add_argument("--stop-share", type=checks.stop_share, default=default,
-                            help="stop pushing once this share of the foreground the camera sees lies inside the goal, "
-                                 f"or 'off' (default {default or 'off'}; docs/redistribute: 0.91-0.92 adds 1-3 points "
-                                 "of success and ends a Gather episode after 14 of 20 pushes)")
-        objective = tasks.TASKS[task].objective
-        parser.add_argument("--objective", default=objective, choices=OBJECTIVES,
-                            help=f"c's SDF term: {objectives_text()}; default {objective} (docs/redistribute)")
+    default, sort = tasks.TASKS[task].stop_share, tasks.TASKS[task].kinds == 2
+    parser.add_argument("--stop-share", type=checks.stop_share, default=default,
+                        help="stop pushing once this share of " + ("each kind's perceived pieces lies inside its goal"
+                                                                   if sort else "the foreground the camera sees lies "
+                                                                   "inside the goal") +
+                             f", or 'off' (default {default or 'off'}; docs/redistribute, docs/sort)")
+    objective = tasks.TASKS[task].objective
+    parser.add_argument("--objective", default=objective, choices=OBJECTIVES,
+                        help=f"c's SDF term{' against each target disc' if tasks.TASKS[task].kinds == 2 else ''}: "
+                             f"{objectives_text()}; default {objective} (docs/redistribute)")
     if not adaptive:
         parser.add_argument("--resolution", type=checks.omega, default=50, help="ω: particles the planner reasons with")
     else:
@@ -195,7 +196,7 @@ def build_loop(args, sim: SimConfig, parser: argparse.ArgumentParser, task: str)
     try:
         planner = planner_config(env, samples=args.samples, adam_steps=args.adam_steps, seed=args.seed)
         cfg = MPCConfig(mpc_steps=args.mpc_steps, planner=planner, time_budget=args.time_budget,
-                        stop_share=checks.stop_rule(getattr(args, "stop_share", None)))  # Sort: none
+                        stop_share=checks.stop_rule(args.stop_share))
     except ValueError as e:
         parser.error(str(e))
     check_budget(cfg, timing, [OMEGA_MIN] if regressor else [int(omega)])

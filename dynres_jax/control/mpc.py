@@ -23,7 +23,7 @@ import numpy as np
 
 from dynres_jax.config import check_fields
 from dynres_jax.control import budget
-from dynres_jax.control.choosers import Candidate, Chooser
+from dynres_jax.control.choosers import Candidate, Chooser, Orders
 from dynres_jax.control.decision import DecisionSpec, Situation, batch, decide_batch, episode, fold, per_episode
 from dynres_jax.control.goals import Goal, KindGoals
 from dynres_jax.control.keep import KEEPS, keep_lowest_distance, planning_price, scorer
@@ -46,7 +46,8 @@ class MPCConfig:
     (None: planner.adam_steps every decision); real_depth: perception treats the depth as a real camera's
     (``sim.sensor``); warm_start: each plan starts from the last, shifted (False: fresh samples, as the reference);
     stop_share: an episode holds (pushes no more) from the first frame on which this share of the foreground its
-    camera sees lies inside the goal (``objective.seen_inside``; None: it pushes every step)."""
+    camera sees lies inside the goal (``objective.seen_inside``; Sort: the share of each kind's perceived particles
+    inside its goal, the lower kind's; None: it pushes every step)."""
 
     mpc_steps: int = 20
     buckets: tuple[int, ...] = budget.BUCKETS
@@ -180,8 +181,8 @@ def run(worlds: Worlds, states: State, chooser: Chooser, dynamics, cfg: MPCConfi
     every world broke. A record holds arrays [B]: omega, bucket, adam_steps, planning_s (B = 1: the decision's wall
     time; else the table's price of it, NaN without a budget), objective (c before the push), predicted_objective,
     distance (d after the push) and inside (the share of pieces inside the goal, on the true state), action, broken,
-    the chooser's record fields and scores; and step and seconds. With one goal an episode (not Sort's) it also
-    holds seen_inside (the share its camera saw inside the goal before the push, ``objective.seen_inside``) and held
+    the chooser's record fields and scores; and step and seconds; seen_inside (the share its camera saw inside the
+    goal before the push, ``objective.seen_inside``; Sort: the lower kind's perceived share, ``_seen``) and held
     (cfg.stop_share: the episode pushed nothing this step; its action and prediction NaN, its state and scores
     unchanged; a step where every episode holds plans nothing: its adam_steps and planning_s 0, its objective NaN,
     the rest as the step before). Every run has cfg.mpc_steps records unless every world broke."""
@@ -200,7 +201,7 @@ def run(worlds: Worlds, states: State, chooser: Chooser, dynamics, cfg: MPCConfi
         step_keys = fold(keys, t)
         seen, camera = view(t, states, step_keys)
         orders = chooser(t, seen)
-        stop = _seen(seen, orders.goals, camera, cfg)
+        stop = _seen(seen, orders, camera, cfg)
         if stop and cfg.stop_share is not None:
             held |= np.asarray(stop["seen_inside"], np.float64) >= cfg.stop_share  # as ``tasks.stopped`` compares
             if held.all() and records:  # nothing left to push: the last step's scores stand
@@ -266,14 +267,18 @@ def announce(cfg: MPCConfig, omega, log) -> None:
             "tens of seconds on a CPU)")
 
 
-def _seen(seen, goals, camera, cfg: MPCConfig) -> dict:
-    """{seen_inside [B]}: the share of each frame's foreground its camera sees inside the goal; {} for Sort's goals
-    (refused with cfg.stop_share)."""
-    if isinstance(goals, KindGoals):
+def _seen(seen, orders: Orders, camera, cfg: MPCConfig) -> dict:
+    """{seen_inside [B]}: the share of each frame's foreground its camera sees inside the goal; with Sort's goals
+    (one a kind), the lower kind's share of its perceived particles inside its own goal (``sort.SortPolicy``'s
+    perceived_inside; {} for a chooser that records none, refused with cfg.stop_share)."""
+    if isinstance(orders.goals, KindGoals):
+        if "perceived_inside" in orders.record:
+            return dict(seen_inside=np.min(np.asarray(orders.record["perceived_inside"], np.float64), axis=-1))
         if cfg.stop_share is not None:
-            raise InputError("the stop rule (stop_share) reads one goal an episode; Sort's goals are one a kind")
+            raise InputError("the stop rule on goals one a kind reads each kind's perceived share (SortPolicy's "
+                             "perceived_inside), which this chooser's orders do not record")
         return {}
-    return dict(seen_inside=np.asarray(_seen_inside(camera, cfg.real_depth)(seen, goals)))
+    return dict(seen_inside=np.asarray(_seen_inside(camera, cfg.real_depth)(seen, orders.goals)))
 
 
 @functools.cache

@@ -45,7 +45,7 @@ from dynres_jax.control.choosers import Chooser, FixedOmega
 from dynres_jax.control.decision import Situation, batch
 from dynres_jax.control.goals import Goal, make_goal
 from dynres_jax.control.keep import best_rate
-from dynres_jax.control.mpc import MPCConfig, announce, propose, shift
+from dynres_jax.control.mpc import MPCConfig, Progress, announce, propose, shift
 from dynres_jax.control.objective import distribution_distance, seen_inside
 from dynres_jax.errors import InputError
 from dynres_jax.io.frames import load_camera, load_frame
@@ -168,7 +168,8 @@ def seen_scores(obs: Observation, goal: Goal, camera: Camera, real_depth: bool) 
 def run_robot(source: FrameSource, pusher: Pusher, goal_mask, dynamics, cfg: MPCConfig,
               chooser: int | Callable[[Goal], Chooser], key, *, workspace: Workspace,
               bin_size: tuple[float, float] | None = None, success: float = STOP_SHARE,
-              timing: TimingTable | None = None, on_step: Callable | None = None, log=print) -> list[dict]:
+              timing: TimingTable | None = None, on_step: Callable | None = None, log=print,
+              resume: Progress | None = None, on_progress: Callable[[Progress], None] | None = None) -> list[dict]:
     """The loop: read a frame, stop if ``success`` of its foreground is inside the goal (or after cfg.mpc_steps
     pushes), else plan as the chooser orders, check the push against ``workspace`` and send it. chooser: ω (an int,
     ``FixedOmega``) or a function of the goal (a Goal batched [1]) returning any chooser that keeps by the model
@@ -177,7 +178,9 @@ def run_robot(source: FrameSource, pusher: Pusher, goal_mask, dynamics, cfg: MPC
     first frame (``perception.calibrate``), None to trust it. timing: the table cfg.time_budget is spent by.
     on_step(t, obs, particles [n, 3] or None, record): per frame (GIF, saving). Returns one record per frame: step,
     distance (d on the frame, px), inside (share of foreground on the goal), and for a frame that was acted on:
-    omega, action [4] m, predicted_objective, planning_s."""
+    omega, action [4] m, predicted_objective, planning_s. resume: a ``Progress`` to go on from (its records and warm
+    plan; the source then reads the frame after its last push); on_progress: called with the ``Progress`` after every
+    push (its states None: the world is the source's)."""
     camera = source.camera
     obs = source.read()
     if bin_size is not None:
@@ -187,7 +190,9 @@ def run_robot(source: FrameSource, pusher: Pusher, goal_mask, dynamics, cfg: MPC
     goal = make_goal(np.asarray(goal_mask, bool), camera)
     chooser = FixedOmega(batch(goal), int(chooser)) if isinstance(chooser, int | np.integer) else chooser(batch(goal))
     init, warm, records = jnp.zeros((1, cfg.planner.horizon, 4), jnp.float32), False, []
-    for t in range(cfg.mpc_steps + 1):
+    if resume is not None:
+        records, init, warm = list(resume.records), jnp.asarray(resume.init, jnp.float32), resume.warm
+    for t in range(len(records), cfg.mpc_steps + 1):
         distance, inside = seen_scores(obs, goal, camera, cfg.real_depth)
         record = dict(step=t, distance=distance, inside=inside)
         if record["inside"] >= success or t == cfg.mpc_steps:
@@ -220,5 +225,7 @@ def run_robot(source: FrameSource, pusher: Pusher, goal_mask, dynamics, cfg: MPC
         pusher.push(action)
         records.append(record)
         init, warm = shift(best), True
+        if on_progress:
+            on_progress(Progress(records, None, init, warm, np.zeros(1, bool)))
         obs = source.read()
     return records
