@@ -120,15 +120,16 @@ def point_cloud(observation: Observation, camera: Camera, *, max_points: int | N
     return pack(*foreground(observation, camera, **foreground_kw), max_points)
 
 
-def visible_count(observation: Observation, camera: Camera, max_points: int | None):
+def visible_count(observation: Observation, camera: Camera, max_points: int | None, real_depth: bool = False):
     """How many foreground points a frame gives perception to sample from (``point_cloud``'s valid count, at most
-    max_points): the largest ω it can sample. Traceable: -> [] int."""
-    return jnp.sum(point_cloud(observation, camera, max_points=max_points)[1])
+    max_points; real_depth: read as a real camera's, ``foreground``): the largest ω it can sample. Traceable: -> []
+    int."""
+    return jnp.sum(point_cloud(observation, camera, max_points=max_points, real_depth=real_depth)[1])
 
 
-def visible_points(observation: Observation, camera: Camera, max_points: int | None) -> int:
+def visible_points(observation: Observation, camera: Camera, max_points: int | None, real_depth: bool = False) -> int:
     """``visible_count`` of one concrete frame, as a Python int."""
-    return int(visible_count(observation, camera, max_points))
+    return int(visible_count(observation, camera, max_points, real_depth))
 
 
 def pack(points, valid, max_points: int | None):

@@ -314,6 +314,9 @@ GO = [  # goal
 RO = [  # robot: a goal of another size than the simulator's frames names --image-size, square or not
     (["--goal", "{small_goal}"], "--image-size 64"), (["--goal", "{wide_goal}"], "--goal"),
     (["--image-size", "8"], "--image-size"), (["--steps", "0"], "--steps"),
+    # frames the camera's noise and holes thin below ω: refused before compiling (the exact frame shows more points)
+    (["--pieces", "20", "--image-size", "64"], "--image-size"), (["--pieces", "20", "--image-size", "64", "--sensor",
+                                                                   "none"], "--image-size"),
 ]
 CASES = ([("gather", a, n) for a, n in G] + [("redistribute", a, n) for a, n in R] + [("sort", a, n) for a, n in S]
          + [("plan", FRAME + a, n) for a, n in P] + [("evaluate", a, n) for a, n in E]

@@ -109,8 +109,8 @@ def build_parser():
                                                     for name, task in sorted(tasks.TASKS.items())) + ")")
     parser.add_argument("--objective", default=None, choices=OBJECTIVES,
                         help=f"c's SDF term: {objectives_text()}; default: the task's, " + ", ".join(
-                                 f"{name} {task.objective}" for name, task in sorted(tasks.TASKS.items())
-                                 if task.kinds == 1) + "; not Sort")
+                                 f"{name} {task.objective}" for name, task in sorted(tasks.TASKS.items())) +
+                             "; Sort: against each target disc")
     parser.add_argument("--methods", nargs="+", default=None,
                         help=f"default {' '.join(METHODS)} (Sort: {' '.join(SORT_METHODS)}). "
                              "Fixed ω (integers), 'adaptive' (the regressor picks ω), 'probe' (every step plans at "

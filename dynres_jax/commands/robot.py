@@ -96,8 +96,8 @@ def main(argv=None):
         parser.error(f"--goal: {e}{hint}")
     cfg = MPCConfig(mpc_steps=args.steps, real_depth=True, planner=planner_config(
         env, samples=args.samples, adam_steps=args.adam_steps, seed=args.seed))
-    if isinstance(source, SimulatedRobot):  # the first frame (before the sensor's errors) can hold ω particles
-        check_visible(parser, source.state.obs, camera, args.resolution, cfg, flag="--image-size",
+    if isinstance(source, SimulatedRobot):  # the first frame, as the camera gives it, can hold ω particles
+        check_visible(parser, source.peek(), camera, args.resolution, cfg, flag="--image-size",
                       remedy="a larger --image-size, more --pieces or a lower --resolution")
     checks.claim(args.out, "robot", checks.settings(args), args.fresh,
                  {"--ckpt": args.ckpt, "--goal": args.goal, "--replay": args.replay})

@@ -206,8 +206,9 @@ def build_loop(args, sim: SimConfig, parser: argparse.ArgumentParser, task: str)
 def check_visible(parser: argparse.ArgumentParser, obs, camera: Camera, omega: int, cfg: MPCConfig,
                   flag: str = "--pieces", remedy: str = "use more pieces or a lower ω") -> None:
     """parser.error naming ``flag``, before any work, when the first frame shows fewer foreground points than the ω
-    particles perception must sample (a pile of one or two pieces at ω = 50; the robot's frame of a few pixels)."""
-    points = visible_points(obs, camera, cfg.max_points)
+    particles perception must sample (a pile of one or two pieces at ω = 50; the robot's frame of a few pixels),
+    read as perception will read it (``cfg.real_depth``)."""
+    points = visible_points(obs, camera, cfg.max_points, cfg.real_depth)
     if points < omega:
         parser.error(f"{flag}: the pile shows {points} foreground points, fewer than the ω = {omega} particles to "
                      f"sample from them; {remedy}")

@@ -332,8 +332,12 @@ def _inside_text(r: dict) -> str:
 
 
 def _log_step(log, r: dict, steps: int) -> None:
-    """One line per MPC step: the episode's values, or the means of a batch."""
-    if len(r["omega"]) == 1:
+    """One line per MPC step: the episode's values, or the means of a batch; and which episodes the stop rule holds."""
+    held = np.asarray(r.get("held", np.zeros(len(r["omega"]), bool)))
+    if len(r["omega"]) == 1 and held[0]:
+        log(f"step {r['step'] + 1:2d}/{steps}  held by the stop rule (the camera saw {float(r['seen_inside'][0]):.0%} "
+            f"inside before this push): no push  d={float(r['distance'][0]):7.2f}  {_inside_text(r)}")
+    elif len(r["omega"]) == 1:
         log(f"step {r['step'] + 1:2d}/{steps}  ω={int(r['omega'][0]):3d} (bucket {int(r['bucket'][0]):3d}, "
             f"{int(r['adam_steps'][0]):3d} Adam steps)  c={float(r['objective'][0]):7.2f} -> predicted "
             f"{float(r['predicted_objective'][0]):7.2f}  d={float(r['distance'][0]):7.2f}  "
@@ -341,4 +345,5 @@ def _log_step(log, r: dict, steps: int) -> None:
     else:
         log(f"step {r['step'] + 1:2d}/{steps}  {len(r['omega'])} episodes  mean ω={r['omega'].mean():5.1f}  mean "
             f"Adam steps={r['adam_steps'].mean():5.1f}  mean d={r['distance'].mean():7.2f}  "
-            f"mean {_inside_text(r)}  {r['seconds']:5.2f}s")
+            f"mean {_inside_text(r)}{f'  {int(held.sum())} held by the stop rule' if held.any() else ''}  "
+            f"{r['seconds']:5.2f}s")

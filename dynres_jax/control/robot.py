@@ -149,9 +149,14 @@ class SimulatedRobot:
         self.frames = 0
 
     def read(self) -> Observation:
+        obs = self.peek()
         self.frames += 1
+        return obs
+
+    def peek(self) -> Observation:
+        """The frame the next ``read`` returns, without reading it (its sensor's noise drawn from the frame count)."""
         obs = self.state.obs
-        return obs if self.sensor is None else self.sensor.observe(obs, jax.random.fold_in(self.key, self.frames))
+        return obs if self.sensor is None else self.sensor.observe(obs, jax.random.fold_in(self.key, self.frames + 1))
 
     def push(self, action) -> None:
         self.state = self.env.push(self.state, np.asarray(action, np.float32))
