@@ -95,8 +95,8 @@ def add_loop_args(parser: argparse.ArgumentParser, task: str, adaptive: bool = T
     else:
         parser.add_argument("--resolution", default="50",
                             help="ω, the particles the planner reasons with: an integer, or 'adaptive' (the regressor "
-                                 "g picks ω every step; not the default: under a time budget it ties ω = 50 on Gather "
-                                 "and beats it on Redistribute, docs/budget/README.md)")
+                                 "g picks ω every step; not the default: it does not beat the best fixed ω, "
+                                 "docs/results.md)")
         parser.add_argument("--regressor", default=None,
                             help=f"regressor checkpoint for --resolution adaptive (default {SHIPPED_REGRESSOR})")
         parser.add_argument("--judge", default=None, metavar="CKPT",
