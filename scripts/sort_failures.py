@@ -25,7 +25,7 @@ import json
 import os
 import re
 
-from dynres_jax.control.tasks import SORT_INSIDE, SORT_MIXING, sort_succeeded
+from dynres_jax.control.tasks import SORT_INSIDE, sort_kinds_inside, sort_mixed, sort_succeeded
 from dynres_jax.io import files
 
 STALLED_STEPS, UNFINISHED_STEPS = 5, 3
@@ -49,7 +49,7 @@ def trace(metrics: dict) -> dict:
     flags = []
     if not success:
         flags += ["stalled"] * (stalled >= STALLED_STEPS) + ["unfinished"] * (left >= UNFINISHED_STEPS)
-        flags += ["mixing"] * (min(inside) >= SORT_INSIDE - 1e-6 and mixing >= SORT_MIXING - 1e-6)
+        flags += ["mixing"] * bool(sort_kinds_inside(inside) and sort_mixed(mixing))
         flags = flags or ["short"]
     return dict(success=success, flags=flags, astar=(steps[0]["astar_steps"], left), inside=inside, mixing=mixing,
                 phases=dict(collections.Counter(s["phase"] for s in steps)),

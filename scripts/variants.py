@@ -28,15 +28,14 @@ import os
 
 import numpy as np
 
-from dynres_jax.control.tasks import SORT_INSIDE, SORT_MIXING, episode_success, first_steps, stopped
+from dynres_jax.control.tasks import episode_success, first_steps, sort_kinds_inside, sort_mixed, stopped
 from dynres_jax.io import files
 from dynres_jax.stats import mcnemar, paired_bootstrap, wilson
 
 
 def failures(result: dict) -> str:
     """A Sort method's results -> its failures by cause, "mixing / short / both"."""
-    inside = np.asarray(result["final_kind_inside"]).min(axis=1) >= SORT_INSIDE - 1e-6
-    mixed = np.asarray(result["final_mixing"]) >= SORT_MIXING - 1e-6  # as tasks.sort_succeeded
+    inside, mixed = sort_kinds_inside(result["final_kind_inside"]), sort_mixed(result["final_mixing"])
     failed = ~episode_success("sort", result)
     counts = failed & inside & mixed, failed & ~inside & ~mixed, failed & ~inside & mixed
     return " / ".join(str(int(np.sum(c))) for c in counts)

@@ -324,14 +324,19 @@ OBJECTIVES = {  # the forms of c's first term a goal can carry (``with_objective
 }
 
 
+def check_objective(objective: str) -> str:
+    """``objective`` when it names one of ``OBJECTIVES``, else ValueError naming them."""
+    if objective not in OBJECTIVES:
+        raise ValueError(f"objective must be one of {', '.join(OBJECTIVES)}, got {objective!r}")
+    return objective
+
+
 def with_objective(goal: Goal, objective: str) -> Goal:
     """The goal whose SDF term in c takes the form ``objective``: "paper" (unchanged: Σ SDF(p), negative inside, so
     c rewards particles deep in the goal) or "hinge" (Σ max(0, SDF(p)): the distance field clipped at 0, so only
     particles outside cost and the coverage term alone places those inside). Only c changes: the mask, and with it d,
     the inside share and the seen share, are the same. Works on a Goal or a stacked batch of them."""
-    if objective not in OBJECTIVES:
-        raise ValueError(f"objective must be one of {', '.join(OBJECTIVES)}, got {objective!r}")
-    return goal if objective == "paper" else goal._replace(distance=jnp.maximum(goal.distance, 0.0))
+    return goal if check_objective(objective) == "paper" else goal._replace(distance=jnp.maximum(goal.distance, 0.0))
 
 
 GOAL_BATCH = 64  # masks a batched goal computation vectorises at once (its memory grows with it: about 2 MB a mask)

@@ -51,7 +51,7 @@ from dynres_jax.config import check_omega
 from dynres_jax.control.budget import bucket_for
 from dynres_jax.control.choosers import Candidate, Chooser, Orders
 from dynres_jax.control.decision import batch, episode
-from dynres_jax.control.goals import OBJECTIVES, disc_goal, make_goal, sort_goals, stack_goals, with_objective
+from dynres_jax.control.goals import check_objective, disc_goal, make_goal, sort_goals, stack_goals, with_objective
 from dynres_jax.control.keep import scorer
 from dynres_jax.control.mpc import MPCConfig
 from dynres_jax.control.tasks import SORT_INSIDE, sort_scores
@@ -200,9 +200,7 @@ class SortPolicy(Chooser):
             raise ValueError(f"arrived must be a share in (0, 1], got {arrived}")
         if not (np.isfinite(mixing) and mixing >= 0):
             raise ValueError(f"mixing must be a finite weight >= 0, got {mixing}")
-        if objective not in OBJECTIVES:
-            raise ValueError(f"objective must be one of {', '.join(OBJECTIVES)}, got {objective!r}")
-        self.arrived, self.mixing, self.objective = arrived, mixing, objective
+        self.arrived, self.mixing, self.objective = arrived, mixing, check_objective(objective)
         self.omega, self.max_points, self.buckets = check_omega(omega), cfg.max_points, cfg.buckets
         self.piece_kinds, self.key, self.log = env.scene.kind, key, log
         self.camera, self.bin_half = env.camera, env.config.scene.bin_half_width
