@@ -38,3 +38,34 @@ def test_an_interrupted_command_ends_with_one_line_and_the_signals_status(tmp_pa
     said = [line for line in err.splitlines() if ": interrupted" in line]  # the test's folder says it too
     assert said == [f"python -m experiments.simulate: interrupted; finished work is kept in {out}; rerun the same "
                     "command to resume"], err
+
+
+def test_a_signal_python_drops_inside_a_destructor_still_ends_the_command(capsys):
+    """Python ignores an exception raised in a ``__del__`` or a garbage-collection callback ("Exception ignored in",
+    as JAX's ``_xla_gc_callback`` did on CI and the command ran on for minutes): the signal is sent again until the
+    command has ended on it."""
+    from dynres_jax.commands import checks
+
+    class SignalsInItsDestructor:
+        def __del__(self):
+            os.kill(os.getpid(), signal.SIGTERM)
+            for _ in range(1000):  # the handler runs here, between bytecodes, and its exception is dropped
+                time.sleep(0.001)
+
+    laps = []
+
+    @checks.guarded("simulate")
+    def main(argv):
+        SignalsInItsDestructor()  # deleted at once: its __del__ runs the handler
+        deadline = time.monotonic() + 20
+        while time.monotonic() < deadline:
+            laps.append(time.monotonic())
+            time.sleep(0.01)
+        return 0
+
+    with pytest.raises(SystemExit) as ended:
+        main([])
+    assert ended.value.code == 143
+    assert laps and laps[-1] - laps[0] < 5  # ended by the resent signal, not by running to its end
+    assert "interrupted" in capsys.readouterr().err
+    assert signal.getsignal(signal.SIGTERM) is not checks._on_signal  # the handler is given back

@@ -18,6 +18,7 @@ import os
 import signal
 import sys
 import threading
+import time
 import traceback
 
 import jax
@@ -60,8 +61,27 @@ class Terminated(KeyboardInterrupt):
     """SIGTERM, raised where the command is, so it unwinds as Ctrl-C does."""
 
 
-def _terminate(signum, frame):
-    raise Terminated
+_signalled: list[int] = []  # the signal a command is ending on, until guarded's except clause takes it (then cleared)
+
+
+def _on_signal(signum, frame):
+    """SIGINT and SIGTERM: raise where the command is. Python drops an exception raised inside a garbage-collection
+    callback or a ``__del__`` (JAX's ``_xla_gc_callback`` swallowed one once, and the command ran on), so the first
+    signal also starts a thread that sends it again every second until ``guarded`` has caught it."""
+    if isinstance(sys.exc_info()[1], KeyboardInterrupt):
+        return  # one is being handled already (guarded's except clause): a resent signal adds nothing
+    if not _signalled:
+        _signalled.append(signum)
+        threading.Thread(target=_resend, args=(signum,), daemon=True).start()
+    raise Terminated if signum == signal.SIGTERM else KeyboardInterrupt
+
+
+def _resend(signum: int) -> None:
+    while True:
+        time.sleep(1.0)
+        if not _signalled:
+            return
+        os.kill(os.getpid(), signum)
 
 
 def _interrupted(name: str) -> str:
@@ -90,10 +110,16 @@ def guarded(name: str):
             jax.config.update("jax_enable_x64", False)  # float32 whatever JAX_ENABLE_X64 says: resumes, checkpoints
             # and exported files keep one precision
             in_main = threading.current_thread() is threading.main_thread()  # signal handlers are set only there
-            previous = signal.signal(signal.SIGTERM, _terminate) if in_main else None
+            # SIGINT only where Python's own handler is set: an ignored one (a shell's background job) stays ignored
+            ours = [signal.SIGTERM] + ([signal.SIGINT] if signal.getsignal(signal.SIGINT)
+                                       is signal.default_int_handler else [])
+            previous = {s: signal.signal(s, _on_signal) for s in ours} if in_main else {}
             try:
                 return main(argv)
             except KeyboardInterrupt as e:
+                _signalled.clear()  # stops _resend
+                for s in previous:  # a second Ctrl-C while the line prints is ignored
+                    signal.signal(s, signal.SIG_IGN)
                 print(("\n" if sys.stderr.isatty() else "") + _interrupted(name), file=sys.stderr)  # past a bar
                 raise SystemExit(143 if isinstance(e, Terminated) else 130) from None
             except (InputError, JobError) as e:
@@ -110,8 +136,9 @@ def guarded(name: str):
                 os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # no second error at exit's flush
                 raise SystemExit(1) from None
             finally:
-                if in_main:
-                    signal.signal(signal.SIGTERM, previous or signal.SIG_DFL)  # None: a handler set outside Python
+                _signalled.clear()
+                for s, handler in previous.items():  # None: a handler set outside Python
+                    signal.signal(s, handler if handler is not None else signal.SIG_DFL)
 
         return run
 
