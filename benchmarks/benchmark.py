@@ -7,9 +7,9 @@ row per figure: ours, the peer, and the ratio.
 
 from __future__ import annotations
 
-import argparse
 import json
 
+from dynres_jax.commands import checks
 from dynres_jax.io.files import write_json, write_text
 
 
@@ -80,8 +80,9 @@ def report_table(results: dict) -> str:
     return "\n".join(lines)
 
 
+@checks.guarded("benchmark")
 def main(argv=None):
-    parser = argparse.ArgumentParser(prog="python -m experiments.benchmark", description=__doc__)
+    parser = checks.parser("benchmark", __doc__)
     parser.add_argument("what", choices=["sim", "warp", "perception", "planner", "resolution", "all"])
     parser.add_argument("--json", help="write the results here (atomically)")
     parser.add_argument("--quick", action="store_true", help="tiny sizes: checks the benchmark runs, in seconds")
@@ -90,7 +91,7 @@ def main(argv=None):
                         "batch sizes (default 1024 2048 4096 8192)")
     parser.add_argument("--graph-modes", nargs="*", choices=["WARP", "JAX", "NONE"], help="warp: CUDA graph modes")
     parser.add_argument("--full-sweep", nargs="*", help="sim: variants timed at every world count")
-    parser.add_argument("--pieces", type=int, default=100)
+    parser.add_argument("--pieces", type=checks.count(1, 1000), default=100, help="pieces in the pile (default 100)")
     parser.add_argument("--batch", choices=["benchmark", "task"], help="resolution: 1,500 candidates (benchmark) or "
                         "50 (task); default benchmark on a GPU, task on a CPU")
     args = parser.parse_args(argv)

@@ -60,7 +60,7 @@ from jax import export as jax_export
 from dynres_jax.config import CameraConfig, SceneConfig
 from dynres_jax.control.decision import DecisionSpec, perceive_and_decide
 from dynres_jax.control.goals import goal_fields
-from dynres_jax.control.planner import NOT_FINITE, PlannerConfig
+from dynres_jax.control.planner import BAD_START, BAD_STEPS, NOT_FINITE, PlannerConfig
 from dynres_jax.io import ckpt, files
 from dynres_jax.io.frames import on_a_table, table_fit
 from dynres_jax.models.graph import no_gpu_kernels
@@ -73,9 +73,7 @@ FORMAT = "dynres_jax decision (depth + goal mask -> push), jax.export serialized
 DEFAULT_GOAL_SAMPLES = 500  # Q: goals.make_goal's default n_samples
 GOAL_EMPTY = 16  # error bit: the goal mask has no pixel
 GOAL_FULL = 32  # error bit: the goal mask covers the whole image
-BAD_STEPS = 64  # error bit: adam_steps outside [0, the planner's]
-BAD_INIT = 128  # error bit: warm, and the warm start init has NaN or infinite values
-NOT_A_TABLE = 256  # error bit: the frame shows no table where the camera puts it (``io.frames.table_fit``, plan's rule)
+NOT_A_TABLE = 2048  # error bit: the frame shows no table where the camera puts it (``io.frames.table_fit``)
 ERRORS = {NO_DEPTH: "the depth image has no reading (every pixel 0, NaN or infinite)",
           EMPTY_FOREGROUND: "no foreground: nothing stands above the table inside the workspace",
           BAD_OMEGA: "omega outside [1, capacity]",
@@ -83,7 +81,7 @@ ERRORS = {NO_DEPTH: "the depth image has no reading (every pixel 0, NaN or infin
           GOAL_EMPTY: "the goal mask has no pixel",
           GOAL_FULL: "the goal mask covers the whole image",
           BAD_STEPS: "adam_steps outside [0, the planner's adam_steps]",
-          BAD_INIT: "warm is set and init (the warm start) has NaN or infinite values",
+          BAD_START: "warm is set and init (the warm start) has NaN or infinite values",
           NOT_A_TABLE: "the frame shows no table where the camera puts it (its median point off the table plane, too "
                        "few flat readings, or a median reading outside a table-top camera's range: depth scaled, or "
                        "another camera's intrinsics or pose), as plan refuses it",
@@ -118,7 +116,7 @@ def decision_step(dynamics: Callable, camera: Camera, spec: DecisionSpec, goal_s
         table_ok = on_a_table(*table_fit(depth, camera)) | ~jnp.any(is_reading(depth))  # none at all: NO_DEPTH
         error = (particles.error | jnp.where(~jnp.any(goal_mask), GOAL_EMPTY, 0) | jnp.where(table_ok, 0, NOT_A_TABLE)
                  | jnp.where(jnp.all(goal_mask), GOAL_FULL, 0) | jnp.where(steps_ok, 0, BAD_STEPS)
-                 | jnp.where(init_ok, 0, BAD_INIT)).astype(jnp.int32)
+                 | jnp.where(init_ok, 0, BAD_START)).astype(jnp.int32)
         error = error | jnp.where((error == 0) & ~jnp.all(jnp.isfinite(result.best)), NOT_FINITE, 0)  # never a NaN push
         best = jnp.where(error == 0, result.best, jnp.nan)
         return dict(push=best[0], best=best, best_cost=result.best_cost, objective=c_now.astype(jnp.float32),
@@ -278,7 +276,7 @@ def signature(exported: jax_export.Exported) -> str:
     return f"({ins}) -> {{{', '.join(f'{n}: {fmt(outs[n])}' for n in OUTPUT_NAMES)}}}"
 
 
-__all__ = ["BAD_INIT", "BAD_STEPS", "DEFAULT_GOAL_SAMPLES", "ERRORS", "FORMAT", "GOAL_EMPTY", "GOAL_FULL",
+__all__ = ["BAD_START", "BAD_STEPS", "DEFAULT_GOAL_SAMPLES", "ERRORS", "FORMAT", "GOAL_EMPTY", "GOAL_FULL",
            "INPUT_NAMES", "NOT_A_TABLE", "NOT_FINITE", "OUTPUT_NAMES", "call", "decision_step", "describe",
            "describe_error", "export_checkpoint", "export_decision", "input_specs", "load", "output_specs", "save",
            "signature"]

@@ -347,6 +347,11 @@ def sample_particles(observation: Observation, camera: Camera, omega, key, capac
         raise ValueError(f"capacity must be a positive int, got {capacity!r}")
     if max_points is not None and (not isinstance(max_points, int | np.integer) or max_points < 1):
         raise ValueError(f"max_points must be None or a positive int, got {max_points!r}")
+    if isinstance(omega, jax.core.Tracer):
+        if not jnp.issubdtype(omega.dtype, jnp.integer):
+            raise TypeError(f"a traced omega must be an integer array (a count of particles), got {omega.dtype}")
+    elif not np.all(np.mod(np.asarray(omega, np.float64), 1) == 0):
+        raise ValueError(f"omega must be a whole number of particles, got {omega!r}")
     if tuple(np.shape(observation.depth)) != (camera.height, camera.width):
         raise ValueError(f"depth image has shape {np.shape(observation.depth)}, the camera expects "
                          f"{(camera.height, camera.width)} (vmap sample_particles over a batch of observations)")

@@ -219,6 +219,7 @@ E = [  # evaluate
     (["--time-budget", "1e-6", "--timing", "{timing20}"], "--time-budget"),
     (["--time-budget", "0.25", "--timing", "{timing}"], "timing table"), (["--timing", "{timing20}"], "--timing"),
     (["--workers", "0"], "--workers"), (["--seed", "-1"], "--seed"), (["--ckpt", "/nonexistent"], "--ckpt"),
+    (["--workers", "100000"], "--workers"), (["--backend", "mjx", "--workers", "2"], "--workers"),
     (["--ckpt", "{flipped_dynamics}"], "damaged"), (["--dynamics", "x"], "--dynamics"), (["--out", "{file}/x"], "--out"),
     (["--out", "{other_run}"], "--out"), (["--out", "{foreign}"], "--out"), (["--out", "{evaluate_run}"], "--seed 1 there"),
     (["--num-processes", "2"], "--coordinator"), (["--coordinator", "localhost", "--num-processes", "2", "--process-id", "0"], "HOST:PORT"),
@@ -243,7 +244,8 @@ D = [  # generate_data
     (["--pieces", "100000", "100000"], "pieces"), (["--layouts", "square"], "layouts"), (["--two-kinds", "2"], "two_kinds"),
     (["--two-kinds", "nan"], "--two-kinds"), (["--two-kinds", "0.5", "--kinds", "coffee"], "two_kinds"),
     (["--image-size", "4"], "image_size"), (["--backend", "x"], "backend"), (["--seed", "-1"], "--seed"),
-    (["--pieces-step", "0"], "pieces_step"), (["--workers", "0"], "--workers"), (["--out", "{file}"], "--out"),
+    (["--pieces-step", "0"], "pieces_step"), (["--workers", "0"], "--workers"),
+    (["--quick", "--workers", "2"], "--workers"), (["--cpu-workers", "100000"], "--cpu-workers"), (["--out", "{file}"], "--out"),
     (["--out", "{other_run}"], "--out"), (["--out", "{foreign}"], "--out"), (["--planned", "1.5"], "planned"),
     (["--planned", "0.5", "--policy", "/nonexistent"], "--policy"), (["--policy", "shipped"], "--planned above 0"),
 ]

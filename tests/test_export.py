@@ -130,7 +130,7 @@ def test_bad_input_is_flagged_and_gives_no_push(reloaded):
         "too many Adam steps": ((depth, goal_mask, key, omega, np.int32(SPEC.planner.adam_steps + 1), init, warm),
                                 ex.BAD_STEPS),
         "NaN warm start": ((depth, goal_mask, key, omega, steps, np.full_like(init, np.nan), np.bool_(True)),
-                           ex.BAD_INIT),
+                           ex.BAD_START),
         "a frame 1 m deeper": ((np.where(depth < NO_READING, depth + 1.0, depth), goal_mask, key, omega, steps, init,
                                 warm), ex.NOT_A_TABLE),
         "depth x 1.1": ((np.where(depth < NO_READING, depth * 1.1, depth), goal_mask, key, omega, steps, init, warm),

@@ -396,6 +396,11 @@ def test_inside_share_matches_numpy_count(scene):
                 for (u, v), m in zip(uv, mask, strict=True)]
         np.testing.assert_allclose(float(inside_share(pos, mask, goal, cam)), sum(hits) / mask.sum(), rtol=1e-6)
     assert float(inside_share(pos, np.zeros(6, bool), goal, cam)) == 0.0
+    broken = pos.copy()
+    broken[1, 0] = np.nan  # a valid piece without a position: no share, not 0 %
+    assert np.isnan(float(inside_share(broken, np.ones(6, bool), goal, cam)))
+    masked = np.arange(6) != 1  # the same NaN in a masked slot is inert
+    assert float(inside_share(broken, masked, goal, cam)) == float(inside_share(pos, masked, goal, cam))
 
 
 # ----------------------------------------------------------------------------------------------------------------

@@ -233,6 +233,10 @@ def test_bad_input_raises_naming_the_problem(env, states):
         sample_particles(obs._replace(depth=jnp.full_like(obs.depth, cam.centre[2])), cam, 3, key, N_MAX)
     with pytest.raises(ValueError, match=r"omega=0 is outside \[1, capacity=16\]"):
         sample_particles(obs, cam, 0, key, N_MAX)
+    with pytest.raises(ValueError, match="whole number of particles, got 2.7"):
+        sample_particles(obs, cam, 2.7, key, N_MAX)  # was read as 2
+    with pytest.raises(TypeError, match="integer"):
+        jax.jit(lambda w: sample_particles(obs, cam, w, key, N_MAX))(jnp.float32(3.0))
     with pytest.raises(ValueError, match=r"omega=17 is outside \[1, capacity=16\]"):
         sample_particles(obs, cam, N_MAX + 1, key, N_MAX)
     with pytest.raises(ValueError, match=f"too few foreground points: {n_points} points for omega=100"):

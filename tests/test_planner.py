@@ -346,3 +346,46 @@ def test_under_vmap_bad_particles_give_an_error_and_no_usable_push():
     assert int(alone.error) == 0 and np.isfinite(float(alone.best_cost))
     np.testing.assert_allclose(out.best[0], alone.best, atol=1e-6)
     np.testing.assert_allclose(out.best_cost[0], alone.best_cost, rtol=1e-5)
+
+
+def test_a_bad_warm_start_or_step_count_is_refused_and_under_vmap_flagged():
+    """A non-finite warm start, an Adam step count outside [0, N] and a non-positive learning rate are ValueErrors
+    before work; traced (jit and vmap), the warm start and the step count come back as their own error bits with a
+    NaN push, while a neighbour in the batch plans exactly as alone."""
+    from dynres_jax.control.planner import BAD_START, BAD_STEPS
+
+    for field in ("lr", "spread"):
+        with pytest.raises(ValueError, match=field):
+            PlannerConfig(**{field: -1.0})
+    small = PlannerConfig(samples=4, adam_steps=3, bound=BOUND)
+    positions, mask = pile(jax.random.PRNGKey(2), n=6)
+    warm = jnp.array([[0.0, 0.05, 0.0, -0.05]])
+    with pytest.raises(ValueError, match="warm start"):
+        plan(sweep_dynamics, centroid_cost, positions, mask, None, small, init=warm.at[0, 1].set(jnp.nan))
+    with pytest.raises(ValueError, match="adam_steps"):
+        plan(sweep_dynamics, centroid_cost, positions, mask, None, small, adam_steps=4)
+    inits = jnp.stack([warm, warm.at[0, 1].set(jnp.nan), warm])
+    steps = jnp.array([3, 3, 7], jnp.int32)
+    keys = jax.random.split(jax.random.PRNGKey(5), 3)
+    out = jax.jit(jax.vmap(lambda i, s, k: plan(sweep_dynamics, centroid_cost, positions, mask, k, small, init=i,
+                                                adam_steps=s)))(inits, steps, keys)
+    assert out.error.tolist() == [0, BAD_START, BAD_STEPS]
+    assert np.all(np.isnan(np.asarray(out.best[1:]))) and np.all(np.isnan(np.asarray(out.best_cost[1:])))
+    alone = plan(sweep_dynamics, centroid_cost, positions, mask, keys[0], small, init=warm)
+    np.testing.assert_allclose(out.best[0], alone.best, atol=1e-6)
+
+
+def test_every_error_bit_is_one_cause():
+    """Perception's, the planner's and the exported decision's error bits are distinct powers of two (the export's
+    table once gave 'no table' and 'the plan is NaN' the same bit, and its sidecar lost one of the two texts)."""
+    from dynres_jax import export, perception
+    from dynres_jax.control import planner
+
+    bits = {name: getattr(m, name) for m in (perception, planner, export)
+            for name in ("NO_DEPTH", "EMPTY_FOREGROUND", "BAD_OMEGA", "TOO_FEW_POINTS", "GOAL_EMPTY", "GOAL_FULL",
+                         "BAD_STEPS", "BAD_START", "NOT_A_TABLE", "NOT_FINITE", "NO_PARTICLES", "BAD_POSITIONS")
+            if hasattr(m, name)}
+    assert len(bits) == 12 and len(set(bits.values())) == 12, bits
+    assert all(b > 0 and b & (b - 1) == 0 for b in bits.values()), bits
+    assert set(planner.PLAN_ERRORS) <= set(bits.values()) and len(planner.PLAN_ERRORS) == 5
+    assert len(export.ERRORS) == 10 and set(export.ERRORS) <= set(bits.values())

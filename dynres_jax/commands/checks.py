@@ -238,6 +238,32 @@ def quick_sets(parser: argparse.ArgumentParser, args: argparse.Namespace, names)
                      "--quick, or --quick alone")
 
 
+WORKERS_PER_CORE = 4  # --workers above this many C engine processes a host core is refused (each holds a MuJoCo)
+
+
+def workers(lowest: int = 1):
+    """--workers / --cpu-workers: a whole number of C engine processes in [lowest, 4 x this host's cores]."""
+    cores = os.cpu_count() or 1
+    top = WORKERS_PER_CORE * cores
+    whole = count(lowest)
+
+    def parse(text: str) -> int:
+        value = whole(text)
+        if value > top:
+            raise argparse.ArgumentTypeError(f"{value} processes on this host's {cores} core(s): at most {top} "
+                                             f"({WORKERS_PER_CORE} a core)")
+        return value
+
+    return parse
+
+
+def check_workers(parser: argparse.ArgumentParser, workers: int | None, backend: str) -> None:
+    """parser.error where --workers was given for an engine without worker processes (it would do nothing)."""
+    if workers is not None and not engines.uses_workers(backend):
+        parser.error(f"--workers {workers}: the engine {backend!r} runs no worker processes (only --backend mujoco "
+                     "does)")
+
+
 def add_engine(parser: argparse.ArgumentParser, default: str = "mujoco") -> None:
     """--backend, its choices the engine table's (``sim.engines.NAMES``)."""
     parser.add_argument("--backend", default=default, choices=engines.NAMES, help=engines.help_text(default))

@@ -153,7 +153,7 @@ def build_parser():
     parser.add_argument("--cnn-omega", type=checks.omega, default=50, help="ω of method 'cnn'")
     parser.add_argument("--judge", default=None, metavar="CKPT",
                         help="the judge's dynamics checkpoint, for method 'judge' (control/judge.py)")
-    parser.add_argument("--workers", type=checks.count(1, 1024), default=None)
+    parser.add_argument("--workers", type=checks.workers(), default=None)
     checks.add_engine(parser)
     parser.add_argument("--seed", type=checks.seed, default=0)
     parser.add_argument("--out", required=True)
@@ -219,6 +219,7 @@ def check_args(parser, args):
         parser.error(f"--episodes must be at least the {size} processes of the job, got {args.episodes}")
     kinds, pieces = resolve_scene(parser, args)
     args.backend = checks.engine(parser, args.backend)
+    checks.check_workers(parser, args.workers, args.backend)
     camera = CameraConfig(width=64, height=64) if args.quick else CameraConfig()
     sim = SimConfig(scene=SceneConfig(kinds=kinds, pieces=pieces), camera=camera,
                     pile=PileConfig(layout=tasks.TASKS[args.task].layout))

@@ -62,10 +62,11 @@ def main(argv=None) -> dict:
     parser.add_argument("--out", required=True, help="output folder (shards, config.json, summary.json)")
     checks.add_fresh(parser)
     parser.add_argument("--quick", action="store_true",
-                        help="tiny sizes (6 coffee beans, 48x48, 2 short pushes, 8 episodes of 4 worlds)")
-    parser.add_argument("--workers", type=checks.count(1, 1024), default=None,
+                        help="tiny sizes (6 coffee beans, 48x48, 2 short pushes, 10 episodes in shards of 4 worlds, "
+                             "on mjx unless --backend says otherwise)")
+    parser.add_argument("--workers", type=checks.workers(), default=None,
                         help="C engine processes for --backend mujoco (default: every host core)")
-    parser.add_argument("--cpu-workers", type=checks.count(0, 1024), default=0,
+    parser.add_argument("--cpu-workers", type=checks.workers(0), default=0,
                         help="C MuJoCo processes filling shards beside --backend warp, whichever engine is free "
                              "(default 0: the engine alone)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -77,6 +78,7 @@ def main(argv=None) -> dict:
     try:
         config = data.quick_config(**overrides) if args.quick else data.DataConfig(**overrides)
         data.check_devices(config)
+        checks.check_workers(parser, args.workers, data.concrete(config).backend)
         data.check_helpers(data.concrete(config), args.cpu_workers)
         for scene in (SceneConfig(kinds=(kind,), pieces=(config.pieces[1],)) for kind in config.kinds):
             check_room(scene)

@@ -72,9 +72,9 @@ def build_parser():
     parser.add_argument("--pieces", type=checks.count(1), default=100)
     parser.add_argument("--ckpt", default=SHIPPED_DYNAMICS)
     parser.add_argument("--dynamics", default="auto", choices=["auto", "learned", "sweep"])
-    parser.add_argument("--workers", type=checks.count(1, 1024), default=None,
+    parser.add_argument("--workers", type=checks.workers(), default=None,
                         help="C engine processes (default: every core)")
-    parser.add_argument("--cpu-workers", type=checks.count(0, 1024), default=0,
+    parser.add_argument("--cpu-workers", type=checks.workers(0), default=0,
                         help="C MuJoCo processes labelling shards beside --backend warp, whichever engine is free "
                              "(default 0: the engine alone)")
     parser.add_argument("--seed", type=checks.seed, default=0, help="the scenes (piles and goals)")
@@ -97,6 +97,7 @@ def main(argv=None):
     args = parser.parse_args(argv)
     distributed.from_args(parser, args)
     args.backend = checks.engine(parser, args.backend)
+    checks.check_workers(parser, args.workers, args.backend)
     checks.quick_sets(parser, args, ("scenes", "batch", "evals", "repeats", "pieces", "samples", "adam_steps"))
     if args.quick:
         args.scenes, args.batch, args.evals, args.repeats, args.pieces = 8, 4, 6, 1, 60  # 60: points for ω = 100

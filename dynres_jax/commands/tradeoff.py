@@ -82,7 +82,7 @@ def main(argv=None):
     parser.add_argument("--samples", type=checks.samples, default=50, help="surface: pushes optimised at once (M)")
     parser.add_argument("--pieces", type=checks.count(1), default=100, help="surface: pieces in a pile")
     parser.add_argument("--ckpt", default=None, help="surface: dynamics checkpoint (default: the shipped one)")
-    parser.add_argument("--workers", type=checks.count(1, 1024), default=None,
+    parser.add_argument("--workers", type=checks.workers(), default=None,
                         help="surface: C engine processes (default: every core)")
     parser.add_argument("--seed", type=checks.seed, default=0)
     parser.add_argument("--quick", action="store_true", help="surface: tiny sizes for a CPU smoke run")

@@ -184,10 +184,12 @@ def seen_inside(observation_or_mask, goal: Goal, camera: Camera, **foreground_kw
 @functools.partial(jax.jit, static_argnames="camera")
 def inside_share(piece_pos, piece_mask, goal: Goal, camera: Camera):
     """Success share: pieces piece_pos [N, 3] (world centres, m) with piece_mask [N] bool -> scalar in [0, 1], the
-    share of valid pieces whose centre projects to a goal pixel (0 when no piece is valid)."""
+    share of valid pieces whose centre projects to a goal pixel (0 when no piece is valid; NaN when a valid piece's
+    position is NaN or infinite: no share to read)."""
     piece_mask = jnp.asarray(piece_mask, bool)
+    finite = jnp.all(jnp.isfinite(jnp.asarray(piece_pos)) | ~piece_mask[:, None])
     uv, _ = camera.world_to_pixel(jnp.where(piece_mask[:, None], jnp.asarray(piece_pos, jnp.float32), 0.0))
     u, v = jnp.floor(uv[:, 0]).astype(jnp.int32), jnp.floor(uv[:, 1]).astype(jnp.int32)
     in_image = (u >= 0) & (u < camera.width) & (v >= 0) & (v < camera.height)
     hit = piece_mask & in_image & goal.mask[jnp.clip(v, 0, camera.height - 1), jnp.clip(u, 0, camera.width - 1)]
-    return jnp.sum(hit) / jnp.maximum(jnp.sum(piece_mask), 1)
+    return jnp.where(finite, jnp.sum(hit) / jnp.maximum(jnp.sum(piece_mask), 1), jnp.nan)

@@ -96,6 +96,10 @@ class PlannerConfig:
             raise ValueError(f"PlannerConfig.horizon (T) must be >= 1, got {self.horizon}")
         if self.adam_steps < 0:
             raise ValueError(f"PlannerConfig.adam_steps (N) must be >= 0, got {self.adam_steps}")
+        if not self.lr > 0:
+            raise ValueError(f"PlannerConfig.lr (Adam's step, m) must be > 0, got {self.lr}")
+        if not self.spread > 0:
+            raise ValueError(f"PlannerConfig.spread must be > 0 m, got {self.spread}")
         if self.resamples < 1:
             raise ValueError(f"PlannerConfig.resamples (R) must be >= 1, got {self.resamples}")
         if self.vote and self.resamples < 2:
@@ -122,11 +126,16 @@ def planner_config(env, **settings) -> PlannerConfig:
                          max_length=push.max_length, **settings)
 
 
+# Error bits, one table with perception's (1-8) and the exported decision's (16, 32, 2048): each bit one cause.
 NO_PARTICLES = 512  # PlanResult.error bit: a particle set with no valid particle
 BAD_POSITIONS = 1024  # PlanResult.error bit: a valid particle's position is NaN or infinite
 NOT_FINITE = 256  # PlanResult.error bit: the plan came out NaN or infinite (any other cause)
+BAD_STEPS = 64  # PlanResult.error bit: adam_steps outside [0, PlannerConfig.adam_steps] (the exported decision's too)
+BAD_START = 128  # PlanResult.error bit: the warm start (init) or the starting sequences (initial) are not finite
 PLAN_ERRORS = {NO_PARTICLES: "no valid particle to plan with (the mask is all False)",
                BAD_POSITIONS: "positions of valid particles are NaN or infinite",
+               BAD_START: "the warm start (init) or the starting sequences (initial) are NaN or infinite",
+               BAD_STEPS: "adam_steps lies outside [0, PlannerConfig.adam_steps]",
                NOT_FINITE: "the plan is NaN or infinite"}
 
 
@@ -259,23 +268,27 @@ def _plan(dynamics_fn, cost_fn, positions, mask, key, init, initial, adam_steps,
     if init is not None:
         actions = actions.at[0].set(project(init, c.bound, c.min_length, c.max_length, c.reach))
 
+    starts = [x for x in (init, initial) if x is not None]
+    inputs_bad = (jnp.where(jnp.all(jnp.array([jnp.all(jnp.isfinite(x)) for x in starts] + [True])), 0, BAD_START)
+                  | jnp.where((adam_steps < 0) | (adam_steps > c.adam_steps), BAD_STEPS, 0))
     dynamics_fn, context = _prepared(dynamics_fn, positions, mask)
     if not c.vote:
         return _checked(_refine(dynamics_fn, cost_fn, actions, positions, mask, context, adam_steps, c)[0],
-                        positions, mask)
+                        positions, mask, inputs_bad)
     one = lambda x: x[None]  # noqa: E731  one re-sampling as a set of one
     plans, best_index = jax.vmap(lambda p, m, ctx: _refine(dynamics_fn, cost_fn, actions, one(p), one(m),
                                                            jax.tree.map(one, ctx), adam_steps, c))(
         positions, mask, context)
     votes = jnp.zeros(c.samples, jnp.int32).at[best_index].add(1)  # each re-sampling votes for its best sample
     r = jnp.argmin(jnp.where(best_index == jnp.argmax(votes), plans.best_cost, jnp.inf))  # the winner's best copy
-    return _checked(jax.tree.map(lambda x: x[r], plans), positions, mask)
+    return _checked(jax.tree.map(lambda x: x[r], plans), positions, mask, inputs_bad)
 
 
-def _checked(result: PlanResult, positions, mask) -> PlanResult:
-    """``result`` with its error bits (PlanResult); best and best_cost NaN where any is set."""
+def _checked(result: PlanResult, positions, mask, inputs_bad) -> PlanResult:
+    """``result`` with its error bits (PlanResult; ``inputs_bad``: the start and step bits found before refining);
+    best and best_cost NaN where any is set."""
     error = (jnp.where(~jnp.all(jnp.any(mask, axis=-1)), NO_PARTICLES, 0)
-             | jnp.where(jnp.all(jnp.isfinite(positions) | ~mask[..., None]), 0, BAD_POSITIONS))
+             | jnp.where(jnp.all(jnp.isfinite(positions) | ~mask[..., None]), 0, BAD_POSITIONS) | inputs_bad)
     error = error | jnp.where((error == 0) & ~(jnp.all(jnp.isfinite(result.best)) & jnp.isfinite(result.best_cost)),
                               NOT_FINITE, 0)
     ok = error == 0
@@ -297,7 +310,8 @@ def plan(dynamics_fn, cost_fn, positions, mask, key, config: PlannerConfig = Pla
     re-sampling's particles.
     adam_steps: an int or a traced int32 (``budget.adam_steps``; vmap it over episodes), within
     [0, config.adam_steps]; default config.adam_steps. The best is the lowest-cost sequence evaluated at any step, so
-    its cost never exceeds the warm start's.
+    its cost never exceeds the warm start's. Out of range, or a non-finite init or initial: ValueError where they are
+    concrete, an error bit (``PLAN_ERRORS``) where traced.
     """
     if not isinstance(config, PlannerConfig):
         raise InputError(f"config must be a PlannerConfig, got {type(config).__name__}")
@@ -317,11 +331,15 @@ def plan(dynamics_fn, cost_fn, positions, mask, key, config: PlannerConfig = Pla
         if initial.shape != (config.samples, config.horizon, 4):
             raise ValueError(f"initial must be [M, T, 4] = [{config.samples}, {config.horizon}, 4], got "
                              f"{initial.shape}")
+    for name, x in (("init", init), ("initial", initial)):
+        if x is not None and not isinstance(x, jax.core.Tracer) and not bool(jnp.all(jnp.isfinite(x))):
+            raise ValueError(f"{name} (the warm start) holds NaN or infinite values")
     if key is None:
         key = jax.random.PRNGKey(config.seed)
     return _plan_jit(_as_pytree_fn(dynamics_fn), _as_pytree_fn(cost_fn), positions, mask, key, init, initial,
                      jnp.asarray(adam_steps, jnp.int32), config=replace(config, seed=0))
 
 
-__all__ = ["BAD_POSITIONS", "NOT_FINITE", "NO_PARTICLES", "PLAN_ERRORS", "PlanResult", "PlannerConfig", "plan",
+__all__ = ["BAD_POSITIONS", "BAD_START", "BAD_STEPS", "NOT_FINITE", "NO_PARTICLES", "PLAN_ERRORS", "PlanResult",
+           "PlannerConfig", "plan",
            "planner_config", "reference_lr", "sample_pushes"]
