@@ -68,6 +68,11 @@ def fx(tmp_path_factory):
                         "small_rgb": np.zeros((64, 64, 3), np.uint8), "wide_goal": np.pad(goal, ((0, 0), (0, w)))}.items():
         p[name] = str(root / f"{name}.png")
         cv2.imwrite(p[name], image)
+    replay = root / "replay_damaged"  # frame 000 good, frame 001's depth not an image
+    shutil.copytree(root / "frame", replay / "000")
+    shutil.copytree(root / "frame", replay / "001")
+    open(replay / "001" / "depth.png", "wb").write(b"\x89PNG damaged")
+    p["replay_damaged"] = str(replay)
     p["text"] = str(root / "notes.txt")
     open(p["text"], "w").write("not an image\n")
     good = json.load(open(p["camera"]))
@@ -220,6 +225,7 @@ E = [  # evaluate
     (["--time-budget", "0.25", "--timing", "{timing}"], "timing table"), (["--timing", "{timing20}"], "--timing"),
     (["--workers", "0"], "--workers"), (["--seed", "-1"], "--seed"), (["--ckpt", "/nonexistent"], "--ckpt"),
     (["--workers", "100000"], "--workers"), (["--backend", "mjx", "--workers", "2"], "--workers"),
+    (["--task", "sort", "--letters", "AB"], "--letters"), (["--letters", "XY"], "--letters"),  # Gather draws discs
     (["--ckpt", "{flipped_dynamics}"], "damaged"), (["--dynamics", "x"], "--dynamics"), (["--out", "{file}/x"], "--out"),
     (["--out", "{other_run}"], "--out"), (["--out", "{foreign}"], "--out"), (["--out", "{evaluate_run}"], "--seed 1 there"),
     (["--num-processes", "2"], "--coordinator"), (["--coordinator", "localhost", "--num-processes", "2", "--process-id", "0"], "HOST:PORT"),
@@ -304,6 +310,7 @@ X = [  # export
     (["--camera", "{cam_negative_f}"], "camera file"), (["--platforms", "x"], "--platforms"),
     (["--ckpt", "/nonexistent"], "--ckpt"), (["--ckpt", "{flipped_dynamics}"], "damaged"), (["--ckpt", "{regressor}"], "--ckpt"),
     (["--out", "{foreign}"], "--out"), (["--out", "planner.txt"], "--out"), (["--out", "{file}/x.jaxexport"], "--out"),
+    (["--out", "{foreign}/" + "x" * 245 + ".jaxexport"], "260 bytes"),  # legal alone; its sidecar OUT.json is not
 ]
 GO = [  # goal
     ([], "--disc"), (["--disc", "0", "0"], "--disc"), (["--disc", "0", "0", "0"], "radius"),
@@ -312,10 +319,12 @@ GO = [  # goal
     (["--mask", "/nonexistent"], "--mask"), (["--mask", "{wide_goal}"], "aspect ratio"), (["--mask", "{empty_goal}"], "no goal"),
     (["--disc", "0", "0", "0.05", "--camera", "{cam_negative_f}"], "camera file"),
     (["--disc", "0", "0", "0.05", "--out", "goal.txt"], "--out"), (["--disc", "0", "0", "0.05", "--out", "{file}/g.png"], "--out"),
+    (["--disc", "0", "0", "0.05", "--out", "{foreign}/" + "g" * 252 + ".png"], "256 bytes"),  # a name the file system refuses
 ]
 RO = [  # robot: a goal of another size than the simulator's frames names --image-size, square or not
     (["--goal", "{small_goal}"], "--image-size 64"), (["--goal", "{wide_goal}"], "--goal"),
     (["--image-size", "8"], "--image-size"), (["--steps", "0"], "--steps"),
+    (["--replay", "{replay_damaged}", "--goal", "{goal}"], "001"),  # refused before planning frame 000
     # frames the camera's noise and holes thin below ω: refused before compiling (the exact frame shows more points)
     (["--pieces", "20", "--image-size", "64"], "--image-size"), (["--pieces", "20", "--image-size", "64", "--sensor",
                                                                    "none"], "--image-size"),

@@ -65,3 +65,14 @@ def test_variants_compares_each_variant_at_its_own_steps_and_share(script, tmp_p
     assert variants.at("hinge=90") == ("hinge", (90, None)) and variants.at("base=80:0.92") == ("base", (80, 0.92))
     with pytest.raises(Exception, match="VARIANT=T"):
         variants.at("base80")
+
+
+def test_stop_share_reads_off_in_any_case_and_names_it_when_wrong():
+    import argparse
+
+    from dynres_jax.commands import checks
+
+    assert [checks.stop_share(t) for t in ("off", "OFF", "Off", "0.9", "1")] == ["off", "off", "off", 0.9, 1.0]
+    for bad in ("0", "1.5", "x", "nan"):
+        with pytest.raises(argparse.ArgumentTypeError, match="'off' for no stop rule"):
+            checks.stop_share(bad)

@@ -192,7 +192,12 @@ def number(low: float = -math.inf, high: float = math.inf, *, above: bool = Fals
 
 def stop_share(text: str) -> float | str:
     """A stop share in (0, 1], or "off" (no stop rule, where the task has one by default): ``stop_rule`` reads it."""
-    return "off" if text == "off" else number(0, 1, above=True)(text)
+    if text.strip().lower() == "off":
+        return "off"
+    try:
+        return number(0, 1, above=True)(text)
+    except argparse.ArgumentTypeError as e:
+        raise argparse.ArgumentTypeError(f"{e}; or 'off' for no stop rule") from None
 
 
 def stop_rule(value: float | str | None) -> float | None:
@@ -219,15 +224,32 @@ def text(value: str) -> str:
     return value
 
 
-def out_file(text: str, suffixes: tuple[str, ...]) -> str:
-    """An output file path: not a folder, ending in one of ``suffixes``, in a folder that exists and is writable or can
-    be made (nothing is created here)."""
+def out_file(text: str, suffixes: tuple[str, ...], beside: str = "") -> str:
+    """An output file path: not a folder, ending in one of ``suffixes``, a name the file system takes (with
+    ``beside``, the suffix of a second file written next to it, e.g. ".json"), in a folder that exists and is
+    writable or can be made (nothing is created here)."""
     if os.path.isdir(text) or text.endswith(os.sep):
         raise InputError(f"--out {text!r} is a folder; give a file name ending in {' or '.join(suffixes)}")
     if not text.lower().endswith(suffixes):
         raise InputError(f"--out {text!r}: give a file name ending in {' or '.join(suffixes)}")
     _check_can_create(os.path.dirname(os.path.abspath(text)))
+    _check_name_length(os.path.abspath(text) + beside)
     return text
+
+
+def _check_name_length(path: str) -> None:
+    """InputError naming --out when a part of ``path`` is longer than its file system takes (NAME_MAX bytes)."""
+    folder = os.path.dirname(path)
+    while not os.path.exists(folder):
+        folder = os.path.dirname(folder)
+    try:
+        limit = os.pathconf(folder, "PC_NAME_MAX")
+    except (OSError, ValueError):
+        limit = 255
+    for part in path.split(os.sep):
+        if len(os.fsencode(part)) > limit:
+            raise InputError(f"--out: the name {part[:24]!r}... is {len(os.fsencode(part))} bytes; this file system "
+                             f"takes at most {limit}")
 
 
 def quick_sets(parser: argparse.ArgumentParser, args: argparse.Namespace, names) -> None:
@@ -307,6 +329,7 @@ def claim(out: str, command: str, config: dict, fresh: bool = False, inputs: dic
     if os.path.exists(out) and not os.path.isdir(out):
         raise InputError(f"--out {out!r} is a file, not a folder")
     _check_can_create(out)
+    _check_name_length(os.path.abspath(os.path.join(out, RUN)))
     if os.path.isdir(out) and not os.path.isfile(record) and set(os.listdir(out)) - {LOCK}:
         raise InputError(f"--out {out!r} is not empty and holds no {RUN} (it was not made by a dynres command); "
                          "choose a new or empty folder")

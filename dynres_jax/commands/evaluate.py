@@ -213,6 +213,8 @@ def check_args(parser, args):
     check_methods(parser, args, sort)
     if " " in args.letters:
         parser.error(f"--letters: a space draws no goal, got {args.letters!r}")
+    if args.letters != parser.get_default("letters") and not tasks.TASKS[args.task].letter:
+        parser.error(f"--letters draws Redistribute's goals; --task {args.task} draws no letter")
     if "cnn" in args.methods:
         check_cnn(parser, args)
     if args.episodes < size:

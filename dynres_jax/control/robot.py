@@ -48,6 +48,7 @@ from dynres_jax.control.keep import best_rate
 from dynres_jax.control.mpc import MPCConfig, Progress, announce, propose, shift
 from dynres_jax.control.objective import distribution_distance, seen_inside
 from dynres_jax.errors import InputError
+from dynres_jax.io.files import check_input
 from dynres_jax.io.frames import load_camera, load_frame
 from dynres_jax.perception import calibrate, foreground
 from dynres_jax.sim import pushes
@@ -108,23 +109,25 @@ class Workspace:
 
 class ReplaySource:
     """Frames saved in ``folder``, one sub-folder per frame in name order, each as ``io.frames.save_frame`` writes
-    them (depth.png in mm, rgb.png, camera.json); the camera is the first frame's."""
+    them (depth.png in mm, rgb.png, camera.json); the camera is the first frame's. Every frame is read here, so a
+    damaged one is an InputError before any planning, not after the frames before it."""
 
     def __init__(self, folder: str):
-        names = sorted(n for n in os.listdir(folder) if os.path.isfile(os.path.join(folder, n, "depth.png"))) \
-            if os.path.isdir(folder) else []
+        check_input(folder, "replay folder", expect=("folder",))
+        names = sorted(n for n in os.listdir(folder) if os.path.isfile(os.path.join(folder, n, "depth.png")))
         if not names:
             raise InputError(f"replay folder {folder!r} holds no frame (sub-folders with depth.png, rgb.png and "
                              "camera.json, as io.frames.save_frame writes them)")
         self.folders = [os.path.join(folder, n) for n in names]
         self.camera, self.next = load_camera(os.path.join(self.folders[0], "camera.json")), 0
+        self.frames = [load_frame(*(os.path.join(here, n) for n in ("depth.png", "rgb.png", "camera.json")))[0]
+                       for here in self.folders]
 
     def read(self) -> Observation:
-        if self.next >= len(self.folders):
-            raise InputError(f"replay: all {len(self.folders)} frames were read")
-        here = self.folders[self.next]
+        if self.next >= len(self.frames):
+            raise InputError(f"replay: all {len(self.frames)} frames were read")
         self.next += 1
-        return load_frame(*(os.path.join(here, n) for n in ("depth.png", "rgb.png", "camera.json")))[0]
+        return self.frames[self.next - 1]
 
 
 class DryRun:

@@ -185,7 +185,9 @@ def _read(directory, abstract_state: dict[str, Any], step: int) -> tuple[dict[st
             items = {name: ocp.args.StandardRestore(tree) for name, tree in placed.items()}
             out = mngr.restore(step, args=ocp.args.Composite(**items, meta=ocp.args.JsonRestore()))
         except Exception as e:
-            raise CheckpointError(f"checkpoint {str(directory)!r} step {step} does not match the requested model: "
+            raise CheckpointError(f"checkpoint {str(directory)!r} step {step} cannot be read as the requested model "
+                                  "(its files damaged though its manifest matches them, e.g. resealed after the "
+                                  "damage, or another model's shapes): "
                                   f"{type(e).__name__}: {str(e).splitlines()[0][:200] if str(e) else ''}") from e
     return {name: out[name] for name in abstract_state}, dict(out["meta"])
 
