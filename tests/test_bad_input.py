@@ -192,3 +192,29 @@ def test_a_closed_standard_output_ends_a_command_quietly():
                           timeout=120)
     assert done.stdout == "step step ", done.stdout
     assert done.stderr == "", done.stderr[-2000:]
+
+
+def test_a_full_disk_is_one_line_whatever_wrapped_it(capsys):
+    """ENOSPC raised under another exception (as orbax and NumPy wrap it) ends a command with one line naming the
+    file and how to go on, status 1; any other error still propagates as itself."""
+    import errno
+
+    from dynres_jax.commands import checks
+
+    def failing(error):
+        @checks.guarded("train_dynamics")
+        def main(argv):
+            try:
+                raise OSError(errno.ENOSPC, "No space left on device", "/data/run/ckpt/1500/x")
+            except OSError as e:
+                raise error from e
+        return main
+
+    with pytest.raises(SystemExit) as ended:
+        failing(RuntimeError("orbax: save failed"))([])
+    err = capsys.readouterr().err
+    assert ended.value.code == 1 and "Traceback" not in err
+    assert err.strip().splitlines() == ["python -m experiments.train_dynamics: error: No space left on device writing "
+                                        "'/data/run/ckpt/1500/x'; free space and rerun the same command"]
+    with pytest.raises(ValueError, match="another"):  # not a full disk: the error itself
+        checks.guarded("train_dynamics")(lambda argv: (_ for _ in ()).throw(ValueError("another")))([])

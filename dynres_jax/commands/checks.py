@@ -10,6 +10,7 @@ command, a non-empty folder this package did not make, or one another run holds 
 from __future__ import annotations
 
 import argparse
+import errno
 import functools
 import hashlib
 import json
@@ -94,7 +95,8 @@ def _interrupted(name: str) -> str:
 def guarded(name: str):
     """Decorator of a command's ``main(argv)``: an ``InputError`` raised anywhere in it (a damaged file found while
     reading, a folder of another run) is printed as one line naming the input, exit status 2, as argparse does; a
-    ``JobError`` (a peer that never joined) the same way with status 1; a JAX platform that cannot start
+    ``JobError`` (a peer that never joined) the same way with status 1, as is a full disk (what was kept, how to
+    resume), whatever library wrapped its OSError; a JAX platform that cannot start
     (``JAX_PLATFORMS`` naming a missing or unknown one) the same way with status 2; a closed standard output
     (``| head``) ends the command quietly, as Unix tools do, status 1; SIGINT (Ctrl-C) and SIGTERM end it with one
     line saying what was kept and how to resume, status 130 and 143 as a shell reports those signals."""
@@ -125,15 +127,22 @@ def guarded(name: str):
             except (InputError, JobError) as e:
                 print(f"{prog(name)}: error: {' '.join(str(e).split())}", file=sys.stderr)
                 raise SystemExit(2 if isinstance(e, InputError) else 1) from None
-            except (RuntimeError, AssertionError) as e:
-                if not _platform_failed(e):
-                    raise
-                why = str(e).splitlines()[0] if str(e) else "JAX cannot start that platform here (no plugin or device)"
-                print(f"{prog(name)}: error: JAX_PLATFORMS={os.environ.get('JAX_PLATFORMS', '')!r}: {why}",
-                      file=sys.stderr)
-                raise SystemExit(2) from None
             except BrokenPipeError:
                 os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # no second error at exit's flush
+                raise SystemExit(1) from None
+            except Exception as e:
+                if _platform_failed(e):
+                    why = str(e).splitlines()[0] if str(e) else ("JAX cannot start that platform here (no plugin or "
+                                                                 "device)")
+                    print(f"{prog(name)}: error: JAX_PLATFORMS={os.environ.get('JAX_PLATFORMS', '')!r}: {why}",
+                          file=sys.stderr)
+                    raise SystemExit(2) from None
+                full = _disk_full(e)
+                if full is None:
+                    raise
+                print(f"{prog(name)}: error: {full.strerror or 'no space left'}"
+                      f"{f' writing {full.filename!r}' if full.filename else ''}; {_kept()}free space and rerun the "
+                      "same command", file=sys.stderr)
                 raise SystemExit(1) from None
             finally:
                 _signalled.clear()
@@ -145,9 +154,27 @@ def guarded(name: str):
     return wrap
 
 
+def _disk_full(e: BaseException) -> OSError | None:
+    """The OSError of a full disk or quota (ENOSPC, EDQUOT) in ``e``'s chain of causes (a library may wrap it)."""
+    seen = set()
+    while e is not None and id(e) not in seen:
+        seen.add(id(e))
+        if isinstance(e, OSError) and e.errno in (errno.ENOSPC, errno.EDQUOT):
+            return e
+        e = e.__cause__ or e.__context__
+    return None
+
+
+def _kept() -> str:
+    """What an ended run kept, for the line it ends with."""
+    return f"finished work is kept in {_out}; " if _out and os.path.isfile(os.path.join(_out, RUN)) else ""
+
+
 def _platform_failed(e: BaseException) -> bool:
     """Whether ``e`` is JAX failing to start the platforms JAX_PLATFORMS names: its "Unable to initialize backend", or
     the bare assertion its backend setup raises for a platform without a plugin (``JAX_PLATFORMS=cuda`` on a CPU)."""
+    if not isinstance(e, RuntimeError | AssertionError):
+        return False
     frames = traceback.extract_tb(e.__traceback__)
     from_bridge = bool(frames) and frames[-1].filename.endswith("xla_bridge.py")
     return "Unable to initialize backend" in str(e) or (isinstance(e, AssertionError) and from_bridge
