@@ -44,7 +44,7 @@ def test_a_signal_python_drops_inside_a_destructor_still_ends_the_command(capsys
     """Python ignores an exception raised in a ``__del__`` or a garbage-collection callback ("Exception ignored in",
     as JAX's ``_xla_gc_callback`` did on CI and the command ran on for minutes): the signal is sent again until the
     command has ended on it."""
-    from dynres_jax.commands import checks
+    from dynres_jax.commands import checks, guard
 
     class SignalsInItsDestructor:
         def __del__(self):
@@ -68,4 +68,30 @@ def test_a_signal_python_drops_inside_a_destructor_still_ends_the_command(capsys
     assert ended.value.code == 143
     assert laps and laps[-1] - laps[0] < 5  # ended by the resent signal, not by running to its end
     assert "interrupted" in capsys.readouterr().err
-    assert signal.getsignal(signal.SIGTERM) is not checks._on_signal  # the handler is given back
+    assert signal.getsignal(signal.SIGTERM) is not guard._on_signal  # the handler is given back
+
+
+def test_commands_keep_compiled_programs_between_runs(tmp_path):
+    """guarded turns on JAX's persistent compilation cache under $XDG_CACHE_HOME/dynres-jax/jax (a rerun or a resume
+    loads what the first run compiled); DYNRES_JAX_CACHE=off turns it off; a folder that cannot be made is one note."""
+    probe = ("from dynres_jax.commands import guard\n"
+             "guard.use_compilation_cache()\n"
+             "import jax, jax.numpy as jnp\n"
+             "print(jax.config.jax_compilation_cache_dir)\n"
+             "jax.jit(lambda x: jnp.sin(x) * 2)(jnp.ones(3)).block_until_ready()\n")
+    env = {k: v for k, v in os.environ.items() if k != "JAX_COMPILATION_CACHE_DIR"}
+    env.update(JAX_PLATFORMS="cpu", JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS="0", XDG_CACHE_HOME=str(tmp_path))
+
+    def run(**more):
+        done = subprocess.run([sys.executable, "-c", probe], env=dict(env, **more), capture_output=True, text=True,
+                              timeout=300)
+        assert done.returncode == 0, done.stderr
+        return done
+
+    folder = tmp_path / "dynres-jax" / "jax"
+    assert run().stdout.strip() == str(folder)
+    assert any(folder.iterdir())  # the program is kept
+    assert run(DYNRES_JAX_CACHE="off", XDG_CACHE_HOME=str(tmp_path / "other")).stdout.strip() == "None"
+    (tmp_path / "a_file").write_text("")
+    blocked = run(XDG_CACHE_HOME=str(tmp_path / "a_file"))
+    assert blocked.stdout.strip() == "None" and "no compilation cache" in blocked.stderr

@@ -1,5 +1,5 @@
-"""One path for checking a command's input before its work: argparse types that say what they accept, the guard that
-prints a user's mistake (``errors.InputError``) as one line with exit status 2, and the output folder's record.
+"""One path for checking a command's input before its work: argparse types that say what they accept, the parser
+whose mistakes are one line (``guard.guarded`` ends a command's errors the same way), and the output folder's record.
 
 Every command's ``--out`` folder holds ``run.json``: the command and the settings that made it. A rerun with the same
 settings resumes (or rewrites the same results); other settings are refused with what differs, unless ``--fresh``
@@ -10,30 +10,23 @@ command, a non-empty folder this package did not make, or one another run holds 
 from __future__ import annotations
 
 import argparse
-import errno
-import functools
 import hashlib
 import json
 import math
 import os
-import signal
 import sys
-import threading
-import time
-import traceback
-
-import jax
 
 from dynres_jax import distributed
-from dynres_jax.commands import docstring
+from dynres_jax.commands import docstring, guard
 from dynres_jax.commands.flags import OneLineParser, prog  # noqa: F401 (prog: the commands' import of it)
 from dynres_jax.commands.folder_lock import LOCK, hold, holder
+from dynres_jax.commands.guard import guarded  # noqa: F401 (the commands' decorator: checks.guarded)
 from dynres_jax.config import OMEGA_MAX, OMEGA_MIN
-from dynres_jax.errors import InputError, JobError
+from dynres_jax.errors import InputError
 from dynres_jax.io import files
 from dynres_jax.sim import engines
 
-RUN = "run.json"
+RUN = guard.RUN
 
 
 class Parser(OneLineParser):
@@ -41,13 +34,10 @@ class Parser(OneLineParser):
     ``--out`` it parsed is kept for ``guarded``'s line on an interrupt."""
 
     def parse_known_args(self, args=None, namespace=None):
-        global _out
         parsed, rest = super().parse_known_args(args, namespace)
-        _out = getattr(parsed, "out", _out)
+        if getattr(parsed, "out", None) is not None:
+            guard.running["out"] = parsed.out
         return parsed, rest
-
-
-_out: str | None = None  # the --out of the command running in this process (Parser sets it, guarded reads it)
 
 
 def parser(name: str, doc: str | None) -> Parser:
@@ -56,129 +46,6 @@ def parser(name: str, doc: str | None) -> Parser:
     if doc is None:
         doc = docstring(sys._getframe(1).f_globals.get("__name__", ""))
     return Parser(prog=prog(name), description=doc, formatter_class=argparse.RawDescriptionHelpFormatter)
-
-
-class Terminated(KeyboardInterrupt):
-    """SIGTERM, raised where the command is, so it unwinds as Ctrl-C does."""
-
-
-_signalled: list[int] = []  # the signal a command is ending on, until guarded's except clause takes it (then cleared)
-
-
-def _on_signal(signum, frame):
-    """SIGINT and SIGTERM: raise where the command is. Python drops an exception raised inside a garbage-collection
-    callback or a ``__del__`` (JAX's ``_xla_gc_callback`` swallowed one once, and the command ran on), so the first
-    signal also starts a thread that sends it again every second until ``guarded`` has caught it."""
-    if isinstance(sys.exc_info()[1], KeyboardInterrupt):
-        return  # one is being handled already (guarded's except clause): a resent signal adds nothing
-    if not _signalled:
-        _signalled.append(signum)
-        threading.Thread(target=_resend, args=(signum,), daemon=True).start()
-    raise Terminated if signum == signal.SIGTERM else KeyboardInterrupt
-
-
-def _resend(signum: int) -> None:
-    while True:
-        time.sleep(1.0)
-        if not _signalled:
-            return
-        os.kill(os.getpid(), signum)
-
-
-def _interrupted(name: str) -> str:
-    """The line an interrupted command ends with: what it kept and how to go on."""
-    if _out and os.path.isfile(os.path.join(_out, RUN)):
-        return f"{prog(name)}: interrupted; finished work is kept in {_out}; rerun the same command to resume"
-    return f"{prog(name)}: interrupted before writing anything; rerun the same command to start again"
-
-
-def guarded(name: str):
-    """Decorator of a command's ``main(argv)``: an ``InputError`` raised anywhere in it (a damaged file found while
-    reading, a folder of another run) is printed as one line naming the input, exit status 2, as argparse does; a
-    ``JobError`` (a peer that never joined) the same way with status 1, as is a full disk (what was kept, how to
-    resume), whatever library wrapped its OSError; a JAX platform that cannot start
-    (``JAX_PLATFORMS`` naming a missing or unknown one) the same way with status 2; a closed standard output
-    (``| head``) ends the command quietly, as Unix tools do, status 1; SIGINT (Ctrl-C) and SIGTERM end it with one
-    line saying what was kept and how to resume, status 130 and 143 as a shell reports those signals."""
-
-    def wrap(main):
-        @functools.wraps(main)
-        def run(argv=None):
-            global _out
-            _out = None
-            for stream in (sys.stdout, sys.stderr):  # "ω" on an ASCII terminal (PYTHONIOENCODING=ascii): \u03c9
-                if hasattr(stream, "reconfigure"):
-                    stream.reconfigure(errors="backslashreplace")
-            jax.config.update("jax_enable_x64", False)  # float32 whatever JAX_ENABLE_X64 says: resumes, checkpoints
-            # and exported files keep one precision
-            in_main = threading.current_thread() is threading.main_thread()  # signal handlers are set only there
-            # SIGINT only where Python's own handler is set: an ignored one (a shell's background job) stays ignored
-            ours = [signal.SIGTERM] + ([signal.SIGINT] if signal.getsignal(signal.SIGINT)
-                                       is signal.default_int_handler else [])
-            previous = {s: signal.signal(s, _on_signal) for s in ours} if in_main else {}
-            try:
-                return main(argv)
-            except KeyboardInterrupt as e:
-                _signalled.clear()  # stops _resend
-                for s in previous:  # a second Ctrl-C while the line prints is ignored
-                    signal.signal(s, signal.SIG_IGN)
-                print(("\n" if sys.stderr.isatty() else "") + _interrupted(name), file=sys.stderr)  # past a bar
-                raise SystemExit(143 if isinstance(e, Terminated) else 130) from None
-            except (InputError, JobError) as e:
-                print(f"{prog(name)}: error: {' '.join(str(e).split())}", file=sys.stderr)
-                raise SystemExit(2 if isinstance(e, InputError) else 1) from None
-            except BrokenPipeError:
-                os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # no second error at exit's flush
-                raise SystemExit(1) from None
-            except Exception as e:
-                if _platform_failed(e):
-                    why = str(e).splitlines()[0] if str(e) else ("JAX cannot start that platform here (no plugin or "
-                                                                 "device)")
-                    print(f"{prog(name)}: error: JAX_PLATFORMS={os.environ.get('JAX_PLATFORMS', '')!r}: {why}",
-                          file=sys.stderr)
-                    raise SystemExit(2) from None
-                full = _disk_full(e)
-                if full is None:
-                    raise
-                print(f"{prog(name)}: error: {full.strerror or 'no space left'}"
-                      f"{f' writing {full.filename!r}' if full.filename else ''}; {_kept()}free space and rerun the "
-                      "same command", file=sys.stderr)
-                raise SystemExit(1) from None
-            finally:
-                _signalled.clear()
-                for s, handler in previous.items():  # None: a handler set outside Python
-                    signal.signal(s, handler if handler is not None else signal.SIG_DFL)
-
-        return run
-
-    return wrap
-
-
-def _disk_full(e: BaseException) -> OSError | None:
-    """The OSError of a full disk or quota (ENOSPC, EDQUOT) in ``e``'s chain of causes (a library may wrap it)."""
-    seen = set()
-    while e is not None and id(e) not in seen:
-        seen.add(id(e))
-        if isinstance(e, OSError) and e.errno in (errno.ENOSPC, errno.EDQUOT):
-            return e
-        e = e.__cause__ or e.__context__
-    return None
-
-
-def _kept() -> str:
-    """What an ended run kept, for the line it ends with."""
-    return f"finished work is kept in {_out}; " if _out and os.path.isfile(os.path.join(_out, RUN)) else ""
-
-
-def _platform_failed(e: BaseException) -> bool:
-    """Whether ``e`` is JAX failing to start the platforms JAX_PLATFORMS names: its "Unable to initialize backend", or
-    the bare assertion its backend setup raises for a platform without a plugin (``JAX_PLATFORMS=cuda`` on a CPU)."""
-    if not isinstance(e, RuntimeError | AssertionError):
-        return False
-    frames = traceback.extract_tb(e.__traceback__)
-    from_bridge = bool(frames) and frames[-1].filename.endswith("xla_bridge.py")
-    return "Unable to initialize backend" in str(e) or (isinstance(e, AssertionError) and from_bridge
-                                                          and bool(os.environ.get("JAX_PLATFORMS")))
 
 
 # argparse types: a bad value is reported by argparse as "argument --FLAG: <message>", exit status 2.

@@ -1,0 +1,180 @@
+"""How a command ends: ``guarded``, the decorator of every command's ``main``. A user's mistake found at any point is
+one line with exit status 2; Ctrl-C and SIGTERM one line saying what was kept and how to resume; a full disk, a
+closed pipe and a JAX platform that cannot start each one line too; never a traceback for any of these. And the
+persistent compilation cache every command uses (``use_compilation_cache``)."""
+
+from __future__ import annotations
+
+import errno
+import functools
+import os
+import signal
+import sys
+import threading
+import time
+import traceback
+
+import jax
+
+from dynres_jax.commands.flags import prog
+from dynres_jax.errors import InputError, JobError
+
+RUN = "run.json"  # the output folder's record (``checks.claim``): a folder that has one holds finished work
+CACHE_BYTES = 2 * 1024**3  # the compilation cache's size limit
+running: dict[str, str | None] = {"out": None}  # the --out of the command running here (``checks.Parser`` sets it)
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM, raised where the command is, so it unwinds as Ctrl-C does."""
+
+
+_signalled: list[int] = []  # the signal a command is ending on, until guarded's except clause takes it (then cleared)
+
+
+def _on_signal(signum, frame):
+    """SIGINT and SIGTERM: raise where the command is. Python drops an exception raised inside a garbage-collection
+    callback or a ``__del__`` (JAX's ``_xla_gc_callback`` swallowed one once, and the command ran on), so the first
+    signal also starts a thread that sends it again every second until ``guarded`` has caught it."""
+    if isinstance(sys.exc_info()[1], KeyboardInterrupt):
+        return  # one is being handled already (guarded's except clause): a resent signal adds nothing
+    if not _signalled:
+        _signalled.append(signum)
+        threading.Thread(target=_resend, args=(signum,), daemon=True).start()
+    raise Terminated if signum == signal.SIGTERM else KeyboardInterrupt
+
+
+def _resend(signum: int) -> None:
+    while True:
+        time.sleep(1.0)
+        if not _signalled:
+            return
+        os.kill(os.getpid(), signum)
+
+
+def _interrupted(name: str) -> str:
+    """The line an interrupted command ends with: what it kept and how to go on."""
+    out = running["out"]
+    if out and os.path.isfile(os.path.join(out, RUN)):
+        return f"{prog(name)}: interrupted; finished work is kept in {out}; rerun the same command to resume"
+    return f"{prog(name)}: interrupted before writing anything; rerun the same command to start again"
+
+
+def guarded(name: str):
+    """Decorator of a command's ``main(argv)``: an ``InputError`` raised anywhere in it (a damaged file found while
+    reading, a folder of another run) is printed as one line naming the input, exit status 2, as argparse does; a
+    ``JobError`` (a peer that never joined) the same way with status 1, as is a full disk (what was kept, how to
+    resume), whatever library wrapped its OSError; a JAX platform that cannot start
+    (``JAX_PLATFORMS`` naming a missing or unknown one) the same way with status 2; a closed standard output
+    (``| head``) ends the command quietly, as Unix tools do, status 1; SIGINT (Ctrl-C) and SIGTERM end it with one
+    line saying what was kept and how to resume, status 130 and 143 as a shell reports those signals."""
+
+    def wrap(main):
+        @functools.wraps(main)
+        def run(argv=None):
+            running["out"] = None
+            for stream in (sys.stdout, sys.stderr):  # "ω" on an ASCII terminal (PYTHONIOENCODING=ascii): \u03c9
+                if hasattr(stream, "reconfigure"):
+                    stream.reconfigure(errors="backslashreplace")
+            jax.config.update("jax_enable_x64", False)  # float32 whatever JAX_ENABLE_X64 says: resumes, checkpoints
+            # and exported files keep one precision
+            use_compilation_cache()
+            in_main = threading.current_thread() is threading.main_thread()  # signal handlers are set only there
+            # SIGINT only where Python's own handler is set: an ignored one (a shell's background job) stays ignored
+            ours = [signal.SIGTERM] + ([signal.SIGINT] if signal.getsignal(signal.SIGINT)
+                                       is signal.default_int_handler else [])
+            previous = {s: signal.signal(s, _on_signal) for s in ours} if in_main else {}
+            try:
+                return main(argv)
+            except KeyboardInterrupt as e:
+                _signalled.clear()  # stops _resend
+                for s in previous:  # a second Ctrl-C while the line prints is ignored
+                    signal.signal(s, signal.SIG_IGN)
+                print(("\n" if sys.stderr.isatty() else "") + _interrupted(name), file=sys.stderr)  # past a bar
+                raise SystemExit(143 if isinstance(e, Terminated) else 130) from None
+            except (InputError, JobError) as e:
+                print(f"{prog(name)}: error: {' '.join(str(e).split())}", file=sys.stderr)
+                raise SystemExit(2 if isinstance(e, InputError) else 1) from None
+            except BrokenPipeError:
+                os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # no second error at exit's flush
+                raise SystemExit(1) from None
+            except Exception as e:
+                if _platform_failed(e):
+                    why = str(e).splitlines()[0] if str(e) else ("JAX cannot start that platform here (no plugin or "
+                                                                 "device)")
+                    print(f"{prog(name)}: error: JAX_PLATFORMS={os.environ.get('JAX_PLATFORMS', '')!r}: {why}",
+                          file=sys.stderr)
+                    raise SystemExit(2) from None
+                full = _disk_full(e)
+                if full is None:
+                    raise
+                print(f"{prog(name)}: error: {full.strerror or 'no space left'}"
+                      f"{f' writing {full.filename!r}' if full.filename else ''}; {_kept()}free space and rerun the "
+                      "same command", file=sys.stderr)
+                raise SystemExit(1) from None
+            finally:
+                _signalled.clear()
+                for s, handler in previous.items():  # None: a handler set outside Python
+                    signal.signal(s, handler if handler is not None else signal.SIG_DFL)
+
+        return run
+
+    return wrap
+
+
+def compilation_cache_dir() -> str | None:
+    """Where commands keep compiled programs between runs: JAX_COMPILATION_CACHE_DIR if set, else
+    $XDG_CACHE_HOME/dynres-jax/jax (~/.cache/...); None with DYNRES_JAX_CACHE=off."""
+    if os.environ.get("DYNRES_JAX_CACHE", "").lower() == "off":
+        return None
+    if os.environ.get("JAX_COMPILATION_CACHE_DIR"):
+        return os.environ["JAX_COMPILATION_CACHE_DIR"]
+    home = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    return os.path.join(home, "dynres-jax", "jax")
+
+
+def use_compilation_cache() -> None:
+    """JAX's persistent compilation cache in ``compilation_cache_dir()``: a rerun, a resume after Ctrl-C and the main
+    job's second run load what the first compiled (on a 2-core CPU compiling is most of a short run) instead of
+    compiling again. A loaded program is the one the compiler wrote, so results do not change. Programs that compiled
+    in under a second are not kept; past 2 GiB the least recently used go. A folder that cannot be made leaves the
+    cache off, said in one line."""
+    folder = compilation_cache_dir()
+    if folder is None or jax.config.jax_compilation_cache_dir == folder:
+        return
+    try:
+        os.makedirs(folder, exist_ok=True)
+    except OSError as e:
+        print(f"note: no compilation cache ({folder!r}: {e.strerror or e}); every run compiles afresh "
+              "(DYNRES_JAX_CACHE=off silences this)", file=sys.stderr)
+        return
+    jax.config.update("jax_compilation_cache_dir", folder)
+    if jax.config.jax_compilation_cache_max_size == -1:  # JAX's default, no limit: the least recently used go first
+        jax.config.update("jax_compilation_cache_max_size", CACHE_BYTES)
+
+
+def _disk_full(e: BaseException) -> OSError | None:
+    """The OSError of a full disk or quota (ENOSPC, EDQUOT) in ``e``'s chain of causes (a library may wrap it)."""
+    seen = set()
+    while e is not None and id(e) not in seen:
+        seen.add(id(e))
+        if isinstance(e, OSError) and e.errno in (errno.ENOSPC, errno.EDQUOT):
+            return e
+        e = e.__cause__ or e.__context__
+    return None
+
+
+def _kept() -> str:
+    """What an ended run kept, for the line it ends with."""
+    out = running["out"]
+    return f"finished work is kept in {out}; " if out and os.path.isfile(os.path.join(out, RUN)) else ""
+
+
+def _platform_failed(e: BaseException) -> bool:
+    """Whether ``e`` is JAX failing to start the platforms JAX_PLATFORMS names: its "Unable to initialize backend", or
+    the bare assertion its backend setup raises for a platform without a plugin (``JAX_PLATFORMS=cuda`` on a CPU)."""
+    if not isinstance(e, RuntimeError | AssertionError):
+        return False
+    frames = traceback.extract_tb(e.__traceback__)
+    from_bridge = bool(frames) and frames[-1].filename.endswith("xla_bridge.py")
+    return "Unable to initialize backend" in str(e) or (isinstance(e, AssertionError) and from_bridge
+                                                          and bool(os.environ.get("JAX_PLATFORMS")))
