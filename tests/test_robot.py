@@ -59,22 +59,24 @@ def test_an_interrupted_robot_episode_resumes_after_its_last_push(tmp_path, caps
     """Ctrl-C once push 1 of 2 is saved keeps the episode's progress; the same command then reads the frame after that
     push (the simulator's world as it was left, its sensor's next frame) and ends where the uninterrupted episode
     ends: the same pushes, the same true share inside, a GIF of every frame."""
-    from dynres_jax.control import progress
 
     whole = robot.main([*TINY, "--out", str(tmp_path / "whole")])
-    save = progress.save
+    from dynres_jax.commands import guard
 
-    def interrupted(path, now, frames):  # the user's Ctrl-C arrives once push 1 is saved
-        save(path, now, frames)
+    kept = guard.kept
+
+    def interrupted(what):  # the user's Ctrl-C arrives once push 1 is saved
+        kept(what)
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(progress, "save", interrupted)
+    monkeypatch.setattr(guard, "kept", interrupted)
     capsys.readouterr()
     with pytest.raises(SystemExit) as e:
         robot.main([*TINY, "--out", str(tmp_path / "cut")])
-    assert e.value.code == 130 and "rerun the same command to resume" in capsys.readouterr().err
+    assert e.value.code == 130
+    assert "(the episode's pushes 1-1 of 2); rerun the same command to resume" in capsys.readouterr().err
     assert (tmp_path / "cut" / "progress.npz").exists() and not (tmp_path / "cut" / "metrics.json").exists()
-    monkeypatch.setattr(progress, "save", save)
+    monkeypatch.setattr(guard, "kept", kept)
     again = robot.main([*TINY, "--out", str(tmp_path / "cut")])
     assert "resuming the interrupted episode after push 1 of 2" in capsys.readouterr().out
     assert [s.get("action") for s in again["steps"]] == [s.get("action") for s in whole["steps"]]

@@ -118,24 +118,28 @@ def test_an_interrupted_episode_resumes_from_its_last_step_as_if_never_stopped(c
                                                                                 monkeypatch):
     """Ctrl-C after step 2 of 3 keeps the episode's progress (progress.npz); the same command then runs step 3 alone
     and ends where the uninterrupted episode ends: the same pushes, d and share inside, and a GIF of every step."""
-    from dynres_jax.control import progress
 
     main = {"gather": gather.main, "sort": sort.main}[command]
     tiny = ["--pieces", *(["20"] if command == "gather" else ["12", "12"]), "--mpc-steps", "3", "--samples", "4",
             "--adam-steps", "2", "--dynamics", "sweep"]
     whole = main([*tiny, "--out", str(tmp_path / "whole")])
-    save = progress.save
+    from dynres_jax.commands import guard
 
-    def interrupted(path, now, frames):  # the user's Ctrl-C arrives once step 2 is saved
-        save(path, now, frames)
-        if len(now.records) == 2:
+    kept = guard.kept
+
+    def interrupted(what):  # the user's Ctrl-C arrives once step 2 is saved
+        kept(what)
+        if what.startswith("the episode's steps 1-2 "):
             raise KeyboardInterrupt
 
-    monkeypatch.setattr(progress, "save", interrupted)
+    monkeypatch.setattr(guard, "kept", interrupted)
     capsys.readouterr()
     with pytest.raises(SystemExit) as e:
         main([*tiny, "--out", str(tmp_path / "cut")])
-    assert e.value.code == 130 and "rerun the same command to resume" in capsys.readouterr().err
+    assert e.value.code == 130
+    assert f"kept in {tmp_path / 'cut'} (the episode's steps 1-2 of 3); rerun the same command to resume" in \
+        capsys.readouterr().err
+    monkeypatch.setattr(guard, "kept", kept)
     assert (tmp_path / "cut" / "progress.npz").exists() and not (tmp_path / "cut" / "metrics.json").exists()
     again = main([*tiny, "--out", str(tmp_path / "cut")])
     out = capsys.readouterr().out

@@ -24,6 +24,11 @@ CACHE_BYTES = 2 * 1024**3  # the compilation cache's size limit
 running: dict[str, str | None] = {"out": None}  # the --out of the command running here (``checks.Parser`` sets it)
 
 
+def kept(what: str) -> None:
+    """Say what the running command has saved so far (e.g. "steps 1-3 of 20"), for the line an interrupt ends with."""
+    running["kept"] = what
+
+
 class Terminated(KeyboardInterrupt):
     """SIGTERM, raised where the command is, so it unwinds as Ctrl-C does."""
 
@@ -53,9 +58,10 @@ def _resend(signum: int) -> None:
 
 def _interrupted(name: str) -> str:
     """The line an interrupted command ends with: what it kept and how to go on."""
-    out = running["out"]
+    out, what = running["out"], running.get("kept")
     if out and os.path.isfile(os.path.join(out, RUN)):
-        return f"{prog(name)}: interrupted; finished work is kept in {out}; rerun the same command to resume"
+        return (f"{prog(name)}: interrupted; finished work is kept in {out}{f' ({what})' if what else ''}; rerun the "
+                "same command to resume")
     return f"{prog(name)}: interrupted before writing anything; rerun the same command to start again"
 
 
@@ -71,7 +77,7 @@ def guarded(name: str):
     def wrap(main):
         @functools.wraps(main)
         def run(argv=None):
-            running["out"] = None
+            running.update(out=None, kept=None)
             for stream in (sys.stdout, sys.stderr):  # "ω" on an ASCII terminal (PYTHONIOENCODING=ascii): \u03c9
                 if hasattr(stream, "reconfigure"):
                     stream.reconfigure(errors="backslashreplace")

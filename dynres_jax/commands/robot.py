@@ -26,7 +26,7 @@ import cv2
 import jax
 import numpy as np
 
-from dynres_jax.commands import checks
+from dynres_jax.commands import checks, guard
 from dynres_jax.commands.task import PROGRESS, check_visible, load_model, resolve_pieces, write_episode, write_metrics
 from dynres_jax.config import KINDS, CameraConfig, PileConfig, SceneConfig, SimConfig
 from dynres_jax.control import progress
@@ -139,6 +139,7 @@ def resumed(out: str, source, steps: int):
 
     def kept(now, frames):
         progress.save(saved, now._replace(states=source.state if simulated else None), frames)
+        guard.kept(f"the episode's pushes 1-{len(now.records)} of {steps}")
 
     if not os.path.isfile(saved):
         return None, [], kept

@@ -28,7 +28,7 @@ import imageio.v3 as iio
 import jax
 import numpy as np
 
-from dynres_jax.commands import checks, docstring
+from dynres_jax.commands import checks, docstring, guard
 from dynres_jax.commands.planner_args import add_budget_args, check_budget, load_timing
 from dynres_jax.config import (
     DEFAULT_PIECES,
@@ -249,6 +249,7 @@ def run_resumable(out: str, fresh: bool, env: PileEnv, state, chooser: Chooser, 
         progress.save(saved, now, frames.frames)
         if timing is not None:
             timing.save(table)
+        guard.kept(f"the episode's steps 1-{len(now.records)} of {cfg.mpc_steps}")
 
     state, records = run_episode(env, state, chooser, dynamics, cfg, key, timing=timing, on_step=[frames],
                                  resume=resume, on_progress=keep)  # keep saved the table after the last step too
