@@ -251,3 +251,20 @@ def test_a_fixed_omega_times_only_its_bucket(scene, monkeypatch, tmp_path):
         gather.main(["--time-budget", "1", "--resolution", "25", "--dynamics", "sweep", "--pieces", "20",
                      "--mpc-steps", "1", "--samples", "4", "--out", str(tmp_path / "gather")])
     assert asked == [[25]]
+
+
+def test_a_budget_says_what_it_affords_before_the_episode(capsys):
+    """A run under --time-budget says, before its first step, how many Adam steps a decision gets at each ω by the
+    table (by hand: (budget - fixed) / step), so a budget that leaves one step is not silent; none is refused."""
+    from dynres_jax.commands.planner_args import check_budget
+    from dynres_jax.errors import InputError
+
+    table = TimingTable("cpu", 50, 1, {b: 0.2 for b in budget.BUCKETS}, {b: 0.04 for b in budget.BUCKETS})
+    cfg = MPCConfig(planner=PlannerConfig(samples=50, adam_steps=100), time_budget=0.25)
+    expected = adam_steps(table.key(50, cfg.buckets), 100, 0.25, table)
+    check_budget(cfg, table, [50])
+    line = capsys.readouterr().out.strip()
+    assert line.startswith(f"--time-budget 0.25 s on cpu affords {expected} Adam step(s) at ω = 50 a decision"), line
+    assert 1 <= expected <= 2 and "without a budget: 100" in line
+    with pytest.raises(InputError, match="affords no Adam step"):
+        check_budget(MPCConfig(planner=PlannerConfig(samples=50, adam_steps=100), time_budget=0.1), table, [50])

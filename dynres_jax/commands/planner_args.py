@@ -49,12 +49,17 @@ def check_budget(cfg: MPCConfig, table: budget.TimingTable | None, omegas) -> No
     among ω passes the coarsest: a budget may leave the finest ω without steps, which is what it trades)."""
     if cfg.time_budget is None or table is None:
         return
+    afforded = {}
     for omega in sorted(set(omegas)):
         key = table.key(omega, cfg.buckets)
-        if cfg.adam_steps(omega, table) < 1:
+        afforded[omega] = cfg.adam_steps(omega, table)
+        if afforded[omega] < 1:
             raise InputError(f"--time-budget {cfg.time_budget} s affords no Adam step at ω = {omega} on "
                              f"{table.device}: a decision's fixed part takes {table.fixed_s[key]:.3g} s and each "
                              f"step {table.step_s[key]:.3g} s; give a larger budget")
+    print(f"--time-budget {cfg.time_budget} s on {table.device} affords "
+          f"{', '.join(f'{n} Adam step(s) at ω = {w}' for w, n in afforded.items())} a decision (without a budget: "
+          f"{cfg.planner.adam_steps}; the timing table refines this as decisions are timed)", flush=True)
 
 
 PLANNER_OPTIONS = dict(starts=PlannerConfig.starts, resamples=PlannerConfig.resamples, vote=PlannerConfig.vote,
