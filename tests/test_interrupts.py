@@ -95,3 +95,29 @@ def test_commands_keep_compiled_programs_between_runs(tmp_path):
     (tmp_path / "a_file").write_text("")
     blocked = run(XDG_CACHE_HOME=str(tmp_path / "a_file"))
     assert blocked.stdout.strip() == "None" and "no compilation cache" in blocked.stderr
+
+
+def test_at_a_terminal_a_command_says_it_is_starting_before_its_imports(tmp_path):
+    """The seconds JAX and MuJoCo take to import are not silent at a terminal: the first line comes before them
+    (a pipe, as in logs and the tests' other runs, gets no such line)."""
+    import pty
+
+    leader, follower = pty.openpty()
+    run = subprocess.Popen([sys.executable, "-X", "importtime", "-m", "experiments.goal", "--disc", "0", "0", "0.05",
+                            "--out", str(tmp_path / "g.png")], stdout=subprocess.PIPE, stderr=follower,
+                           env=dict(os.environ, JAX_PLATFORMS="cpu"))
+    os.close(follower)
+    said = b""
+    while True:
+        try:
+            chunk = os.read(leader, 65536)
+        except OSError:  # the child closed the terminal
+            break
+        if not chunk:
+            break
+        said += chunk
+    assert run.wait(timeout=300) == 0
+    lines = said.decode().splitlines()
+    start = next(i for i, line in enumerate(lines) if "experiments.goal: starting" in line)
+    first_jax = next(i for i, line in enumerate(lines) if line.split("|")[-1].strip() == "jax")
+    assert start < first_jax  # said before JAX was imported

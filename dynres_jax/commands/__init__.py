@@ -52,12 +52,16 @@ def main(argv=None) -> None:
 
 def entry(name: str):
     """Command ``name``'s main, its flags first checked against the flag table (``flags.precheck``: a bad flag is
-    refused before the command's heavy imports), then the command itself."""
+    refused before the command's heavy imports), then the command itself; at a terminal a line first says what the
+    seconds of imports are (JAX and MuJoCo take 5-20 s to load on a small CPU)."""
 
     def main(argv=None):
-        from dynres_jax.commands.flags import precheck
+        from dynres_jax.commands.flags import precheck, prog
 
-        precheck(name, sys.argv[1:] if argv is None else list(argv))
+        args = sys.argv[1:] if argv is None else list(argv)
+        precheck(name, args)
+        if sys.stderr.isatty() and not {"-h", "--help"} & set(args):
+            print(f"{prog(name)}: starting (loading JAX and MuJoCo)", file=sys.stderr, flush=True)
         return importlib.import_module(f"dynres_jax.commands.{name}").main(argv)
 
     return main
