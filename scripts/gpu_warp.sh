@@ -80,8 +80,8 @@ if stage gpus; then
     # shellcheck disable=SC2086
     ( GPUS=$g PER_GPU=1; . "$(dirname "$0")/gpu_job.sh"
       job "$WORK/logs/data_G$g.log" python -m experiments.generate_data --out "$WORK/data/G$g" --episodes "$EPISODES" \
-        --pushes 10 --worlds "${GPU_WORLDS:-256}" --seed 13 --workers "$workers" --no-progress \
-        ${GPU_FLAGS:---backend warp} ${DATA_FLAGS:-} )
+        --pushes 10 --worlds "${GPU_WORLDS:-256}" --seed 13 --no-progress ${GPU_FLAGS:---backend warp} \
+        $(case "${GPU_FLAGS:-}" in *mujoco*) echo --workers "$workers";; esac) ${DATA_FLAGS:-} )
     log "gpus $g: $(since "$t0") s end to end"
   done
   pack
