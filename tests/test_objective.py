@@ -18,11 +18,10 @@ from dynres_jax.control.goals import (
     random_polygon_goal,
     signed_distance,
     sort_goals,
-    squared_distance_to,
     text_goal,
     with_objective,
 )
-from dynres_jax.control.objective import bilinear, distribution_distance, inside_share
+from dynres_jax.control.objective import bilinear, distribution_distance, inside_share, squared_distance_to
 from dynres_jax.perception import foreground
 from dynres_jax.sim.camera import Camera
 from dynres_jax.sim.env import PileEnv

@@ -19,7 +19,7 @@ from jax.tree_util import Partial
 
 from dynres_jax.chunks import in_chunks
 from dynres_jax.control.goals import Goal, KindGoals
-from dynres_jax.control.objective import SAMPLES_PER_PARTICLE, kind_costs, kind_objective, objective
+from dynres_jax.control.objective import SAMPLES_PER_PARTICLE
 from dynres_jax.control.planner import PlannerConfig, plan, sample_pushes
 from dynres_jax.perception import Perceived, check_particles, cloud_particles, perceive
 from dynres_jax.sim.env import State
@@ -37,38 +37,14 @@ class DecisionSpec:
     real_depth: bool = False
 
 
-def _cost(camera, goal, positions, mask):
-    return objective(positions, mask, goal, camera)
-
-
-def _kind_cost(camera, goals, kinds, baseline, positions, mask):
-    return kind_objective(positions, mask, kinds, goals, camera, baseline)
-
-
-@functools.cache
-def _camera_cost(camera, per_kind: bool):
-    """One function object per camera: the planner's compile cache keys a cost by its function's identity."""
-    return functools.partial(_kind_cost if per_kind else _cost, camera)
-
-
 def goal_cost(goal: Goal | KindGoals, camera, capacity: int | None = None, kinds=None, baseline=None) -> Partial:
-    """The planner's cost: the task objective c of predicted particles against ``goal`` (a pytree argument, so a new
-    goal for the same camera reuses the compiled plan); for KindGoals, Sort's objective (``kind_objective``) with the
-    particles' kinds [N] and each kind's c now, baseline [K]. capacity: the particle slots; the goal's samples are
-    cut to the SAMPLES_PER_PARTICLE × capacity that c can use at ω <= capacity (the same c, on fewer samples)."""
-    per_kind = isinstance(goal, KindGoals)
-    if per_kind != (kinds is not None) or per_kind != (baseline is not None):
-        raise ValueError("particle kinds and a baseline go with KindGoals (Sort's per-kind goals), and only with them")
+    """The planner's cost: the task objective c of predicted particles against ``goal``, as the goal carries it
+    (``Goal.planner_cost``; KindGoals: Sort's objective with the particles' kinds [N] and each kind's c now, baseline
+    [K]). capacity: the particle slots; the goal's samples are cut to the SAMPLES_PER_PARTICLE × capacity that c can
+    use at ω <= capacity (the same c, on fewer samples)."""
     if capacity is not None:
-        cut = SAMPLES_PER_PARTICLE * capacity
-
-        def fewer(g: Goal) -> Goal:
-            return g._replace(samples=g.samples[..., :cut, :], sample_mask=g.sample_mask[..., :cut])
-
-        goal = goal._replace(goals=fewer(goal.goals)) if per_kind else fewer(goal)
-    if per_kind:
-        return Partial(_camera_cost(camera, True), goal, kinds, baseline)
-    return Partial(_camera_cost(camera, False), goal)
+        goal = goal.cut(SAMPLES_PER_PARTICLE * capacity)
+    return goal.planner_cost(camera, kinds, baseline)
 
 
 def decide(seen: Perceived, goal: Goal | KindGoals, key, init, warm, adam_steps, *, spec: DecisionSpec, dynamics,
@@ -80,14 +56,9 @@ def decide(seen: Perceived, goal: Goal | KindGoals, key, init, warm, adam_steps,
     the plan scores each push on (spec.planner.resamples; the first is seen.particles), or None for R = 1. Returns
     (c [], PlanResult)."""
     p = seen.particles
-    if isinstance(goal, KindGoals) and resampled is not None:
+    if goal.labels_kinds and resampled is not None:
         raise ValueError("Sort plans on one re-sampling of the particles: its kinds label the first only")
-    if isinstance(goal, KindGoals):
-        baseline = kind_costs(p.positions, p.mask, seen.kinds, goal, camera)
-        c_now = kind_objective(p.positions, p.mask, seen.kinds, goal, camera, baseline)
-    else:
-        baseline = None
-        c_now = objective(p.positions, p.mask, goal, camera)
+    c_now, baseline = goal.cost_now(p.positions, p.mask, seen.kinds, camera)
     initial = sample_pushes(key, seen.points, seen.valid, spec.planner)
     init = initial[0] if init is None else jnp.where(warm, init, initial[0])  # no warm start: sample 0 stands in
     positions, mask = (p.positions, p.mask) if resampled is None else resampled
@@ -104,7 +75,7 @@ def perceive_and_decide(obs, goal, key, init, warm, omega, adam_steps, kind=None
     (Particles, c [], PlanResult)."""
     k_h, k_plan = jax.random.split(key)
     seen = perceive(obs, camera, omega, k_h, spec.capacity, max_points=spec.max_points, real_depth=spec.real_depth,
-                    kind=kind, with_kinds=isinstance(goal, KindGoals))
+                    kind=kind, with_kinds=goal.labels_kinds)
     resampled = None
     if spec.planner.resamples > 1:
         keys = jax.random.split(jax.random.fold_in(k_h, 1), spec.planner.resamples - 1)
@@ -133,7 +104,7 @@ def decide_batch(obs, goals, keys, init, warm, omega, adam_steps, kinds=None, *,
     warm [] or [B], omega [B], adam_steps [B] and kinds [B] (None: every piece) are traced. The particles are
     checked: bad perception input raises a ValueError naming it (``perception.check_particles``). Returns
     (Particles [B], c [B], PlanResult [B])."""
-    if kinds is not None and isinstance(goals, KindGoals):
+    if kinds is not None and goals.labels_kinds:
         raise ValueError("KindGoals score every kind's particles: a decision perceives every piece (kinds=None)")
     omega = np.asarray(omega, np.int32)
     warm = jnp.broadcast_to(jnp.asarray(warm, bool), omega.shape)

@@ -15,6 +15,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from dynres_jax.config import SceneConfig
+from dynres_jax.control.objective import kind_costs, kind_objective, objective, planner_cost, squared_distance_to
 from dynres_jax.perception import fps
 from dynres_jax.sim.camera import Camera
 
@@ -36,6 +37,22 @@ class Goal(NamedTuple):
     samples: jax.Array
     sample_mask: jax.Array
 
+    labels_kinds = False  # whether c needs each particle's piece kind (perception labels them: KindGoals)
+
+    def cut(self, n: int) -> Goal:
+        """The goal with its first ``n`` samples (FPS order: still an FPS sample; c on fewer samples)."""
+        return self._replace(samples=self.samples[..., :n, :], sample_mask=self.sample_mask[..., :n])
+
+    def cost_now(self, positions, mask, kinds, camera: Camera):
+        """(c of particles positions [N, 3] m with mask [N], the planner's baseline: None); kinds: unused (None)."""
+        return objective(positions, mask, self, camera), None
+
+    def planner_cost(self, camera: Camera, kinds, baseline):
+        """c against this goal as the planner's cost (``objective.planner_cost``); kinds and baseline: None."""
+        if kinds is not None or baseline is not None:
+            raise ValueError("particle kinds and a baseline go with KindGoals (Sort's per-kind goals), not a Goal")
+        return planner_cost(camera, self)
+
 
 class KindGoals(NamedTuple):
     """One goal per piece kind (Sort), a pytree like ``Goal``: goals, a Goal whose every leaf has a leading axis [K]
@@ -48,6 +65,23 @@ class KindGoals(NamedTuple):
     hold: jax.Array
     avoid: jax.Array
     mixing: jax.Array
+
+    labels_kinds = True  # c_k reads each particle's kind
+
+    def cut(self, n: int) -> KindGoals:
+        """Every kind's goal with its first ``n`` samples (``Goal.cut``)."""
+        return self._replace(goals=self.goals.cut(n))
+
+    def cost_now(self, positions, mask, kinds, camera: Camera):
+        """(Sort's c of the particles now, the planner's baseline: each kind's c_k now, [K]); kinds [N] int."""
+        baseline = kind_costs(positions, mask, kinds, self, camera)
+        return kind_objective(positions, mask, kinds, self, camera, baseline), baseline
+
+    def planner_cost(self, camera: Camera, kinds, baseline):
+        """Sort's c (``kind_objective``) as the planner's cost, with the particles' kinds [N] and baseline [K]."""
+        if kinds is None or baseline is None:
+            raise ValueError("KindGoals score particles by kind against a baseline: give both")
+        return planner_cost(camera, self, kinds, baseline)
 
 
 NOWHERE = 1e4  # pixels: the signed distance of a region no pixel is in (KindGoals.avoid when no kind is avoided)
@@ -259,17 +293,6 @@ def sort_goals(camera: Camera, centres, radius: float, *, bin_half_width: float 
 # ---------------------------------------------------------------------------------------------------------------
 # Goal: signed distance field and FPS samples (pixels)
 # ---------------------------------------------------------------------------------------------------------------
-
-def squared_distance_to(mask):
-    """Exact squared Euclidean distance (pixels²) from every pixel centre of mask [H, W] bool's grid to the nearest
-    True pixel centre -> [H, W] float32 (0 on True pixels, +inf everywhere when none is True). Separable: the
-    nearest True pixel of each column, then the best column for each pixel (O(H²W + HW²), memory O(HW))."""
-    mask = jnp.asarray(mask, bool)
-    H, W = mask.shape
-    rows, cols = jnp.arange(H, dtype=jnp.float32), jnp.arange(W, dtype=jnp.float32)
-    column = jax.lax.map(lambda i: jnp.min(jnp.where(mask, jnp.square(rows - i)[:, None], jnp.inf), axis=0), rows)
-    return jax.lax.map(lambda g: jnp.min(g[None, :] + jnp.square(cols[:, None] - cols[None, :]), axis=1), column)
-
 
 def signed_distance(mask) -> jax.Array:
     """mask [H, W] bool -> its signed distance field [H, W] float32 (px): outside a pixel's distance to the nearest

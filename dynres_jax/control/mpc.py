@@ -25,7 +25,7 @@ from dynres_jax.config import check_fields
 from dynres_jax.control import budget
 from dynres_jax.control.choosers import Candidate, Chooser, Orders
 from dynres_jax.control.decision import DecisionSpec, Situation, batch, decide_batch, episode, fold, per_episode
-from dynres_jax.control.goals import Goal, KindGoals
+from dynres_jax.control.goals import Goal
 from dynres_jax.control.keep import KEEPS, keep_lowest_distance, planning_price, scorer
 from dynres_jax.control.objective import seen_inside
 from dynres_jax.control.planner import PlannerConfig
@@ -271,7 +271,7 @@ def _seen(seen, orders: Orders, camera, cfg: MPCConfig) -> dict:
     """{seen_inside [B]}: the share of each frame's foreground its camera sees inside the goal; with Sort's goals
     (one a kind), the lower kind's share of its perceived particles inside its own goal (``sort.SortPolicy``'s
     perceived_inside; {} for a chooser that records none, refused with cfg.stop_share)."""
-    if isinstance(orders.goals, KindGoals):
+    if orders.goals.labels_kinds:
         if "perceived_inside" in orders.record:
             return dict(seen_inside=np.min(np.asarray(orders.record["perceived_inside"], np.float64), axis=-1))
         if cfg.stop_share is not None:

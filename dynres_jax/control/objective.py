@@ -23,14 +23,18 @@ padded particle sets with masks (masked particles are inert), so they ``jax.vmap
 from __future__ import annotations
 
 import functools
+from typing import TYPE_CHECKING
 
 import jax
 import jax.numpy as jnp
+from jax.tree_util import Partial
 
-from dynres_jax.control.goals import Goal, KindGoals, squared_distance_to
 from dynres_jax.models.propagation import gather_rows
 from dynres_jax.perception import foreground
 from dynres_jax.sim.camera import Camera, Observation
+
+if TYPE_CHECKING:  # the goals import c (each goal carries its cost: ``Goal.planner_cost``), not the other way round
+    from dynres_jax.control.goals import Goal, KindGoals
 
 SAMPLES_PER_PARTICLE = 5  # |Q'| = min(5 ω, |Q|) (reference code)
 MAX_PAIRS = 20_000_000  # c's coverage term evaluates at most this many (goal sample, particle) distances at once
@@ -141,6 +145,17 @@ def kind_objective(positions, mask, kinds, goals: KindGoals, camera: Camera, bas
 
 
 @jax.jit
+def squared_distance_to(mask):
+    """Exact squared Euclidean distance (pixels²) from every pixel centre of mask [H, W] bool's grid to the nearest
+    True pixel centre -> [H, W] float32 (0 on True pixels, +inf everywhere when none is True). Separable: the
+    nearest True pixel of each column, then the best column for each pixel (O(H²W + HW²), memory O(HW))."""
+    mask = jnp.asarray(mask, bool)
+    H, W = mask.shape
+    rows, cols = jnp.arange(H, dtype=jnp.float32), jnp.arange(W, dtype=jnp.float32)
+    column = jax.lax.map(lambda i: jnp.min(jnp.where(mask, jnp.square(rows - i)[:, None], jnp.inf), axis=0), rows)
+    return jax.lax.map(lambda g: jnp.min(g[None, :] + jnp.square(cols[:, None] - cols[None, :]), axis=1), column)
+
+
 def _mask_distance(current, goal_mask):
     """d of two pixel masks [H, W] -> scalar (pixels): unsigned, each summed over its pixels, over |current|."""
     to_goal = jnp.sqrt(squared_distance_to(goal_mask))
@@ -153,7 +168,7 @@ def distribution_distance(observation_or_mask, goal: Goal, camera: Camera, **for
     """The paper's metric d (supplement, "Distribution Distance"), unsigned -> scalar (pixels).
 
     d = (Σ_{f∈F} min_{q∈Q} |f − q| + Σ_{q∈Q} min_{f∈F} |f − q|) / |F|, with F the foreground pixels, Q every goal
-    pixel (not a subsample) and distances between pixel centres, exact (``goals.squared_distance_to``). A
+    pixel (not a subsample) and distances between pixel centres, exact (``squared_distance_to``). A
     foreground pixel inside the goal adds 0 (no signed distance). The sum is divided by the foreground pixel count, as
     the reference divides c by ω: a mean per foreground pixel. observation_or_mask: an Observation (its foreground by
     ``perception.foreground``, ``foreground_kw`` passed on: kind= for one kind of a Sort scene) or a foreground
@@ -193,3 +208,25 @@ def inside_share(piece_pos, piece_mask, goal: Goal, camera: Camera):
     in_image = (u >= 0) & (u < camera.width) & (v >= 0) & (v < camera.height)
     hit = piece_mask & in_image & goal.mask[jnp.clip(v, 0, camera.height - 1), jnp.clip(u, 0, camera.width - 1)]
     return jnp.where(finite, jnp.sum(hit) / jnp.maximum(jnp.sum(piece_mask), 1), jnp.nan)
+
+
+def _cost_of(camera, goal, positions, mask):
+    return objective(positions, mask, goal, camera)
+
+
+def _kind_cost_of(camera, goals, kinds, baseline, positions, mask):
+    return kind_objective(positions, mask, kinds, goals, camera, baseline)
+
+
+@functools.cache
+def _camera_cost(camera, per_kind: bool):
+    """One function object per camera: the planner's compile cache keys a cost by its function's identity."""
+    return functools.partial(_kind_cost_of if per_kind else _cost_of, camera)
+
+
+def planner_cost(camera, goal: Goal, *per_kind) -> Partial:
+    """c as the planner's cost ``(positions, mask) -> []`` against ``goal`` (a pytree argument, so a new goal for the
+    same camera reuses the compiled plan); with ``per_kind`` = (kinds [N], baseline [K]), ``kind_objective`` against
+    KindGoals."""
+    return Partial(_camera_cost(camera, bool(per_kind)), goal, *per_kind)
+
