@@ -206,3 +206,32 @@ def test_a_goal_png_is_the_goal_of_the_task_command_and_of_evaluate(tmp_path, ca
         err = capsys.readouterr().err
         assert "--goal-png" in err and words in err, err
         assert not (tmp_path / f"refused{i}").exists()
+
+
+class ToyOmega(FixedOmega):
+    """A chooser a user adds: always ω = 12."""
+
+    def __init__(self, goals):
+        super().__init__(goals, 12)
+
+
+def test_a_new_chooser_is_one_class_and_one_row_reachable_everywhere(tmp_path, monkeypatch):
+    """Issue 68's rule for a new way of choosing ω: a class and one row of ``commands.methods``' table make it a name
+    that evaluate's --methods, a task command's --resolution and the robot's --resolution all take; each run plans at
+    the toy's ω (12, which no default method uses)."""
+    from dynres_jax.commands import methods, robot
+
+    row = methods.Method(chooser=lambda name, goals, args, camera, judge: ToyOmega(goals),
+                         omega=lambda name, args: 12, label=lambda name, omegas: "toy")
+    monkeypatch.setitem(methods.METHODS, "toy", row)
+    few = ["--samples", "4", "--adam-steps", "2", "--dynamics", "sweep"]
+    ran = gather.main(["--resolution", "toy", "--mpc-steps", "1", "--pieces", "20", *few, "--out",
+                       str(tmp_path / "gather")])
+    assert ran["resolution"] == "toy" and [s["omega"] for s in ran["steps"] if "omega" in s] == [12]
+    pushed = robot.main(["--resolution", "toy", "--steps", "1", "--pieces", "30", "--dry-run", *few, "--out",
+                         str(tmp_path / "robot")])
+    assert [s["omega"] for s in pushed["steps"] if "omega" in s] == [12]
+    evaluate.main(["--quick", "--episodes", "2", "--mpc-steps", "1", "--methods", "toy", "50", *few, "--workers", "1",
+                   "--out", str(tmp_path / "evaluate")])
+    toy = json.loads((tmp_path / "evaluate" / "toy.json").read_text())
+    assert np.all(np.asarray(toy["omega"]) == 12)

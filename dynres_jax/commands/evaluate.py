@@ -44,10 +44,10 @@ import numpy as np
 from jax._src import xla_bridge  # whether the backends have started: XLA reads XLA_FLAGS when they do
 
 from dynres_jax import distributed, progress
-from dynres_jax.commands import checks
+from dynres_jax.commands import checks, methods
 from dynres_jax.commands.evaluate_methods import (
-    METHODS,
-    SORT_METHODS,
+    DEFAULT_METHODS,
+    SORT_DEFAULT,
     SORT_ONLY,
     check_cnn,
     check_methods,
@@ -68,7 +68,6 @@ from dynres_jax.commands.planner_args import (
 from dynres_jax.commands.task import check_pile, check_visible, load_model, objectives_text
 from dynres_jax.config import DEFAULT_PIECES, KINDS, CameraConfig, PileConfig, SceneConfig, SimConfig
 from dynres_jax.control import resolution, tasks
-from dynres_jax.control.choosers import ORACLE_OMEGAS, PROBE_OMEGAS
 from dynres_jax.control.goals import OBJECTIVES, make_goals, with_objective
 from dynres_jax.control.mpc import run
 from dynres_jax.control.sort import ARRIVED, MIXING
@@ -112,7 +111,7 @@ def build_parser():
                                  f"{name} {task.objective}" for name, task in sorted(tasks.TASKS.items())) +
                              "; Sort: against each target disc")
     parser.add_argument("--methods", nargs="+", default=None,
-                        help=f"default {' '.join(METHODS)} (Sort: {' '.join(SORT_METHODS)}). "
+                        help=f"default {' '.join(DEFAULT_METHODS)} (Sort: {' '.join(SORT_DEFAULT)}). "
                              "Fixed ω (integers), 'adaptive' (the regressor picks ω), 'probe' (every step plans at "
                              "each ω of PROBE_OMEGAS on a share of the budget, keeps the one the model rates best per "
                              "second: no labels), 'oracle' (every step keeps the "
@@ -258,8 +257,7 @@ def check_args(parser, args):
     cfg = mpc_config(env, args, args.mpc_steps)
     if table is not None:  # a given table must afford every method a step, before the first method runs
         check_budget(cfg, table, method_omegas(args))
-    finest = max(max(ORACLE_OMEGAS) if m == "oracle" else max(PROBE_OMEGAS) if m == "probe" else w
-                 for m, w in zip(args.methods, method_omegas(args), strict=True))  # adaptive: at least OMEGA_MIN
+    finest = max(methods.finest(m, args) for m in args.methods)
     check_visible(parser, env.reset(tasks.episode_keys(args.seed, [0])[0][0]).obs, env.camera, finest, cfg)
     return rank, size, sim, main_model, cnn_model, judge
 

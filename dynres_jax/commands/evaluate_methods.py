@@ -1,30 +1,19 @@
-"""``evaluate``'s methods: the flags that name them (checked before any work), the chooser each one plans with, and
-the ω it plans at. Gather and Redistribute take every method; Sort (``--task sort``) plans along A*'s waypoints at one
-ω a step (``sort.SortEpisodes``: one ``SortPolicy`` per episode), so it takes a fixed ω and the ladder's rungs (bestK,
-sim, rerank) at --best-omega.
+"""``evaluate``'s methods (``commands.methods``' table): the flags that name them (checked before any work), the
+chooser each one plans with, and the ω it plans at. Gather and Redistribute take every method; Sort (``--task sort``)
+plans along A*'s waypoints at one ω a step (``sort.SortEpisodes``: one ``SortPolicy`` per episode), so it takes a
+fixed ω and the ladder's rungs (bestK, sim, rerank) at --best-omega.
 """
 
 from __future__ import annotations
 
-from dynres_jax.config import OMEGA_MAX, OMEGA_MIN
-from dynres_jax.control import resolution
-from dynres_jax.control.choosers import (
-    ORACLE_OMEGAS,
-    AdaptiveOmega,
-    Chooser,
-    FixedOmega,
-    OracleOmega,
-    ProbeOmega,
-    climb,
-    on_ladder,
-)
-from dynres_jax.control.judge import JudgeScored
+from dynres_jax.commands import methods
+from dynres_jax.control.choosers import Chooser, climb, on_ladder
 from dynres_jax.control.sort import ARRIVED, MIXING, SortEpisodes, SortPolicy
 from dynres_jax.io import ckpt
 from dynres_jax.models.registry import describe, trained_n_max
 
-METHODS = ["10", "25", "50", "75", "100", "adaptive"]  # --methods' default (Sort's: SORT_METHODS)
-SORT_METHODS = ["50"]
+DEFAULT_METHODS = ["10", "25", "50", "75", "100", "adaptive"]  # --methods' default (Sort's: SORT_DEFAULT)
+SORT_DEFAULT = ["50"]
 SORT_ONLY = ("arrived", "grid_step", "mixing")  # flags of Sort alone: not among another task's recorded settings
 GRID_STEP = 0.02  # m: Sort's A* grid unless --grid-step
 
@@ -32,7 +21,7 @@ GRID_STEP = 0.02  # m: Sort's A* grid unless --grid-step
 def default_methods(args, sort: bool) -> None:
     """--methods' default for the task (sort: whether it is Sort) when none are given."""
     if args.methods is None:
-        args.methods = list(SORT_METHODS if sort else METHODS)
+        args.methods = list(SORT_DEFAULT if sort else DEFAULT_METHODS)
 
 
 def check_methods(parser, args, sort: bool) -> None:
@@ -40,10 +29,8 @@ def check_methods(parser, args, sort: bool) -> None:
     parser.error naming a method no task runs, a method Sort cannot run, or Sort's flag given to another task."""
     default_methods(args, sort)
     for m in args.methods:
-        fixed = m.isdigit() and OMEGA_MIN <= int(m) <= OMEGA_MAX
-        if m not in ("adaptive", "probe", "oracle", "cnn", "judge") and not fixed and not on_ladder(m):
-            parser.error(f"--methods takes 'adaptive', 'probe', 'oracle', 'cnn', 'judge', 'sim', 'rerank', 'bestK' "
-                         f"(K >= 1) or integers in [{OMEGA_MIN}, {OMEGA_MAX}], got {m!r}")
+        if methods.method(m) is None:
+            parser.error(f"--methods takes {methods.NAMES}, got {m!r}")
     args.methods = [str(int(m)) if m.isdigit() else m for m in args.methods]  # "050" is ω = 50
     if len(set(args.methods)) < len(args.methods):
         parser.error(f"--methods names a method twice: {' '.join(args.methods)}")
@@ -57,7 +44,7 @@ def check_methods(parser, args, sort: bool) -> None:
     args.arrived = ARRIVED if args.arrived is None else args.arrived
     args.grid_step = GRID_STEP if args.grid_step is None else args.grid_step
     args.mixing = MIXING if args.mixing is None else args.mixing
-    odd = [m for m in args.methods if not (m.isdigit() or on_ladder(m))]
+    odd = [m for m in args.methods if not methods.method(m).sort]
     if odd:
         parser.error(f"--methods: Sort plans along A*'s waypoints at one ω a step (fixed ω, or bestK, sim and rerank "
                      f"at --best-omega); it cannot run {' '.join(odd)}")
@@ -66,23 +53,11 @@ def check_methods(parser, args, sort: bool) -> None:
                      "not through a depth camera's errors")
 
 
-def method_chooser(method: str, goals, args, camera, judge=None) -> Chooser:
-    """The chooser of an evaluation method against goals [B]: a fixed ω ("50"; "cnn" at --cnn-omega), the
-    regressor ("adaptive"), the probe of PROBE_OMEGAS judged by the model ("probe"), the oracle over
-    ORACLE_OMEGAS, the best of K plans at --best-omega ("bestK", e.g. "best5"), the simulator choosing among
-    the planner's first samples ("sim") or among its plans after the model's Adam steps ("rerank"), both at
-    --best-omega, or the judge (``judge``: radius -> --judge's model) choosing among those plans ("judge")."""
-    if method == "judge":
-        return JudgeScored(FixedOmega(goals, args.best_omega), judge)
-    if method == "adaptive":
-        return AdaptiveOmega(goals, resolution.load_regressor(args.regressor, camera))
-    if method == "oracle":
-        return OracleOmega(goals, ORACLE_OMEGAS)
-    if method == "probe":
-        return ProbeOmega(goals)
-    if on_ladder(method):
-        return climb(FixedOmega(goals, args.best_omega), method)
-    return FixedOmega(goals, args.cnn_omega if method == "cnn" else int(method))
+def method_chooser(name: str, goals, args, camera, judge=None) -> Chooser:
+    """The chooser of evaluation method ``name`` against goals [B] (``methods.METHODS``' row: a fixed ω, "cnn" at
+    --cnn-omega, the regressor, the probe, the oracle, the ladder's rungs at --best-omega, or the judge, ``judge``:
+    radius -> --judge's model, choosing among the model's plans)."""
+    return methods.method(name).chooser(name, goals, args, camera, judge)
 
 
 def sort_chooser(method: str, drawn: list[dict], env, cfg, keys, episodes, args) -> Chooser:
@@ -97,20 +72,16 @@ def sort_chooser(method: str, drawn: list[dict], env, cfg, keys, episodes, args)
     return climb(chooser, method) if on_ladder(method) else chooser
 
 
-def method_omega(method: str, args) -> int | None:
-    """The one ω a method plans at (a fixed ω, --best-omega of bestK, sim and rerank, cnn's --cnn-omega), or None for
-    the methods that choose among ω (adaptive, oracle)."""
-    if method.isdigit():
-        return int(method)
-    if on_ladder(method) or method == "judge":
-        return args.best_omega
-    return args.cnn_omega if method == "cnn" else None
+def method_omega(name: str, args) -> int | None:
+    """The one ω a method plans at (a fixed ω, --best-omega of the ladder and the judge, cnn's --cnn-omega), or None
+    for the methods that choose among ω (adaptive, probe, oracle)."""
+    return methods.method(name).omega(name, args)
 
 
 def method_omegas(args) -> list[int]:
     """The ω at which each method of --methods must afford an Adam step under a budget: a fixed method's ω, the
     coarsest for those that choose among ω."""
-    return [OMEGA_MIN if (w := method_omega(m, args)) is None else w for m in args.methods]
+    return [methods.coarsest(m, args) for m in args.methods]
 
 
 def check_cnn(parser, args) -> None:

@@ -13,8 +13,8 @@ from __future__ import annotations
 import jax
 import numpy as np
 
+from dynres_jax.commands import methods
 from dynres_jax.control import tasks
-from dynres_jax.control.choosers import best_of
 from dynres_jax.stats import mcnemar, paired_bootstrap, wilson
 
 
@@ -107,19 +107,10 @@ def summarise(results: dict, task: str) -> dict:
     return summary
 
 
-def label(method: str, r: dict) -> str:
-    """A method's name in the plots: "ω = 50", "adaptive", "CNN, ω = 50", "best of 5, ω = 50"."""
-    if method.isdigit():
-        return f"ω = {method}"
-    if best_of(method):
-        return f"best of {best_of(method)}, ω = {round(float(np.mean(r['omega'])))}"
-    if method == "sim":
-        return "simulator chooses among samples"
-    if method == "rerank":
-        return "simulator ranks the model's plans"
-    if method == "judge":
-        return "judge ranks the model's plans"
-    return f"CNN, ω = {round(float(np.mean(r['omega'])))}" if method == "cnn" else method
+def label(name: str, r: dict) -> str:
+    """A method's name in the plots (``methods.METHODS``' label): "ω = 50", "adaptive", "CNN, ω = 50", "best of 5,
+    ω = 50"."""
+    return methods.method(name).label(name, r["omega"])
 
 
 def report(summary: dict) -> None:

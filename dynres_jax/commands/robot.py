@@ -26,8 +26,17 @@ import cv2
 import jax
 import numpy as np
 
-from dynres_jax.commands import checks, guard
-from dynres_jax.commands.task import PROGRESS, check_visible, load_model, resolve_pieces, write_episode, write_metrics
+from dynres_jax.commands import checks, guard, methods
+from dynres_jax.commands.task import (
+    PROGRESS,
+    add_resolution_args,
+    check_visible,
+    load_model,
+    resolution_chooser,
+    resolve_pieces,
+    write_episode,
+    write_metrics,
+)
 from dynres_jax.config import KINDS, CameraConfig, PileConfig, SceneConfig, SimConfig
 from dynres_jax.control import progress
 from dynres_jax.control.goals import disc_goal, make_goal
@@ -61,7 +70,7 @@ def build_parser():
     parser.add_argument("--steps", type=checks.count(1), default=20, help="pushes at most")
     parser.add_argument("--success", type=checks.number(0.01, 1.0), default=STOP_SHARE,
                         help="stop when this share of the foreground lies inside the goal")
-    parser.add_argument("--resolution", type=checks.omega, default=50, help="ω")
+    add_resolution_args(parser)
     parser.add_argument("--samples", type=checks.samples, default=50)
     parser.add_argument("--adam-steps", type=checks.adam_steps, default=100)
     parser.add_argument("--ckpt", default=SHIPPED_DYNAMICS)
@@ -80,12 +89,11 @@ def main(argv=None):
     sim = SimConfig(scene=SceneConfig(kinds=(args.kind,), pieces=(args.pieces,)), pile=PileConfig(layout="spread"),
                     camera=CameraConfig(width=args.image_size, height=args.image_size))
     model = load_model(parser, args.dynamics, args.ckpt, sim.scene.plate_half_width)
-    if args.resolution > model.n_max:
-        parser.error(f"--resolution {args.resolution} exceeds the model's n_max = {model.n_max}")
     env = PileEnv(sim, backend="mujoco", render=args.replay is None)
     source = ReplaySource(args.replay) if args.replay else SimulatedRobot(env, jax.random.PRNGKey(args.seed),
                                                                           SENSORS[args.sensor])
     camera = source.camera
+    _, choose, read = resolution_chooser(parser, args, camera, model.n_max)
     try:
         goal_mask = load_goal(args.goal, camera) if args.goal else disc_goal(camera, np.zeros(2), 0.08)
         make_goal(goal_mask, camera)
@@ -97,23 +105,23 @@ def main(argv=None):
     cfg = MPCConfig(mpc_steps=args.steps, real_depth=True, planner=planner_config(
         env, samples=args.samples, adam_steps=args.adam_steps, seed=args.seed))
     if isinstance(source, SimulatedRobot):  # the first frame, as the camera gives it, can hold ω particles
-        check_visible(parser, source.peek(), camera, args.resolution, cfg, flag="--image-size",
+        check_visible(parser, source.peek(), camera, methods.finest(args.resolution, args), cfg, flag="--image-size",
                       remedy="a larger --image-size, more --pieces or a lower --resolution")
     checks.claim(args.out, "robot", checks.settings(args), args.fresh,
-                 {"--ckpt": args.ckpt, "--goal": args.goal, "--replay": args.replay})
+                 {"--ckpt": args.ckpt, "--goal": args.goal, "--replay": args.replay, **read})
     pusher = DryRun() if args.dry_run or args.replay else source
     resume, frames, kept = resumed(args.out, source, args.steps)
 
     def record(t, obs, particles, step):  # the robot's view: saved as a camera saves it, and a GIF frame
         save_frame(os.path.join(args.out, "frames", f"{t:03d}"), obs, camera)
-        label = caption(particles, dict(step=t, omega=[args.resolution], distance=[step["distance"]],
+        label = caption(particles, dict(step=t, omega=[step.get("omega", args.resolution)], distance=[step["distance"]],
                                         inside=[step["inside"]]))
         frames.append(overlay(np.asarray(obs.rgb), goal_mask, particles, camera, label=label,
                               push=step.get("action")))
 
     print(f"robot: {'replay of ' + args.replay if args.replay else 'the simulator'} ({args.sensor} camera), "
           f"{'dry run' if isinstance(pusher, DryRun) else 'pushing'}; dynamics {model.name}; ω = {args.resolution}")
-    steps = run_robot(source, pusher, goal_mask, model.dynamics, cfg, args.resolution, jax.random.PRNGKey(args.seed),
+    steps = run_robot(source, pusher, goal_mask, model.dynamics, cfg, choose, jax.random.PRNGKey(args.seed),
                       workspace=Workspace.of(env), success=args.success, on_step=record,
                       bin_size=(sim.scene.bin_half_width, sim.scene.wall_height) if args.calibrate else None,
                       resume=resume, on_progress=lambda now: kept(now, frames))

@@ -28,12 +28,11 @@ import imageio.v3 as iio
 import jax
 import numpy as np
 
-from dynres_jax.commands import checks, docstring, guard
+from dynres_jax.commands import checks, docstring, guard, methods
 from dynres_jax.commands.planner_args import add_budget_args, check_budget, load_timing
 from dynres_jax.config import (
     DEFAULT_PIECES,
     KINDS,
-    OMEGA_MAX,
     OMEGA_MIN,
     CameraConfig,
     PileConfig,
@@ -41,7 +40,7 @@ from dynres_jax.config import (
     SimConfig,
 )
 from dynres_jax.control import budget, progress, tasks
-from dynres_jax.control.choosers import AdaptiveOmega, Chooser, FixedOmega
+from dynres_jax.control.choosers import Chooser
 from dynres_jax.control.decision import batch
 from dynres_jax.control.goals import OBJECTIVES, make_goal, with_objective
 from dynres_jax.control.judge import JudgeScored
@@ -74,6 +73,40 @@ def objectives_text() -> str:
     return " or ".join(f"'{name}' ({words})" for name, words in OBJECTIVES.items())
 
 
+def add_resolution_args(parser: argparse.ArgumentParser) -> None:
+    """--resolution (a fixed ω, or a method of ``commands.methods`` that keeps by the model) and --regressor."""
+    parser.add_argument("--resolution", type=methods.resolution_arg, default="50",
+                        help="ω, the particles the planner reasons with: an integer, 'adaptive' (the regressor g picks "
+                             "ω every step) or 'probe' (each step plans at 25, 50 and 100 and keeps the plan the "
+                             "model rates best); neither is the default: neither beats the best fixed ω "
+                             "(docs/results.md)")
+    parser.add_argument("--regressor", default=None,
+                        help=f"regressor checkpoint for --resolution adaptive (default {SHIPPED_REGRESSOR})")
+
+
+def resolution_chooser(parser: argparse.ArgumentParser, args, camera, n_max: int
+                       ) -> tuple[int | None, Callable[..., Chooser], dict]:
+    """--resolution's (ω or None where it chooses among ω, goals [B] -> its Chooser, the files it reads by flag),
+    parser.error naming --resolution or --regressor before any work."""
+    name = args.resolution
+    row = methods.method(name)
+    omega = row.omega(name, args)
+    if methods.finest(name, args) > n_max:
+        parser.error(f"--resolution {name} plans at ω up to {methods.finest(name, args)}, beyond the model's n_max = "
+                     f"{n_max}")
+    read = {}
+    if row.needs != "--regressor" and args.regressor is not None:
+        parser.error(f"--regressor is for --resolution adaptive; --resolution {name} would not use it")
+    if row.needs == "--regressor":
+        args = argparse.Namespace(**{**vars(args), "regressor": args.regressor or SHIPPED_REGRESSOR})
+        try:
+            load_regressor(args.regressor, camera)  # readable, before any work
+        except CheckpointError as e:
+            parser.error(f"--regressor: {e}")
+        read["--regressor"] = args.regressor
+    return omega, lambda goals: row.chooser(name, goals, args, camera, None), read
+
+
 def add_loop_args(parser: argparse.ArgumentParser, task: str, adaptive: bool = True) -> None:
     """The flags every closed-loop task command takes (``--out`` defaults to out/TASK); adaptive: whether
     ``--resolution`` may be 'adaptive' (Sort plans at one ω)."""
@@ -93,12 +126,7 @@ def add_loop_args(parser: argparse.ArgumentParser, task: str, adaptive: bool = T
     if not adaptive:
         parser.add_argument("--resolution", type=checks.omega, default=50, help="ω: particles the planner reasons with")
     else:
-        parser.add_argument("--resolution", default="50",
-                            help="ω, the particles the planner reasons with: an integer, or 'adaptive' (the regressor "
-                                 "g picks ω every step; not the default: it does not beat the best fixed ω, "
-                                 "docs/results.md)")
-        parser.add_argument("--regressor", default=None,
-                            help=f"regressor checkpoint for --resolution adaptive (default {SHIPPED_REGRESSOR})")
+        add_resolution_args(parser)
         parser.add_argument("--judge", default=None, metavar="CKPT",
                             help="a second dynamics checkpoint that chooses among the planner's refined candidates "
                                  "(control/judge.py); default: none, the planner's own best plan is pushed")
@@ -146,52 +174,45 @@ def load_model(parser: argparse.ArgumentParser, choice: str, ckpt_dir: str, plat
 @dataclass(frozen=True)
 class Loop:
     """What the loop flags ask for: the simulator, the planner's model, the MPC settings, the timing table of
-    --timing (or None), and ω or, for --resolution adaptive, the regressor g's ``(obs [B], goals [B]) -> ω [B]``
-    (omega None); inputs: the files read, by flag (``checks.claim``'s); judge: --judge's model, or None."""
+    --timing (or None), the ω --resolution plans at (None where it chooses among ω, ``commands.methods``) and its
+    chooser's factory (goals [B] -> Chooser); inputs: the files read, by flag (``checks.claim``'s); judge: --judge's
+    model, or None."""
 
     env: PileEnv
     model: LoadedDynamics
     cfg: MPCConfig
     timing: budget.TimingTable | None
     omega: int | None
-    regressor: Callable | None
+    choose: Callable[..., Chooser]
     inputs: dict
     judge: LoadedDynamics | None = None
 
     def chooser(self, goals) -> Chooser:
-        """The loop's chooser against goals [B]: the regressor's ω (adaptive) or the fixed ω; with a judge, its choice
-        among that plan's refined candidates."""
-        chooser = FixedOmega(goals, self.omega) if self.regressor is None else AdaptiveOmega(goals, self.regressor)
+        """The loop's chooser against goals [B]: --resolution's; with a judge, its choice among that plan's refined
+        candidates."""
+        chooser = self.choose(goals)
         return chooser if self.judge is None else JudgeScored(chooser, self.judge.dynamics)
 
 
 def build_loop(args, sim: SimConfig, parser: argparse.ArgumentParser, task: str) -> Loop:
     """The ``Loop`` of ``task``'s loop flags; parser.error naming a bad flag, before any work (the scene is built
     last)."""
-    omega = str(args.resolution)
-    if omega != "adaptive" and (not omega.isdigit() or not OMEGA_MIN <= int(omega) <= OMEGA_MAX):
-        parser.error(f"--resolution must be 'adaptive' or an integer in [{OMEGA_MIN}, {OMEGA_MAX}], got {omega!r}")
     model = load_model(parser, args.dynamics, args.ckpt, sim.scene.plate_half_width, shipped_dynamics(task))
-    if omega != "adaptive" and int(omega) > model.n_max:
-        parser.error(f"--resolution {omega} exceeds the model's n_max = {model.n_max}")
+    if isinstance(args.resolution, int):  # Sort: one ω, a SortPolicy plans at it
+        if args.resolution > model.n_max:
+            parser.error(f"--resolution {args.resolution} exceeds the model's n_max = {model.n_max}")
+        omega, choose, read = args.resolution, None, {}
+    else:
+        omega, choose, read = resolution_chooser(parser, args, Camera.top_down(sim.camera), model.n_max)
     timing = load_timing(parser, args)
-    regressor = None
-    if omega != "adaptive" and getattr(args, "regressor", None) is not None:
-        parser.error(f"--regressor is for --resolution adaptive; with a fixed ω ({omega}) nothing would use it")
     inputs = {"--ckpt": None if args.dynamics == "sweep" else args.ckpt or shipped_dynamics(task),
-              "--timing": args.timing}
+              "--timing": args.timing, **read}
     judge = None
     if getattr(args, "judge", None) is not None:
         judge = load_model(parser, "learned", args.judge, sim.scene.plate_half_width, flag="--judge")
-        if omega != "adaptive" and int(omega) > judge.n_max:
-            parser.error(f"--resolution {omega} exceeds the judge's n_max = {judge.n_max}")
+        if methods.finest(str(args.resolution), args) > judge.n_max:
+            parser.error(f"--resolution {args.resolution} exceeds the judge's n_max = {judge.n_max}")
         inputs["--judge"] = args.judge
-    if omega == "adaptive":
-        inputs["--regressor"] = args.regressor or SHIPPED_REGRESSOR
-        try:
-            regressor = load_regressor(inputs["--regressor"], Camera.top_down(sim.camera))
-        except CheckpointError as e:
-            parser.error(f"--regressor: {e}")
     env = engines.make_env(sim, checks.engine(parser, args.backend))
     try:
         planner = planner_config(env, samples=args.samples, adam_steps=args.adam_steps, seed=args.seed)
@@ -199,8 +220,8 @@ def build_loop(args, sim: SimConfig, parser: argparse.ArgumentParser, task: str)
                         stop_share=checks.stop_rule(args.stop_share))
     except ValueError as e:
         parser.error(str(e))
-    check_budget(cfg, timing, [OMEGA_MIN] if regressor else [int(omega)])
-    return Loop(env, model, cfg, timing, None if regressor else int(omega), regressor, inputs, judge)
+    check_budget(cfg, timing, [OMEGA_MIN if omega is None else omega])
+    return Loop(env, model, cfg, timing, omega, choose, inputs, judge)
 
 
 def check_visible(parser: argparse.ArgumentParser, obs, camera: Camera, omega: int, cfg: MPCConfig,
@@ -310,7 +331,7 @@ def main(task: str, argv=None):
                      f"--letter {args.letter!r}: {e}" if spec.letter else str(e))
     loop.inputs["--goal-png"] = args.goal_png
     state = env.reset(jax.random.PRNGKey(args.seed))
-    check_visible(parser, state.obs, env.camera, loop.omega or OMEGA_MIN, cfg)
+    check_visible(parser, state.obs, env.camera, methods.finest(args.resolution, args), cfg)
     done = finished(args.out, checks.claim(args.out, task, checks.settings(args), args.fresh, loop.inputs), args.fresh)
     if done is not None:
         return done
@@ -328,8 +349,8 @@ def main(task: str, argv=None):
         args.out, args.fresh, env, state, loop.chooser(batch(goal)), loop.model.dynamics, cfg,
         jax.random.PRNGKey(args.seed), timing, frames,
         lambda: measure_timing(state.obs, goal, loop.model.dynamics, cfg, env.camera,
-                               omegas=None if loop.regressor else [loop.omega]),
-        [OMEGA_MIN] if loop.regressor else [loop.omega])
+                               omegas=None if loop.omega is None else [loop.omega]),
+        [OMEGA_MIN if loop.omega is None else loop.omega])
     write_episode(args.out, frames.finish(batch(state)))
     summary = dict(task=task, seed=args.seed, kind=args.kind, pieces=args.pieces, dynamics=loop.model.name,
                    judge=None if loop.judge is None else loop.judge.name, goal=goal_info, resolution=args.resolution,
