@@ -89,8 +89,12 @@ def test_commands_keep_compiled_programs_between_runs(tmp_path):
         return done
 
     folder = tmp_path / "dynres-jax" / "jax"
-    assert run().stdout.strip() == str(folder)
-    assert any(folder.iterdir())  # the program is kept
+    first = run()
+    assert first.stdout.strip() == str(folder) and "compilation cache" not in first.stderr, first.stderr
+    kept = sorted(folder.iterdir())
+    assert kept  # the program is kept
+    again = run()  # read back: no warning (JAX's eviction without filelock read nothing), nothing new written
+    assert "compilation cache" not in again.stderr and sorted(folder.iterdir()) == kept, again.stderr
     assert run(DYNRES_JAX_CACHE="off", XDG_CACHE_HOME=str(tmp_path / "other")).stdout.strip() == "None"
     (tmp_path / "a_file").write_text("")
     blocked = run(XDG_CACHE_HOME=str(tmp_path / "a_file"))

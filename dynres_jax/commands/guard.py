@@ -20,7 +20,6 @@ from dynres_jax.commands.flags import prog
 from dynres_jax.errors import InputError, JobError
 
 RUN = "run.json"  # the output folder's record (``checks.claim``): a folder that has one holds finished work
-CACHE_BYTES = 2 * 1024**3  # the compilation cache's size limit
 running: dict[str, str | None] = {"out": None}  # the --out of the command running here (``checks.Parser`` sets it)
 
 
@@ -142,8 +141,8 @@ def use_compilation_cache() -> None:
     """JAX's persistent compilation cache in ``compilation_cache_dir()``: a rerun, a resume after Ctrl-C and the main
     job's second run load what the first compiled (on a 2-core CPU compiling is most of a short run) instead of
     compiling again. A loaded program is the one the compiler wrote, so results do not change. Programs that compiled
-    in under a second are not kept; past 2 GiB the least recently used go. A folder that cannot be made leaves the
-    cache off, said in one line."""
+    in under a second are not kept; the folder is the user's to delete. A folder that cannot be made leaves the cache
+    off, said in one line."""
     folder = compilation_cache_dir()
     if folder is None or jax.config.jax_compilation_cache_dir == folder:
         return
@@ -153,9 +152,8 @@ def use_compilation_cache() -> None:
         print(f"note: no compilation cache ({folder!r}: {e.strerror or e}); every run compiles afresh "
               "(DYNRES_JAX_CACHE=off silences this)", file=sys.stderr)
         return
-    jax.config.update("jax_compilation_cache_dir", folder)
-    if jax.config.jax_compilation_cache_max_size == -1:  # JAX's default, no limit: the least recently used go first
-        jax.config.update("jax_compilation_cache_max_size", CACHE_BYTES)
+    jax.config.update("jax_compilation_cache_dir", folder)  # no size limit: JAX's eviction needs the filelock
+    # package, and without it the cache reads nothing back
 
 
 def _disk_full(e: BaseException) -> OSError | None:
