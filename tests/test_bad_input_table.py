@@ -369,3 +369,18 @@ def test_bad_input_is_one_line_naming_it_exit_2_and_writes_nothing(command, argv
     assert "Traceback" not in err
     assert not os.path.exists(tmp_path / "out")
     assert before == {f: _snapshot(fx[f]) for f in before}
+
+
+@pytest.mark.skipif(jax.default_backend() != "cpu", reason="needs a machine without CUDA")
+def test_a_platform_that_cannot_start_inside_a_jitted_goal_is_one_line(fx, tmp_path):
+    """plan meets JAX_PLATFORMS=cuda first inside a jitted function (the goal's fields), where JAX's traceback
+    filtering hides the backend's frame: still the one line naming the variable, exit status 2 (it was a traceback)."""
+    import subprocess
+    import sys
+
+    argv = [a.format(**fx) for a in FRAME] + ["--samples", "4", "--adam-steps", "2", "--out", str(tmp_path / "p.png")]
+    done = subprocess.run([sys.executable, "-m", "experiments.plan", *argv], capture_output=True, text=True,
+                          env={**os.environ, "JAX_PLATFORMS": "cuda"}, timeout=300,
+                          cwd=os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+    lines = [line for line in done.stderr.splitlines() if line.strip()]
+    assert done.returncode == 2 and len(lines) == 1 and "JAX_PLATFORMS='cuda'" in lines[0], done.stderr[-2000:]
