@@ -125,3 +125,22 @@ def test_at_a_terminal_a_command_says_it_is_starting_before_its_imports(tmp_path
     start = next(i for i, line in enumerate(lines) if "experiments.goal: starting" in line)
     first_jax = next(i for i, line in enumerate(lines) if line.split("|")[-1].strip() == "jax")
     assert start < first_jax  # said before JAX was imported
+
+
+def test_a_signal_during_exit_after_the_command_ended_prints_nothing():
+    """A Ctrl-C that arrives while the interpreter runs its exit hooks (JAX's clears its caches, seconds on a loaded
+    machine) had nothing to stop but printed 'Exception ignored in atexit callback' and a traceback: once a command
+    has ended, its exit ignores the signals. The probe's own hook stands in for JAX's (registered before guarded)."""
+    probe = ("import atexit, os, signal, time\n"
+             "def jax_like_clean_up():\n"
+             "    os.kill(os.getpid(), signal.SIGINT)\n"
+             "    time.sleep(0.5)\n"
+             "    print('exit hook done', flush=True)\n"
+             "atexit.register(jax_like_clean_up)\n"
+             "signal.signal(signal.SIGINT, signal.default_int_handler)\n"
+             "from dynres_jax.commands import guard\n"
+             "guard.guarded('simulate')(lambda argv: 0)([])\n")
+    done = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, timeout=300,
+                          env=dict(os.environ, JAX_PLATFORMS="cpu"))
+    assert done.returncode == 0 and "exit hook done" in done.stdout, done.stderr
+    assert "Traceback" not in done.stderr and "Exception ignored" not in done.stderr, done.stderr

@@ -5,6 +5,7 @@ persistent compilation cache every command uses (``use_compilation_cache``)."""
 
 from __future__ import annotations
 
+import atexit
 import errno
 import functools
 import os
@@ -64,6 +65,13 @@ def _interrupted(name: str) -> str:
     return f"{prog(name)}: interrupted before writing anything; rerun the same command to start again"
 
 
+def _ignore_signals() -> None:
+    """At exit, once a command has ended: Ctrl-C and SIGTERM have nothing left to stop, and one arriving while JAX's
+    own exit hook clears its caches printed 'Exception ignored in atexit callback' and a traceback."""
+    for s in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(s, signal.SIG_IGN)
+
+
 def guarded(name: str):
     """Decorator of a command's ``main(argv)``: an ``InputError`` raised anywhere in it (a damaged file found while
     reading, a folder of another run) is printed as one line naming the input, exit status 2, as argparse does; a
@@ -84,6 +92,9 @@ def guarded(name: str):
             # and exported files keep one precision
             use_compilation_cache()
             in_main = threading.current_thread() is threading.main_thread()  # signal handlers are set only there
+            if in_main:  # after JAX's exit hook is registered (on import), so it runs first (last in, first out)
+                atexit.unregister(_ignore_signals)
+                atexit.register(_ignore_signals)
             # SIGINT only where Python's own handler is set: an ignored one (a shell's background job) stays ignored
             ours = [signal.SIGTERM] + ([signal.SIGINT] if signal.getsignal(signal.SIGINT)
                                        is signal.default_int_handler else [])
