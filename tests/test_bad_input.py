@@ -139,10 +139,25 @@ def test_a_bad_camera_json_names_its_field(field, value, message):
 
 def test_absurd_image_sizes_are_refused_with_the_limit():
     from dynres_jax.config import CameraConfig
+    from dynres_jax.control.goals import disc_goal, make_goal
     from dynres_jax.sim.camera import Camera
 
     with pytest.raises(ValueError, match=r"100000 x 128 pixels is outside \[8, 4096\]"):
         Camera.top_down(CameraConfig(width=100_000))
+    cam = Camera.top_down(CameraConfig(width=32, height=32))
+    with pytest.raises(ValueError, match=r"n_samples must be an int in \[1, 100000\], got 10000000"):
+        make_goal(disc_goal(cam, (0.0, 0.0), 0.05), cam, 10**7)  # ran for minutes without a word
+
+
+def test_a_number_flag_says_finite_without_infinite_bounds():
+    import argparse
+
+    from dynres_jax.commands import checks
+
+    with pytest.raises(argparse.ArgumentTypeError, match=r"^expected a finite number, got nan$"):
+        checks.number()("nan")
+    with pytest.raises(argparse.ArgumentTypeError, match=r"expected a finite number in \[0, 1\], got 2"):
+        checks.number(0, 1)("2")
 
 
 @pytest.mark.parametrize("make, message", [

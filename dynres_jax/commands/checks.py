@@ -76,8 +76,9 @@ def number(low: float = -math.inf, high: float = math.inf, *, above: bool = Fals
         except ValueError:
             raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
         if not math.isfinite(value) or value < low or value > high or (above and value == low):
-            bounds = f"{'(' if above else '['}{low:g}, {high:g}]"
-            raise argparse.ArgumentTypeError(f"expected a finite number in {bounds}, got {text}")
+            bounded = math.isfinite(low) or math.isfinite(high)
+            bounds = f" in {'(' if above else '['}{low:g}, {high:g}]" if bounded else ""
+            raise argparse.ArgumentTypeError(f"expected a finite number{bounds}, got {text}")
         return value
 
     parse.__name__ = "number"

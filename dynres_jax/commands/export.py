@@ -32,6 +32,7 @@ from dynres_jax.commands import checks
 from dynres_jax.config import CameraConfig, PushConfig, SceneConfig
 from dynres_jax.control.budget import bucket_for
 from dynres_jax.control.decision import DecisionSpec
+from dynres_jax.control.goals import MAX_GOAL_SAMPLES
 from dynres_jax.control.planner import PlannerConfig
 from dynres_jax.io import frames
 from dynres_jax.io.ckpt import CheckpointError
@@ -68,7 +69,7 @@ def main(argv=None):
     parser.add_argument("--camera", default=None,
                         help="camera JSON (Camera.to_json: K, rotation, centre, width, height) of the robot's frames "
                              "and goals, its pose calibrated (default: the simulator's top-down 128 x 128 camera)")
-    parser.add_argument("--goal-samples", type=checks.count(1, 100_000), default=export.DEFAULT_GOAL_SAMPLES,
+    parser.add_argument("--goal-samples", type=checks.count(1, MAX_GOAL_SAMPLES), default=export.DEFAULT_GOAL_SAMPLES,
                         help="Q, the goal's FPS samples (goals.make_goal's n_samples)")
     parser.add_argument("--platforms", nargs="+", choices=PLATFORMS, default=None,
                         help=f"platforms to lower for (default: this machine's, now "

@@ -327,9 +327,12 @@ def _checked_mask(mask, camera: Camera, what: str = "goal mask") -> np.ndarray:
     return mask
 
 
+MAX_GOAL_SAMPLES = 100_000  # Q at most: FPS over the goal is O(Q x pixels); 10^7 ran for minutes without a word
+
+
 def _check_samples(n_samples) -> int:
-    if not isinstance(n_samples, int | np.integer) or n_samples < 1:
-        raise ValueError(f"n_samples must be a positive int, got {n_samples!r}")
+    if not isinstance(n_samples, int | np.integer) or not 1 <= n_samples <= MAX_GOAL_SAMPLES:
+        raise ValueError(f"n_samples must be an int in [1, {MAX_GOAL_SAMPLES}], got {n_samples!r}")
     return int(n_samples)
 
 
