@@ -65,7 +65,8 @@ def fx(tmp_path_factory):
     for name, image in {"goal": goal, "empty_goal": np.zeros_like(goal), "small_goal": goal[:64, :64],
                         "corner_goal": np.pad(np.full((6, 6), 255, np.uint8), ((0, h - 6), (0, w - 6))),
                         "depth_metres": np.ones((h, w), np.uint16), "zero_depth": np.zeros((h, w), np.uint16),
-                        "small_rgb": np.zeros((64, 64, 3), np.uint8), "wide_goal": np.pad(goal, ((0, 0), (0, w)))}.items():
+                        "small_rgb": np.zeros((64, 64, 3), np.uint8), "wide_goal": np.pad(goal, ((0, 0), (0, w))),
+                        "full_goal": np.full((h, w), 255, np.uint8)}.items():
         p[name] = str(root / f"{name}.png")
         cv2.imwrite(p[name], image)
     replay = root / "replay_damaged"  # frame 000 good, frame 001's depth not an image
@@ -317,6 +318,7 @@ GO = [  # goal
     (["--disc", "0", "0", "0.5"], "outside the bin"), (["--disc", "0", "0", "0.1", "--letter", "T"], "not allowed"),
     (["--letter", " "], "--letter"), (["--letter", "T", "--height", "0.9"], "outside"),
     (["--mask", "/nonexistent"], "--mask"), (["--mask", "{wide_goal}"], "aspect ratio"), (["--mask", "{empty_goal}"], "no goal"),
+    (["--mask", "{full_goal}"], "outside the workspace"),  # goal pixels beyond the bin, as a disc there is refused
     (["--disc", "0", "0", "0.05", "--camera", "{cam_negative_f}"], "camera file"),
     (["--disc", "0", "0", "0.05", "--out", "goal.txt"], "--out"), (["--disc", "0", "0", "0.05", "--out", "{file}/g.png"], "--out"),
     (["--disc", "0", "0", "0.05", "--out", "{foreign}/" + "g" * 252 + ".png"], "256 bytes"),  # a name the file system refuses

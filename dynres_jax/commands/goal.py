@@ -20,7 +20,7 @@ import numpy as np
 
 from dynres_jax.commands import checks
 from dynres_jax.config import CameraConfig
-from dynres_jax.control.goals import BIN_HALF_WIDTH, disc_goal, text_goal
+from dynres_jax.control.goals import BIN_HALF_WIDTH, check_within, disc_goal, text_goal
 from dynres_jax.errors import InputError
 from dynres_jax.io.frames import load_camera, read_image, save_goal
 from dynres_jax.sim.camera import Camera
@@ -65,8 +65,9 @@ def main(argv=None):
             mask = text_goal(camera, args.letter, args.centre, args.height, bin_half_width=args.bin_half_width)
         else:
             mask = mask_goal(args.mask, camera)
+            check_within(mask, camera, args.bin_half_width)  # as discs and letters are
     except ValueError as e:
-        parser.error(str(e))
+        parser.error(f"--mask: {e}" if args.mask else str(e))
     save_goal(args.out, mask)
     out = dict(goal=args.out, width=camera.width, height=camera.height, pixels=int(mask.sum()))
     print(json.dumps(out))
