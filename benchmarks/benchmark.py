@@ -95,6 +95,8 @@ def main(argv=None):
     parser.add_argument("--batch", choices=["benchmark", "task"], help="resolution: 1,500 candidates (benchmark) or "
                         "50 (task); default benchmark on a GPU, task on a CPU")
     args = parser.parse_args(argv)
+    if args.json is not None:  # before minutes of timing, not after (the audit: a folder lost a whole run)
+        checks.out_file(args.json, (".json",), beside=".md" if args.what == "all" else "", flag="--json")
     if args.what == "all":
         from benchmarks import bench_perception, bench_planner, bench_sim
 

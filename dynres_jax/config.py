@@ -104,6 +104,9 @@ def check_kind_names(kinds, field: str) -> None:
 DEFAULT_PIECES: dict[str, int] = {"coffee": 100, "almond": 25, "rice": 49, "mnm": 87, "granola": 69, "candy": 20}
 
 
+MAX_PIECES = 10_000  # pieces of one kind at most (a 0.4 m bin holds a few hundred): past it, a count is a typo
+
+
 @dataclass(frozen=True)
 class SceneConfig:
     """What is on the table and how MuJoCo simulates it.
@@ -155,8 +158,8 @@ class SceneConfig:
         for k in self.kinds:
             if k not in KINDS:
                 raise ValueError(f"unknown piece kind {k!r}; known kinds: {sorted(KINDS)}")
-        if min(self.pieces) < 1:
-            raise ValueError(f"every kind needs at least one piece, got pieces={self.pieces}")
+        if min(self.pieces) < 1 or max(self.pieces) > MAX_PIECES:
+            raise ValueError(f"every kind needs between 1 and {MAX_PIECES} pieces, got pieces={self.pieces}")
         if self.plate_geom not in ("capsule", "box"):
             raise ValueError(f"plate_geom must be 'capsule' or 'box', got {self.plate_geom!r}")
         if self.solver not in ("CG", "Newton"):

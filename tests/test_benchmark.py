@@ -126,3 +126,12 @@ def test_the_warp_benchmark_reports_a_failing_graph_mode_as_a_row(monkeypatch):
     out = bench_warp.run(worlds=[100], graph_modes=["NONE"])
     assert out["best"] is None and out["together"] == dict(failed="no Warp row ran") and out["warp_over_c"] is None
     assert "| Warp + C at once | - | - | failed: no Warp row ran | - |" in bench_warp.table(out)
+
+
+def test_a_json_path_that_cannot_take_the_result_is_refused_before_timing(tmp_path, monkeypatch, capsys):
+    """--json naming a folder (or without .json) is one line before any timing: it failed after the whole run."""
+    monkeypatch.setattr(bench_planner, "run", lambda quick: pytest.fail("timed before checking --json"))
+    for bad in (str(tmp_path), str(tmp_path / "result.txt")):
+        with pytest.raises(SystemExit) as ended:
+            benchmark.main(["planner", "--quick", "--json", bad])
+        assert ended.value.code == 2 and "--json" in capsys.readouterr().err

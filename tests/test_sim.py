@@ -64,7 +64,7 @@ def test_granola_sizes_are_mixed():
 
 @pytest.mark.parametrize("bad, message", [
     (dict(kinds=("pebble",), pieces=(3,)), "unknown piece kind 'pebble'"),
-    (dict(pieces=(0,)), "at least one piece"),
+    (dict(pieces=(0,)), "between 1 and 10000 pieces"), (dict(pieces=(10_001,)), "between 1 and 10000 pieces"),
     (dict(kinds=("coffee", "candy"), pieces=(3,)), "equal length"),
     (dict(joints="hinged"), "joints must be"),
 ])

@@ -119,21 +119,21 @@ def text(value: str) -> str:
     return value
 
 
-def out_file(text: str, suffixes: tuple[str, ...], beside: str = "") -> str:
-    """An output file path: not a folder, ending in one of ``suffixes``, a name the file system takes (with
-    ``beside``, the suffix of a second file written next to it, e.g. ".json"), in a folder that exists and is
-    writable or can be made (nothing is created here)."""
+def out_file(text: str, suffixes: tuple[str, ...], beside: str = "", flag: str = "--out") -> str:
+    """An output file path given as ``flag``: not a folder, ending in one of ``suffixes``, a name the file system
+    takes (with ``beside``, the suffix of a second file written next to it, e.g. ".json"), in a folder that exists
+    and is writable or can be made (nothing is created here)."""
     if os.path.isdir(text) or text.endswith(os.sep):
-        raise InputError(f"--out {text!r} is a folder; give a file name ending in {' or '.join(suffixes)}")
+        raise InputError(f"{flag} {text!r} is a folder; give a file name ending in {' or '.join(suffixes)}")
     if not text.lower().endswith(suffixes):
-        raise InputError(f"--out {text!r}: give a file name ending in {' or '.join(suffixes)}")
-    _check_can_create(os.path.dirname(os.path.abspath(text)))
-    _check_name_length(os.path.abspath(text) + beside)
+        raise InputError(f"{flag} {text!r}: give a file name ending in {' or '.join(suffixes)}")
+    _check_can_create(os.path.dirname(os.path.abspath(text)), flag)
+    _check_name_length(os.path.abspath(text) + beside, flag)
     return text
 
 
-def _check_name_length(path: str) -> None:
-    """InputError naming --out when a part of ``path`` is longer than its file system takes (NAME_MAX bytes)."""
+def _check_name_length(path: str, flag: str = "--out") -> None:
+    """InputError naming ``flag`` when a part of ``path`` is longer than its file system takes (NAME_MAX bytes)."""
     folder = os.path.dirname(path)
     while not os.path.exists(folder):
         folder = os.path.dirname(folder)
@@ -143,7 +143,7 @@ def _check_name_length(path: str) -> None:
         limit = 255
     for part in path.split(os.sep):
         if len(os.fsencode(part)) > limit:
-            raise InputError(f"--out: the name {part[:24]!r}... is {len(os.fsencode(part))} bytes; this file system "
+            raise InputError(f"{flag}: the name {part[:24]!r}... is {len(os.fsencode(part))} bytes; this file system "
                              f"takes at most {limit}")
 
 
@@ -320,15 +320,15 @@ def _changed(earlier: dict | None, now: dict) -> str:
     return "" if earlier == now else "of other inputs; rerun with its inputs to resume"
 
 
-def _check_can_create(path: str) -> None:
-    """InputError naming --out unless ``path`` exists as a writable folder, or the nearest folder above it that exists
-    is writable and no file stands in the way (nothing is created here)."""
+def _check_can_create(path: str, flag: str = "--out") -> None:
+    """InputError naming ``flag`` unless ``path`` exists as a writable folder, or the nearest folder above it that
+    exists is writable and no file stands in the way (nothing is created here)."""
     folder = os.path.abspath(path)
     while not os.path.exists(folder):
         folder = os.path.dirname(folder)
     if not os.path.isdir(folder) or not os.access(folder, os.W_OK):
         why = "a file" if os.path.isfile(folder) else "not writable"
-        raise InputError(f"--out: cannot write to {path!r} ({folder!r} is {why})")
+        raise InputError(f"{flag}: cannot write to {path!r} ({folder!r} is {why})")
 
 
 def _differences(earlier: dict, now: dict) -> str:

@@ -155,7 +155,7 @@ def check_pile(parser: argparse.ArgumentParser, kinds, pieces) -> None:
     (``tasks.check_pile_fits``), from the config alone."""
     try:
         tasks.check_pile_fits(SceneConfig(kinds=tuple(kinds), pieces=tuple(pieces)))
-    except InputError as e:
+    except (InputError, ValueError) as e:
         parser.error(f"--pieces: {e}")
 
 
