@@ -144,7 +144,6 @@ def kind_objective(positions, mask, kinds, goals: KindGoals, camera: Camera, bas
     return jnp.sum(jnp.where(goals.hold, jax.nn.relu(costs - baseline), costs))
 
 
-@jax.jit
 def squared_distance_to(mask):
     """Exact squared Euclidean distance (pixels²) from every pixel centre of mask [H, W] bool's grid to the nearest
     True pixel centre -> [H, W] float32 (0 on True pixels, +inf everywhere when none is True). Separable: the
@@ -156,6 +155,7 @@ def squared_distance_to(mask):
     return jax.lax.map(lambda g: jnp.min(g[None, :] + jnp.square(cols[:, None] - cols[None, :]), axis=1), column)
 
 
+@jax.jit
 def _mask_distance(current, goal_mask):
     """d of two pixel masks [H, W] -> scalar (pixels): unsigned, each summed over its pixels, over |current|."""
     to_goal = jnp.sqrt(squared_distance_to(goal_mask))
