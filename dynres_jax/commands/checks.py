@@ -134,11 +134,8 @@ def out_file(text: str, suffixes: tuple[str, ...], beside: str = "", flag: str =
 
 def _check_name_length(path: str, flag: str = "--out") -> None:
     """InputError naming ``flag`` when a part of ``path`` is longer than its file system takes (NAME_MAX bytes)."""
-    folder = os.path.dirname(path)
-    while not os.path.exists(folder):
-        folder = os.path.dirname(folder)
     try:
-        limit = os.pathconf(folder, "PC_NAME_MAX")
+        limit = os.pathconf(_nearest_existing(os.path.dirname(path)), "PC_NAME_MAX")
     except (OSError, ValueError):
         limit = 255
     for part in path.split(os.sep):
@@ -320,12 +317,18 @@ def _changed(earlier: dict | None, now: dict) -> str:
     return "" if earlier == now else "of other inputs; rerun with its inputs to resume"
 
 
-def _check_can_create(path: str, flag: str = "--out") -> None:
-    """InputError naming ``flag`` unless ``path`` exists as a writable folder, or the nearest folder above it that
-    exists is writable and no file stands in the way (nothing is created here)."""
+def _nearest_existing(path: str) -> str:
+    """``path`` made absolute, or the nearest folder above it that exists."""
     folder = os.path.abspath(path)
     while not os.path.exists(folder):
         folder = os.path.dirname(folder)
+    return folder
+
+
+def _check_can_create(path: str, flag: str = "--out") -> None:
+    """InputError naming ``flag`` unless ``path`` exists as a writable folder, or the nearest folder above it that
+    exists is writable and no file stands in the way (nothing is created here)."""
+    folder = _nearest_existing(path)
     if not os.path.isdir(folder) or not os.access(folder, os.W_OK):
         why = "a file" if os.path.isfile(folder) else "not writable"
         raise InputError(f"{flag}: cannot write to {path!r} ({folder!r} is {why})")

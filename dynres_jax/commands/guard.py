@@ -56,12 +56,18 @@ def _resend(signum: int) -> None:
         os.kill(os.getpid(), signum)
 
 
+def _kept() -> str:
+    """What the ended command kept, for its last line ("" when its --out holds no finished work)."""
+    out, what = running["out"], running.get("kept")
+    if not out or not os.path.isfile(os.path.join(out, RUN)):
+        return ""
+    return f"finished work is kept in {out}{f' ({what})' if what else ''}; "
+
+
 def _interrupted(name: str) -> str:
     """The line an interrupted command ends with: what it kept and how to go on."""
-    out, what = running["out"], running.get("kept")
-    if out and os.path.isfile(os.path.join(out, RUN)):
-        return (f"{prog(name)}: interrupted; finished work is kept in {out}{f' ({what})' if what else ''}; rerun the "
-                "same command to resume")
+    if _kept():
+        return f"{prog(name)}: interrupted; {_kept()}rerun the same command to resume"
     return f"{prog(name)}: interrupted before writing anything; rerun the same command to start again"
 
 
@@ -176,12 +182,6 @@ def _disk_full(e: BaseException) -> OSError | None:
             return e
         e = e.__cause__ or e.__context__
     return None
-
-
-def _kept() -> str:
-    """What an ended run kept, for the line it ends with."""
-    out = running["out"]
-    return f"finished work is kept in {out}; " if out and os.path.isfile(os.path.join(out, RUN)) else ""
 
 
 def _platform_failed(e: BaseException) -> bool:

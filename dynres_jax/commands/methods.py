@@ -86,19 +86,17 @@ def method(name: str) -> Method | None:
     return LADDER if on_ladder(name) else METHODS.get(name)
 
 
-def finest(name: str, args) -> int:
-    """The finest ω method ``name`` may plan at (its one ω, or the largest of the ω it chooses among)."""
-    row = method(name)
-    if row.finest is not None:
-        return row.finest(name, args)
-    omega = row.omega(name, args)
-    return OMEGA_MIN if omega is None else omega  # adaptive: at least OMEGA_MIN
-
-
 def coarsest(name: str, args) -> int:
     """The ω at which method ``name`` must afford an Adam step under a budget: its one ω, else the coarsest."""
     omega = method(name).omega(name, args)
     return OMEGA_MIN if omega is None else omega
+
+
+def finest(name: str, args) -> int:
+    """The finest ω method ``name`` may plan at: the largest of the ω it chooses among, else ``coarsest`` (its one
+    ω; adaptive: at least OMEGA_MIN)."""
+    row = method(name)
+    return coarsest(name, args) if row.finest is None else row.finest(name, args)
 
 
 def by_model(name: str) -> bool:

@@ -33,7 +33,6 @@ from dynres_jax.commands.planner_args import add_budget_args, check_budget, load
 from dynres_jax.config import (
     DEFAULT_PIECES,
     KINDS,
-    OMEGA_MIN,
     CameraConfig,
     PileConfig,
     SceneConfig,
@@ -220,7 +219,7 @@ def build_loop(args, sim: SimConfig, parser: argparse.ArgumentParser, task: str)
                         stop_share=checks.stop_rule(args.stop_share))
     except ValueError as e:
         parser.error(str(e))
-    check_budget(cfg, timing, [OMEGA_MIN if omega is None else omega])
+    check_budget(cfg, timing, [methods.coarsest(str(args.resolution), args)])
     return Loop(env, model, cfg, timing, omega, choose, inputs, judge)
 
 
@@ -350,7 +349,7 @@ def main(task: str, argv=None):
         jax.random.PRNGKey(args.seed), timing, frames,
         lambda: measure_timing(state.obs, goal, loop.model.dynamics, cfg, env.camera,
                                omegas=None if loop.omega is None else [loop.omega]),
-        [OMEGA_MIN if loop.omega is None else loop.omega])
+        [methods.coarsest(args.resolution, args)])
     write_episode(args.out, frames.finish(batch(state)))
     summary = dict(task=task, seed=args.seed, kind=args.kind, pieces=args.pieces, dynamics=loop.model.name,
                    judge=None if loop.judge is None else loop.judge.name, goal=goal_info, resolution=args.resolution,
