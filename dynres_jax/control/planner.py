@@ -268,8 +268,11 @@ def _plan(dynamics_fn, cost_fn, positions, mask, key, init, initial, adam_steps,
     if init is not None:
         actions = actions.at[0].set(project(init, c.bound, c.min_length, c.max_length, c.reach))
 
-    starts = [x for x in (init, initial) if x is not None]
-    inputs_bad = (jnp.where(jnp.all(jnp.array([jnp.all(jnp.isfinite(x)) for x in starts] + [True])), 0, BAD_START)
+    starts_finite = jnp.array(True)
+    for x in (init, initial):
+        if x is not None:
+            starts_finite &= jnp.all(jnp.isfinite(x))
+    inputs_bad = (jnp.where(starts_finite, 0, BAD_START)
                   | jnp.where((adam_steps < 0) | (adam_steps > c.adam_steps), BAD_STEPS, 0))
     dynamics_fn, context = _prepared(dynamics_fn, positions, mask)
     if not c.vote:

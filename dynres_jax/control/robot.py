@@ -49,7 +49,7 @@ from dynres_jax.control.mpc import MPCConfig, Progress, announce, propose, shift
 from dynres_jax.control.objective import distribution_distance, seen_inside
 from dynres_jax.errors import InputError
 from dynres_jax.io.files import check_input
-from dynres_jax.io.frames import load_camera, load_frame
+from dynres_jax.io.frames import load_frame
 from dynres_jax.perception import calibrate, foreground
 from dynres_jax.sim import pushes
 from dynres_jax.sim.camera import Camera, Observation
@@ -118,10 +118,9 @@ class ReplaySource:
         if not names:
             raise InputError(f"replay folder {folder!r} holds no frame (sub-folders with depth.png, rgb.png and "
                              "camera.json, as io.frames.save_frame writes them)")
-        self.folders = [os.path.join(folder, n) for n in names]
-        self.camera, self.next = load_camera(os.path.join(self.folders[0], "camera.json")), 0
-        self.frames = [load_frame(*(os.path.join(here, n) for n in ("depth.png", "rgb.png", "camera.json")))[0]
-                       for here in self.folders]
+        read = [load_frame(*(os.path.join(folder, name, n) for n in ("depth.png", "rgb.png", "camera.json")))
+                for name in names]
+        self.frames, self.camera, self.next = [obs for obs, _ in read], read[0][1], 0
 
     def read(self) -> Observation:
         if self.next >= len(self.frames):
