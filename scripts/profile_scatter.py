@@ -6,9 +6,14 @@ same inputs are compared bit for bit.
     PYTHONPATH=. python scripts/profile_scatter.py [VARIANT ...] [--steps 100] [--profile]
 
 Variants: float (a plain float scatter-add: the speed to beat; does not repeat), int30 (the library's: 30-bit fixed
-point summed as int32), limb1 (24-bit fixed point as integer-valued float32: float atomics add it exactly), limb2
-(two such limbs, 38 bits, one scatter each), onehot (a one-hot matrix product, bf16 x 3), sorted32 (each row's
-terms gathered through a sort, at most 32 a row). ``--profile`` prints the 12 slowest kernels at bucket 64 (through
+point summed as int32), int30pad (the same into one more row), int30t (the same with the channels leading), limb1
+(24-bit fixed point as integer-valued float32: float atomics add it exactly), limb2 (two such limbs, 38 bits, one
+scatter each), onehot (a one-hot matrix product, bf16 x 3), sorted32 (each row's terms gathered through a sort, at
+most 32 a row), compare (every sum a fused [E, n, C] reduction: no atomics), dense (a graph's senders' sum as a dense
+[N, N] layout reduced over the receivers, other sums by compare), dense_int30 (the same, other sums int30),
+densepair (the planner's pair-table step: its gradient recomputed over all N x N pairs, no gather; other sums by
+compare), densepair_int30, forward (the planner's gradient by forward mode: 4T tangents through a model with no
+hand-written gradient; no scatter anywhere). ``--profile`` prints the 12 slowest kernels at bucket 64 (through
 torch.profiler, on a GPU). Prints ms per Adam step, whether two plans are bit-identical, and the variant's best cost.
 """
 
@@ -84,7 +89,91 @@ def sorted32(index, values, n, bound=None, cap=32):
     return jnp.sum(jnp.concatenate([flat, jnp.zeros_like(flat[:1])])[rows], axis=1)
 
 
-VARIANTS = dict(float=plain_float, int30=LIBRARY, limb1=limb1, limb2=limb2, onehot=onehot, sorted32=sorted32)
+def int30pad(index, values, n, bound=None):
+    """The library's sum into n + 1 rows, the last dropped (at bucket 64 the rows equal the 64 channels)."""
+    return LIBRARY(index, values, n + 1, bound)[:n]
+
+
+def int30t(index, values, n, bound=None):
+    """The library's sum with the channels leading: each channel's rows summed as a [C, n] scatter."""
+    index, flat = _rows(index, values)
+    total = jnp.sum(jnp.abs(flat), axis=0) if bound is None else jnp.asarray(bound, jnp.float32)
+    scale = jnp.ldexp(jnp.ones_like(total), jnp.minimum(propagation.FIXED_POINT_BITS - jnp.frexp(total)[1], 126))
+    terms = jnp.round(flat * scale).astype(jnp.int32).T  # [C, E]
+    summed = jnp.zeros((flat.shape[-1], n), jnp.int32).at[:, index].add(terms).T
+    return jnp.where(jnp.isfinite(total), summed.astype(jnp.float32) / scale, jnp.nan)
+
+
+def compare(index, values, n, bound=None):
+    """Each output row sums the terms whose index matches it: a fused [E, n, C] reduction over E (no atomics)."""
+    index, flat = _rows(index, values)
+    return jnp.sum(jnp.where((index[:, None] == jnp.arange(n))[..., None], flat[:, None, :], 0.0), axis=0)
+
+
+def senders_dense(neighbours, per_edge, n):
+    """The senders' sum of a graph as ``graph.build_edges`` makes it (in row i every entry is i itself, a non-edge,
+    or a sender j != i that no other entry of the row repeats): each row's edges laid out densely, [i, j] -> the
+    entry of row i whose sender is j (or zero), then summed over the receivers i. A gather and a reduction."""
+    k = neighbours.shape[1]
+    rows = jnp.arange(n)
+    own = neighbours == rows[:, None]  # [N, k]: self entries
+    hit = (neighbours[:, :, None] == rows) & ~own[..., None]  # [N(i), k, N(j)]
+    slot = jnp.sum(jnp.where(hit, jnp.arange(k)[:, None], 0), axis=1) + k * ~jnp.any(hit, axis=1)  # [N, N]
+    padded = jnp.concatenate([per_edge, jnp.zeros_like(per_edge[:, :1])], axis=1)  # [N, k + 1, C]
+    dense = jnp.take_along_axis(padded, slot[..., None], axis=1)  # [N(i), N(j), C]
+    return jnp.sum(dense, axis=0) + jnp.sum(jnp.where(own[..., None], per_edge, 0.0), axis=1)
+
+
+def _graph_or(other):
+    """A sum that takes a graph's senders' sum (index [N, k] into N rows) to ``senders_dense``, others to other."""
+    def add(index, values, n, bound=None):
+        if index.ndim == 2 and index.shape[0] == n and values.ndim == 3:
+            return senders_dense(index, jnp.asarray(values, jnp.float32), n)
+        return other(index, values, n, bound)
+    return add
+
+
+def _dense_pair_bwd(pair, residuals, grad):
+    """The propagation step's gradient with the pair table's edges recomputed densely over all N x N pairs: the
+    senders' sum is a reduction over the receivers (no scatter, no gather); other graphs as the library's."""
+    if not pair:
+        return LIBRARY_BWD(pair, residuals, grad)
+    constant, neighbours, edge_mask, node_terms, count = residuals
+    n, h = node_terms.shape[0], node_terms.shape[-1] // 2
+    adjacent = jnp.any((neighbours[:, :, None] == jnp.arange(n)) & edge_mask[..., None], axis=1)  # [N(i), N(j)]
+    x = constant + node_terms[:, None, :h].astype(constant.dtype) + node_terms[None, :, h:].astype(constant.dtype)
+    active = adjacent[..., None] & (x > 0)  # [N, N, H]
+    grad_senders = jnp.sum(jnp.where(active, grad[:, None, :], 0.0), axis=0)
+    grad_terms = jnp.concatenate([grad * count.astype(jnp.float32), grad_senders], axis=1)
+    grad_constant = jnp.where(active, grad[:, None, :], 0.0).astype(constant.dtype)
+    return grad_constant, None, None, grad_terms.astype(node_terms.dtype)
+
+
+def _forward_value_and_grad(f, **_):
+    """value_and_grad by forward mode: f's linearisation applied to each basis vector of its input (the planner's
+    push sequence [T, 4]: 4T tangents, batched), so no gradient is ever summed by a scatter."""
+    def value_and_grad(x):
+        y, linear = jax.linearize(f, x)
+        basis = jnp.eye(x.size, dtype=x.dtype).reshape((x.size,) + x.shape)
+        return y, jax.vmap(linear)(basis).reshape(x.shape)
+    return value_and_grad
+
+
+def _plain_incoming(pair, constant, neighbours, edge_mask, node_terms):
+    """``propagation.incoming_effects`` without its hand-written gradient (forward mode differentiates it)."""
+    x = propagation._edge_input(pair, constant, neighbours, node_terms)
+    return jnp.sum(jnp.where(edge_mask[..., None] & (x > 0), x, 0.0), axis=1, dtype=jnp.float32)
+
+
+FORWARD = dict(incoming_effects=_plain_incoming, gather_rows=lambda x, index: x[index])
+
+
+LIBRARY_BWD = propagation._incoming_bwd
+VARIANTS = dict(float=plain_float, int30=LIBRARY, limb1=limb1, limb2=limb2, onehot=onehot, sorted32=sorted32,
+                compare=compare, dense=_graph_or(compare), dense_int30=_graph_or(LIBRARY), densepair=compare,
+                densepair_int30=LIBRARY, forward=LIBRARY, int30pad=int30pad,
+                int30t=int30t)
+PAIR_BWD = dict(densepair=_dense_pair_bwd, densepair_int30=_dense_pair_bwd)  # variants with their own gradient
 
 
 def main():
@@ -103,8 +192,18 @@ def main():
     dynamics = load_dynamics("auto", SHIPPED_DYNAMICS, 0.04)[0](PARTICLE_RADIUS)
     config = PlannerConfig(samples=50, resamples=30, adam_steps=args.steps)
     print(jax.devices()[0].device_kind, flush=True)
+    from dynres_jax.control import objective
+    from dynres_jax.models import dynamics as dynamics_module
+
+    library = dict(gather_rows=propagation.gather_rows, incoming_effects=propagation.incoming_effects,
+                   value_and_grad=jax.value_and_grad)
     for name in args.variants:
+        forward = name == "forward"
+        dynamics_module.incoming_effects = FORWARD["incoming_effects"] if forward else library["incoming_effects"]
+        dynamics_module.gather_rows = objective.gather_rows = (FORWARD if forward else library)["gather_rows"]
+        jax.value_and_grad = _forward_value_and_grad if forward else library["value_and_grad"]
         propagation.exact_scatter_add = VARIANTS[name]
+        propagation.incoming_effects.defvjp(propagation._incoming_fwd, PAIR_BWD.get(name, LIBRARY_BWD))
         jax.clear_caches()
         for slots in (32, 64, 100):
             positions, mask = _piles(slots, 30, seed=slots), np.ones((30, slots), bool)
@@ -121,6 +220,10 @@ def main():
             if args.profile and slots == 64:
                 _profile(run, args.steps)
     propagation.exact_scatter_add = LIBRARY
+    dynamics_module.incoming_effects = library["incoming_effects"]
+    dynamics_module.gather_rows = objective.gather_rows = library["gather_rows"]
+    jax.value_and_grad = library["value_and_grad"]
+    propagation.incoming_effects.defvjp(propagation._incoming_fwd, LIBRARY_BWD)
 
 
 def _profile(run, steps):

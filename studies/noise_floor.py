@@ -6,19 +6,21 @@ predictor working from the observation can reach, next to the sweep heuristic an
 
 For scenes drawn as the training data's (``DataConfig`` defaults, C MuJoCo), each world is reset and pushed
 ``--pushes`` times along random pushes (``PileEnv.sample_push``). Before each push, particles are sampled from the
-observation at every ω (perception h) and attached to their pieces; then, besides the push itself, two twins of
+observation at every ω (perception h) and attached to their pieces; then, besides the push itself, K twins of
 the world are pushed the same way, each with every piece's centre moved by independent Gaussian noise of standard
-deviation σ in x and y (``--sigmas``, millimetres; sub-pixel: a pixel is about 3 mm). Reported per ω, over all
-particles, in mm:
+deviation σ in x and y (``--sigmas``, millimetres; sub-pixel: a pixel is about 3 mm). A twin is scored by each
+particle's displacement from its own start (the particle carried with its moved piece), so the moves that make the
+twins differ are not counted as error: at σ well below a millimetre the twins differ only where physics does
+(contact order, friction's stick or slip). Reported per ω, over all particles, in mm:
 
 - the sweep heuristic's and the model's error against the unperturbed outcome (as ``eval_dynamics`` measures it);
-- the twins' distance E|X1 - X2| between where the same particle ends in the two twins;
-- the floor E|X1 - X2| / 2. For outcomes X1, X2 drawn independently given the observation and any prediction p made
-  from it, |X1 - X2| <= |X1 - p| + |X2 - p|, so E|X - p| >= E|X1 - X2| / 2: no predictor beats the floor on worlds
-  known only to within σ;
-- with ``--twins K`` (K >= 3) the achievable floor: the error of the other twins' median (per coordinate) against a
-  held-out twin, each twin held out in turn. A predictor that simulates K - 1 worlds known to within σ reaches it, so
-  the best predictor lies between the floor and the achievable floor.
+- the twins' distance E|D1 - D2| between the same particle's displacements in two twins;
+- the floor E|D1 - D2| / 2. For displacements D1, D2 drawn independently given the observation and any prediction
+  p made from it, |D1 - D2| <= |D1 - p| + |D2 - p|, so E|D - p| >= E|D1 - D2| / 2: no predictor beats the floor on
+  worlds known only to within σ;
+- with ``--twins K`` (K >= 3) the achievable floor: the error of the other twins' median displacement (per
+  coordinate) against a held-out twin's, each twin held out in turn. A predictor that simulates K - 1 worlds known
+  to within σ reaches it, so the best predictor lies between the floor and the achievable floor.
 
 Every quantity is also split by where the particle starts relative to the push (``graph.SWEEP_REGIONS``: swept,
 band edge, off the path), the error lying mostly where the plate passes.
@@ -27,7 +29,7 @@ Each scene's sums are written atomically to ``OUT/scenes/``; a killed run resume
 ``OUT/floor.json``, ``floor.md`` (the tables) and ``floor.png`` (the floor against σ, as a share of the heuristic).
 
     python -m studies.noise_floor --out runs/noise_floor --scenes 48 --worlds 8
-    python -m studies.noise_floor --out runs/achievable --twins 5 --sigmas 1 3 --omegas 50
+    python -m studies.noise_floor --out runs/achievable --twins 5 --sigmas 0.01 0.1 1 --omegas 50 100
 """
 
 from __future__ import annotations
@@ -53,13 +55,14 @@ from dynres_jax.sim.env import State
 from dynres_jax.sim.pool import WorldPool, process_pool
 
 
-def perturb(states: State, qpos_adr, sigma: float, key) -> State:
+def perturb(states: State, qpos_adr, sigma: float, key) -> tuple[State, jax.Array]:
     """Batched states [B] with every piece's centre moved by N(0, σ²) in x and y: qpos_adr [N] (each piece's first
-    qpos), sigma in metres. Velocities and poses are kept (poses are recomputed by the next push)."""
+    qpos), sigma in metres -> (the states, the moves [B, N, 2] m). Velocities and poses are kept (poses are
+    recomputed by the next push)."""
     adr = jnp.asarray(qpos_adr)
     noise = sigma * jax.random.normal(key, (states.qpos.shape[0], len(adr), 2))
     qpos = states.qpos.at[:, adr].add(noise[..., 0]).at[:, adr + 1].add(noise[..., 1])
-    return states._replace(qpos=qpos)
+    return states._replace(qpos=qpos), noise
 
 
 def distance_sum(a, b, valid) -> float:
@@ -88,6 +91,13 @@ def _tracks(worlds: WorldPool, n_max: int, max_points):
         return p.positions, p.mask & (p.error == 0), index, local, p.radius
 
     return jax.jit(jax.vmap(one, in_axes=(0, 0, 0, None, 0)))
+
+
+@jax.jit
+@jax.vmap
+def _lifted(moves, index):
+    """Each particle's share of its piece's move: moves [B, N, 2] m, index [B, n] -> [B, n, 3] (z 0)."""
+    return jnp.pad(moves[index], ((0, 0), (0, 1)))
 
 
 _regions = jax.jit(jax.vmap(sweep_region, in_axes=(0, 0, None)))
@@ -127,23 +137,24 @@ def measure_scene(config: data.DataConfig, scene: int, args, models: dict, pool)
         actions[short, 2:] = actions[short, :2]
         actions[short, 2] -= np.where(actions[short, 0] > 0, 1, -1) * sim.push.min_length
         outcome = worlds.push(states, actions)
-        twins = {}
+        twins = {}  # σ -> [(the twin pushed, its pieces' moves [B, N, 2])] * K
         for i, sigma in enumerate(args.sigmas):
             keys = jax.random.split(jax.random.fold_in(k_twin, i), args.twins)
-            twins[sigma] = [worlds.push(perturb(states, worlds.scene.qpos_adr, sigma / 1000, k), actions)
-                            for k in keys]
-        broken = [outcome.broken] + [t.broken for pair in twins.values() for t in pair]
+            starts = [perturb(states, worlds.scene.qpos_adr, sigma / 1000, k) for k in keys]
+            twins[sigma] = [(worlds.push(start, actions), moves) for start, moves in starts]
+        broken = [outcome.broken] + [t.broken for pair in twins.values() for t, _ in pair]
         ok = ~short & ~np.any(np.asarray(broken), 0)
         for omega in args.omegas:
             x, mask, index, local, radius = tracks(states.obs, states.pos, states.mat, omega,
                                                    jax.random.split(k_h, args.worlds))
             valid = np.asarray(mask) & ok[:, None]
             truth = trajectories(index, local, outcome.pos, outcome.mat)
+            start = trajectories(index, local, states.pos, states.mat)
             pairs = [("sweep heuristic", _sweep(x, mask, actions, plate_half_width), truth)]
             pairs += [(f"model {name}", _step(g, p, x, mask, actions, resolution_code(radius)), truth)
                       for name, (g, p) in models.items()]
-            for sigma, ts in twins.items():
-                ends = [trajectories(index, local, t.pos, t.mat) for t in ts]
+            for sigma, ts in twins.items():  # each twin's displacement from its own start (its pieces moved)
+                ends = [trajectories(index, local, t.pos, t.mat) - start - _lifted(moves, index) for t, moves in ts]
                 pairs.append((f"twins {sigma:g} mm", ends[0], ends[1]))
                 if len(ends) >= 3:
                     medians, held = held_out_median(ends)

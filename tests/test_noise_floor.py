@@ -36,11 +36,14 @@ def test_perturb_moves_only_piece_centres_in_the_plane():
     qpos = jnp.arange(2 * 15, dtype=jnp.float32).reshape(2, 15)
     states = State(qpos, jnp.zeros((2, 12)), None, None, None, jnp.zeros(2, bool))
     adr = np.array([0, 7])
-    moved = np.asarray(noise_floor.perturb(states, adr, 0.5, jax.random.PRNGKey(0)).qpos) - np.asarray(qpos)
+    perturbed, moves = noise_floor.perturb(states, adr, 0.5, jax.random.PRNGKey(0))
+    moved = np.asarray(perturbed.qpos) - np.asarray(qpos)
     changed = np.zeros(15, bool)
     changed[[0, 1, 7, 8]] = True
     assert np.all(moved[:, changed] != 0) and np.all(moved[:, ~changed] == 0)
-    assert np.all(np.asarray(noise_floor.perturb(states, adr, 0.0, jax.random.PRNGKey(0)).qpos) == qpos)
+    np.testing.assert_allclose(moved[:, [0, 7]], moves[..., 0], atol=1e-5)  # the moves it reports are the moves made
+    np.testing.assert_allclose(moved[:, [1, 8]], moves[..., 1], atol=1e-5)
+    assert np.all(np.asarray(noise_floor.perturb(states, adr, 0.0, jax.random.PRNGKey(0))[0].qpos) == qpos)
 
 
 def test_distance_sum_equals_a_loop():
