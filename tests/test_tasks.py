@@ -49,13 +49,13 @@ def test_disc_and_letter_share_centre_and_area(env, letter):
 
 def test_each_task_sets_its_episode_length_where_no_flag_does(tmp_path):
     """The commands' and evaluate's --mpc-steps, --stop-share and --objective default to the task's (Gather the paper's
-    20, no rule, the paper's c; Redistribute 90, no rule, the hinge; Sort 50, the rule at 0.9); a flag wins ("off"
-    turns the rule off),
-    and --quick's 3 wins over the task's steps."""
+    20, no rule, the paper's c but the hinge for M&M; Redistribute 90, no rule, the hinge; Sort 50, the rule at 0.9,
+    the paper's c); a flag wins ("off" turns the rule off), and --quick's 3 wins over the task's steps. The objective
+    is resolved once the scene's kinds are known (``resolve_objective``)."""
     import argparse
 
     from dynres_jax.commands import evaluate, sort
-    from dynres_jax.commands.task import add_loop_args
+    from dynres_jax.commands.task import add_loop_args, resolve_objective
 
     assert {name: t.mpc_steps for name, t in tasks.TASKS.items()} == dict(gather=20, redistribute=90, sort=50)
     for name in tasks.TASKS:  # the flags every task command takes
@@ -63,15 +63,22 @@ def test_each_task_sets_its_episode_length_where_no_flag_does(tmp_path):
         add_loop_args(parser, name)
         assert parser.parse_args([]).mpc_steps == tasks.TASKS[name].mpc_steps
         assert parser.parse_args([]).stop_share == (0.9 if name == "sort" else None)
-        assert parser.parse_args([]).objective == ("hinge" if name == "redistribute" else "paper")
         assert parser.parse_args(["--objective", "hinge"]).objective == "hinge"
+        for kinds in (("coffee",), ("mnm",), ("almond", "mnm")):  # the default waits for the scene's kinds
+            args = parser.parse_args([])
+            resolve_objective(args, name, kinds)
+            want = "hinge" if name == "redistribute" or (name == "gather" and kinds == ("mnm",)) else "paper"
+            assert args.objective == want, (name, kinds)
+            args = parser.parse_args(["--objective", "paper"])
+            resolve_objective(args, name, kinds)
+            assert args.objective == "paper"
         assert parser.parse_args(["--stop-share", "off"]).stop_share == "off"
     assert sort.build_parser().parse_args([]).mpc_steps == 50
     parser = evaluate.build_parser()
-    for argv, want in ((["--task", "redistribute"], (90, None, "hinge")), (["--task", "sort"], (50, 0.9, "paper")),
-                       ([], (20, None, "paper")), (["--stop-share", "0.9"], (20, 0.9, "paper")),
+    for argv, want in ((["--task", "redistribute"], (90, None, None)), (["--task", "sort"], (50, 0.9, None)),
+                       ([], (20, None, None)), (["--stop-share", "0.9"], (20, 0.9, None)),
                        (["--task", "redistribute", "--mpc-steps", "7", "--stop-share", "0.92", "--objective", "paper"],
-                        (7, 0.92, "paper")), (["--task", "redistribute", "--quick"], (3, None, "hinge")),
+                        (7, 0.92, "paper")), (["--task", "redistribute", "--quick"], (3, None, None)),
                        (["--task", "gather", "--objective", "hinge", "--stop-share", "off"], (20, None, "hinge")),
                        (["--task", "sort", "--stop-share", "off", "--objective", "hinge"], (50, None, "hinge"))):
         args = parser.parse_args([*argv, "--out", str(tmp_path)])

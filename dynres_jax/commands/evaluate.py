@@ -65,7 +65,14 @@ from dynres_jax.commands.planner_args import (
     resolve_planner_args,
     timing_table,
 )
-from dynres_jax.commands.task import check_pile, check_visible, load_model, objectives_text
+from dynres_jax.commands.task import (
+    check_pile,
+    check_visible,
+    load_model,
+    objective_default,
+    objectives_text,
+    resolve_objective,
+)
 from dynres_jax.config import DEFAULT_PIECES, KINDS, CameraConfig, PileConfig, SceneConfig, SimConfig
 from dynres_jax.control import resolution, tasks
 from dynres_jax.control.goals import OBJECTIVES, make_goals, with_objective
@@ -108,7 +115,7 @@ def build_parser():
                                                     for name, task in sorted(tasks.TASKS.items())) + ")")
     parser.add_argument("--objective", default=None, choices=OBJECTIVES,
                         help=f"c's SDF term: {objectives_text()}; default: the task's, " + ", ".join(
-                                 f"{name} {task.objective}" for name, task in sorted(tasks.TASKS.items())) +
+                                 f"{name} {objective_default(name)}" for name in sorted(tasks.TASKS)) +
                              "; Sort: against each target disc")
     parser.add_argument("--methods", nargs="+", default=None,
                         help=f"default {' '.join(DEFAULT_METHODS)} (Sort: {' '.join(SORT_DEFAULT)}). "
@@ -188,7 +195,8 @@ def resolve_scene(parser, args) -> tuple[tuple[str, ...], tuple[int, ...]]:
 
 def apply_defaults(parser, args) -> None:
     """The defaults that depend on other flags: --quick's sizes (``QUICK``) where a flag does not set them, then the
-    task's MPC steps, stop share and objective (``tasks.Task``) where neither does ("off": no stop rule)."""
+    task's MPC steps and stop share (``tasks.Task``) where neither does ("off": no stop rule); the objective waits
+    for the kinds (``check_args``)."""
     for name, value in QUICK.items() if args.quick else ():
         if getattr(args, name) == parser.get_default(name):
             setattr(args, name, value)
@@ -196,7 +204,6 @@ def apply_defaults(parser, args) -> None:
         args.mpc_steps = tasks.TASKS[args.task].mpc_steps
     task_share = tasks.TASKS[args.task].stop_share
     args.stop_share = task_share if args.stop_share is None else checks.stop_rule(args.stop_share)
-    args.objective = args.objective or tasks.TASKS[args.task].objective
 
 
 def check_args(parser, args):
@@ -219,6 +226,7 @@ def check_args(parser, args):
     if args.episodes < size:
         parser.error(f"--episodes must be at least the {size} processes of the job, got {args.episodes}")
     kinds, pieces = resolve_scene(parser, args)
+    resolve_objective(args, args.task, kinds)
     args.backend = checks.engine(parser, args.backend)
     checks.check_workers(parser, args.workers, args.backend)
     camera = CameraConfig(width=64, height=64) if args.quick else CameraConfig()

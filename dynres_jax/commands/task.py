@@ -72,6 +72,18 @@ def objectives_text() -> str:
     return " or ".join(f"'{name}' ({words})" for name, words in OBJECTIVES.items())
 
 
+def objective_default(task: str) -> str:
+    """The task's default c in words, with the kinds that plan on another (``tasks.Task.objective_for``)."""
+    spec = tasks.TASKS[task]
+    own = [f"{kind}: {objective}" for kind, objective in spec.kind_objectives]
+    return spec.objective + (f" ({', '.join(own)})" if own else "")
+
+
+def resolve_objective(args, task: str, kinds) -> None:
+    """args.objective: --objective as given, else the one ``task`` plans on for a scene of these kinds."""
+    args.objective = args.objective or tasks.TASKS[task].objective_for(tuple(kinds))
+
+
 def add_resolution_args(parser: argparse.ArgumentParser) -> None:
     """--resolution (a fixed ω, or a method of ``commands.methods`` that keeps by the model) and --regressor."""
     parser.add_argument("--resolution", type=methods.resolution_arg, default="50",
@@ -118,10 +130,9 @@ def add_loop_args(parser: argparse.ArgumentParser, task: str, adaptive: bool = T
                                                                    if sort else "the foreground the camera sees lies "
                                                                    "inside the goal") +
                              f", or 'off' (default {default or 'off'}; docs/redistribute, docs/sort)")
-    objective = tasks.TASKS[task].objective
-    parser.add_argument("--objective", default=objective, choices=OBJECTIVES,
+    parser.add_argument("--objective", default=None, choices=OBJECTIVES,
                         help=f"c's SDF term{' against each target disc' if tasks.TASKS[task].kinds == 2 else ''}: "
-                             f"{objectives_text()}; default {objective} (docs/redistribute)")
+                             f"{objectives_text()}; default {objective_default(task)} (docs/redistribute)")
     if not adaptive:
         parser.add_argument("--resolution", type=checks.omega, default=50, help="ω: particles the planner reasons with")
     else:
@@ -196,6 +207,7 @@ class Loop:
 def build_loop(args, sim: SimConfig, parser: argparse.ArgumentParser, task: str) -> Loop:
     """The ``Loop`` of ``task``'s loop flags; parser.error naming a bad flag, before any work (the scene is built
     last)."""
+    resolve_objective(args, task, sim.scene.kinds)
     model = load_model(parser, args.dynamics, args.ckpt, sim.scene.plate_half_width, shipped_dynamics(task))
     if isinstance(args.resolution, int):  # Sort: one ω, a SortPolicy plans at it
         if args.resolution > model.n_max:
@@ -334,7 +346,7 @@ def main(task: str, argv=None):
     done = finished(args.out, checks.claim(args.out, task, checks.settings(args), args.fresh, loop.inputs), args.fresh)
     if done is not None:
         return done
-    objective = getattr(args, "objective", "paper")  # Sort plans on its own
+    objective = args.objective
     goal = with_objective(make_goal(goal_mask, env.camera), objective)
     start_inside = float(inside_share(state.pos, np.ones(env.scene.n_pieces, bool), goal, env.camera))
     budget_text = (f"{args.samples} samples, {args.adam_steps} Adam steps" if args.time_budget is None else
