@@ -159,7 +159,7 @@ G = [  # gather (and the flags every closed-loop task shares)
     (["--out", "{file}/run"], "--out"), (["--out", "{file}"], "--out"), (["--out", "{other_run}"], "--out"),
     (["--out", "{foreign}"], "--out"), (["--out", "{gather_run}"], "--out"), (["--no-such-flag"], "unrecognized"),
     (["--samples", "100000000"], "--samples"), (["--adam-steps", "10000000"], "--adam-steps"),  # bounds from sense
-    (["--time-budget", "1e308"], "--time-budget"),
+    (["--time-budget", "1e308"], "--time-budget"), (["--objective", "paper", "hinge"], "--objective takes one value"),
 ]
 R = [
     (["--letter", ""], "--letter"), (["--letter", "é"], "--letter"), (["--letter", "   "], "--letter"),
@@ -177,6 +177,7 @@ S = [
     (["--time-budget", "0"], "--time-budget"), (["--ckpt", "/nonexistent"], "--ckpt"), (["--out", "{file}"], "--out"),
     (["--out", "{gather_run}"], "--out"), (["--method", "best0"], "--method"), (["--method", "oracle"], "--method"),
     (["--stop-share", "0"], "--stop-share"), (["--objective", "hinged"], "--objective"),
+    (["--objective", "paper", "hinge", "paper"], "--objective takes one value or one per kind"),
 ]
 FRAME = ["--depth", "{depth}", "--rgb", "{rgb}", "--camera", "{camera}", "--goal", "{goal}"]
 P = [  # plan: one frame of a real camera
@@ -210,7 +211,7 @@ E = [  # evaluate
     (["--methods", "50", "050"], "names a method twice"), (["--lr", "1e308"], "--lr"),
     (["--methods", "reranked"], "--methods"), (["--stop-share", "nan"], "--stop-share"),
     (["--task", "sort", "--stop-share", "1.5"], "--stop-share"), (["--task", "sort", "--objective", "x"], "--objective"),
-    (["--objective", "hinged"], "--objective"),
+    (["--objective", "hinged"], "--objective"), (["--objective", "paper", "hinge"], "--objective takes one value"),
     (["--task", "redistribute", "--letters", "A B"], "--letters"), (["--letters", ""], "--letters"),
     (["--methods", "cnn", "--cnn-ckpt", "/nonexistent"], "--cnn-ckpt"),
     (["--methods", "cnn", "--cnn-ckpt", "{dynamics}"], "--cnn-ckpt"), (["--methods", "cnn", "--cnn-omega", "0"], "--cnn-omega"),

@@ -254,20 +254,25 @@ def test_the_stop_rule_holds_a_sort_episode_from_the_frame_whose_kinds_met_it(en
 
 def test_the_hinge_clips_each_target_discs_distance_at_zero(env):
     """objective="hinge": the orders' per-kind goals are the paper's with the distance field clipped at 0 (pieces
-    inside a target disc cost nothing), everything else alike; an unknown objective is refused before any step."""
+    inside a target disc cost nothing), everything else alike; one per kind ("paper", "hinge") clips kind 1's alone;
+    an unknown objective, or three, is refused before any step."""
     goals, radius, _ = sort_goal(np.random.default_rng(0), env)
     cfg = MPCConfig(mpc_steps=1, buckets=(32,), max_points=512,
                     planner=PlannerConfig(samples=4, adam_steps=1, bound=env.action_bound, max_length=0.1))
     obs = batch(env.reset(jax.random.PRNGKey(0)).obs)
-    paper, hinge = (SortPolicy(env, cfg, 20, jax.random.PRNGKey(1), goals, radius, lambda s: None, objective=o)(0, obs)
-                    for o in ("paper", "hinge"))
+    paper, hinge, mixed = (SortPolicy(env, cfg, 20, jax.random.PRNGKey(1), goals, radius, lambda s: None,
+                                      objective=o)(0, obs) for o in ("paper", "hinge", ("paper", "hinge")))
     assert np.min(paper.goals.goals.distance) < 0  # the paper's c rewards depth inside a disc
     assert np.array_equal(hinge.goals.goals.distance, np.maximum(paper.goals.goals.distance, 0))
     assert np.array_equal(hinge.goals.avoid, paper.goals.avoid)
     assert np.array_equal(hinge.goals.hold, paper.goals.hold)
     assert np.array_equal(hinge.record["waypoint"], paper.record["waypoint"])
-    with pytest.raises(ValueError, match="objective"):
-        SortPolicy(env, cfg, 20, jax.random.PRNGKey(1), goals, radius, objective="hinged")
+    distance = np.asarray(mixed.goals.goals.distance)  # [B, 2, H, W]: kind 0's the paper's, kind 1's clipped
+    assert np.array_equal(distance[:, 0], paper.goals.goals.distance[:, 0]) and np.min(distance[:, 0]) < 0
+    assert np.array_equal(distance[:, 1], hinge.goals.goals.distance[:, 1])
+    for bad in ("hinged", ("paper", "hinge", "paper")):
+        with pytest.raises(ValueError, match="objective"):
+            SortPolicy(env, cfg, 20, jax.random.PRNGKey(1), goals, radius, objective=bad)
 
 
 @pytest.mark.slow

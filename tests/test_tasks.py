@@ -63,24 +63,29 @@ def test_each_task_sets_its_episode_length_where_no_flag_does(tmp_path):
         add_loop_args(parser, name)
         assert parser.parse_args([]).mpc_steps == tasks.TASKS[name].mpc_steps
         assert parser.parse_args([]).stop_share == (0.9 if name == "sort" else None)
-        assert parser.parse_args(["--objective", "hinge"]).objective == "hinge"
-        for kinds in (("coffee",), ("mnm",), ("almond", "mnm")):  # the default waits for the scene's kinds
+        kinds = (("almond", "mnm"),) if name == "sort" else (("coffee",), ("mnm",))
+        for scene in kinds:  # the default waits for the scene's kinds
             args = parser.parse_args([])
-            resolve_objective(args, name, kinds)
-            want = "hinge" if name == "redistribute" or (name == "gather" and kinds == ("mnm",)) else "paper"
-            assert args.objective == want, (name, kinds)
-            args = parser.parse_args(["--objective", "paper"])
-            resolve_objective(args, name, kinds)
-            assert args.objective == "paper"
+            resolve_objective(parser, args, name, scene)
+            want = "hinge" if name == "redistribute" or (name == "gather" and scene == ("mnm",)) else "paper"
+            assert args.objective == (want if len(scene) == 1 else (want, want)), (name, scene)
+            args = parser.parse_args(["--objective", "hinge"])
+            resolve_objective(parser, args, name, scene)
+            assert args.objective == ("hinge" if len(scene) == 1 else ("hinge", "hinge"))
         assert parser.parse_args(["--stop-share", "off"]).stop_share == "off"
+    parser = argparse.ArgumentParser()
+    add_loop_args(parser, "sort")
+    args = parser.parse_args(["--objective", "paper", "hinge"])  # Sort: one per kind
+    resolve_objective(parser, args, "sort", ("almond", "mnm"))
+    assert args.objective == ("paper", "hinge")
     assert sort.build_parser().parse_args([]).mpc_steps == 50
     parser = evaluate.build_parser()
     for argv, want in ((["--task", "redistribute"], (90, None, None)), (["--task", "sort"], (50, 0.9, None)),
                        ([], (20, None, None)), (["--stop-share", "0.9"], (20, 0.9, None)),
                        (["--task", "redistribute", "--mpc-steps", "7", "--stop-share", "0.92", "--objective", "paper"],
-                        (7, 0.92, "paper")), (["--task", "redistribute", "--quick"], (3, None, None)),
-                       (["--task", "gather", "--objective", "hinge", "--stop-share", "off"], (20, None, "hinge")),
-                       (["--task", "sort", "--stop-share", "off", "--objective", "hinge"], (50, None, "hinge"))):
+                        (7, 0.92, ["paper"])), (["--task", "redistribute", "--quick"], (3, None, None)),
+                       (["--task", "gather", "--objective", "hinge", "--stop-share", "off"], (20, None, ["hinge"])),
+                       (["--task", "sort", "--stop-share", "off", "--objective", "hinge"], (50, None, ["hinge"]))):
         args = parser.parse_args([*argv, "--out", str(tmp_path)])
         evaluate.apply_defaults(parser, args)
         assert (args.mpc_steps, args.stop_share, args.objective) == want, argv

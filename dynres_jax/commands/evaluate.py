@@ -113,10 +113,11 @@ def build_parser():
                              "the goal (Sort: of each kind's perceived pieces inside its own), or 'off' (default: the "
                              "task's, " + ", ".join(f"{name} {task.stop_share or 'off'}"
                                                     for name, task in sorted(tasks.TASKS.items())) + ")")
-    parser.add_argument("--objective", default=None, choices=OBJECTIVES,
-                        help=f"c's SDF term: {objectives_text()}; default: the task's, " + ", ".join(
+    parser.add_argument("--objective", default=None, choices=OBJECTIVES, nargs="+", metavar="C",
+                        help=f"c's SDF term (Sort: one for both target discs or one per kind): {objectives_text()}; "
+                             "default: the task's, " + ", ".join(
                                  f"{name} {objective_default(name)}" for name in sorted(tasks.TASKS)) +
-                             "; Sort: against each target disc")
+                             "")
     parser.add_argument("--methods", nargs="+", default=None,
                         help=f"default {' '.join(DEFAULT_METHODS)} (Sort: {' '.join(SORT_DEFAULT)}). "
                              "Fixed ω (integers), 'adaptive' (the regressor picks ω), 'probe' (every step plans at "
@@ -226,7 +227,7 @@ def check_args(parser, args):
     if args.episodes < size:
         parser.error(f"--episodes must be at least the {size} processes of the job, got {args.episodes}")
     kinds, pieces = resolve_scene(parser, args)
-    resolve_objective(args, args.task, kinds)
+    resolve_objective(parser, args, args.task, kinds)
     args.backend = checks.engine(parser, args.backend)
     checks.check_workers(parser, args.workers, args.backend)
     camera = CameraConfig(width=64, height=64) if args.quick else CameraConfig()
@@ -283,7 +284,7 @@ def run_methods(args, rank: int, size: int, sim, main_model, cnn_model, judge=No
                  [tasks.mask_goal(pool.env, load_goal(args.goal_png, pool.camera))] * len(mine))
         sort = tasks.TASKS[args.task].kinds == 2  # its goals: a disc per kind; d and the timing table: kind 0's
         goals = with_objective(make_goals([mask[0] if sort else mask for mask, _ in drawn], pool.camera),
-                               args.objective)  # episode i's goal
+                               args.objective[0] if sort else args.objective)  # episode i's goal (Sort: kind 0's)
         # depends on (seed, i) alone: each process draws its own
         pile_keys, keys = tasks.episode_keys(args.seed, mine)
         todo = [m for m in args.methods if not os.path.exists(os.path.join(args.out, f"{m}.json"))]

@@ -79,9 +79,16 @@ def objective_default(task: str) -> str:
     return spec.objective + (f" ({', '.join(own)})" if own else "")
 
 
-def resolve_objective(args, task: str, kinds) -> None:
-    """args.objective: --objective as given, else the one ``task`` plans on for a scene of these kinds."""
-    args.objective = args.objective or tasks.TASKS[task].objective_for(tuple(kinds))
+def resolve_objective(parser: argparse.ArgumentParser, args, task: str, kinds) -> None:
+    """args.objective from --objective (one for every kind or, in Sort, one per kind; default the task's for each
+    kind, ``tasks.Task.objective_for``): a name for a one-kind task, a tuple of one per kind for Sort; parser.error
+    naming a count that fits neither."""
+    given = args.objective or [tasks.TASKS[task].objective_for(kind) for kind in kinds]
+    if len(given) not in (1, len(kinds)):
+        parser.error(f"--objective takes one value{' or one per kind' if len(kinds) > 1 else ''}, got "
+                     f"{' '.join(given)}")
+    chosen = tuple(given) * (len(kinds) // len(given))
+    args.objective = chosen[0] if len(kinds) == 1 else chosen
 
 
 def add_resolution_args(parser: argparse.ArgumentParser) -> None:
@@ -130,8 +137,9 @@ def add_loop_args(parser: argparse.ArgumentParser, task: str, adaptive: bool = T
                                                                    if sort else "the foreground the camera sees lies "
                                                                    "inside the goal") +
                              f", or 'off' (default {default or 'off'}; docs/redistribute, docs/sort)")
-    parser.add_argument("--objective", default=None, choices=OBJECTIVES,
-                        help=f"c's SDF term{' against each target disc' if tasks.TASKS[task].kinds == 2 else ''}: "
+    sort = tasks.TASKS[task].kinds == 2
+    parser.add_argument("--objective", default=None, choices=OBJECTIVES, nargs="+", metavar="C",
+                        help=f"c's SDF term{', one for both target discs or one per kind' if sort else ''}: "
                              f"{objectives_text()}; default {objective_default(task)} (docs/redistribute)")
     if not adaptive:
         parser.add_argument("--resolution", type=checks.omega, default=50, help="ω: particles the planner reasons with")
@@ -207,7 +215,7 @@ class Loop:
 def build_loop(args, sim: SimConfig, parser: argparse.ArgumentParser, task: str) -> Loop:
     """The ``Loop`` of ``task``'s loop flags; parser.error naming a bad flag, before any work (the scene is built
     last)."""
-    resolve_objective(args, task, sim.scene.kinds)
+    resolve_objective(parser, args, task, sim.scene.kinds)
     model = load_model(parser, args.dynamics, args.ckpt, sim.scene.plate_half_width, shipped_dynamics(task))
     if isinstance(args.resolution, int):  # Sort: one ω, a SortPolicy plans at it
         if args.resolution > model.n_max:

@@ -189,18 +189,22 @@ class SortPolicy(Chooser):
     inside goal k), mixing (the share inside the other kind's goal) and goal_distance (d to the true goals).
     mixing: the weight in each kind's c of its particles' intrusion into the other kind's true goal
     (``objective.kind_costs``; default ``MIXING``; 0: none, each kind scored against its target disc alone);
-    objective: the form of c's SDF term against each target disc (``goals.with_objective``)."""
+    objective: the form of c's SDF term against each target disc (``goals.with_objective``), one for both or a pair,
+    kind k's against its own disc."""
 
     def __init__(self, env: PileEnv, cfg: MPCConfig, omega: int, key, goals_xy, goal_radius: float, log=print, *,
                  blob_radius: float | None = None, grid_step: float = 0.02, lookahead: int = 3,
-                 arrived: float = ARRIVED, mixing: float = MIXING, objective: str = "paper"):
+                 arrived: float = ARRIVED, mixing: float = MIXING, objective: str | Sequence[str] = "paper"):
         if lookahead < 1:
             raise ValueError(f"lookahead must be at least 1, got {lookahead}")
         if not 0 < arrived <= 1:
             raise ValueError(f"arrived must be a share in (0, 1], got {arrived}")
         if not (np.isfinite(mixing) and mixing >= 0):
             raise ValueError(f"mixing must be a finite weight >= 0, got {mixing}")
-        self.arrived, self.mixing, self.objective = arrived, mixing, check_objective(objective)
+        objectives = (objective,) * 2 if isinstance(objective, str) else tuple(objective)
+        if len(objectives) != 2:
+            raise ValueError(f"objective must be one name or one per kind (2), got {objective!r}")
+        self.arrived, self.mixing, self.objectives = arrived, mixing, tuple(check_objective(o) for o in objectives)
         self.omega, self.max_points, self.buckets = check_omega(omega), cfg.max_points, cfg.buckets
         self.piece_kinds, self.key, self.log = env.scene.kind, key, log
         self.camera, self.bin_half = env.camera, env.config.scene.bin_half_width
@@ -243,7 +247,8 @@ class SortPolicy(Chooser):
         self.target_mask = masks[kind] if kind >= 0 else np.zeros_like(masks[0])
         record = dict(phase=[self.phase], kind=[kind], waypoint=[targets[max(kind, 0)]], centres=[centres],
                       perceived_inside=[inside], astar_steps=[steps_left], astar_s=[astar_s])
-        goals = stack_goals([with_objective(make_goal(m, self.camera), self.objective) for m in masks], hold,
+        goals = stack_goals([with_objective(make_goal(m, self.camera), o) for m, o in zip(masks, self.objectives,
+                                                                                            strict=True)], hold,
                             self.goals, self.mixing)
         return Orders(batch(goals), (Candidate(np.array([max(min(self.omega, points), 1)])),), None, record)
 

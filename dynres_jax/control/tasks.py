@@ -179,8 +179,8 @@ class Task:
     Redistribute, whose letters 20 pushes leave unfinished; 50 for Sort; stop_share: the default stop rule
     (``MPCConfig.stop_share``; None: every step pushes; Sort 0.9: as many successes, fewer pushes); objective: the
     form of c's SDF term (``goals.with_objective``: "paper", or "hinge" for Redistribute: only pieces outside the goal
-    cost); kind_objectives: (kind, objective) pairs where a one-kind scene of that kind plans on another
-    (``objective_for``): Gather's M&M, which roll, on the hinge. Chosen on tuning seeds, measured once on fresh ones:
+    cost); kind_objectives: (kind, objective) pairs for the kinds that plan on another (``objective_for``): Gather's
+    M&M, which roll, on the hinge. Chosen on tuning seeds, measured once on fresh ones:
     Redistribute 69 % -> 77 % on unseen characters with the hinge and 90 steps (docs/redistribute), Sort 78 % -> 84 %
     against 30 steps (docs/sort), Gather M&M 81 % -> 91 % with the hinge (the other kinds kept the paper's c: one
     success fewer on coffee and rice; docs/redistribute)."""
@@ -195,10 +195,10 @@ class Task:
     objective: str = "paper"
     kind_objectives: tuple[tuple[str, str], ...] = ()
 
-    def objective_for(self, kinds) -> str:
-        """c's SDF term for a scene of these kinds: its kind's own (``kind_objectives``) for a one-kind scene, else
+    def objective_for(self, kind: str) -> str:
+        """c's SDF term for a kind's pieces (Sort: against its own disc): the kind's own (``kind_objectives``), else
         the task's."""
-        return dict(self.kind_objectives).get(kinds[0], self.objective) if len(kinds) == 1 else self.objective
+        return dict(self.kind_objectives).get(kind, self.objective)
 
 
 TASKS: dict[str, Task] = {
