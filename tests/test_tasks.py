@@ -50,8 +50,8 @@ def test_disc_and_letter_share_centre_and_area(env, letter):
 def test_each_task_sets_its_episode_length_where_no_flag_does(tmp_path):
     """The commands' and evaluate's --mpc-steps, --stop-share and --objective default to the task's (Gather the paper's
     20, no rule, the paper's c but the hinge for M&M; Redistribute 90, no rule, the hinge; Sort 50, the rule at 0.9,
-    the paper's c); a flag wins ("off" turns the rule off), and --quick's 3 wins over the task's steps. The objective
-    is resolved once the scene's kinds are known (``resolve_objective``)."""
+    the paper's c but the hinge on M&M's disc); a flag wins ("off" turns the rule off), and --quick's 3 wins over the
+    task's steps. The objective is resolved once the scene's kinds are known (``resolve_objective``)."""
     import argparse
 
     from dynres_jax.commands import evaluate, sort
@@ -68,7 +68,8 @@ def test_each_task_sets_its_episode_length_where_no_flag_does(tmp_path):
             args = parser.parse_args([])
             resolve_objective(parser, args, name, scene)
             want = "hinge" if name == "redistribute" or (name == "gather" and scene == ("mnm",)) else "paper"
-            assert args.objective == (want if len(scene) == 1 else (want, want)), (name, scene)
+            want = want if name != "sort" else ("paper", "hinge")  # Sort: M&M's disc on the hinge
+            assert args.objective == want, (name, scene)
             args = parser.parse_args(["--objective", "hinge"])
             resolve_objective(parser, args, name, scene)
             assert args.objective == ("hinge" if len(scene) == 1 else ("hinge", "hinge"))
