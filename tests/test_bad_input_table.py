@@ -330,7 +330,7 @@ RO = [  # robot: a goal of another size than the simulator's frames names --imag
     (["--replay", "{replay_damaged}", "--goal", "{goal}"], "001"),  # refused before planning frame 000
     (["--resolution", "oracle"], "--resolution"), (["--resolution", "best5"], "--resolution"),  # need the simulator
     (["--regressor", "{regressor}"], "--regressor"),  # a fixed ω reads no regressor
-    (["--resolution", "adaptive", "--regressor", "/nonexistent"], "--regressor"),
+    (["--resolution", "adaptive", "--regressor", "/nonexistent"], "--regressor"), (["--judge", "/nonexistent"], "--judge"),
     # frames the camera's noise and holes thin below ω: refused before compiling (the exact frame shows more points)
     (["--pieces", "20", "--image-size", "64"], "--image-size"), (["--pieces", "20", "--image-size", "64", "--sensor",
                                                                    "none"], "--image-size"),

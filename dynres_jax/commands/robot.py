@@ -4,17 +4,18 @@
     python -m experiments.robot --goal out/G.png --image-size 256 --out out/robot   # a goal PNG of 256 x 256 pixels
     python -m experiments.robot --replay out/robot/frames --out out/replay  # recorded frames: a dry run
 
-Each step reads a frame, stops when ``--success`` of its foreground lies inside the goal (or after ``--steps``
-pushes), plans one push at ω with the dynamics model, checks it against the bin's workspace and sends it. The
-simulator's frames pass through ``--sensor`` (default: a RealSense D455's noise, holes and calibration error) and
-``--calibrate`` refines the camera's pose from the first frame, as on a real setup. ``--dry-run`` plans and records
-but pushes nothing (always so with ``--replay``). Writes ``frames/NNN/`` (each frame as a camera saves it: depth.png
-in mm, rgb.png, camera.json; a replay source), ``episode.gif`` (the goal green, the particles red, the push blue)
-and ``metrics.json`` (per frame: d and the share inside as the robot saw them, the push; for the simulator also the
-true share of pieces inside at the end and ``succeeded``, whether it meets the task's success rule; ``reached`` is
-the camera's stop rule). Interrupted (Ctrl-C), the same command goes on after the last push (``progress.npz``;
-``--calibrate`` then refines the pose from the frame it resumes on). A real camera and arm plug into
-``control.robot.run_robot`` (its docstring shows a RealSense and an arm in a few lines).
+Each step reads a frame, stops when ``--success`` of its foreground lies inside the goal (or after ``--steps`` pushes),
+plans one push at ω with the dynamics model (``--judge CKPT``: a second model chooses among the planner's refined
+candidates), checks it against the bin's workspace and sends it. The simulator's frames pass through ``--sensor``
+(default: a RealSense D455's noise, holes and calibration error) and ``--calibrate`` refines the camera's pose from the
+first frame, as on a real setup. ``--dry-run`` plans and records but pushes nothing (always so with ``--replay``).
+Writes ``frames/NNN/`` (each frame as a camera saves it: depth.png in mm, rgb.png, camera.json; a replay source),
+``episode.gif`` (the goal green, the particles red, the push blue) and ``metrics.json`` (per frame: d and the share
+inside as the robot saw them, the push; for the simulator also the true share of pieces inside at the end and
+``succeeded``, whether it meets the task's success rule; ``reached`` is the camera's stop rule). Interrupted (Ctrl-C),
+the same command goes on after the last push (``progress.npz``; ``--calibrate`` then refines the pose from the frame it
+resumes on). A real camera and arm plug into ``control.robot.run_robot`` (its docstring shows a RealSense and an arm in
+a few lines).
 """
 
 from __future__ import annotations
@@ -29,8 +30,11 @@ import numpy as np
 from dynres_jax.commands import checks, guard, methods
 from dynres_jax.commands.task import (
     PROGRESS,
+    add_judge_arg,
     add_resolution_args,
     check_visible,
+    judged,
+    load_judge,
     load_model,
     resolution_chooser,
     resolve_pieces,
@@ -71,6 +75,7 @@ def build_parser():
     parser.add_argument("--success", type=checks.number(0.01, 1.0), default=STOP_SHARE,
                         help="stop when this share of the foreground lies inside the goal")
     add_resolution_args(parser)
+    add_judge_arg(parser)
     parser.add_argument("--samples", type=checks.samples, default=50)
     parser.add_argument("--adam-steps", type=checks.adam_steps, default=100)
     parser.add_argument("--ckpt", default=SHIPPED_DYNAMICS)
@@ -94,6 +99,7 @@ def main(argv=None):
                                                                           SENSORS[args.sensor])
     camera = source.camera
     _, choose, read = resolution_chooser(parser, args, camera, model.n_max)
+    judge = load_judge(parser, args, sim.scene.plate_half_width, read)
     try:
         goal_mask = load_goal(args.goal, camera) if args.goal else disc_goal(camera, np.zeros(2), 0.08)
         make_goal(goal_mask, camera)
@@ -120,14 +126,17 @@ def main(argv=None):
                               push=step.get("action")))
 
     print(f"robot: {'replay of ' + args.replay if args.replay else 'the simulator'} ({args.sensor} camera), "
-          f"{'dry run' if isinstance(pusher, DryRun) else 'pushing'}; dynamics {model.name}; ω = {args.resolution}")
-    steps = run_robot(source, pusher, goal_mask, model.dynamics, cfg, choose, jax.random.PRNGKey(args.seed),
+          f"{'dry run' if isinstance(pusher, DryRun) else 'pushing'}; dynamics {model.name}"
+          f"{'' if judge is None else '; judge ' + judge.name}; ω = {args.resolution}")
+    steps = run_robot(source, pusher, goal_mask, model.dynamics, cfg, judged(choose, judge),
+                      jax.random.PRNGKey(args.seed),
                       workspace=Workspace.of(env), success=args.success, on_step=record,
                       bin_size=(sim.scene.bin_half_width, sim.scene.wall_height) if args.calibrate else None,
                       resume=resume, on_progress=lambda now: kept(now, frames))
     write_episode(args.out, frames)
     summary = dict(source=args.replay or "simulator", sensor=args.sensor, dry_run=isinstance(pusher, DryRun),
-                   dynamics=model.name, resolution=args.resolution, pushes=sum("action" in s for s in steps),
+                   dynamics=model.name, judge=None if judge is None else judge.name, resolution=args.resolution,
+                   pushes=sum("action" in s for s in steps),
                    reached=steps[-1]["inside"] >= args.success, steps=steps)
     if isinstance(source, SimulatedRobot):  # what the robot could not see: the pieces' true places
         true_goal = make_goal(goal_mask if args.goal else disc_goal(env.camera, np.zeros(2), 0.08), env.camera)

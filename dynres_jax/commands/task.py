@@ -125,6 +125,30 @@ def resolution_chooser(parser: argparse.ArgumentParser, args, camera, n_max: int
     return omega, lambda goals: row.chooser(name, goals, args, camera, None), read
 
 
+def add_judge_arg(parser: argparse.ArgumentParser) -> None:
+    """--judge: a second dynamics checkpoint that chooses among the planner's refined candidates."""
+    parser.add_argument("--judge", default=None, metavar="CKPT",
+                        help="a second dynamics checkpoint that chooses among the planner's refined candidates "
+                             "(control/judge.py); default: none, the planner's own best plan is pushed")
+
+
+def load_judge(parser: argparse.ArgumentParser, args, plate_half_width: float, inputs: dict) -> LoadedDynamics | None:
+    """--judge's model (None without one), refused by parser.error where it cannot be read or cannot hold the finest
+    ω --resolution plans at, before any work; its path goes to ``inputs`` (``checks.claim``'s)."""
+    if args.judge is None:
+        return None
+    judge = load_model(parser, "learned", args.judge, plate_half_width, flag="--judge")
+    if methods.finest(str(args.resolution), args) > judge.n_max:
+        parser.error(f"--resolution {args.resolution} exceeds the judge's n_max = {judge.n_max}")
+    inputs["--judge"] = args.judge
+    return judge
+
+
+def judged(choose: Callable[..., Chooser], judge: LoadedDynamics | None) -> Callable[..., Chooser]:
+    """A chooser factory (goals [B] -> Chooser) with the judge's choice on top (``JudgeScored``), or as it is."""
+    return choose if judge is None else lambda goals: JudgeScored(choose(goals), judge.dynamics)
+
+
 def add_loop_args(parser: argparse.ArgumentParser, task: str, adaptive: bool = True) -> None:
     """The flags every closed-loop task command takes (``--out`` defaults to out/TASK); adaptive: whether
     ``--resolution`` may be 'adaptive' (Sort plans at one ω)."""
@@ -137,7 +161,6 @@ def add_loop_args(parser: argparse.ArgumentParser, task: str, adaptive: bool = T
                                                                    if sort else "the foreground the camera sees lies "
                                                                    "inside the goal") +
                              f", or 'off' (default {default or 'off'}; docs/redistribute, docs/sort)")
-    sort = tasks.TASKS[task].kinds == 2
     parser.add_argument("--objective", default=None, choices=OBJECTIVES, nargs="+", metavar="C",
                         help=f"c's SDF term{', one for both target discs or one per kind' if sort else ''}: "
                              f"{objectives_text()}; default {objective_default(task)} (docs/redistribute)")
@@ -145,9 +168,7 @@ def add_loop_args(parser: argparse.ArgumentParser, task: str, adaptive: bool = T
         parser.add_argument("--resolution", type=checks.omega, default=50, help="ω: particles the planner reasons with")
     else:
         add_resolution_args(parser)
-        parser.add_argument("--judge", default=None, metavar="CKPT",
-                            help="a second dynamics checkpoint that chooses among the planner's refined candidates "
-                                 "(control/judge.py); default: none, the planner's own best plan is pushed")
+        add_judge_arg(parser)
     checks.add_engine(parser)
     parser.add_argument("--samples", type=checks.samples, default=50, help="action sequences optimised at once (M)")
     parser.add_argument("--adam-steps", type=checks.adam_steps, default=100,
@@ -208,8 +229,7 @@ class Loop:
     def chooser(self, goals) -> Chooser:
         """The loop's chooser against goals [B]: --resolution's; with a judge, its choice among that plan's refined
         candidates."""
-        chooser = self.choose(goals)
-        return chooser if self.judge is None else JudgeScored(chooser, self.judge.dynamics)
+        return judged(self.choose, self.judge)(goals)
 
 
 def build_loop(args, sim: SimConfig, parser: argparse.ArgumentParser, task: str) -> Loop:
@@ -226,12 +246,7 @@ def build_loop(args, sim: SimConfig, parser: argparse.ArgumentParser, task: str)
     timing = load_timing(parser, args)
     inputs = {"--ckpt": None if args.dynamics == "sweep" else args.ckpt or shipped_dynamics(task),
               "--timing": args.timing, **read}
-    judge = None
-    if getattr(args, "judge", None) is not None:
-        judge = load_model(parser, "learned", args.judge, sim.scene.plate_half_width, flag="--judge")
-        if methods.finest(str(args.resolution), args) > judge.n_max:
-            parser.error(f"--resolution {args.resolution} exceeds the judge's n_max = {judge.n_max}")
-        inputs["--judge"] = args.judge
+    judge = load_judge(parser, args, sim.scene.plate_half_width, inputs) if hasattr(args, "judge") else None
     env = engines.make_env(sim, checks.engine(parser, args.backend))
     try:
         planner = planner_config(env, samples=args.samples, adam_steps=args.adam_steps, seed=args.seed)

@@ -5,6 +5,8 @@ state on the task objective c; the candidate with the lowest judged c is pushed.
 run it; the simulator choosing among the same candidates (``SimulatorScored(..., refine=True)``, the ``rerank`` rung)
 is the judge's ceiling. The judge is any planner dynamics (``models.registry``: radius -> model), so any checkpoint
 the registry loads can judge: ``JudgeScored(FixedOmega(goals, 50), load_dynamics("learned", CKPT, ...).dynamics)``.
+The robot's loop (``control.robot.run_robot``) takes it too: its keep rule chooses without worlds
+(``JudgeKeep.choose``).
 """
 
 from __future__ import annotations
@@ -39,14 +41,15 @@ def judged_costs(particles, goals, proposals, *, dynamics, camera):
 class JudgeKeep(NamedTuple):
     """Keep rule of ``JudgeScored`` (``Orders.keep``; called as ``keep.KEEPS``' rules are): per episode the proposal of
     the one plan whose judged c is lowest (the first on ties) is pushed in the worlds; its judged c is the record's
-    predicted_objective. dynamics: radius -> the judge's model."""
+    predicted_objective. ``choose`` is the same choice without worlds (a robot's loop). dynamics: radius -> the
+    judge's model."""
 
     dynamics: object
 
-    def __call__(self, worlds, now, plans: list[dict], score, timing=None) -> dict:
-        if len(plans) != 1:
-            raise ValueError(f"the judge chooses among one plan's proposals, got {len(plans)} plans")
-        plan = plans[0]
+    def choose(self, plan: dict, now) -> dict:
+        """The plan (``mpc.propose``'s, proposals [B, K, T, 4]) with its one proposal per episode, the judge's pick
+        ([B, 1, T, 4]), and the judged c as predicted_objective [B]; ValueError for an episode the judge cannot score
+        at all (non-finite c for every candidate)."""
         costs = np.asarray(judged_costs(plan["particles"], now.goals, jnp.asarray(plan["proposals"]),
                                         dynamics=self.dynamics, camera=now.camera))
         costs = np.where(np.isfinite(costs), costs, np.inf)  # a candidate the judge cannot score is never chosen
@@ -55,9 +58,13 @@ class JudgeKeep(NamedTuple):
             raise ValueError(f"the judge scored no candidate of episodes {lost.tolist()} (non-finite c for all)")
         pick = np.argmin(costs, axis=1)
         rows = np.arange(len(pick))
-        chosen = dict(plan, proposals=np.asarray(plan["proposals"])[rows, pick][:, None],
-                      predicted_objective=costs[rows, pick].astype(np.float32))
-        return keep_lowest_distance(worlds, now, [chosen], score)
+        return dict(plan, proposals=np.asarray(plan["proposals"])[rows, pick][:, None],
+                    predicted_objective=costs[rows, pick].astype(np.float32))
+
+    def __call__(self, worlds, now, plans: list[dict], score, timing=None) -> dict:
+        if len(plans) != 1:
+            raise ValueError(f"the judge chooses among one plan's proposals, got {len(plans)} plans")
+        return keep_lowest_distance(worlds, now, [self.choose(plans[0], now)], score)
 
 
 class JudgeScored(Chooser):

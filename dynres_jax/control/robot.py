@@ -180,14 +180,14 @@ def run_robot(source: FrameSource, pusher: Pusher, goal_mask, dynamics, cfg: MPC
     """The loop: read a frame, stop if ``success`` of its foreground is inside the goal (or after cfg.mpc_steps
     pushes), else plan as the chooser orders, check the push against ``workspace`` and send it. chooser: ω (an int,
     ``FixedOmega``) or a function of the goal (a Goal batched [1]) returning any chooser that keeps by the model
-    (``AdaptiveOmega``, ``ProbeOmega``); one whose orders need the simulator (the oracle, best of K) is refused at
-    the first frame, before any push. bin_size: (bin_half_width, wall_height) m to refine the camera's pose from the
-    first frame (``perception.calibrate``), None to trust it. timing: the table cfg.time_budget is spent by.
-    on_step(t, obs, particles [n, 3] or None, record): per frame (GIF, saving). Returns one record per frame: step,
-    distance (d on the frame, px), inside (share of foreground on the goal), and for a frame that was acted on:
-    omega, action [4] m, predicted_objective, planning_s. resume: a ``Progress`` to go on from (its records and warm
-    plan; the source then reads the frame after its last push); on_progress: called with the ``Progress`` after every
-    push (its states None: the world is the source's)."""
+    (``AdaptiveOmega``, ``ProbeOmega``) or by a judge (``judge.JudgeScored``); one whose orders need the simulator
+    (the oracle, best of K) is refused at the first frame, before any push. bin_size: (bin_half_width, wall_height)
+    m to refine the camera's pose from the first frame (``perception.calibrate``), None to trust it. timing: the
+    table cfg.time_budget is spent by. on_step(t, obs, particles [n, 3] or None, record): per frame (GIF, saving).
+    Returns one record per frame: step, distance (d on the frame, px), inside (share of foreground on the goal), and
+    for a frame that was acted on: omega, action [4] m, predicted_objective, planning_s. resume: a ``Progress`` to
+    go on from (its records and warm plan; the source then reads the frame after its last push); on_progress: called
+    with the ``Progress`` after every push (its states None: the world is the source's)."""
     camera = source.camera
     obs = source.read()
     if bin_size is not None:
@@ -210,16 +210,19 @@ def run_robot(source: FrameSource, pusher: Pusher, goal_mask, dynamics, cfg: MPC
                 f"{'at the goal' if record['inside'] >= success else 'out of steps'}, stopping")
             return records
         orders = chooser(t, batch(obs))
-        if orders.keep != "rate" and (len(orders.candidates) > 1 or orders.candidates[0].proposals != "plan"):
+        choose = getattr(orders.keep, "choose", None)  # a keep rule that chooses without worlds (the judge's)
+        if choose is None and orders.keep != "rate" and (len(orders.candidates) > 1
+                                                         or orders.candidates[0].proposals != "plan"):
             raise InputError(f"{type(chooser).__name__} keeps a push by pushing copies of the world; a robot has one "
-                             "world: give a chooser that keeps by the model (fixed ω, AdaptiveOmega, ProbeOmega)")
+                             "world: give a chooser that keeps by the model (fixed ω, AdaptiveOmega, ProbeOmega) or "
+                             "a judge (JudgeScored)")
         for candidate in orders.candidates:
             announce(cfg, candidate.omega, log)
         t0 = time.perf_counter()
         now = Situation(None, batch(obs), camera, orders.goals, orders.kinds, batch(jax.random.fold_in(key, t)),
                         init, warm)
-        plan = best_rate([propose(now, c, cfg=cfg, timing=timing, dynamics=dynamics) for c in orders.candidates],
-                         timing)
+        plans = [propose(now, c, cfg=cfg, timing=timing, dynamics=dynamics) for c in orders.candidates]
+        plan = best_rate(plans, timing) if choose is None else choose(plans[0], now)  # a judge orders one plan
         best = jnp.asarray(plan["proposals"][:, 0])
         action = workspace.check(np.asarray(best[0, 0]))
         record.update(omega=int(plan["omega"][0]), action=action.tolist(),
