@@ -28,7 +28,9 @@ without exporting again. Inputs (``INPUT_NAMES`` order; shapes fixed at export, 
 Outputs (a dict): push [4] and best [T, 4] float32 m (the lowest-cost sequence; NaN when error != 0), best_cost []
 (its predicted objective c, px), objective [] (c of the frame's particles now, px), positions [capacity, 3] m and mask
 [capacity] bool (the particles), error [] int32 (0: ok; bits of ``ERRORS``) and history [N] (the best cost up to each
-Adam step).
+Adam step). A file exported with a judge (``export_checkpoint(judge_dir=)``, ``experiments.export --judge``) holds
+both models: best and best_cost are then the judge's choice among the planner's refined candidates and its c
+(``judge_pick``); the sidecar's ``judge`` names it.
 
 A frame that shows no table where the camera puts it (a depth scaled or shifted, another camera's intrinsics or pose)
 sets ``NOT_A_TABLE``, by the rule ``plan`` refuses such frames with (``io.frames.table_fit``). The sidecar records the
@@ -60,6 +62,7 @@ from jax import export as jax_export
 from dynres_jax.config import CameraConfig, SceneConfig
 from dynres_jax.control.decision import DecisionSpec, perceive_and_decide
 from dynres_jax.control.goals import goal_fields
+from dynres_jax.control.judge import judged_costs
 from dynres_jax.control.planner import BAD_START, BAD_STEPS, NOT_FINITE, PlannerConfig
 from dynres_jax.io import ckpt, files
 from dynres_jax.io.frames import on_a_table, table_fit
@@ -90,15 +93,29 @@ INPUT_NAMES = ("depth", "goal_mask", "key", "omega", "adam_steps", "init", "warm
 OUTPUT_NAMES = ("push", "best", "best_cost", "objective", "positions", "mask", "error", "history")
 
 
-def decision_step(dynamics: Callable, camera: Camera, spec: DecisionSpec, goal_samples: int = DEFAULT_GOAL_SAMPLES
-                  ) -> Callable:
+def judge_pick(particles, goal, result, judge: Callable, camera: Camera):
+    """The judge's choice among one decision's refined candidates (``judge.JudgeKeep``'s, traced): particles and goal
+    of one frame, result its ``PlanResult`` -> (best [T, 4] m, NaN when the judge can score no candidate, and its
+    judged c [] px). The candidates are the planner's M after its Adam steps and its best, as ``proposals="plans"``."""
+    candidates = jnp.concatenate([result.actions, result.best[None]])  # [M + 1, T, 4]
+    one = jax.tree.map(lambda x: x[None], (particles, goal))
+    costs = judged_costs(*one, candidates[None], dynamics=judge, camera=camera)[0]
+    costs = jnp.where(jnp.isfinite(costs), costs, jnp.inf)  # a candidate the judge cannot score is never chosen
+    pick = jnp.argmin(costs)
+    return jnp.where(jnp.isfinite(costs[pick]), candidates[pick], jnp.nan), costs[pick]
+
+
+def decision_step(dynamics: Callable, camera: Camera, spec: DecisionSpec, goal_samples: int = DEFAULT_GOAL_SAMPLES,
+                  judge: Callable | None = None) -> Callable:
     """The pure function that is exported: ``(depth, goal_mask, key, omega, adam_steps, init, warm) -> {"push",
     "best", ...}`` (module docstring for shapes and units): ``goals.goal_fields`` of the mask, then
     ``decision.perceive_and_decide`` on the frame, as the closed loop decides.
 
     dynamics: radius (m) -> planner dynamics (the first value of ``registry.load_dynamics``); its arrays are closed
     over, so they become constants of the export. camera: the camera the frame and goal belong to (static). spec: the
-    particle capacity, the planner (one particle set: resamples must be 1) and perception's settings.
+    particle capacity, the planner (one particle set: resamples must be 1) and perception's settings. judge: a second
+    model of the same kind that chooses among the planner's refined candidates (``judge_pick``; best and best_cost
+    are then its choice and its judged c), or None.
     """
     if spec.planner.resamples != 1:
         raise ValueError(f"the exported decision takes one particle set: PlannerConfig.resamples must be 1, got "
@@ -112,14 +129,16 @@ def decision_step(dynamics: Callable, camera: Camera, spec: DecisionSpec, goal_s
         frame = Observation(depth, None, None, None)  # perception reads the depth only
         particles, c_now, result = perceive_and_decide(frame, goal, key, init, warm, omega, adam_steps, spec=spec,
                                                        dynamics=dynamics, camera=camera)
+        best, best_cost = (result.best, result.best_cost) if judge is None else judge_pick(
+            particles, goal, result, judge, camera)
         init_ok = ~jnp.asarray(warm, bool) | jnp.all(jnp.isfinite(init))
         table_ok = on_a_table(*table_fit(depth, camera)) | ~jnp.any(is_reading(depth))  # none at all: NO_DEPTH
         error = (particles.error | jnp.where(~jnp.any(goal_mask), GOAL_EMPTY, 0) | jnp.where(table_ok, 0, NOT_A_TABLE)
                  | jnp.where(jnp.all(goal_mask), GOAL_FULL, 0) | jnp.where(steps_ok, 0, BAD_STEPS)
                  | jnp.where(init_ok, 0, BAD_START)).astype(jnp.int32)
-        error = error | jnp.where((error == 0) & ~jnp.all(jnp.isfinite(result.best)), NOT_FINITE, 0)  # never a NaN push
-        best = jnp.where(error == 0, result.best, jnp.nan)
-        return dict(push=best[0], best=best, best_cost=result.best_cost, objective=c_now.astype(jnp.float32),
+        error = error | jnp.where((error == 0) & ~jnp.all(jnp.isfinite(best)), NOT_FINITE, 0)  # never a NaN push
+        best = jnp.where(error == 0, best, jnp.nan)
+        return dict(push=best[0], best=best, best_cost=best_cost, objective=c_now.astype(jnp.float32),
                     positions=particles.positions, mask=particles.mask, error=error, history=result.history)
 
     return step
@@ -146,7 +165,7 @@ def output_specs(spec: DecisionSpec):
     rows = [
         ("push", (4,), "float32", "m", "the push to execute (x_start, y_start, x_end, y_end); NaN unless error == 0"),
         ("best", (t, 4), "float32", "m", "the lowest-cost push sequence; best[0] is push"),
-        ("best_cost", (), "float32", "px", "its predicted task objective c"),
+        ("best_cost", (), "float32", "px", "its predicted task objective c (with a judge: the judge's)"),
         ("objective", (), "float32", "px", "c of the frame's particles now"),
         ("positions", (n, 3), "float32", "m", "the particles h(y, omega), zero where masked"),
         ("mask", (n,), "bool", "", "valid particles (the first omega)"),
@@ -157,39 +176,50 @@ def output_specs(spec: DecisionSpec):
 
 
 def export_decision(dynamics: Callable, camera: Camera, spec: DecisionSpec, *,
-                    goal_samples: int = DEFAULT_GOAL_SAMPLES, platforms: Sequence[str] | None = None
-                    ) -> jax_export.Exported:
-    """``decision_step`` lowered for inputs of ``input_specs`` shapes -> a ``jax.export.Exported``.
+                    goal_samples: int = DEFAULT_GOAL_SAMPLES, platforms: Sequence[str] | None = None,
+                    judge: Callable | None = None) -> jax_export.Exported:
+    """``decision_step`` lowered for inputs of ``input_specs`` shapes -> a ``jax.export.Exported`` (with a judge: both
+    models in one file).
     platforms: a subset of "cpu", "cuda", "rocm", "tpu" (default: this machine's backend); one platform reproduces
     the library's decision bit for bit (on the CPU), several give one file for all of them whose plans differ by
     rounding (module docstring)."""
     specs = [jax.ShapeDtypeStruct(tuple(s["shape"]), np.dtype(s["dtype"])) for s in input_specs(camera, spec.planner)]
-    fn = jax.jit(decision_step(dynamics, camera, spec, goal_samples))
+    fn = jax.jit(decision_step(dynamics, camera, spec, goal_samples, judge))
     with no_gpu_kernels():  # a file must lower for every platform named, on any machine
         return jax_export.export(fn, platforms=None if platforms is None else tuple(platforms))(*specs)
 
 
 def export_checkpoint(ckpt_dir: str, spec: DecisionSpec, camera: Camera | None = None, *,
                       goal_samples: int = DEFAULT_GOAL_SAMPLES, platforms: Sequence[str] | None = None,
-                      plate_half_width: float = SceneConfig.plate_half_width) -> tuple[jax_export.Exported, dict]:
-    """Export the decision of the learned model in ``ckpt_dir`` (``registry.load_dynamics("learned", ...)``) ->
-    (Exported, its description for the sidecar: ``describe``). camera: default the simulator's (``CameraConfig()``).
-    Raises FileNotFoundError (no checkpoint there), ``ckpt.CheckpointError`` (unreadable) or ValueError (a capacity
-    above the model's n_max)."""
+                      plate_half_width: float = SceneConfig.plate_half_width, judge_dir: str | None = None
+                      ) -> tuple[jax_export.Exported, dict]:
+    """Export the decision of the learned model in ``ckpt_dir`` (``registry.load_dynamics("learned", ...)``), with
+    the learned judge in ``judge_dir`` choosing the push where given -> (Exported, its description for the sidecar:
+    ``describe``). camera: default the simulator's (``CameraConfig()``). Raises FileNotFoundError (no checkpoint
+    there), ``ckpt.CheckpointError`` (unreadable) or ValueError (a capacity above a model's n_max)."""
     camera = Camera.top_down(CameraConfig()) if camera is None else camera
-    dynamics, n_max, _ = load_dynamics("learned", ckpt_dir, plate_half_width)
-    if spec.capacity > n_max:
-        raise ValueError(f"the capacity {spec.capacity} exceeds the model's n_max = {n_max}")
-    exported = export_decision(dynamics, camera, spec, goal_samples=goal_samples, platforms=platforms)
-    info = describe(exported, camera, spec, goal_samples,
-                    checkpoint=dict(path=os.path.abspath(ckpt_dir), step=ckpt.latest_step(ckpt_dir), n_max=n_max))
+    models = {}
+    for role, path in (("checkpoint", ckpt_dir), ("judge", judge_dir)):
+        if path is None:
+            continue
+        dynamics, n_max, _ = load_dynamics("learned", path, plate_half_width)
+        if spec.capacity > n_max:
+            raise ValueError(f"the capacity {spec.capacity} exceeds the {'judge' if role == 'judge' else 'model'}'s "
+                             f"n_max = {n_max}")
+        models[role] = dynamics, dict(path=os.path.abspath(path), step=ckpt.latest_step(path), n_max=n_max)
+    judge = models.get("judge", (None, None))
+    exported = export_decision(models["checkpoint"][0], camera, spec, goal_samples=goal_samples, platforms=platforms,
+                               judge=judge[0])
+    info = describe(exported, camera, spec, goal_samples, checkpoint=models["checkpoint"][1], judge=judge[1])
     return exported, info
 
 
 def describe(exported: jax_export.Exported, camera: Camera, spec: DecisionSpec,
-             goal_samples: int = DEFAULT_GOAL_SAMPLES, checkpoint: dict | None = None) -> dict:
+             goal_samples: int = DEFAULT_GOAL_SAMPLES, checkpoint: dict | None = None, judge: dict | None = None
+             ) -> dict:
     """The sidecar's content: how to call the file (inputs and outputs with shapes, dtypes, units; the error bits),
-    the baked-in capacity, perception and planner settings, camera and checkpoint, and the JAX that wrote it."""
+    the baked-in capacity, perception and planner settings, camera, checkpoint and judge (None: the planner's own
+    best is pushed), and the JAX that wrote it."""
     inputs = input_specs(camera, spec.planner)
     got = [(list(a.shape), str(a.dtype)) for a in exported.in_avals]
     if got != [(s["shape"], s["dtype"]) for s in inputs]:  # the sidecar must describe the file, not a guess
@@ -205,7 +235,7 @@ def describe(exported: jax_export.Exported, camera: Camera, spec: DecisionSpec,
         capacity=spec.capacity, goal_samples=goal_samples,
         perception=dict(max_points=spec.max_points, real_depth=spec.real_depth),
         planner={k: v for k, v in dataclasses.asdict(spec.planner).items() if k != "seed"},  # the key is an input
-        camera=json.loads(camera.to_json()), checkpoint=checkpoint,
+        camera=json.loads(camera.to_json()), checkpoint=checkpoint, judge=judge,
     )
 
 
@@ -278,5 +308,5 @@ def signature(exported: jax_export.Exported) -> str:
 
 __all__ = ["BAD_START", "BAD_STEPS", "DEFAULT_GOAL_SAMPLES", "ERRORS", "FORMAT", "GOAL_EMPTY", "GOAL_FULL",
            "INPUT_NAMES", "NOT_A_TABLE", "NOT_FINITE", "OUTPUT_NAMES", "call", "decision_step", "describe",
-           "describe_error", "export_checkpoint", "export_decision", "input_specs", "load", "output_specs", "save",
-           "signature"]
+           "describe_error", "export_checkpoint", "export_decision", "input_specs", "judge_pick", "load",
+           "output_specs", "save", "signature"]

@@ -311,6 +311,7 @@ X = [  # export
     (["--goal-samples", "0"], "--goal-samples"), (["--camera", "/nonexistent"], "camera file"),
     (["--camera", "{cam_negative_f}"], "camera file"), (["--platforms", "x"], "--platforms"),
     (["--ckpt", "/nonexistent"], "--ckpt"), (["--ckpt", "{flipped_dynamics}"], "damaged"), (["--ckpt", "{regressor}"], "--ckpt"),
+    (["--judge", "/nonexistent"], "--judge"), (["--judge", "{regressor}"], "--judge"),
     (["--out", "{foreign}"], "--out"), (["--out", "planner.txt"], "--out"), (["--out", "{file}/x.jaxexport"], "--out"),
     (["--out", "{foreign}/" + "x" * 245 + ".jaxexport"], "260 bytes"),  # legal alone; its sidecar OUT.json is not
 ]

@@ -256,3 +256,44 @@ def test_plan_gives_the_exported_files_push(tiny_ckpt, tmp_path, capsys):
     filed = ex.call(exported, obs.depth, frames.load_goal(goal, CAMERA), jax.random.PRNGKey(5), 12, 3)
     assert int(filed["error"]) == 0
     np.testing.assert_array_equal(np.asarray(filed["push"], np.float64), shown["push"])
+
+
+@pytest.mark.slow
+def test_a_file_with_a_judge_pushes_the_candidate_the_judge_rates_best(tiny_ckpt, reloaded, tmp_path):
+    """export --judge: both models in one file; its push is, among the planner's M refined candidates and its best,
+    the one whose rollout by the judge ends with the lowest c (a loop over the candidates, from the library's own
+    decision on the same frame); the sidecar names the judge; a judge other than the planner's model changes pushes."""
+    from dynres_jax.control.decision import goal_cost, perceive_and_decide
+
+    cfg = DynamicsConfig(hidden=16, propagation_steps=1, bin_position=False, residual=False)  # residual: the sweep,
+    judge_dir = tmp_path / "judge"  # as the planner's untrained residual model is
+    ckpt.save_module(judge_dir, 3, Dynamics(cfg, rngs=nnx.Rngs(5)),
+                     {"dynamics": dataclasses.asdict(cfg), "train": {"n_max": N_MAX}, "step": 3})
+    exported, info = ex.export_checkpoint(tiny_ckpt, SPEC, CAMERA, goal_samples=Q, platforms=("cpu",),
+                                          judge_dir=str(judge_dir))
+    assert info["judge"]["step"] == 3 and info["checkpoint"]["step"] == STEP
+    path = str(tmp_path / "judged.jaxexport")
+    ex.save(exported, path, info)
+    judged_file = ex.load(path)
+    dynamics, _, _ = load_dynamics("learned", tiny_ckpt, 0.04)
+    judge, _, _ = load_dynamics("learned", str(judge_dir), 0.04)
+    changed = 0
+    for i in range(6):
+        call = inputs(i)
+        depth, goal_mask, key, omega, steps, init, warm = call
+        out = judged_file.call(*call)
+        goal = make_goal(goal_mask, CAMERA, n_samples=Q)
+        obs = frame(0)._replace(depth=jnp.asarray(depth))
+        particles, _, result = perceive_and_decide(obs, goal, jnp.asarray(key), jnp.asarray(init), jnp.asarray(warm),
+                                                   jnp.int32(omega), jnp.int32(steps), spec=SPEC, dynamics=dynamics,
+                                                   camera=CAMERA)
+        cost = goal_cost(goal, CAMERA, SPEC.capacity)
+        model = judge(particles.radius)
+        candidates = [*np.asarray(result.actions), np.asarray(result.best)]
+        costs = [float(cost(model(particles.positions, particles.mask, jnp.asarray(c))[-1], particles.mask))
+                 for c in candidates]
+        pick = int(np.argmin(costs))
+        np.testing.assert_allclose(np.asarray(out["best"]), candidates[pick], atol=1e-6, err_msg=f"frame {i}")
+        assert float(out["best_cost"]) == pytest.approx(costs[pick], rel=1e-5, abs=1e-5)
+        changed += not np.allclose(np.asarray(out["push"]), np.asarray(reloaded.call(*call)["push"]))
+    assert changed > 0  # the judge's choice is not the planner's best on every frame

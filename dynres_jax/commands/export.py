@@ -48,6 +48,9 @@ def main(argv=None):
     parser = checks.parser("export", __doc__)
     defaults = PlannerConfig()
     parser.add_argument("--ckpt", default=SHIPPED_DYNAMICS, help="dynamics checkpoint (default: the shipped one)")
+    parser.add_argument("--judge", default=None, metavar="CKPT",
+                        help="a second dynamics checkpoint, in the same file, that chooses the push among the "
+                             "planner's refined candidates (control/judge.py); default: none, the planner's best")
     parser.add_argument("--out", required=True, help="the file to write; its description goes to OUT.json")
     parser.add_argument("--resolution", type=checks.omega, default=50,
                         help="the largest ω the robot will ask for: the file holds its bucket's particle slots "
@@ -89,17 +92,18 @@ def main(argv=None):
     spec = DecisionSpec(bucket_for(args.resolution), config, real_depth=args.real_depth)
     try:
         exported, info = export.export_checkpoint(args.ckpt, spec, camera, goal_samples=args.goal_samples,
-                                                  platforms=args.platforms)
-    except CheckpointError as e:
-        parser.error(f"--ckpt: {e}")
+                                                  platforms=args.platforms, judge_dir=args.judge)
+    except CheckpointError as e:  # the message names the folder
+        parser.error(f"{'--judge' if args.judge is not None and args.judge in str(e) else '--ckpt'}: {e}")
     except ValueError as e:
         parser.error(f"--resolution {args.resolution}: {e}")
     size = export.save(exported, args.out, info)
     summary = dict(out=os.path.abspath(args.out), sidecar=os.path.abspath(args.out) + ".json", bytes=size,
                    platforms=list(exported.platforms), checkpoint_step=info["checkpoint"]["step"],
-                   signature=export.signature(exported))
+                   judge_step=info["judge"] and info["judge"]["step"], signature=export.signature(exported))
+    judged = "" if args.judge is None else f", judge step {summary['judge_step']}"
     print(f"wrote {args.out} ({size / 1e6:.2f} MB, {', '.join(exported.platforms)}; checkpoint step "
-          f"{summary['checkpoint_step']}) and {args.out}.json")
+          f"{summary['checkpoint_step']}{judged}) and {args.out}.json")
     print(f"signature: {summary['signature']}")
     print(json.dumps(dict(planner=info["planner"], capacity=info["capacity"], perception=info["perception"])))
     return summary
