@@ -74,7 +74,7 @@ def test_an_interrupted_robot_episode_resumes_after_its_last_push(tmp_path, caps
     with pytest.raises(SystemExit) as e:
         robot.main([*TINY, "--out", str(tmp_path / "cut")])
     assert e.value.code == 130
-    assert "(the episode's pushes 1-1 of 2); rerun the same command to resume" in capsys.readouterr().err
+    assert "(the episode's push 1 of 2); rerun the same command to resume" in capsys.readouterr().err
     assert (tmp_path / "cut" / "progress.npz").exists() and not (tmp_path / "cut" / "metrics.json").exists()
     monkeypatch.setattr(guard, "kept", kept)
     again = robot.main([*TINY, "--out", str(tmp_path / "cut")])

@@ -161,7 +161,9 @@ def main(argv=None):
     plot(result, os.path.join(args.out, "eval.png"))
     text = table(result)
     files.write_text(os.path.join(args.out, "eval.md"), text)
-    print(text)
+    print(f"one-step and multi-step errors of {args.ckpt} (step {result['step']}) on {args.windows} held-out windows "
+          f"of {result['horizon']} pushes, mm:\n{text}")
+    print(f"wrote {', '.join(os.path.join(args.out, n) for n in ('eval.json', 'eval.md', 'eval.png'))}")
     return result
 
 

@@ -56,6 +56,11 @@ def _resend(signum: int) -> None:
         os.kill(os.getpid(), signum)
 
 
+def span(what: str, done: int, total: int) -> str:
+    """Finished items in words for ``kept``: "the episode's step 1 of 20", "the episode's steps 1-3 of 20"."""
+    return f"{what} 1 of {total}" if done == 1 else f"{what}s 1-{done} of {total}"
+
+
 def _kept() -> str:
     """What the ended command kept, for its last line ("" when its --out holds no finished work)."""
     out, what = running["out"], running.get("kept")

@@ -71,9 +71,10 @@ def build_parser():
                         help="the simulator camera's width and height, pixels (a goal PNG's size: 256 for one "
                              "`goal` made from `simulate`'s frame)")
     parser.add_argument("--calibrate", action="store_true", help="refine the camera's pose from the first frame")
-    parser.add_argument("--steps", type=checks.count(1), default=20, help="pushes at most")
+    parser.add_argument("--steps", type=checks.count(1), default=20, help="pushes at most (default 20)")
     parser.add_argument("--success", type=checks.number(0.01, 1.0), default=STOP_SHARE,
-                        help="stop when this share of the foreground lies inside the goal")
+                        help=f"stop when this share of the foreground the camera sees lies inside the goal (default "
+                             f"{STOP_SHARE})")
     add_resolution_args(parser)
     add_judge_arg(parser)
     parser.add_argument("--samples", type=checks.samples, default=50)
@@ -156,7 +157,7 @@ def resumed(out: str, source, steps: int):
 
     def kept(now, frames):
         progress.save(saved, now._replace(states=source.state if simulated else None), frames)
-        guard.kept(f"the episode's pushes 1-{len(now.records)} of {steps}")
+        guard.kept(guard.span("the episode's push", len(now.records), steps))
 
     if not os.path.isfile(saved):
         return None, [], kept

@@ -111,7 +111,7 @@ def resolution_chooser(parser: argparse.ArgumentParser, args, camera, n_max: int
     omega = row.omega(name, args)
     if methods.finest(name, args) > n_max:
         parser.error(f"--resolution {name} plans at ω up to {methods.finest(name, args)}, beyond the model's n_max = "
-                     f"{n_max}")
+                     f"{n_max}" + (f": give --resolution {n_max} or less" if name.isdigit() else ""))
     read = {}
     if row.needs != "--regressor" and args.regressor is not None:
         parser.error(f"--regressor is for --resolution adaptive; --resolution {name} would not use it")
@@ -304,7 +304,7 @@ def run_resumable(out: str, fresh: bool, env: PileEnv, state, chooser: Chooser, 
         progress.save(saved, now, frames.frames)
         if timing is not None:
             timing.save(table)
-        guard.kept(f"the episode's steps 1-{len(now.records)} of {cfg.mpc_steps}")
+        guard.kept(guard.span("the episode's step", len(now.records), cfg.mpc_steps))
 
     state, records = run_episode(env, state, chooser, dynamics, cfg, key, timing=timing, on_step=[frames],
                                  resume=resume, on_progress=keep)  # keep saved the table after the last step too
@@ -361,7 +361,9 @@ def main(task: str, argv=None):
         else:
             goal_mask, goal_info = spec.goal(rng, env, args.letter if spec.letter else None)
     except ValueError as e:
-        parser.error(f"--goal-png {args.goal_png}: {e}" if args.goal_png is not None else
+        hint = (" (this command's camera is the simulator's: make the goal with `python -m experiments.goal` without "
+                "--camera)" if "camera's images are" in str(e) else "")
+        parser.error(f"--goal-png {args.goal_png}: {e}{hint}" if args.goal_png is not None else
                      f"--letter {args.letter!r}: {e}" if spec.letter else str(e))
     loop.inputs["--goal-png"] = args.goal_png
     state = env.reset(jax.random.PRNGKey(args.seed))

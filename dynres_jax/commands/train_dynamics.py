@@ -125,6 +125,8 @@ def main(argv=None):
         check_data(folder, cfg)
     checks.claim(args.out, "train_dynamics", checks.settings(args, ignore=(*SCHEDULE, "max_minutes")), args.fresh,
                  {"--data": args.data})
+    print(f"train_dynamics: {args.model} on {', '.join(args.data)}, {cfg.steps} steps of batch {cfg.batch}; "
+          f"checkpoints and metrics.jsonl in {args.out}", flush=True)
     print(json.dumps(train(cfg, args.data, args.out, progress=not args.quiet, max_minutes=args.max_minutes)))
 
 

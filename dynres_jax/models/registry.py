@@ -162,5 +162,8 @@ def load_dynamics(choice: str, ckpt_dir: str, plate_half_width: float, edge_dtyp
         n_max = trained_n_max(meta, ckpt_dir)
         dynamics = learned_dynamics(model, edge_dtype)
         edges = "" if jnp.dtype(edge_dtype) == jnp.float32 else f", {jnp.dtype(edge_dtype).name} edges"
-        return LoadedDynamics(dynamics, n_max, f"learned ({ckpt_dir}, step {meta.get('step')}{edges})")
+        tuned = meta.get("rank_finetune")  # a fine-tune's step counts from its base: say so
+        step = (f"fine-tune step {meta.get('step')} of the step-{tuned['base'].split('step ')[-1].split()[0]} model"
+                if tuned and "step " in str(tuned.get("base")) else f"step {meta.get('step')}")
+        return LoadedDynamics(dynamics, n_max, f"learned ({ckpt_dir}, {step}{edges})")
     return LoadedDynamics(sweep_dynamics(plate_half_width), OMEGA_MAX, SWEEP_NAME)
