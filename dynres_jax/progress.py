@@ -16,6 +16,13 @@ def start(prog: str, text: str) -> None:
     print(f"{prog}: {text}", file=sys.stderr, flush=True)
 
 
+def at_terminal(prog: str, text: str) -> None:
+    """``start``'s line at a terminal only: a wait a user watches (a log's record, and a refusal's one line, need
+    none)."""
+    if sys.stderr.isatty():
+        start(prog, text)
+
+
 def bar(iterable=None, *, total: int | None = None, desc: str, unit: str = "it", initial: int = 0,
         quiet: bool = False) -> tqdm:
     """A progress bar over ``iterable`` (or ``total`` updates): tqdm's at a terminal, ``Lines`` elsewhere."""

@@ -57,6 +57,7 @@ from dynres_jax.commands.evaluate_methods import (
     sort_chooser,
 )
 from dynres_jax.commands.evaluation import episode_results, label, merge, report, sort_records, summarise
+from dynres_jax.commands.models import load_model
 from dynres_jax.commands.planner_args import (
     add_planner_args,
     check_budget,
@@ -65,14 +66,7 @@ from dynres_jax.commands.planner_args import (
     resolve_planner_args,
     timing_table,
 )
-from dynres_jax.commands.task import (
-    check_pile,
-    check_visible,
-    load_model,
-    objective_default,
-    objectives_text,
-    resolve_objective,
-)
+from dynres_jax.commands.task import check_pile, check_visible, objective_default, objectives_text, resolve_objective
 from dynres_jax.config import DEFAULT_PIECES, KINDS, CameraConfig, PileConfig, SceneConfig, SimConfig
 from dynres_jax.control import resolution, tasks
 from dynres_jax.control.goals import OBJECTIVES, make_goals, with_objective

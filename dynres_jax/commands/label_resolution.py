@@ -39,6 +39,7 @@ import numpy as np
 
 from dynres_jax import distributed, progress
 from dynres_jax.commands import checks
+from dynres_jax.commands.models import load_model
 from dynres_jax.commands.planner_args import (
     add_planner_args,
     load_timing,
@@ -46,7 +47,7 @@ from dynres_jax.commands.planner_args import (
     resolve_planner_args,
     timing_table,
 )
-from dynres_jax.commands.task import check_pile, load_model
+from dynres_jax.commands.task import check_pile
 from dynres_jax.config import KINDS, OMEGA_MAX, OMEGA_MIN, SceneConfig
 from dynres_jax.io import files
 from dynres_jax.io.shards import complete_shards, fill, read_shard, save_npz, shard_path

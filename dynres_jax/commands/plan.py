@@ -18,7 +18,7 @@ import jax
 import numpy as np
 
 from dynres_jax.commands import checks
-from dynres_jax.commands.task import load_model
+from dynres_jax.commands.models import load_model
 from dynres_jax.config import SceneConfig
 from dynres_jax.control.budget import bucket_for
 from dynres_jax.control.decision import DecisionSpec, batch, decide_batch, episode

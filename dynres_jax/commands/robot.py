@@ -28,14 +28,11 @@ import jax
 import numpy as np
 
 from dynres_jax.commands import checks, guard, methods
+from dynres_jax.commands.models import add_judge_arg, judged, load_judge, load_model
 from dynres_jax.commands.task import (
     PROGRESS,
-    add_judge_arg,
     add_resolution_args,
     check_visible,
-    judged,
-    load_judge,
-    load_model,
     resolution_chooser,
     resolve_pieces,
     write_episode,

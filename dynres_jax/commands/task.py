@@ -29,6 +29,7 @@ import jax
 import numpy as np
 
 from dynres_jax.commands import checks, docstring, guard, methods
+from dynres_jax.commands.models import add_judge_arg, judged, load_judge, load_model
 from dynres_jax.commands.planner_args import add_budget_args, check_budget, load_timing
 from dynres_jax.config import (
     DEFAULT_PIECES,
@@ -42,7 +43,6 @@ from dynres_jax.control import budget, progress, tasks
 from dynres_jax.control.choosers import Chooser
 from dynres_jax.control.decision import batch
 from dynres_jax.control.goals import OBJECTIVES, make_goal, with_objective
-from dynres_jax.control.judge import JudgeScored
 from dynres_jax.control.mpc import MPCConfig, measure_timing, run_episode
 from dynres_jax.control.objective import inside_share
 from dynres_jax.control.planner import planner_config
@@ -53,13 +53,12 @@ from dynres_jax.io.ckpt import CheckpointError
 from dynres_jax.io.draw import goal_frames
 from dynres_jax.io.frames import load_goal
 from dynres_jax.models.registry import (
-    SHIPPED_DYNAMICS,
     SHIPPED_REGRESSOR,
     LoadedDynamics,
-    load_dynamics,
     shipped_dynamics,
 )
 from dynres_jax.perception import visible_points
+from dynres_jax.progress import at_terminal
 from dynres_jax.sim import engines
 from dynres_jax.sim.camera import Camera
 from dynres_jax.sim.env import PileEnv
@@ -125,30 +124,6 @@ def resolution_chooser(parser: argparse.ArgumentParser, args, camera, n_max: int
     return omega, lambda goals: row.chooser(name, goals, args, camera, None), read
 
 
-def add_judge_arg(parser: argparse.ArgumentParser) -> None:
-    """--judge: a second dynamics checkpoint that chooses among the planner's refined candidates."""
-    parser.add_argument("--judge", default=None, metavar="CKPT",
-                        help="a second dynamics checkpoint that chooses among the planner's refined candidates "
-                             "(control/judge.py); default: none, the planner's own best plan is pushed")
-
-
-def load_judge(parser: argparse.ArgumentParser, args, plate_half_width: float, inputs: dict) -> LoadedDynamics | None:
-    """--judge's model (None without one), refused by parser.error where it cannot be read or cannot hold the finest
-    ω --resolution plans at, before any work; its path goes to ``inputs`` (``checks.claim``'s)."""
-    if args.judge is None:
-        return None
-    judge = load_model(parser, "learned", args.judge, plate_half_width, flag="--judge")
-    if methods.finest(str(args.resolution), args) > judge.n_max:
-        parser.error(f"--resolution {args.resolution} exceeds the judge's n_max = {judge.n_max}")
-    inputs["--judge"] = args.judge
-    return judge
-
-
-def judged(choose: Callable[..., Chooser], judge: LoadedDynamics | None) -> Callable[..., Chooser]:
-    """A chooser factory (goals [B] -> Chooser) with the judge's choice on top (``JudgeScored``), or as it is."""
-    return choose if judge is None else lambda goals: JudgeScored(choose(goals), judge.dynamics)
-
-
 def add_loop_args(parser: argparse.ArgumentParser, task: str, adaptive: bool = True) -> None:
     """The flags every closed-loop task command takes (``--out`` defaults to out/TASK); adaptive: whether
     ``--resolution`` may be 'adaptive' (Sort plans at one ω)."""
@@ -198,18 +173,6 @@ def check_pile(parser: argparse.ArgumentParser, kinds, pieces) -> None:
         parser.error(f"--pieces: {e}")
 
 
-def load_model(parser: argparse.ArgumentParser, choice: str, ckpt_dir: str, plate_half_width: float,
-               shipped: str = SHIPPED_DYNAMICS, flag: str = "--ckpt") -> LoadedDynamics:
-    """``registry.load_dynamics`` of ``ckpt_dir`` (None: ``shipped``; "" is no checkpoint, not the default), with a
-    missing or damaged checkpoint named by ``parser.error`` (as ``flag``) before any work."""
-    if choice == "sweep" and ckpt_dir is not None and os.path.abspath(ckpt_dir) != shipped:
-        parser.error(f"{flag} {ckpt_dir} is given but --dynamics sweep plans without a checkpoint; drop one of them")
-    try:
-        return load_dynamics(choice, shipped if ckpt_dir is None else ckpt_dir, plate_half_width)
-    except (CheckpointError, FileNotFoundError) as e:
-        parser.error(f"{flag}: {e}")
-
-
 @dataclass(frozen=True)
 class Loop:
     """What the loop flags ask for: the simulator, the planner's model, the MPC settings, the timing table of
@@ -247,7 +210,9 @@ def build_loop(args, sim: SimConfig, parser: argparse.ArgumentParser, task: str)
     inputs = {"--ckpt": None if args.dynamics == "sweep" else args.ckpt or shipped_dynamics(task),
               "--timing": args.timing, **read}
     judge = load_judge(parser, args, sim.scene.plate_half_width, inputs) if hasattr(args, "judge") else None
-    env = engines.make_env(sim, checks.engine(parser, args.backend))
+    backend = checks.engine(parser, args.backend)
+    at_terminal(checks.prog(task), "building the scene: the simulator and its camera (seconds on a CPU)")
+    env = engines.make_env(sim, backend)
     try:
         planner = planner_config(env, samples=args.samples, adam_steps=args.adam_steps, seed=args.seed)
         cfg = MPCConfig(mpc_steps=args.mpc_steps, planner=planner, time_budget=args.time_budget,

@@ -39,8 +39,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from dynres_jax.commands import checks
+from dynres_jax.commands.models import load_model
 from dynres_jax.commands.planner_args import add_reference_planner_args, planner_options, priced, resolve_planner_args
-from dynres_jax.commands.task import check_pile, load_model
+from dynres_jax.commands.task import check_pile
 from dynres_jax.config import CameraConfig, PileConfig, PushConfig, SceneConfig, SimConfig
 from dynres_jax.control import tasks
 from dynres_jax.control.budget import BUCKETS, TimingTable, bucket_for
