@@ -109,7 +109,7 @@ def build(args) -> ranking.RankingSet:
             twin_c = np.full_like(true_c, np.nan)
             if args.twin_sigma > 0:
                 twin = pool.push(perturb(tile(states), pool.scene.qpos_adr, args.twin_sigma / 1000,
-                                         jax.random.PRNGKey(args.seed * 1000 + t)), pushes)
+                                         jax.random.PRNGKey(args.seed * 1000 + t))[0], pushes)
                 _, twin_c = outcome(tile(states), tile(particles), twin, goals, camera, c)
                 broken |= np.asarray(twin.broken).reshape(c, b).T.any(1)
             ok = ~broken & (np.asarray(particles.error) == 0)

@@ -77,7 +77,7 @@ def agreement(kind: str, worlds: int, processes, seed: int = 0) -> dict:
     w = w_pool.push(start._replace(overflow=jnp.zeros(worlds, jnp.int32)), actions)
     jax.block_until_ready(w.pos)
     w_seconds = time.perf_counter() - t0
-    twin = perturb(start, c_pool.scene.qpos_adr, CHAOS_SIGMA, jax.random.PRNGKey(seed + 2))
+    twin, _ = perturb(start, c_pool.scene.qpos_adr, CHAOS_SIGMA, jax.random.PRNGKey(seed + 2))
     c2 = c_pool.push(twin, actions)
     c_broken, w_broken, c2_broken = (np.asarray(s.broken) for s in (c, w, c2))
     return dict(kind=kind, pieces=int(c_pool.scene.n_pieces), worlds=worlds,
