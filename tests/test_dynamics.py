@@ -141,8 +141,9 @@ WORLD_EDGES = reference(hidden=H, push_frame=True, world_edges=True, residual=Tr
 CONTEXT = reference(hidden=H, push_frame=True, world_edges=True, residual=True, bin_position=True)  # all on
 
 
-@pytest.mark.parametrize("config,edge_dtype", [(reference(hidden=H), "float32"), (WORLD_EDGES, "bfloat16"),
-                                               (CONTEXT, "float32")])  # CONTEXT: world edges in float32 too
+@pytest.mark.parametrize("config,edge_dtype", [  # CONTEXT: world edges in float32 too; two cases in the slow tier
+    (reference(hidden=H), "float32"), pytest.param(WORLD_EDGES, "bfloat16", marks=pytest.mark.slow),
+    pytest.param(CONTEXT, "float32", marks=pytest.mark.slow)])
 def test_pair_table_equals_per_edge_codes(config, edge_dtype):
     """Edge codes gathered from the pair table give the per-edge predictions (to float rounding) and gradients
     w.r.t. the push, vmapped over pushes from one padded pile as the planner calls it; a two-push rollout uses the
