@@ -144,3 +144,21 @@ def test_a_signal_during_exit_after_the_command_ended_prints_nothing():
                           env=dict(os.environ, JAX_PLATFORMS="cpu"))
     assert done.returncode == 0 and "exit hook done" in done.stdout, done.stderr
     assert "Traceback" not in done.stderr and "Exception ignored" not in done.stderr, done.stderr
+
+
+def test_the_interrupt_line_says_what_was_kept_and_nothing_when_nothing_was(tmp_path, monkeypatch):
+    """A task command claims its --out (run.json) before its first step: interrupted then, it says no work was kept;
+    after a step it names the steps kept."""
+    from dynres_jax.commands import guard
+
+    (tmp_path / guard.RUN).write_text("{}")
+    monkeypatch.setitem(guard.running, "out", str(tmp_path))
+    monkeypatch.setitem(guard.running, "kept", None)  # given back as it was after the test
+    guard.kept("")
+    assert guard._interrupted("gather") == ("python -m experiments.gather: interrupted before any work was kept; "
+                                            "rerun the same command to start again")
+    guard.kept(guard.span("the episode's step", 1, 6))
+    assert guard._interrupted("gather").endswith(f"kept in {tmp_path} (the episode's step 1 of 6); rerun the same "
+                                                 "command to resume")
+    guard.kept(guard.span("the episode's step", 3, 6))
+    assert "(the episode's steps 1-3 of 6)" in guard._interrupted("gather")

@@ -25,7 +25,8 @@ running: dict[str, str | None] = {"out": None}  # the --out of the command runni
 
 
 def kept(what: str) -> None:
-    """Say what the running command has saved so far (e.g. "steps 1-3 of 20"), for the line an interrupt ends with."""
+    """Say what the running command has saved so far (e.g. "steps 1-3 of 20"), for the line an interrupt ends with;
+    "" for nothing yet (its --out holds only its settings)."""
     running["kept"] = what
 
 
@@ -64,7 +65,7 @@ def span(what: str, done: int, total: int) -> str:
 def _kept() -> str:
     """What the ended command kept, for its last line ("" when its --out holds no finished work)."""
     out, what = running["out"], running.get("kept")
-    if not out or not os.path.isfile(os.path.join(out, RUN)):
+    if not out or not os.path.isfile(os.path.join(out, RUN)) or what == "":
         return ""
     return f"finished work is kept in {out}{f' ({what})' if what else ''}; "
 
@@ -73,7 +74,7 @@ def _interrupted(name: str) -> str:
     """The line an interrupted command ends with: what it kept and how to go on."""
     if _kept():
         return f"{prog(name)}: interrupted; {_kept()}rerun the same command to resume"
-    return f"{prog(name)}: interrupted before writing anything; rerun the same command to start again"
+    return f"{prog(name)}: interrupted before any work was kept; rerun the same command to start again"
 
 
 def _ignore_signals() -> None:

@@ -253,6 +253,7 @@ def run_resumable(out: str, fresh: bool, env: PileEnv, state, chooser: Chooser, 
     the same settings goes on from the last finished step (``fresh``: from the start). Under a time budget without a
     table, ``measure()`` makes one (checked to afford ``omegas``). Returns (final state, records, timing table)."""
     saved, table, resume = os.path.join(out, PROGRESS), os.path.join(out, "timing.json"), None
+    guard.kept("")  # no step finished yet
     if os.path.isfile(saved) and fresh:
         os.unlink(saved)
     elif os.path.isfile(saved):  # an interrupted run of these settings: go on from its last step, its table as it was
@@ -261,6 +262,7 @@ def run_resumable(out: str, fresh: bool, env: PileEnv, state, chooser: Chooser, 
         if cfg.time_budget is not None and os.path.isfile(table):  # refined as it was unless given frozen (--timing)
             timing = budget.TimingTable.load(table, frozen=timing is not None and timing.frozen)
         print(f"resuming the interrupted episode after step {len(resume.records)} of {cfg.mpc_steps} ({saved})")
+        guard.kept(guard.span("the episode's step", len(resume.records), cfg.mpc_steps))
     if cfg.time_budget is not None and timing is None:
         timing = measure()
         check_budget(cfg, timing, omegas)
