@@ -157,6 +157,7 @@ def resumed(out: str, source, steps: int):
         guard.kept(guard.span("the episode's push", len(now.records), steps))
 
     if not os.path.isfile(saved):
+        guard.kept("")  # no push finished yet
         return None, [], kept
     now, frames = progress.load(saved, source.state if simulated else None)
     now = now._replace(records=[{k: np.asarray(v).tolist() for k, v in r.items()} for r in now.records])
@@ -165,6 +166,7 @@ def resumed(out: str, source, steps: int):
     elif isinstance(source, ReplaySource):
         source.next = len(now.records)
     print(f"resuming the interrupted episode after push {len(now.records)} of {steps} ({saved})")
+    guard.kept(guard.span("the episode's push", len(now.records), steps))
     return now, frames, kept
 
 
