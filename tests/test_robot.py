@@ -65,9 +65,10 @@ def test_an_interrupted_robot_episode_resumes_after_its_last_push(tmp_path, caps
 
     kept = guard.kept
 
-    def interrupted(what):  # the user's Ctrl-C arrives once push 1 is saved
+    def interrupted(what):  # the user's Ctrl-C arrives once push 1 is saved ("": none yet)
         kept(what)
-        raise KeyboardInterrupt
+        if what:
+            raise KeyboardInterrupt
 
     monkeypatch.setattr(guard, "kept", interrupted)
     capsys.readouterr()
