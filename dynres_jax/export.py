@@ -62,7 +62,7 @@ from jax import export as jax_export
 from dynres_jax.config import CameraConfig, SceneConfig
 from dynres_jax.control.decision import DecisionSpec, perceive_and_decide
 from dynres_jax.control.goals import goal_fields
-from dynres_jax.control.judge import judged_costs
+from dynres_jax.control.judge import judged_costs, lowest_judged
 from dynres_jax.control.planner import BAD_START, BAD_STEPS, NOT_FINITE, PlannerConfig
 from dynres_jax.io import ckpt, files
 from dynres_jax.io.frames import on_a_table, table_fit
@@ -99,10 +99,8 @@ def judge_pick(particles, goal, result, judge: Callable, camera: Camera):
     judged c [] px). The candidates are the planner's M after its Adam steps and its best, as ``proposals="plans"``."""
     candidates = jnp.concatenate([result.actions, result.best[None]])  # [M + 1, T, 4]
     one = jax.tree.map(lambda x: x[None], (particles, goal))
-    costs = judged_costs(*one, candidates[None], dynamics=judge, camera=camera)[0]
-    costs = jnp.where(jnp.isfinite(costs), costs, jnp.inf)  # a candidate the judge cannot score is never chosen
-    pick = jnp.argmin(costs)
-    return jnp.where(jnp.isfinite(costs[pick]), candidates[pick], jnp.nan), costs[pick]
+    pick, cost = lowest_judged(judged_costs(*one, candidates[None], dynamics=judge, camera=camera)[0])
+    return jnp.where(jnp.isfinite(cost), candidates[pick], jnp.nan), cost
 
 
 def decision_step(dynamics: Callable, camera: Camera, spec: DecisionSpec, goal_samples: int = DEFAULT_GOAL_SAMPLES,

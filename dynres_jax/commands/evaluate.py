@@ -110,8 +110,7 @@ def build_parser():
     parser.add_argument("--objective", default=None, choices=OBJECTIVES, nargs="+", metavar="C",
                         help=f"c's SDF term (Sort: one for both target discs or one per kind): {objectives_text()}; "
                              "default: the task's, " + ", ".join(
-                                 f"{name} {objective_default(name)}" for name in sorted(tasks.TASKS)) +
-                             "")
+                                 f"{name} {objective_default(name)}" for name in sorted(tasks.TASKS)))
     parser.add_argument("--methods", nargs="+", default=None,
                         help=f"default {' '.join(DEFAULT_METHODS)} (Sort: {' '.join(SORT_DEFAULT)}). "
                              "Fixed ω (integers), 'adaptive' (the regressor picks ω), 'probe' (every step plans at "

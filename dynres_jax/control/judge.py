@@ -38,6 +38,14 @@ def judged_costs(particles, goals, proposals, *, dynamics, camera):
     return jax.vmap(one)(particles.positions, particles.mask, particles.radius, goals, proposals)
 
 
+def lowest_judged(costs):
+    """costs [..., K] (judged c) -> (the index [...] of the lowest finite one, the first on ties; that c, +inf where
+    none is finite): a candidate the judge cannot score is never chosen."""
+    costs = jnp.where(jnp.isfinite(costs), costs, jnp.inf)
+    pick = jnp.argmin(costs, axis=-1)
+    return pick, jnp.take_along_axis(costs, pick[..., None], axis=-1)[..., 0]
+
+
 class JudgeKeep(NamedTuple):
     """Keep rule of ``JudgeScored`` (``Orders.keep``; called as ``keep.KEEPS``' rules are): per episode the proposal of
     the one plan whose judged c is lowest (the first on ties) is pushed in the worlds; its judged c is the record's
@@ -50,16 +58,13 @@ class JudgeKeep(NamedTuple):
         """The plan (``mpc.propose``'s, proposals [B, K, T, 4]) with its one proposal per episode, the judge's pick
         ([B, 1, T, 4]), and the judged c as predicted_objective [B]; ValueError for an episode the judge cannot score
         at all (non-finite c for every candidate)."""
-        costs = np.asarray(judged_costs(plan["particles"], now.goals, jnp.asarray(plan["proposals"]),
-                                        dynamics=self.dynamics, camera=now.camera))
-        costs = np.where(np.isfinite(costs), costs, np.inf)  # a candidate the judge cannot score is never chosen
-        lost = np.flatnonzero(np.all(np.isinf(costs), axis=1))
+        pick, cost = (np.asarray(x) for x in lowest_judged(judged_costs(
+            plan["particles"], now.goals, jnp.asarray(plan["proposals"]), dynamics=self.dynamics, camera=now.camera)))
+        lost = np.flatnonzero(np.isinf(cost))
         if lost.size:
             raise ValueError(f"the judge scored no candidate of episodes {lost.tolist()} (non-finite c for all)")
-        pick = np.argmin(costs, axis=1)
-        rows = np.arange(len(pick))
-        return dict(plan, proposals=np.asarray(plan["proposals"])[rows, pick][:, None],
-                    predicted_objective=costs[rows, pick].astype(np.float32))
+        return dict(plan, proposals=np.asarray(plan["proposals"])[np.arange(len(pick)), pick][:, None],
+                    predicted_objective=cost.astype(np.float32))
 
     def __call__(self, worlds, now, plans: list[dict], score, timing=None) -> dict:
         if len(plans) != 1:
