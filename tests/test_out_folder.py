@@ -8,7 +8,7 @@ import sys
 
 import pytest
 
-from dynres_jax.commands import checks
+from dynres_jax.commands import checks, folder_lock
 from dynres_jax.errors import InputError
 from dynres_jax.io import files
 
@@ -78,6 +78,22 @@ def test_a_held_folder_is_refused_in_one_line(tmp_path, capsys):
     assert not checks.claim(out, "demo", {})  # its holder gone: a stale lock, taken over
     with open(os.path.join(out, checks.LOCK)) as f:
         assert f.read().startswith(f"pid {os.getpid()} ")
+
+
+def test_a_finished_run_leaves_no_lock(tmp_path):
+    out = str(tmp_path / "run")
+    claim = "import sys; from dynres_jax.commands import checks; checks.claim(sys.argv[1], 'demo', {})"
+    subprocess.run([sys.executable, "-c", claim, out], check=True)
+    assert sorted(os.listdir(out)) == sorted([checks.RUN, files.OWN])
+    assert checks.claim(out, "demo", {})  # and the folder resumes
+    key = os.path.realpath(out)
+    fd, path, pid = folder_lock._locks[key]
+    folder_lock._locks[key] = (fd, path, pid + 1)  # as a forked child (a worker) sees it at its exit
+    folder_lock.release()
+    assert checks.LOCK in os.listdir(out)  # the parent's lock stays
+    folder_lock._locks[key] = (fd, path, pid)
+    folder_lock.release()
+    assert checks.LOCK not in os.listdir(out) and key not in folder_lock._locks
 
 
 def test_a_folder_holding_only_a_lock_counts_as_empty(tmp_path):
