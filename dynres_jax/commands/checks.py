@@ -217,17 +217,7 @@ def claim(out: str, command: str, config: dict, fresh: bool = False, inputs: dic
     their own is deleted, ``files.remove_owned``; a user's file stays). From here on every file the run writes in
     ``out`` is listed (``files.own``). In a job, every process checks before process 0 writes anything, so all see the
     same folder and refuse it together; process 0 holds the lock."""
-    record = os.path.join(out, RUN)
-    if os.path.exists(out) and not os.path.isdir(out):
-        raise InputError(f"--out {out!r} is a file, not a folder")
-    _check_can_create(out)
-    _check_name_length(os.path.abspath(os.path.join(out, RUN)))
-    if os.path.isdir(out) and not os.path.isfile(record) and set(os.listdir(out)) - {LOCK}:
-        raise InputError(f"--out {out!r} is not empty and holds no {RUN} (it was not made by a dynres command); "
-                         "choose a new or empty folder")
-    hashes = {flag: [[path, digest(path, flag)] for path in ([paths] if isinstance(paths, str) else paths)]
-              for flag, paths in sorted((inputs or {}).items()) if paths is not None}
-    _earlier(out, command, config, hashes, fresh)  # a refusal creates nothing, not even the lock
+    hashes = check_out(out, command, config, fresh, inputs)  # a refusal creates nothing, not even the lock
     if not distributed.agree(hold(out) if distributed.is_writer() else True):
         raise InputError(f"--out {out!r} is in use by another run ({holder(out)}); wait for it to end or choose "
                          "another folder")
@@ -242,10 +232,26 @@ def claim(out: str, command: str, config: dict, fresh: bool = False, inputs: dic
             files.remove_owned(out, keep=(RUN,))
         elif earlier is None:
             files.write_text(os.path.join(out, files.OWN), "")
-        files.write_json(record, dict(command=command, config=config, inputs=hashes))
+        files.write_json(os.path.join(out, RUN), dict(command=command, config=config, inputs=hashes))
     distributed.barrier(f"claim written {os.path.abspath(out)}")
     files.own(out)
     return earlier is not None
+
+
+def check_out(out: str, command: str, config: dict, fresh: bool = False, inputs: dict | None = None) -> dict:
+    """``claim``'s refusals of ``out``, writing nothing, so that a command can give them before its slow set-up (a
+    scene built); the inputs' hashes as run.json keeps them."""
+    if os.path.exists(out) and not os.path.isdir(out):
+        raise InputError(f"--out {out!r} is a file, not a folder")
+    _check_can_create(out)
+    _check_name_length(os.path.abspath(os.path.join(out, RUN)))
+    if os.path.isdir(out) and not os.path.isfile(os.path.join(out, RUN)) and set(os.listdir(out)) - {LOCK}:
+        raise InputError(f"--out {out!r} is not empty and holds no {RUN} (it was not made by a dynres command); "
+                         "choose a new or empty folder")
+    hashes = {flag: [[path, digest(path, flag)] for path in ([paths] if isinstance(paths, str) else paths)]
+              for flag, paths in sorted((inputs or {}).items()) if paths is not None}
+    _earlier(out, command, config, hashes, fresh)
+    return hashes
 
 
 def _earlier(out: str, command: str, config: dict, hashes: dict, fresh: bool) -> tuple[dict | None, bool]:

@@ -195,9 +195,9 @@ class Loop:
         return judged(self.choose, self.judge)(goals)
 
 
-def build_loop(args, sim: SimConfig, parser: argparse.ArgumentParser, task: str) -> Loop:
-    """The ``Loop`` of ``task``'s loop flags; parser.error naming a bad flag, before any work (the scene is built
-    last)."""
+def build_loop(args, sim: SimConfig, parser: argparse.ArgumentParser, task: str, read: dict | None = None) -> Loop:
+    """The ``Loop`` of ``task``'s loop flags; parser.error naming a bad flag, and --out's refusal (``read``: the
+    command's own input files, by flag), before any work (the scene is built last)."""
     resolve_objective(parser, args, task, sim.scene.kinds)
     model = load_model(parser, args.dynamics, args.ckpt, sim.scene.plate_half_width, shipped_dynamics(task))
     if isinstance(args.resolution, int):  # Sort: one ω, a SortPolicy plans at it
@@ -211,6 +211,8 @@ def build_loop(args, sim: SimConfig, parser: argparse.ArgumentParser, task: str)
               "--timing": args.timing, **read}
     judge = load_judge(parser, args, sim.scene.plate_half_width, inputs) if hasattr(args, "judge") else None
     backend = checks.engine(parser, args.backend)
+    inputs.update(read or {})
+    checks.check_out(args.out, task, checks.settings(args), args.fresh, inputs)
     at_terminal(checks.prog(task), "building the scene: the simulator and its camera (seconds on a CPU)")
     env = engines.make_env(sim, backend)
     try:
@@ -292,6 +294,16 @@ def write_episode(out: str, frames: list) -> None:
     files.write_image(os.path.join(out, "final.png"), cv2.cvtColor(frames[-1], cv2.COLOR_RGB2BGR))
 
 
+def _goal_png(parser: argparse.ArgumentParser, path: str, camera: Camera) -> np.ndarray:
+    """--goal-png's mask [H, W] bool, read before the scene is built; parser.error naming the file."""
+    try:
+        return load_goal(path, camera)
+    except ValueError as e:
+        hint = (" (this command's camera is the simulator's: make the goal with `python -m experiments.goal` without "
+                "--camera)" if "camera's images are" in str(e) else "")
+        parser.error(f"--goal-png {path}: {e}{hint}")
+
+
 def main(task: str, argv=None):
     spec = tasks.TASKS[task]
     _, examples, rest = (docstring(__name__).split("\n\n", 2) + ["", ""])[:3]
@@ -317,22 +329,20 @@ def main(task: str, argv=None):
 
     sim = SimConfig(scene=SceneConfig(kinds=(args.kind,), pieces=(args.pieces,)), pile=PileConfig(layout=args.layout),
                     camera=CameraConfig())
-    loop = build_loop(args, sim, parser, task)
+    drawn = None if args.goal_png is None else _goal_png(parser, args.goal_png, Camera.top_down(sim.camera))
+    loop = build_loop(args, sim, parser, task, {"--goal-png": args.goal_png})
     env, cfg, timing = loop.env, loop.cfg, loop.timing
 
     rng = np.random.default_rng(args.seed)
     try:
-        if args.goal_png is not None:
-            goal_mask, goal_info = tasks.mask_goal(env, load_goal(args.goal_png, env.camera))
+        if drawn is not None:
+            goal_mask, goal_info = tasks.mask_goal(env, drawn)
             goal_info["path"] = args.goal_png
         else:
             goal_mask, goal_info = spec.goal(rng, env, args.letter if spec.letter else None)
     except ValueError as e:
-        hint = (" (this command's camera is the simulator's: make the goal with `python -m experiments.goal` without "
-                "--camera)" if "camera's images are" in str(e) else "")
-        parser.error(f"--goal-png {args.goal_png}: {e}{hint}" if args.goal_png is not None else
+        parser.error(f"--goal-png {args.goal_png}: {e}" if args.goal_png is not None else
                      f"--letter {args.letter!r}: {e}" if spec.letter else str(e))
-    loop.inputs["--goal-png"] = args.goal_png
     state = env.reset(jax.random.PRNGKey(args.seed))
     check_visible(parser, state.obs, env.camera, methods.finest(args.resolution, args), cfg)
     done = finished(args.out, checks.claim(args.out, task, checks.settings(args), args.fresh, loop.inputs), args.fresh)
