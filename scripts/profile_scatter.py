@@ -6,7 +6,8 @@ same inputs are compared bit for bit.
     PYTHONPATH=. python scripts/profile_scatter.py [VARIANT ...] [--steps 100] [--profile]
 
 Variants: float (a plain float scatter-add: the speed to beat; does not repeat), int30 (the library's: 30-bit fixed
-point summed as int32), int30pad (the same into one more row), int30t (the same with the channels leading), limb1
+point summed as int32), int30pad (the same into one more row), int30t (the same with the channels leading),
+int30barrier (the same behind an optimization barrier: no transpose folded into its scatter), limb1
 (24-bit fixed point as integer-valued float32: float atomics add it exactly), limb2 (two such limbs, 38 bits, one
 scatter each), onehot (a one-hot matrix product, bf16 x 3), sorted32 (each row's terms gathered through a sort, at
 most 32 a row), compare (every sum a fused [E, n, C] reduction: no atomics), dense (a graph's senders' sum as a dense
@@ -14,13 +15,24 @@ most 32 a row), compare (every sum a fused [E, n, C] reduction: no atomics), den
 densepair (the planner's pair-table step: its gradient recomputed over all N x N pairs, no gather; other sums by
 compare), densepair_int30, forward (the planner's gradient by forward mode: 4T tangents through a model with no
 hand-written gradient; no scatter anywhere). ``--profile`` prints the 12 slowest kernels at bucket 64 (through
-torch.profiler, on a GPU). Prints ms per Adam step, whether two plans are bit-identical, and the variant's best cost.
+torch.profiler, on a GPU); ``--dump DIR`` keeps in DIR, for each compiled plan, the HLO of its scatter fusions and
+their PTX kernels (from XLA's dump). Prints ms per Adam step, whether two plans are bit-identical, and the variant's
+best cost.
 """
 
 import argparse
+import glob
 import os
+import re
+import shutil
+import sys
+import tempfile
 
 os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")  # torch's profiler shares the GPU
+XLA_DUMP = tempfile.mkdtemp(prefix="xla_dump_") if "--dump" in sys.argv else None
+if XLA_DUMP:  # before jax is imported
+    os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + f" --xla_dump_to={XLA_DUMP} --xla_dump_hlo_as_text"
+                               " --xla_dump_hlo_module_re=.*plan.*")
 
 import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
@@ -92,6 +104,16 @@ def sorted32(index, values, n, bound=None, cap=32):
 def int30pad(index, values, n, bound=None):
     """The library's sum into n + 1 rows, the last dropped (at bucket 64 the rows equal the 64 channels)."""
     return LIBRARY(index, values, n + 1, bound)[:n]
+
+
+def int30barrier(index, values, n, bound=None):
+    """The library's sum with its int32 scatter behind an optimization barrier, so that XLA cannot fold a later
+    transpose into it (at bucket 64 it did: each update a strided column of the [n, C] sum, docs/repeat)."""
+    index, flat = _rows(index, values)
+    total, scale = _scaled(flat, bound, propagation.FIXED_POINT_BITS)
+    terms = jnp.round(flat * scale).astype(jnp.int32)
+    summed = jax.lax.optimization_barrier(jnp.zeros((n, flat.shape[-1]), jnp.int32).at[index].add(terms))
+    return jnp.where(jnp.isfinite(total), summed.astype(jnp.float32) / scale, jnp.nan)
 
 
 def int30t(index, values, n, bound=None):
@@ -172,7 +194,7 @@ LIBRARY_BWD = propagation._incoming_bwd
 VARIANTS = dict(float=plain_float, int30=LIBRARY, limb1=limb1, limb2=limb2, onehot=onehot, sorted32=sorted32,
                 compare=compare, dense=_graph_or(compare), dense_int30=_graph_or(LIBRARY), densepair=compare,
                 densepair_int30=LIBRARY, forward=LIBRARY, int30pad=int30pad,
-                int30t=int30t)
+                int30t=int30t, int30barrier=int30barrier)
 PAIR_BWD = dict(densepair=_dense_pair_bwd, densepair_int30=_dense_pair_bwd)  # variants with their own gradient
 
 
@@ -181,6 +203,7 @@ def main():
     parser.add_argument("variants", nargs="*", default=list(VARIANTS), choices=list(VARIANTS))
     parser.add_argument("--steps", type=int, default=100)
     parser.add_argument("--profile", action="store_true")
+    parser.add_argument("--dump", metavar="DIR", default=None)
     args = parser.parse_args()
     from benchmarks.bench_planner import PARTICLE_RADIUS, _camera_and_goal, _piles
     from benchmarks.bench_resolution import _ms_per_step
@@ -219,11 +242,35 @@ def main():
                   f"best c {float(a.best_cost):.4f}", flush=True)
             if args.profile and slots == 64:
                 _profile(run, args.steps)
+        if args.dump:
+            _keep_scatters(args.dump, name)
     propagation.exact_scatter_add = LIBRARY
     dynamics_module.incoming_effects = library["incoming_effects"]
     dynamics_module.gather_rows = objective.gather_rows = library["gather_rows"]
     jax.value_and_grad = library["value_and_grad"]
     propagation.incoming_effects.defvjp(propagation._incoming_fwd, LIBRARY_BWD)
+
+
+def _keep_scatters(out, variant):
+    """From XLA's dump of the plans compiled since the last call: each module's scatter fusions (HLO) and their PTX
+    kernels, as out/VARIANT.txt; the dump's files are then deleted."""
+    os.makedirs(out, exist_ok=True)
+    with open(os.path.join(out, f"{variant}.txt"), "a") as f:
+        for hlo in sorted(glob.glob(os.path.join(XLA_DUMP, "*after_optimizations.txt"))):
+            text = open(hlo).read()
+            f.write(f"==== {os.path.basename(hlo)}\n")
+            for block in re.split(r"\n(?=\S)", text):  # computations, one a block
+                if "scatter" in block.split("\n", 1)[0] or re.search(r"= \S+ scatter\(", block):
+                    f.write(block + "\n")
+            for line in text.splitlines():  # the calls of the fusions, with their shapes
+                if "scatter" in line and "calls=" in line:
+                    f.write("CALL " + line.strip() + "\n")
+        for ptx in sorted(glob.glob(os.path.join(XLA_DUMP, "*.ptx"))):
+            f.write(f"==== {os.path.basename(ptx)}\n")
+            for entry in re.findall(r"\.entry [^(]*scatter[^(]*\(.*?\n}", open(ptx).read(), re.S):
+                f.write(entry + "\n")
+    shutil.rmtree(XLA_DUMP)
+    os.makedirs(XLA_DUMP)
 
 
 def _profile(run, steps):
