@@ -19,7 +19,8 @@ import mujoco
 import numpy as np
 
 from dynres_jax.config import SceneConfig, SimConfig, replace
-from dynres_jax.sim.env import FULL_STATE, PileEnv, c_rollout
+from dynres_jax.sim.env import PileEnv
+from dynres_jax.sim.physics.c import FULL_STATE, c_rollout
 
 # Scene variants compared (all 100 coffee beans unless --pieces says otherwise).
 VARIANTS = {

@@ -20,8 +20,8 @@ import numpy as np
 
 from benchmarks.bench_sim import _batch, _c_worker, _timed, c_jobs, c_reference
 from dynres_jax.config import SceneConfig, SimConfig, replace
-from dynres_jax.sim import warp
 from dynres_jax.sim.env import PileEnv
+from dynres_jax.sim.physics import warp
 
 
 def warp_engine(cfg: SimConfig, worlds: int, graph_mode: str) -> PileEnv:
@@ -30,8 +30,8 @@ def warp_engine(cfg: SimConfig, worlds: int, graph_mode: str) -> PileEnv:
 
     env = PileEnv(cfg, backend="warp", render=False, worlds=worlds)
     if graph_mode != "NONE":  # the engine's default; replace the model before the first call traces it
-        env.mx = warp.put(env.scene.model, env.scene.n_pieces, worlds,
-                          graph_mode=JaxCallableGraphMode[graph_mode])[0]
+        env.physics.mx = warp.put(env.scene.model, env.scene.n_pieces, worlds,
+                                  graph_mode=JaxCallableGraphMode[graph_mode])[0]
     return env
 
 

@@ -115,7 +115,7 @@ def main(argv=None):
     elif args.what == "warp":
         from benchmarks import bench_warp
         from dynres_jax.errors import InputError
-        from dynres_jax.sim import warp
+        from dynres_jax.sim.physics import warp
 
         try:
             warp.check_installed()

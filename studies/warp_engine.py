@@ -2,9 +2,9 @@
 
 Two checks, every piece kind at its default piece count:
 
-- ``first_call`` (``--first-call``): a fresh process per kind builds a ``WarpPool``, resets 64 piles and pushes them
+- ``first_call`` (``--first-call``): a fresh process per kind builds a ``SizedPool``, resets 64 piles and pushes them
   once, so Warp compiles and loads its kernels in that process; on a fresh machine this is where CUDA graph capture
-  failed (``sim.warp.warm_up``). Reports per kind: ok, seconds, the error if any.
+  failed (``sim.physics.warp.warm_up``). Reports per kind: ok, seconds, the error if any.
 - ``agreement``: ``--worlds`` piles settled by C MuJoCo, one random push each (``PileEnv.sample_push``), executed by
   C MuJoCo and by MuJoCo Warp from the same state; per piece, the distance between where the two engines leave it
   (median, 90th percentile, mean; mm), broken worlds of each, and the pieces' mean travel. Beside it the chaos
@@ -29,7 +29,7 @@ import numpy as np
 
 from dynres_jax.config import DEFAULT_PIECES, KINDS, SceneConfig, SimConfig, replace
 from dynres_jax.io.files import write_json, write_text
-from dynres_jax.sim.pool import WarpPool, WorldPool, process_pool
+from dynres_jax.sim.pool import SizedPool, WorldPool, process_pool
 from studies.noise_floor import perturb
 
 CHAOS_SIGMA = 1e-5  # m: the C-against-C reference's perturbation (0.01 mm)
@@ -41,10 +41,11 @@ def kind_config(kind: str) -> SimConfig:
 
 
 def first_call(kind: str, worlds: int = 64) -> dict:
-    """In this process: a WarpPool of ``kind``, a reset of ``worlds`` piles and one push. {kind, ok, seconds, error}."""
+    """In this process: a Warp SizedPool of ``kind``, a reset of ``worlds`` piles and one push. {kind, ok, seconds,
+    error}."""
     t0 = time.perf_counter()
     try:
-        pool = WarpPool(kind_config(kind))
+        pool = SizedPool(kind_config(kind))
         keys = jax.random.split(jax.random.PRNGKey(0), worlds)
         states = pool.reset(keys)
         actions = jax.vmap(pool.env.sample_push)(keys, states.pos)
@@ -67,7 +68,7 @@ def summary(d: np.ndarray) -> dict:
 def agreement(kind: str, worlds: int, processes, seed: int = 0) -> dict:
     """One push per world in C and in Warp from the same C-settled piles, and the C-against-C chaos reference."""
     cfg = kind_config(kind)
-    c_pool, w_pool = WorldPool(cfg, processes), WarpPool(cfg)
+    c_pool, w_pool = WorldPool(cfg, processes), SizedPool(cfg)
     keys = jax.random.split(jax.random.PRNGKey(seed), worlds)
     start = c_pool.reset(keys)
     actions = np.asarray(jax.vmap(c_pool.env.sample_push)(jax.random.split(jax.random.PRNGKey(seed + 1), worlds),
@@ -99,7 +100,7 @@ def table(result: dict) -> str:
                      f"| {c['median_mm']:.2f} | {c['p90_mm']:.2f} | {c['mean_mm']:.2f} | {r['travel_mm']:.1f} | "
                      f"{r['broken']['c']} / {r['broken']['warp']} |")
     if result.get("first_call"):
-        lines += ["", "First call in a fresh process (WarpPool, reset of 64 piles, one push):", "",
+        lines += ["", "First call in a fresh process (SizedPool, reset of 64 piles, one push):", "",
                   "| kind | ok | seconds | error |", "|---|---|---:|---|"]
         lines += [f"| {r['kind']} | {r['ok']} | {r['seconds']:.1f} | {r['error'] or ''} |"
                   for r in result["first_call"]]

@@ -82,7 +82,7 @@ def test_warp_without_the_extra_is_one_line(capsys):
     """``benchmark warp`` on a machine without MuJoCo Warp: exit status 2 and one line naming the extra, before any
     work (it was a traceback around that line)."""
     from dynres_jax.errors import InputError
-    from dynres_jax.sim import warp
+    from dynres_jax.sim.physics import warp
 
     try:
         warp.check_installed()

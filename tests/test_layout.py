@@ -67,10 +67,13 @@ def test_the_package_face_is_light_and_complete():
 
 
 def test_engines_are_known_by_their_row_not_their_name():
-    """Outside ``sim/`` no code compares a run's engine name (``args.backend == "mujoco"``): what a caller needs to
-    know of an engine (host workers, one device) is a field of its row in ``sim/engines.py``, so a new engine is a
-    row, not a hunt for string comparisons."""
-    pattern = re.compile(r"(args|config|cfg)\.backend\s*(==|!=)|backend\s*(==|!=)\s*\"(mujoco|mjx|mjx-fast|warp)\"")
-    found = [f"{p.relative_to(PACKAGE)}:{i}" for p in PACKAGE.rglob("*.py") if p.parent.name != "sim"
+    """Outside the table (``sim/engines.py``) and the physics (``sim/physics/``) no code compares a run's engine or
+    physics name (``args.backend == "mujoco"``, ``env.backend in ("mjx", "warp")``): what a caller needs to know (host
+    workers, one device, traced, capacities) is a field of the engine's row or of its physics, so a new engine is a
+    row and a new physics a module, not a hunt for string comparisons."""
+    pattern = re.compile(r"(args|config|cfg|env|self)\.backend\s*(==|!=|in\b)|"
+                         r"backend\s*(==|!=)\s*\"(mujoco|mjx|mjx-fast|warp)\"")
+    found = [f"{p.relative_to(PACKAGE)}:{i}" for p in PACKAGE.rglob("*.py")
+             if p.name != "engines.py" and "physics" not in p.relative_to(PACKAGE).parts
              for i, line in enumerate(p.read_text().splitlines(), 1) if pattern.search(line)]
     assert not found, found

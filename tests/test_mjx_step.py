@@ -1,4 +1,5 @@
-"""sim.mjx_step: the step with sparse contact Jacobians equals mujoco.mjx.step; dof chains; what it refuses."""
+"""sim.physics.mjx_step: the step with sparse contact Jacobians equals mujoco.mjx.step; dof chains; what it
+refuses."""
 
 import functools
 
@@ -9,8 +10,9 @@ import numpy as np
 import pytest
 
 from dynres_jax.config import SceneConfig, SimConfig
-from dynres_jax.sim import mjx_step
-from dynres_jax.sim.env import PileEnv, mjx
+from dynres_jax.sim.env import PileEnv
+from dynres_jax.sim.physics import mjx_step
+from dynres_jax.sim.physics.mjx import mjx
 
 SCENES = {
     "coffee, Newton, condim 3 (default)": SceneConfig(pieces=(6,)),
@@ -32,7 +34,7 @@ def _squeezed_world(env: PileEnv):
     qpos = env._qpos_from(jnp.asarray(xy, jnp.float32), jnp.asarray(yaw, jnp.float32))
     qvel = 0.05 * jax.random.normal(jax.random.PRNGKey(0), (env.scene.model.nv,))
     plate = jnp.array([[xy[0, 0] - half - env.config.scene.plate_thickness / 2 + 0.001, 0.0, env.plate_z]])
-    return env._data0().replace(qpos=qpos, qvel=qvel, mocap_pos=plate, mocap_quat=jnp.array([[1.0, 0, 0, 0]]))
+    return env.physics.data0().replace(qpos=qpos, qvel=qvel, mocap_pos=plate, mocap_quat=jnp.array([[1.0, 0, 0, 0]]))
 
 
 @pytest.mark.slow
@@ -40,8 +42,8 @@ def _squeezed_world(env: PileEnv):
 def test_sparse_step_equals_mjx_step(name):
     env = PileEnv(SimConfig(scene=SCENES[name]), backend="mjx", render=False)
     d = _squeezed_world(env)
-    ref = jax.jit(mjx.step)(env.mx, d)
-    ours = jax.jit(env._step)(env.mx, d)
+    ref = jax.jit(mjx.step)(env.physics.mx, d)
+    ours = jax.jit(env.physics.step)(env.physics.mx, d)
     touching = np.asarray(ref._impl.contact.dist) < 0
     assert touching.sum() >= env.scene.n_pieces  # pairs in the row and the plate: real contact rows, not zeros
     for field in ("efc_J", "efc_D", "efc_aref", "efc_pos", "efc_frictionloss"):
@@ -104,7 +106,7 @@ def test_the_sparse_step_runs_only_on_the_tested_mujoco_and_auto_picks_it_for_fr
     "auto" steps the fast (frictionless) scene with it and the default scene with the public mujoco.mjx.step."""
     import mujoco
 
-    from dynres_jax.sim import mjx_step
+    from dynres_jax.sim.physics import mjx_step
 
     mjx_step.check_version(mjx_step.TESTED_MUJOCO)
     with pytest.raises(RuntimeError, match=f"written against MuJoCo MJX {mjx_step.TESTED_MUJOCO}.*3.99.0 is installed"):
@@ -112,5 +114,5 @@ def test_the_sparse_step_runs_only_on_the_tested_mujoco_and_auto_picks_it_for_fr
     assert mujoco.__version__ == mjx_step.TESTED_MUJOCO  # the pinned pair (pyproject.toml)
     fast = PileEnv(SimConfig(scene=SceneConfig.fast(pieces=(2,))), backend="mjx", render=False)
     default = PileEnv(SimConfig(scene=SceneConfig(pieces=(2,))), backend="mjx", render=False)
-    assert isinstance(fast._step, functools.partial) and fast._step.func is mjx_step.step
-    assert default._step is mujoco.mjx.step
+    assert isinstance(fast.physics.step, functools.partial) and fast.physics.step.func is mjx_step.step
+    assert default.physics.step is mujoco.mjx.step

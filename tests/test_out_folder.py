@@ -172,7 +172,7 @@ def test_a_task_command_refuses_its_folder_and_goal_before_building_the_scene(tm
     def no_scene(*args):
         raise AssertionError("the scene was built before the refusal")
 
-    monkeypatch.setattr(task.engines, "make_env", no_scene)
+    monkeypatch.setattr(task, "make_env", no_scene)
     out, small = str(tmp_path / "run"), str(tmp_path / "goal64.png")
     checks.claim(out, "gather", {"seed": -1})
     save_goal(small, disc_goal(Camera.top_down(CameraConfig(width=64, height=64)), np.zeros(2), 0.05))

@@ -7,12 +7,16 @@ import textwrap
 import time
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
 from dynres_jax.config import PushConfig, SceneConfig, SimConfig
 from dynres_jax.sim import engines
-from dynres_jax.sim.env import PileEnv
+from dynres_jax.sim.env import PileEnv, make_env
+from dynres_jax.sim.physics import Poses
+from dynres_jax.sim.physics.c import CPhysics
+from dynres_jax.sim.physics.mjx import MJXPhysics, mjx
 from dynres_jax.sim.pool import MJXPool, WorldPool, make_pool, process_pool
 
 SIM = SimConfig(scene=SceneConfig(pieces=(6,)), push=PushConfig(max_length=0.08, settle_time=0.04))
@@ -81,9 +85,9 @@ def test_fast_engine_and_auto_choice():
     fast = make_pool(SIM, "mjx-fast").config.scene
     assert fast == SceneConfig.fast(SIM.scene.kinds, SIM.scene.pieces) and fast != SIM.scene
     assert make_pool(SIM, "mjx").config.scene == SIM.scene
-    env = engines.make_env(SIM, "mjx-fast", render=False)  # one world: the same physics as the batch
+    env = make_env(SIM, "mjx-fast", render=False)  # one world: the same physics as the batch
     assert env.backend == "mjx" and env.config.scene == fast
-    assert engines.make_env(SIM, "mujoco", render=False).config.scene == SIM.scene
+    assert make_env(SIM, "mujoco", render=False).config.scene == SIM.scene
 
 
 def test_every_command_offers_the_engine_table(capsys):
@@ -103,7 +107,7 @@ def test_an_engine_on_an_existing_physics_is_one_row(monkeypatch):
     ``engines.ENGINES``: worlds, commands' process pools and data's device checks read the row, not the name."""
     from dynres_jax.learn import data
 
-    row = engines.Engine("mujoco-fast", "mujoco", True, None, "C MuJoCo on the fast scene's physics", workers=True)
+    row = engines.Engine("mujoco-fast", CPhysics, True, None, "C MuJoCo on the fast scene's physics")
     monkeypatch.setitem(engines.ENGINES, row.name, row)
     monkeypatch.setattr(engines, "NAMES", (*engines.NAMES, row.name))
     pool = make_pool(SIM, "mujoco-fast")
@@ -114,6 +118,41 @@ def test_an_engine_on_an_existing_physics_is_one_row(monkeypatch):
     assert data.check_devices(config, [cpu, cpu]) == [cpu, cpu]  # host workers: worlds need not divide the devices
     with pytest.raises(ValueError, match="multiple of the device count"):
         data.check_devices(data.DataConfig(backend="mjx", worlds=3), [cpu, cpu])
+
+
+class Frozen(MJXPhysics):
+    """A physics a user adds (a toy): nothing moves; the pieces' poses are their state's."""
+
+    name = "frozen"
+
+    def run(self, qpos, qvel, plate_pos, plate_quat) -> Poses:
+        d = mjx.kinematics(self.mx, self.data0().replace(qpos=qpos, qvel=jnp.zeros_like(qvel)))
+        return Poses(d.qpos, d.qvel, d.geom_xpos[self.gid], d.geom_xmat[self.gid])
+
+
+def test_a_new_physics_is_one_module_and_one_row(monkeypatch, capsys):
+    """A new physics is a ``sim.physics.Physics`` class and one ``engines.ENGINES`` row: PileEnv takes its name as
+    the backend, the pools and every command's --backend take the engine (here a toy in which nothing moves)."""
+    from dynres_jax.commands import simulate
+
+    row = engines.Engine("frozen", Frozen, False, None, "a toy: nothing moves")
+    monkeypatch.setitem(engines.ENGINES, row.name, row)
+    monkeypatch.setattr(engines, "NAMES", (*engines.NAMES, row.name))
+    env = PileEnv(SIM, backend="frozen", render=False)
+    state = env.reset(jax.random.PRNGKey(0))
+    pushed = env.push(state, env.sample_push(jax.random.PRNGKey(1), state.pos))
+    np.testing.assert_array_equal(pushed.pos, state.pos)
+    pool = make_pool(SIM, "frozen")
+    assert isinstance(pool.env.physics, Frozen)
+    states = pool.reset(jax.random.split(jax.random.PRNGKey(0), 2))
+    actions = jax.vmap(env.sample_push)(jax.random.split(jax.random.PRNGKey(1), 2), states.pos)
+    np.testing.assert_array_equal(pool.push(states, actions).pos, states.pos)
+    moved = WorldPool(SIM).push(states, actions)  # C MuJoCo from the same states: the pieces move
+    assert float(np.abs(np.asarray(moved.pos) - np.asarray(states.pos)).max()) > 1e-3
+    with pytest.raises(SystemExit):  # the command line knows it: its --backend parses, then --pieces is refused
+        simulate.main(["--backend", "frozen", "--pieces", "0"])
+    err = capsys.readouterr().err
+    assert "--pieces" in err and "--backend" not in err, err
 
 
 def _running(pid: int) -> bool:

@@ -9,7 +9,7 @@ import pytest
 from dynres_jax.config import KINDS, CameraConfig, PileConfig, PushConfig, SceneConfig, SimConfig
 from dynres_jax.sim.camera import Camera
 from dynres_jax.sim.env import PileEnv
-from dynres_jax.sim.mjx_step import traced_template
+from dynres_jax.sim.physics.mjx_step import traced_template
 from dynres_jax.sim.scene import GROUP_PIECES, build_scene
 
 SMALL_PUSH = PushConfig(max_length=0.1, settle_time=0.06)

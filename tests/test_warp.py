@@ -1,5 +1,6 @@
-"""The MuJoCo Warp engine (sim.warp, PileEnv backend "warp", WarpPool): C MuJoCo's physics world by world, batches
-that equal their worlds one at a time, capacity overflow as an error, and a clear error where the extra is missing.
+"""The MuJoCo Warp engine (sim.physics.warp, PileEnv backend "warp", SizedPool): C MuJoCo's physics world by world,
+batches that equal their worlds one at a time, capacity overflow as an error, and a clear error where the extra is
+missing.
 The engine tests run where warp-lang is installed (``pip install ".[warp]"``; Warp runs its kernels on the CPU too);
 the missing-extra tests run everywhere."""
 
@@ -14,10 +15,10 @@ from dynres_jax.commands import evaluate, gather, generate_data, label_resolutio
 from dynres_jax.config import PushConfig, SceneConfig, SimConfig
 from dynres_jax.errors import InputError
 from dynres_jax.learn import data
-from dynres_jax.sim import warp
 from dynres_jax.sim.engines import resolve
 from dynres_jax.sim.env import PileEnv
-from dynres_jax.sim.pool import EnvWorlds, WarpPool, make_pool
+from dynres_jax.sim.physics import warp
+from dynres_jax.sim.pool import EnvWorlds, SizedPool, make_pool
 
 SIM = SimConfig(scene=SceneConfig(kinds=("candy",), pieces=(8,)), push=PushConfig(max_length=0.08, settle_time=0.04))
 needs_warp = pytest.mark.skipif(not warp.mjx_warp.WARP_INSTALLED, reason="warp-lang is not installed")
@@ -59,13 +60,13 @@ def _pushes(states) -> np.ndarray:
 
 @pytest.fixture(scope="module")
 def c_and_warp():
-    """Three C-settled piles, their pushes, and the outcomes in C MuJoCo and in a WarpPool."""
+    """Three C-settled piles, their pushes, and the outcomes in C MuJoCo and in a SizedPool."""
     c = EnvWorlds(PileEnv(SIM, backend="mujoco", render=False))
     keys = jax.random.split(jax.random.PRNGKey(5), 3)
     start = c.reset(keys)
     start = start._replace(overflow=np.zeros(3, np.int32))
     actions = _pushes(start)
-    pool = WarpPool(SIM)
+    pool = SizedPool(SIM)
     return start, actions, c.push(start, actions), pool, pool.push(start, actions)
 
 
@@ -102,7 +103,7 @@ def test_a_warp_batch_equals_its_worlds_one_at_a_time(c_and_warp):
 def test_running_out_of_contacts_is_an_error(monkeypatch, c_and_warp):
     start, actions = c_and_warp[:2]
     monkeypatch.setattr(warp, "CONTACTS_PER_PIECE", 1)
-    small = WarpPool(dataclasses.replace(SIM))  # sized with one contact a piece: the piles hold more
+    small = SizedPool(dataclasses.replace(SIM))  # sized with one contact a piece: the piles hold more
     with pytest.raises(warp.CapacityError, match=r"contacts \(naconmax\): 3 worlds"):
         small.push(start, actions)
     env = small._sizes[3].env  # the engine behind the error flags the worlds broken too
@@ -122,7 +123,7 @@ def test_generate_data_on_warp_writes_the_shard_layout(tmp_path):
 
 @needs_warp
 def test_evaluate_runs_its_episodes_in_warp_worlds(tmp_path):
-    """The closed loop over WarpPool worlds: the same episodes as over C workers end close to where C's end."""
+    """The closed loop over SizedPool worlds: the same episodes as over C workers end close to where C's end."""
     finals = {}
     for backend in ("warp", "mujoco"):
         summary = evaluate.main(["--quick", "--episodes", "2", "--mpc-steps", "2", "--pieces", "30", "--samples", "4",

@@ -19,8 +19,8 @@ from dynres_jax.commands import checks
 from dynres_jax.config import KINDS, CameraConfig, PileConfig, SceneConfig, SimConfig
 from dynres_jax.io import files
 from dynres_jax.io.frames import save_frame
-from dynres_jax.sim import engines
 from dynres_jax.sim.camera import MAX_IMAGE, MIN_IMAGE, Observation
+from dynres_jax.sim.env import make_env
 from dynres_jax.sim.scene import check_room
 
 
@@ -66,7 +66,7 @@ def main(argv=None):
     checks.claim(args.out, "simulate", checks.settings(args), args.fresh)
     progress.start(checks.prog("simulate"), f"{args.pushes} push(es) of {' + '.join(map(str, pieces))} "
                    f"{' + '.join(args.kind)} pieces on {engine}, into {args.out}; building the scene")
-    env = engines.make_env(cfg, engine)
+    env = make_env(cfg, engine)
     key = jax.random.PRNGKey(args.seed)
     state = env.reset(key)
     frames, actions = [frame(state.obs)], []

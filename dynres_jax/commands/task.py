@@ -59,9 +59,8 @@ from dynres_jax.models.registry import (
 )
 from dynres_jax.perception import visible_points
 from dynres_jax.progress import at_terminal
-from dynres_jax.sim import engines
 from dynres_jax.sim.camera import Camera
-from dynres_jax.sim.env import PileEnv
+from dynres_jax.sim.env import PileEnv, make_env
 
 PROGRESS = "progress.npz"  # an unfinished episode's last step (``control.progress``), gone once metrics.json is written
 
@@ -214,7 +213,7 @@ def build_loop(args, sim: SimConfig, parser: argparse.ArgumentParser, task: str,
     inputs.update(read or {})
     checks.check_out(args.out, task, checks.settings(args), args.fresh, inputs)
     at_terminal(checks.prog(task), "building the scene: the simulator and its camera (seconds on a CPU)")
-    env = engines.make_env(sim, backend)
+    env = make_env(sim, backend)
     try:
         planner = planner_config(env, samples=args.samples, adam_steps=args.adam_steps, seed=args.seed)
         cfg = MPCConfig(mpc_steps=args.mpc_steps, planner=planner, time_budget=args.time_budget,

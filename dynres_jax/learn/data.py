@@ -60,7 +60,7 @@ from dynres_jax.io.files import leftovers, read_json, write_json, write_text
 from dynres_jax.io.shards import SHARD_GLOB, fill, read_shard, save_npz, shard_path
 from dynres_jax.learn import on_policy
 from dynres_jax.progress import bar as progress_bar
-from dynres_jax.sim import engines, warp
+from dynres_jax.sim import engines
 from dynres_jax.sim import pool as pools
 from dynres_jax.sim.camera import MAX_IMAGE, MIN_IMAGE
 from dynres_jax.sim.env import PileEnv
@@ -231,10 +231,10 @@ def frame_record(s) -> dict:
 @functools.lru_cache(maxsize=4)
 def _episode_fn(sim: SimConfig, pushes: int, devices: tuple, backend: str, worlds: int):
     """(env, fn, sharding): jitted fn keys [W, 2] -> per-world episode arrays (leading axis W), the worlds axis
-    sharded over ``devices``; MuJoCo Warp's adds ``overflow`` [W, F]. Cached, so shards of one scene compile once."""
+    sharded over ``devices``; a physics with capacities (Warp) adds ``overflow`` [W, F]. Cached: one compile a scene."""
     env = PileEnv(sim, backend=engines.physics(backend), worlds=worlds)
 
-    def record(s):  # MuJoCo Warp's States carry capacity bits (``overflow``); the other engines' None
+    def record(s):  # a physics with capacities (MuJoCo Warp) gives States their bits (``overflow``); others None
         return frame_record(s) if s.overflow is None else dict(frame_record(s), overflow=s.overflow)
 
     def episode(key):
@@ -268,7 +268,7 @@ def simulate_shard(config: DataConfig, shard: int, devices=None, pool=None) -> d
         env, fn, sharding = _episode_fn(sim, config.pushes, tuple(devices), config.backend, config.worlds)
         out = jax.device_get(fn(jax.device_put(keys, sharding)))
         if "overflow" in out:
-            warp.check_overflow(out.pop("overflow")[:, -1], env.scene.n_pieces)  # sticky: the last frame has them all
+            env.physics.check_batch(out.pop("overflow")[:, -1], env.scene.n_pieces)  # sticky: the last has all
     out["episode"] = shard * config.worlds + np.arange(config.worlds, dtype=np.int64)
     out["kind"] = env.scene.kind.astype(np.int16)
     out["kind_names"] = np.array(sim.scene.kinds)

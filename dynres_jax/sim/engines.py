@@ -1,11 +1,12 @@
 """The engines that push piles, in one table: every command's ``--backend`` choices and every engine name come from
 ``ENGINES`` (and "auto"), and what callers need to know of an engine (host workers, one device) is read from its row,
-never from its name. An engine on an existing physics (another fast variant) is one row here; a new physics also needs
-its ``PileEnv`` backend and its batch of worlds in ``sim.pool.POOLS``.
+never from its name. An engine on an existing physics (another fast variant) is one row here; a new physics is one
+module of ``sim.physics`` and one row here.
 
-An engine is a physics implementation (``PileEnv``'s backend: the C engine, MJX, or MuJoCo Warp) with the scene's
-physics as given or as ``SceneConfig.fast``'s. Where the pushes run is ``sim.pool``'s business: the C engine in worker
-processes (one world a core), MJX and Warp as one batch on the JAX devices.
+An engine is a physics (``sim.physics``: the C engine, MJX, or MuJoCo Warp; ``PileEnv``'s backend is its name) with
+the scene's physics parameters as given or as ``SceneConfig.fast``'s. Where the pushes run is ``sim.pool``'s
+business, read from the physics: the C engine in worker processes (one world a core), MJX and Warp as one batch on
+the JAX devices.
 """
 
 from __future__ import annotations
@@ -15,34 +16,40 @@ import dataclasses
 import jax
 
 from dynres_jax.config import SimConfig, fast_fields
-from dynres_jax.sim import warp
-from dynres_jax.sim.env import PileEnv
+from dynres_jax.sim.physics import Physics
+from dynres_jax.sim.physics.c import CPhysics
+from dynres_jax.sim.physics.mjx import MJXPhysics
+from dynres_jax.sim.physics.warp import WarpPhysics
 
 
 @dataclasses.dataclass(frozen=True)
 class Engine:
-    """One row of the table. physics: ``PileEnv``'s backend ("mujoco": C, "mjx", "warp"); fast: the scene runs on
-    ``SceneConfig.fast``'s physics; extra: the pip extra it needs (None: none); about: one line for --help; workers:
-    its worlds step in host worker processes, one a core (``sim.pool.process_pool``), not on the JAX devices;
-    one_device: a batch of worlds runs on one device (not sharded over several); c_physics: its pushes match the C
-    engine's (so C workers may fill shards of one data set beside it)."""
+    """One row of the table. physics: its ``sim.physics`` class (its name is ``PileEnv``'s backend); fast: the scene
+    runs on ``SceneConfig.fast``'s physics; extra: the pip extra it needs (None: none; its physics' ``check_installed``
+    raises InputError naming it when missing); about: one line for --help; one_device: a batch of worlds runs on one
+    device (not sharded over several); c_physics: its pushes match the C engine's (so C workers may fill shards of
+    one data set beside it)."""
     name: str
-    physics: str
+    physics: type[Physics]
     fast: bool
     extra: str | None
     about: str
-    workers: bool = False
     one_device: bool = False
     c_physics: bool = False
 
+    @property
+    def workers(self) -> bool:
+        """Its worlds step in host worker processes, one a core (``sim.pool.process_pool``), not on the JAX devices."""
+        return self.physics.workers
+
 
 ENGINES = {e.name: e for e in (
-    Engine("mujoco", "mujoco", False, None, "C MuJoCo in worker processes, one world a host core (the reference)",
-           workers=True, c_physics=True),
-    Engine("mjx", "mjx", False, None, "MuJoCo XLA, the worlds as one batch on the JAX devices"),
-    Engine("mjx-fast", "mjx", True, None, "MJX on the fast scene's physics (SceneConfig.fast; not C's)"),
-    Engine("warp", "warp", False, "warp", "MuJoCo Warp on one GPU: C's physics ('pip install \"dynres-jax[warp]\"')",
-           one_device=True, c_physics=True),
+    Engine("mujoco", CPhysics, False, None, "C MuJoCo in worker processes, one world a host core (the reference)",
+           c_physics=True),
+    Engine("mjx", MJXPhysics, False, None, "MuJoCo XLA, the worlds as one batch on the JAX devices"),
+    Engine("mjx-fast", MJXPhysics, True, None, "MJX on the fast scene's physics (SceneConfig.fast; not C's)"),
+    Engine("warp", WarpPhysics, False, "warp",
+           "MuJoCo Warp on one GPU: C's physics ('pip install \"dynres-jax[warp]\"')", one_device=True, c_physics=True),
 )}
 AUTO = "auto"  # "mjx-fast" where JAX's default backend is a GPU, else "mujoco"
 NAMES = (AUTO, *ENGINES)  # every --backend's choices
@@ -55,8 +62,8 @@ def resolve(name: str) -> str:
         raise ValueError(f"backend must be one of {', '.join(NAMES)}, got {name!r}")
     if name == AUTO:
         return "mjx-fast" if jax.default_backend() == "gpu" else "mujoco"
-    if ENGINES[name].extra == "warp":
-        warp.check_installed()
+    if ENGINES[name].extra is not None:
+        ENGINES[name].physics.check_installed()
     return name
 
 
@@ -80,18 +87,21 @@ def beside(config, cpu_workers: int):
 
 
 def physics(name: str) -> str:
-    """``PileEnv``'s backend for the engine ``name``."""
-    return ENGINES[resolve(name)].physics
+    """``PileEnv``'s backend for the engine ``name``: its physics' name."""
+    return ENGINES[resolve(name)].physics.name
+
+
+def physics_named(backend: str) -> type[Physics]:
+    """The ``sim.physics`` class of a ``PileEnv`` backend (a physics' name); ValueError naming the choices."""
+    known = {e.physics.name: e.physics for e in ENGINES.values()}
+    if backend not in known:
+        raise ValueError(f"backend must be one of {', '.join(map(repr, known))}, got {backend!r}")
+    return known[backend]
 
 
 def uses_workers(name: str) -> bool:
     """Whether the engine ``name`` steps its worlds in host worker processes (a command starts a process pool)."""
     return ENGINES[resolve(name)].workers
-
-
-def make_env(config: SimConfig, name: str, **kwargs) -> PileEnv:
-    """One ``PileEnv`` of ``config`` in the engine ``name`` (kwargs: PileEnv's, e.g. render, worlds)."""
-    return PileEnv(sim_config(config, name), backend=physics(name), **kwargs)
 
 
 def help_text(default: str) -> str:

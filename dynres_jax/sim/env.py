@@ -1,8 +1,9 @@
-"""PileEnv: pure ``reset(key) -> State`` and ``push(state, action) -> State`` over one MJCF, three engines.
+"""PileEnv: pure ``reset(key) -> State`` and ``push(state, action) -> State`` over one MJCF, any physics of
+``sim.physics`` (the backend names one; ``make_env`` builds one of an engine of ``sim.engines``):
 
 backend "mjx": MuJoCo XLA; ``reset`` and ``push`` are pure JAX, so ``jax.jit`` and ``jax.vmap`` over worlds work.
-backend "warp": MuJoCo Warp through MJX (``sim.warp``): the C engine's algorithms on the GPU, jit and vmap as "mjx".
-backend "mujoco": the C engine, one world, fast on CPU; same MJCF, same State, same plate trajectory.
+backend "warp": MuJoCo Warp through MJX (``sim.physics.warp``): the C engine's algorithms on the GPU, jit and vmap as
+"mjx". backend "mujoco": the C engine, one world, fast on CPU; same MJCF, same State, same plate trajectory.
 
 An action is ``(x_start, y_start, x_end, y_end)`` in metres: the plate (perpendicular to the push) lowers at the
 start, moves to the end at ``PushConfig.speed``, lifts, and is parked out of view while the pile settles. Pushes end
@@ -11,9 +12,7 @@ within ``action_bound`` and start there or outside a wall, at ±``reach`` (``sim
 
 from __future__ import annotations
 
-import contextlib
 import functools
-import io
 import math
 from typing import NamedTuple
 
@@ -21,42 +20,22 @@ import jax
 import jax.numpy as jnp
 import mujoco
 import numpy as np
-from mujoco import rollout
 
 from dynres_jax.config import SimConfig
-from dynres_jax.sim import pushes
+from dynres_jax.sim import engines, pushes
 from dynres_jax.sim.camera import Camera, Observation, Renderer
 from dynres_jax.sim.scene import build_scene
-
-with contextlib.redirect_stdout(io.StringIO()):  # mujoco.mjx prints a notice when the optional Warp is missing
-    from mujoco import mjx
-
-    from dynres_jax.sim import mjx_step, warp
 
 PARK = (0.0, 0.0, 3.0)  # plate parking spot, above the camera (out of view, touches nothing)
 SINK_LIMIT = 0.005  # a piece whose centre is this far below its rest height went through the table
 ESCAPE_MARGIN = 0.02  # a piece this far outside the bin's walls escaped
 
 
-FULL_STATE = mujoco.mjtState.mjSTATE_FULLPHYSICS
-PLATE_CONTROL = mujoco.mjtState.mjSTATE_MOCAP_POS | mujoco.mjtState.mjSTATE_MOCAP_QUAT
-
-
-def c_rollout(model, data, plate, nthread_data=None):
-    """C MuJoCo along plate trajectories: plate [B, K, 7] (mocap pos, quat per step), starting from ``data``'s
-    state for every world. Returns full physics states [B, K, nstate]. ``nthread_data``: a list of MjData, one per
-    thread, to run the B worlds on several cores."""
-    state0 = np.empty(mujoco.mj_stateSize(model, FULL_STATE))
-    mujoco.mj_getState(model, data, state0, FULL_STATE)
-    states, _ = rollout.rollout(model, nthread_data or data, state0[None], plate, control_spec=PLATE_CONTROL)
-    return states
-
-
 class State(NamedTuple):
     """One world. qpos [nq], qvel [nv]: MuJoCo state; pos [N, 3], mat [N, 3, 3]: piece geom poses (world, metres);
     obs: the top-down Observation (None when the env renders nothing); broken []: True once a step produced NaN,
     a piece went through the table, or a piece left the bin, or the engine ran out of capacity. Sticky: it stays
-    True. overflow [] (int32; backend "warp" only, else None): ``sim.warp``'s capacity bits, sticky."""
+    True. overflow [] (int32; a physics with capacities, "warp", else None): the bits it ran out of, sticky."""
 
     qpos: jax.Array
     qvel: jax.Array
@@ -74,18 +53,18 @@ def _yaw_quat(yaw):
 class PileEnv:
     """Object piles pushed by a flat plate. ``PileEnv(SimConfig(), backend="mjx" | "warp" | "mujoco", render=True)``.
     worlds (backend "warp"): how many worlds a batch (``jax.vmap``) steps at once; capacities are sized for it.
+    physics: the ``sim.physics`` object that steps it.
 
-    contact_jacobian (MJX only): "sparse" steps with ``sim.mjx_step.step`` (contact Jacobians built on the few dofs
-    a contact can move; MJX's results to float rounding; it reaches into MJX's internals, so it runs only on the
-    tested MuJoCo version), "dense" with the public ``mujoco.mjx.step``; "auto" (default): sparse for frictionless
-    contacts (``SceneConfig.fast``, where it makes a step about a third faster), dense otherwise (the default scene,
-    where it bought 6 %: docs/performance.md).
+    contact_jacobian (MJX only): "sparse" steps with ``sim.physics.mjx_step.step`` (contact Jacobians built on the
+    few dofs a contact can move; MJX's results to float rounding; it reaches into MJX's internals, so it runs only
+    on the tested MuJoCo version), "dense" with the public ``mujoco.mjx.step``; "auto" (default): sparse for
+    frictionless contacts (``SceneConfig.fast``, where it makes a step about a third faster), dense otherwise (the
+    default scene, where it bought 6 %: docs/performance.md).
     """
 
     def __init__(self, config: SimConfig | None = None, backend: str = "mjx", render: bool = True,
                  contact_jacobian: str = "auto", worlds: int = 1):
-        if backend not in ("mjx", "warp", "mujoco"):
-            raise ValueError(f"backend must be 'mjx', 'warp' or 'mujoco', got {backend!r}")
+        physics = engines.physics_named(backend)
         if contact_jacobian not in ("auto", "sparse", "dense"):
             raise ValueError(f"contact_jacobian must be 'auto', 'sparse' or 'dense', got {contact_jacobian!r}")
         if contact_jacobian == "auto":
@@ -110,26 +89,11 @@ class PileEnv:
         pushes.check_reach(self.action_bound, self.reach, p.min_length, p.max_length)
         self._sites = self._layout_sites()
         self._layout = jax.jit(self._initial_qpos)
-        model = self.scene.model
-        if backend == "mjx":
-            self.mx = mjx.put_model(model, device=jax.local_devices()[0], impl="jax")
-            self._data0 = mjx_step.traced_template(mjx.make_data(self.mx, device=jax.local_devices()[0], impl="jax"))
-            if contact_jacobian == "sparse":
-                mjx_step.check_version()
-                mjx_step.check_supported(model)
-                self._step = functools.partial(mjx_step.step, dofs=mjx_step.chain_dofs(model))
-            else:
-                self._step = mjx.step
-            self._simulate = jax.jit(self._simulate_mjx)
-        elif backend == "warp":
-            self.mx, data0 = warp.put(model, self.scene.n_pieces, worlds)
-            self._data0 = mjx_step.traced_template(data0)
-            warp.warm_up(model, self.scene.n_pieces)
-            self._step, self._simulate = mjx.step, jax.jit(self._simulate_mjx)
+        self.physics = physics(self.scene, worlds, contact_jacobian)
+        if physics.traced:
+            self._simulate = jax.jit(self._simulate_traced)
         else:
-            self._data = mujoco.MjData(model)
-            self._simulate = self._simulate_c
-            self._finish_jit = jax.jit(self._finish)
+            self._simulate, self._finish_jit = self._simulate_host, jax.jit(self._finish)
 
     @property
     def steps_per_push(self) -> int:
@@ -323,57 +287,21 @@ class PileEnv:
         obs = self.renderer(pos, mat) if self.renderer is not None else None
         return State(qpos, qvel, pos, mat, obs, broken | sunk | escaped | nan)
 
-    # --- MJX ---
-    def _run_mjx(self, d, plate_pos, plate_quat):
-        def step(d, plate):
-            d = d.replace(mocap_pos=plate[0][None], mocap_quat=plate[1][None])
-            return self._step(self.mx, d), None
-
-        d, _ = jax.lax.scan(step, d, (plate_pos, plate_quat))
-        return mjx.kinematics(self.mx, d)
-
-    def _simulate_mjx(self, state: State, plate_pos, plate_quat) -> State:
-        d = self._run_mjx(self._data0().replace(qpos=state.qpos, qvel=state.qvel), plate_pos, plate_quat)
-        gid = self.scene.geom_id
-        out = self._finish(d.qpos, d.qvel, d.geom_xpos[gid], d.geom_xmat[gid], state.broken)
-        if self.backend != "warp":
+    def _simulate_traced(self, state: State, plate_pos, plate_quat) -> State:
+        poses = self.physics.run(state.qpos, state.qvel, plate_pos, plate_quat)
+        out = self._finish(*poses[:4], state.broken)
+        if poses.overflow is None:
             return out
-        flags = warp.overflow(d) | (0 if state.overflow is None else state.overflow)
+        flags = poses.overflow | (0 if state.overflow is None else state.overflow)
         return out._replace(broken=out.broken | (flags != 0), overflow=flags)
 
-    # --- C MuJoCo ---
-    def _run_c(self, qpos, qvel, plate_pos, plate_quat, frames_at=()):
-        """Step the C engine along a plate trajectory (one ``mujoco.rollout`` call, no Python per step). Returns
-        (qpos, qvel, pos, mat) as float32 arrays and (piece pos, piece mat, plate pos, plate quat) after each step
-        index in ``frames_at``."""
-        m, d = self.scene.model, self._data
-        mujoco.mj_resetData(m, d)
-        d.qpos[:], d.qvel[:] = np.asarray(qpos, np.float64), np.asarray(qvel, np.float64)
-        plate = np.concatenate([plate_pos, plate_quat], axis=1).astype(np.float64)
-        try:
-            states = c_rollout(m, d, plate[None])[0]
-        except mujoco.FatalError:  # an unstable world overflowed MuJoCo's arena: report it as NaN (broken)
-            states = np.full((len(plate), mujoco.mj_stateSize(m, FULL_STATE)), np.nan)
-        gid = self.scene.geom_id
-
-        def poses(state):
-            mujoco.mj_setState(m, d, state, FULL_STATE)
-            mujoco.mj_kinematics(m, d)
-            return d.geom_xpos[gid].copy(), d.geom_xmat[gid].reshape(-1, 3, 3).copy()
-
-        frames = [(*poses(states[i]), plate[i, :3], plate[i, 3:]) for i in frames_at]
-        pos, mat = poses(states[-1])
-        f32 = lambda x: jnp.asarray(x, jnp.float32)  # noqa: E731
-        return (f32(d.qpos), f32(d.qvel), f32(pos), f32(mat)), frames
-
-    def _simulate_c(self, state: State, plate_pos, plate_quat) -> State:
-        arrays, _ = self._run_c(state.qpos, state.qvel, plate_pos, plate_quat)
-        return self._finish_jit(*arrays, state.broken)
+    def _simulate_host(self, state: State, plate_pos, plate_quat) -> State:
+        return self._finish_jit(*self.physics.run(state.qpos, state.qvel, plate_pos, plate_quat)[:4], state.broken)
 
     @property
     def draws_pushes(self) -> bool:
         """Whether ``push_frames`` can draw a push as it moves (the C engine; MJX pushes run as one compiled scan)."""
-        return self.backend == "mujoco"
+        return hasattr(self.physics, "run_drawn")
 
     def push_frames(self, state: State, action, n_frames: int = 12) -> tuple[State, list[Observation]]:
         """Like ``push`` (``draws_pushes`` only) but also renders ``n_frames`` frames with the plate drawn."""
@@ -381,10 +309,16 @@ class PileEnv:
             raise ValueError("push_frames needs backend='mujoco' (MJX pushes run as one compiled scan)")
         action = jnp.asarray(self.check_action(action))
         every = max(1, (self.steps_per_push - self.n_settle) // n_frames)
-        arrays, frames = self._run_c(state.qpos, state.qvel, *self.plate_trajectory(action),
-                                     frames_at=range(0, self.steps_per_push, every))
+        poses, frames = self.physics.run_drawn(state.qpos, state.qvel, *self.plate_trajectory(action),
+                                               frames_at=range(0, self.steps_per_push, every))
         frames = [self.observe(State(None, None, jnp.asarray(p, jnp.float32), jnp.asarray(r, jnp.float32), None,
                                      None), plate=(pp, pq) if pp[2] < PARK[2] else None)
                   for p, r, pp, pq in frames]
-        return self._finish_jit(*arrays, state.broken), frames
+        return self._finish_jit(*poses[:4], state.broken), frames
+
+
+def make_env(config: SimConfig, name: str, **kwargs) -> PileEnv:
+    """One ``PileEnv`` of ``config`` in the engine ``name`` (``sim.engines``; kwargs: PileEnv's, e.g. render,
+    worlds)."""
+    return PileEnv(engines.sim_config(config, name), backend=engines.physics(name), **kwargs)
 

@@ -1,7 +1,8 @@
 """Many worlds at once, with ``PileEnv``'s batched State: ``WorldPool`` steps C MuJoCo worlds in host worker
 processes, one world per core, and renders their observations on the JAX device; ``MJXPool`` steps them as one batch
-in MJX on the device, ``WarpPool`` in MuJoCo Warp on the GPU. All have ``reset(keys)``, ``push(states, actions)``,
-``env``, ``camera`` and ``scene``; ``make_pool`` picks one by engine name (``sim.engines``).
+in MJX on the device, ``SizedPool`` in MuJoCo Warp on the GPU (one engine a batch size). All have ``reset(keys)``,
+``push(states, actions)``, ``env``, ``camera`` and ``scene``; ``make_pool`` picks one by engine name
+(``sim.engines``).
 
 Why: with the default Newton solver, C MuJoCo on every host core outruns MJX on one GPU several times over
 (docs/performance.md, "Speed"), so data generation and evaluation at scale push through this pool while perception and
@@ -25,7 +26,7 @@ import numpy as np
 
 from dynres_jax.chunks import in_chunks
 from dynres_jax.config import CameraConfig, SceneConfig, SimConfig
-from dynres_jax.sim import engines, warp
+from dynres_jax.sim import engines
 from dynres_jax.sim.camera import Camera, Renderer
 from dynres_jax.sim.env import PileEnv, State
 from dynres_jax.sim.scene import build_scene
@@ -100,8 +101,8 @@ def process_pool(workers: int | None = None):
 
 
 @functools.lru_cache(maxsize=2)
-def _env(sim_json: str) -> PileEnv:
-    return PileEnv(SimConfig.from_json(sim_json), backend="mujoco", render=False)
+def _env(sim_json: str, backend: str) -> PileEnv:
+    return PileEnv(SimConfig.from_json(sim_json), backend=backend, render=False)
 
 
 def _arrays(s: State) -> tuple:
@@ -109,16 +110,16 @@ def _arrays(s: State) -> tuple:
 
 
 def _reset(job) -> tuple:
-    sim_json, key = job
-    return _arrays(_env(sim_json).reset(jnp.asarray(key, jnp.uint32)))
+    sim_json, backend, key = job
+    return _arrays(_env(sim_json, backend).reset(jnp.asarray(key, jnp.uint32)))
 
 
 def _push(job) -> tuple:
-    sim_json, world, action = job
+    sim_json, backend, world, action = job
     qpos, qvel, pos, mat, broken = world
     if broken:  # a broken world stays as it was
         return world
-    env = _env(sim_json)  # the action was checked in the parent (WorldPool.push)
+    env = _env(sim_json, backend)  # the action was checked in the parent (WorldPool.push)
     return _arrays(env.simulate(State(qpos, qvel, pos, mat, None, broken), *env.plate_trajectory(jnp.asarray(action))))
 
 
@@ -127,9 +128,9 @@ def _poses(s: State) -> dict:
 
 
 def _random_episode(job) -> dict:
-    """``env.random_episode`` in the C engine: poses and broken flags of every frame, and the pushes."""
-    sim_json, key, pushes = job
-    frames, actions = random_episode(_env(sim_json), jnp.asarray(key, jnp.uint32), pushes, _poses, python_scan)
+    """``env.random_episode`` in a host engine: poses and broken flags of every frame, and the pushes."""
+    sim_json, backend, key, pushes = job
+    frames, actions = random_episode(_env(sim_json, backend), jnp.asarray(key, jnp.uint32), pushes, _poses, python_scan)
     return dict({k: np.asarray(v) for k, v in frames.items()}, action=np.asarray(actions, np.float32))
 
 
@@ -141,12 +142,12 @@ def _renderer(scene: SceneConfig, camera: CameraConfig):
 
 class WorldPool:
     """Worlds of one SimConfig stepped in ``processes`` (``process_pool``; None: in this process, for tests and
-    debugging). ``reset(keys)`` and ``push(states, actions)`` take and return PileEnv States batched on a leading
-    axis, observations rendered here on the JAX device. ``env`` (backend "mujoco") gives the scene, camera and
-    action checks."""
+    debugging) by a host physics (``backend``, default C MuJoCo). ``reset(keys)`` and ``push(states, actions)`` take
+    and return PileEnv States batched on a leading axis, observations rendered here on the JAX device. ``env`` gives
+    the scene, camera and action checks."""
 
-    def __init__(self, config: SimConfig, processes=None):
-        self.env = PileEnv(config, backend="mujoco", render=False)
+    def __init__(self, config: SimConfig, processes=None, backend: str = "mujoco"):
+        self.env, self.backend = PileEnv(config, backend=backend, render=False), backend
         self._render = _renderer(config.scene, config.camera)
         self.config, self.camera, self.scene = config, self.env.camera, self.env.scene
         self._json = config.to_json()
@@ -163,21 +164,21 @@ class WorldPool:
 
     def reset(self, keys) -> State:
         """New settled piles, one per key: keys [B, 2] -> State [B]."""
-        return self._states(self._map(_reset, [(self._json, np.asarray(k)) for k in keys]))
+        return self._states(self._map(_reset, [(self._json, self.backend, np.asarray(k)) for k in keys]))
 
     def push(self, states: State, actions) -> State:
         """One push per world: actions [B, 4] (checked like ``PileEnv.push``; a bad one raises ValueError)."""
         actions = _checked(self.env, actions)
         worlds = zip(*(np.asarray(x) for x in (states.qpos, states.qvel, states.pos, states.mat, states.broken)),
                      strict=True)
-        jobs = [(self._json, w, a) for w, a in zip(worlds, actions, strict=True)]
+        jobs = [(self._json, self.backend, w, a) for w, a in zip(worlds, actions, strict=True)]
         return self._states(self._map(_push, jobs))
 
     def random_episodes(self, keys, pushes: int) -> dict:
         """Data generation: per key a reset and ``pushes`` random pushes. Returns arrays with a leading world axis:
         pos [B, F, N, 3], mat [B, F, N, 3, 3], broken [B, F], action [B, F - 1, 4], depth (float16) and piece
         (int16) [B, F, H, W] (F = pushes + 1)."""
-        episodes = self._map(_random_episode, [(self._json, np.asarray(k), pushes) for k in keys])
+        episodes = self._map(_random_episode, [(self._json, self.backend, np.asarray(k), pushes) for k in keys])
         out = {name: np.stack([e[name] for e in episodes]) for name in episodes[0]}
         flat = lambda x: jnp.asarray(x.reshape((-1,) + x.shape[2:]))  # noqa: E731
         obs = self._render(flat(out["pos"]), flat(out["mat"]))
@@ -204,7 +205,7 @@ class EnvWorlds:
 
     def __init__(self, env: PileEnv):
         self.env, self.config, self.camera, self.scene = env, env.config, env.camera, env.scene
-        if env.backend in ("mjx", "warp"):
+        if env.physics.traced:
             self._reset, self._push = jax.jit(jax.vmap(env.reset)), jax.jit(jax.vmap(env.push))
         else:
             self._reset, self._push = per_world(env.reset), per_world(env.push)
@@ -219,30 +220,31 @@ class EnvWorlds:
 
 
 class MJXPool(EnvWorlds):
-    """Worlds of one SimConfig stepped together in MJX on the JAX device (``EnvWorlds`` of an MJX PileEnv)."""
+    """Worlds of one SimConfig stepped together by a traced physics (default MJX) on the JAX device (``EnvWorlds``
+    of its PileEnv)."""
 
-    def __init__(self, config: SimConfig):
-        super().__init__(PileEnv(config, backend="mjx"))
+    def __init__(self, config: SimConfig, backend: str = "mjx"):
+        super().__init__(PileEnv(config, backend=backend))
 
 
-class WarpPool:
-    """Worlds of one SimConfig stepped together by MuJoCo Warp on the GPU (``sim.warp``). Contact capacities are
-    sized per batch, so each batch size in use gets its own engine (and compile). A batch in which a world ran out of
-    capacity raises ``warp.CapacityError``; ``env`` is the one-world engine (scene, camera, action checks)."""
+class SizedPool:
+    """Worlds of one SimConfig stepped together by a traced physics whose capacities are sized per batch (default
+    MuJoCo Warp on the GPU, ``sim.physics.warp``), so each batch size in use gets its own engine (and compile). A
+    batch in which a world ran out of capacity raises (Warp: ``CapacityError``); ``env`` is the one-world engine
+    (scene, camera, action checks)."""
 
-    def __init__(self, config: SimConfig):
-        warp.check_installed()
-        self.config, self._sizes = config, {}
+    def __init__(self, config: SimConfig, backend: str = "warp"):
+        self.config, self.backend, self._sizes = config, backend, {}
         self.env = self._worlds(1).env
         self.camera, self.scene = self.env.camera, self.env.scene
 
     def _worlds(self, n: int) -> EnvWorlds:
         if n not in self._sizes:
-            self._sizes[n] = EnvWorlds(PileEnv(self.config, backend="warp", worlds=n))
+            self._sizes[n] = EnvWorlds(PileEnv(self.config, backend=self.backend, worlds=n))
         return self._sizes[n]
 
     def _checked(self, states: State) -> State:
-        warp.check_overflow(states.overflow, self.scene.n_pieces)
+        self.env.physics.check_batch(states.overflow, self.scene.n_pieces)
         return states
 
     def reset(self, keys) -> State:
@@ -255,7 +257,7 @@ class WarpPool:
 
 
 class Worlds(Protocol):
-    """What the closed loop pushes (``control.mpc.run``): ``EnvWorlds``, ``MJXPool``, ``WarpPool``, ``WorldPool``."""
+    """What the closed loop pushes (``control.mpc.run``): ``EnvWorlds``, ``MJXPool``, ``SizedPool``, ``WorldPool``."""
 
     camera: Camera
     scene: object
@@ -265,15 +267,12 @@ class Worlds(Protocol):
     def push(self, states: State, actions) -> State: ...
 
 
-POOLS = {  # a physics (``engines.Engine.physics``) -> its batch of worlds of a SimConfig, on host ``processes``
-    "mujoco": lambda config, processes: WorldPool(config, processes),
-    "mjx": lambda config, processes: MJXPool(config),
-    "warp": lambda config, processes: WarpPool(config),
-}
-
-
-def make_pool(config: SimConfig, backend: str, processes=None) -> WorldPool | MJXPool | WarpPool:
-    """Worlds of ``config`` in the engine ``backend`` (``engines.NAMES``), as that engine simulates the scene:
-    ``WorldPool`` on ``processes`` (C MuJoCo), ``MJXPool`` (MJX, on the fast scene's physics for "mjx-fast") or
-    ``WarpPool``."""
-    return POOLS[engines.physics(backend)](engines.sim_config(config, backend), processes)
+def make_pool(config: SimConfig, backend: str, processes=None) -> WorldPool | MJXPool | SizedPool:
+    """Worlds of ``config`` in the engine ``backend`` (``engines.NAMES``), as that engine simulates the scene, read
+    from its physics (``sim.physics.Physics``): ``WorldPool`` on ``processes`` where it steps in worker processes (C
+    MuJoCo), ``SizedPool`` where its capacities depend on the batch (MuJoCo Warp), else ``MJXPool`` (MJX, on the fast
+    scene's physics for "mjx-fast")."""
+    physics, config = engines.ENGINES[engines.resolve(backend)].physics, engines.sim_config(config, backend)
+    if physics.workers:
+        return WorldPool(config, processes, physics.name)
+    return (SizedPool if physics.per_batch else MJXPool)(config, physics.name)

@@ -1,5 +1,5 @@
-"""MuJoCo Warp, the engine behind ``PileEnv(backend="warp")``: MJX's ``impl="warp"`` runs the C engine's own
-algorithms (collision, Newton solver) as Warp kernels on the GPU, under ``jax.jit`` and ``jax.vmap``.
+"""MuJoCo Warp, the physics behind ``PileEnv(backend="warp")`` (``WarpPhysics``): MJX's ``impl="warp"`` runs the C
+engine's own algorithms (collision, Newton solver) as Warp kernels on the GPU, under ``jax.jit`` and ``jax.vmap``.
 
 What this module adds to MJX's two calls (``mjx.put_model(m, impl="warp")``, ``mjx.make_data(m, impl="warp")``):
 - capacities: MuJoCo Warp holds every contact of a batch in one buffer of ``naconmax`` rows and every world's
@@ -16,19 +16,17 @@ Install: ``pip install "dynres-jax[warp]"`` (warp-lang, the version mujoco-mjx's
 
 from __future__ import annotations
 
-import contextlib
 import functools
-import io
 
 import jax
 import mujoco
 import numpy as np
+from mujoco import mjx
+from mujoco.mjx import warp as mjx_warp
 
 from dynres_jax.errors import InputError
-
-with contextlib.redirect_stdout(io.StringIO()):  # mujoco.mjx prints a notice when the optional Warp is missing
-    from mujoco import mjx
-    from mujoco.mjx import warp as mjx_warp
+from dynres_jax.sim.physics import Poses, mjx_step
+from dynres_jax.sim.physics.mjx import run_steps
 
 EXTRA = 'pip install "dynres-jax[warp]"'
 
@@ -97,7 +95,7 @@ def check_overflow(flags, n_pieces: int) -> None:
     naconmax, njmax = capacities(n_pieces, len(flags))
     raise CapacityError(f"MuJoCo Warp ran out of capacity in a batch of {len(flags)} worlds of {n_pieces} pieces "
                         f"({'; '.join(hit)}; naconmax {naconmax}, njmax {njmax}): those worlds were simulated wrongly. "
-                        f"Raise dynres_jax.sim.warp.CONTACTS_PER_PIECE (now {CONTACTS_PER_PIECE})")
+                        f"Raise dynres_jax.sim.physics.warp.CONTACTS_PER_PIECE (now {CONTACTS_PER_PIECE})")
 
 
 @functools.lru_cache(maxsize=8)
@@ -114,3 +112,22 @@ def warm_up(model: mujoco.MjModel, n_pieces: int) -> None:
     captures none, and kernels a larger batch adds still load on its first call)."""
     if jax.default_backend() == "gpu":
         _warmed((model, n_pieces))
+
+
+class WarpPhysics:
+    """MuJoCo Warp on the first local JAX device (a GPU), its capacities sized for ``worlds`` worlds a batch
+    (contact_jacobian: the protocol's, unused). ``run`` is pure JAX, as MJX's; its Poses carry the overflow bits."""
+
+    name, traced, workers, per_batch = "warp", True, False, True
+
+    def __init__(self, scene, worlds: int = 1, contact_jacobian: str = "dense"):
+        self.mx, data0 = put(scene.model, scene.n_pieces, worlds)
+        self.data0, self.gid = mjx_step.traced_template(data0), scene.geom_id
+        warm_up(scene.model, scene.n_pieces)
+
+    def run(self, qpos, qvel, plate_pos, plate_quat) -> Poses:
+        d, pos, mat = run_steps(self.mx, self.data0, mjx.step, self.gid, qpos, qvel, plate_pos, plate_quat)
+        return Poses(d.qpos, d.qvel, pos, mat, overflow(d))
+
+    check_batch = staticmethod(check_overflow)
+    check_installed = staticmethod(check_installed)
