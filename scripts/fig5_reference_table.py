@@ -1,4 +1,4 @@
-"""Issue 51 item 3's table from scripts/gpu_fig5_reference.sh's folder: for each stage (TASK_BUDGETs), every method's
+"""Issue 51 item 3's table from the fig5_reference recipe's folder: for each stage (TASK_BUDGETs), every method's
 row, each against the best fixed ω (paired), the oracle's gain split into choosing among plans (best of 5 at the run's
 --best-omega) and choosing ω (oracle - best5), and where adaptive ran, the share of that ω part it recovers: its gain
 over the best fixed ω over the ω part (both paired means).
@@ -24,7 +24,7 @@ from dynres_jax.io import files  # noqa: E402
 
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("run", help="scripts/gpu_fig5_reference.sh's OUT")
+    parser.add_argument("run", help="the fig5_reference recipe's OUT")
     parser.add_argument("--out", required=True)
     args = parser.parse_args(argv)
     stages = sorted(d for d in os.listdir(args.run) if os.path.exists(os.path.join(args.run, d, "summary.json")))

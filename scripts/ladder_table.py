@@ -1,4 +1,4 @@
-"""Issue 35's ladder table from the folders ``scripts/gpu_ladder.sh`` wrote (unpacked lanes): per task and kind, each
+"""Issue 35's ladder table from the folders the ladder recipe wrote (unpacked lanes): per task and kind, each
 method's success and final d, the paired comparisons that split the oracle's gain (oracle against best-of-K) and the
 model's failures (which rung first succeeds where ω = 50 fails), and a plot.
 
@@ -27,7 +27,7 @@ ORDER = ("50", "sim", "rerank", "best5", "oracle")  # the rungs, cheapest first
 
 
 def _method(method: str, model: str | None) -> str:
-    """A run's name: its method, with "@MODEL" where gpu_ladder.sh's job named a checkpoint (folder suffix -MODEL;
+    """A run's name: its method, with "@MODEL" where the ladder's job named a checkpoint (folder suffix -MODEL;
     the shipped one's folder, dynres_jax/checkpoints/dynamics, gives "checkpoints": "shipped")."""
     return method if model is None else f"{method}@{'shipped' if model == 'checkpoints' else model}"
 
@@ -174,7 +174,7 @@ def plot(results: dict, path: str) -> None:
 
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--runs", required=True, help="the unpacked lanes of gpu_ladder.sh")
+    parser.add_argument("--runs", required=True, help="the unpacked lanes of the ladder recipe")
     parser.add_argument("--out", required=True)
     args = parser.parse_args(argv)
     found = {**evaluate_runs(args.runs), **sort_runs(args.runs)}

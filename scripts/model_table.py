@@ -1,4 +1,4 @@
-"""Dynamics models compared in closed loop (issue 36): every model's runs of gpu_ladder.sh against a base model on the
+"""Dynamics models compared in closed loop (issue 36): every model's ladder runs against a base model on the
 episodes both ran (episode i is the same pile, goal and planner keys in every run), per task and kind: success with
 its Wilson interval, final d, the paired Δd (bootstrap 95 % interval) and McNemar's test on success.
 

@@ -4,8 +4,8 @@ choosing among plans (best of K at ω = 50) and choosing ω, and the label relia
     python scripts/resolution_table.py --fig5 FIG5_OUT --split gather=SPLIT_G redistribute=SPLIT_R \
         --labels REL_OUT --out docs/resolution
 
-FIG5_OUT: scripts/gpu_fig5.sh's folder (TASK_budget, TASK_budget_gnew, gather_nobudget); SPLIT_*: evaluate runs of
-50, best5 and oracle; REL_OUT: scripts/gpu_reliability.sh's folder (reliability/, fig4/, labels_2). Episode i is the
+FIG5_OUT: the fig5 recipe's folder (TASK_budget, TASK_budget_gnew, gather_nobudget); SPLIT_*: evaluate runs of
+50, best5 and oracle; REL_OUT: the reliability recipe's folder (reliability/, fig4/, labels_2). Episode i is the
 same pile, goal and planner keys in every run of a task, so runs pair across folders. Writes OUT/resolution.json and
 OUT/resolution.md.
 """

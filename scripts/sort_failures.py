@@ -2,7 +2,7 @@
 
     python scripts/sort_failures.py --runs RUNS --out docs/sort/trace.md
 
-RUNS holds ``*/sort-A-B-METHOD[-MODEL]/SEED/metrics.json`` (``scripts/gpu_ladder.sh``'s folders, as
+RUNS holds ``*/sort-A-B-METHOD[-MODEL]/SEED/metrics.json`` (the ladder recipe's folders, as
 ``scripts/ladder_table.py`` reads them). Per episode: success (both kinds >= 80 % inside their own goal, mixing below
 5 %), the A* steps at the start and left at the end, the phases, how often the moved pile switched, and these flags
 (true scores, not the perceived ones; an episode may raise several):

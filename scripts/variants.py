@@ -1,4 +1,4 @@
-"""Policy variants compared episode by episode, from the folders ``scripts/gpu_variants.sh`` wrote: per kind (Sort:
+"""Policy variants compared episode by episode, from the folders the variants recipe wrote: per kind (Sort:
 pair) and variant, or per goal character with ``--letters``, the success share (``tasks.episode_success``) with its
 Wilson interval, and each variant against the first (paired: successes only here / only there with McNemar's p, final
 d's mean difference with its bootstrap interval); Sort's failures by cause.
@@ -147,7 +147,7 @@ def plot(runs: str, task: str, variants: list[str], method: str, path: str) -> N
 
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--runs", required=True, help="the variants folder of gpu_variants.sh")
+    parser.add_argument("--runs", required=True, help="the variants folder of the variants recipe")
     parser.add_argument("--variants", nargs="+", required=True, help="variant folders; the first is the reference")
     parser.add_argument("--task", default="sort", choices=("gather", "redistribute", "sort"))
     parser.add_argument("--method", default="50")

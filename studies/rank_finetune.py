@@ -10,7 +10,8 @@ and after are written to OUT; ``--save`` writes the fine-tuned checkpoint (docs/
     python -m studies.rank_finetune --train docs/dynamics_scale/sets/gather_mnm.npz \
         --test docs/dynamics_scale/sets/redistribute_jtuly.npz --out runs/rank_finetune --steps 300
 
-Rounds of on-policy candidates (plan with model k, fine-tune model k + 1 on its candidates): scripts/gpu_rank_rounds.sh.
+Rounds of on-policy candidates (plan with model k, fine-tune model k + 1 on its candidates): the rank_rounds recipe,
+python scripts/gpu.py rank_rounds.
 """
 
 from __future__ import annotations

@@ -1,5 +1,5 @@
 """scripts/model_table.py: models compared in closed loop on the episodes both ran, against counts by hand; runs of
-named checkpoints (gpu_ladder.sh's folder suffix) are told apart from the method alone."""
+named checkpoints (the ladder recipe's folder suffix) are told apart from the method alone."""
 
 import json
 import os

@@ -110,11 +110,11 @@ class TrainConfig:
 
 
 RECIPES = {  # named training configs; the checkpoints' cards name theirs (``experiments.train_dynamics --recipe``)
-    # checkpoints/dynamics (its CARD.md: random and on-policy data, scripts/gpu_on_policy.sh)
+    # checkpoints/dynamics (its CARD.md: random and on-policy data, python scripts/gpu.py on_policy)
     "shipped": TrainConfig(steps=14_000, batch=64, eval_every=2_000, loss="distance", model=DynamicsConfig()),
     "cnn": TrainConfig(steps=2_800, batch=64, loss="distance", model=CNNDynamicsConfig()),  # checkpoints/cnn_dynamics
     # the judge (control/judge.py, issue 65): GNS-sized, 10 unshared message-passing steps of width 128, input noise;
-    # 16,000 steps x 128 windows x 5 pushes = 10.2 M push samples, data-parallel over a host's GPUs (gpu_judge.sh)
+    # 16,000 steps x 128 windows x 5 pushes = 10.2 M push samples, data-parallel over a host's GPUs (gpu.py judge)
     "judge": TrainConfig(steps=16_000, batch=128, eval_every=1_000, ckpt_every=1_000, loss="distance", lr=5e-4,
                          warmup=500, noise=0.001, model=DynamicsConfig(hidden=128, propagation_steps=10,
                                                                        processor="gns")),
