@@ -496,6 +496,7 @@ def test_fill_makes_each_shard_once_and_stops_on_an_error():
     assert len(made) < 10  # the other producer stopped taking shards
 
 
+@pytest.mark.slow  # about 25-40 s on a 2-core CPU: CI's second tier
 def test_c_workers_fill_shards_beside_a_jax_engine_of_c_physics(generated, tmp_path, monkeypatch):
     """``cpu_workers``: C workers take shards from the same list as the JAX engine (here MJX, its row marked as of C's
     physics, as Warp's is). Each engine makes one of the two shards; each shard is what its engine makes alone (the

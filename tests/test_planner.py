@@ -198,6 +198,7 @@ def _model_dynamics(graphdef, state, code, positions, mask, actions):
     return rollout(graphdef, state, positions, mask, actions, code)
 
 
+@pytest.mark.slow  # about 25-40 s on a 2-core CPU: CI's second tier
 def test_real_dynamics_end_to_end():
     graphdef, state = nnx.split(Dynamics(DynamicsConfig(hidden=16), rngs=nnx.Rngs(0)))
     positions, mask = pile(jax.random.PRNGKey(7), n=12)
@@ -227,6 +228,7 @@ def test_pair_table_prepared_once_per_plan_plans_the_same():
     np.testing.assert_allclose(b.costs, a.costs, rtol=1e-4, atol=1e-9)
 
 
+@pytest.mark.slow  # about 25-40 s on a 2-core CPU: CI's second tier
 def test_bfloat16_edges_plan():
     """The MPC's option ``learned_dynamics(model, "bfloat16")``: the sampled pushes cost what float32 says to within
     2 % (measured: under 1 %), the plan's pushes are in bounds and garbage in the masked slots changes nothing; dtypes
@@ -268,6 +270,7 @@ def test_warm_start():
         plan(sweep_dynamics, centroid_cost, positions, mask, key, CFG, init=jnp.zeros((2, 4)))
 
 
+@pytest.mark.slow  # about 25-40 s on a 2-core CPU: CI's second tier
 def test_traced_step_counts_equal_plans_of_that_many_steps():
     """Step counts traced and vmapped (one compiled plan of at most CFG.adam_steps) give exactly the plans whose config
     runs that many steps (each compiled alone); the history past the steps run is NaN."""
