@@ -8,12 +8,15 @@ import numpy as np
 import pytest
 
 from dynres_jax.commands import evaluate, label_resolution, tradeoff, train_regressor
-from dynres_jax.control import mpc, resolution
+from dynres_jax.control import mpc
 from dynres_jax.control.budget import TimingTable, bucket_for
 from dynres_jax.control.choosers import best_of
 from dynres_jax.learn import labels as labels_lib
 from dynres_jax.learn import regressor as g_training
+from dynres_jax.resolution import bo
+from dynres_jax.resolution.regressor import FEATURE_SIZE
 from dynres_jax.sim import engines
+from dynres_jax.sim.physics.c import CPhysics
 
 pytestmark = pytest.mark.slow  # end to end: CI's second tier (python -m pytest -m slow)
 
@@ -63,10 +66,10 @@ def test_labels_follow_the_bo_recipe_and_resume(labels, timing, capsys):
         assert np.all(z["omega"][:, :first] == np.array(labels_lib.FIRST))
         for row in z["omega"]:
             assert len(set(row.tolist())) == len(row)  # EI never repeats an ω
-        np.testing.assert_allclose(z["c_plus"], z["c_star"] + resolution.W_R * z["d0"][:, None] * z["omega"],
+        np.testing.assert_allclose(z["c_plus"], z["c_star"] + bo.W_R * z["d0"][:, None] * z["omega"],
                                    rtol=1e-5)
-        assert np.all(z["label"] == resolution.CANDIDATES[np.argmin(z["gp_mean"], axis=1)])
-        assert z["inputs"].shape == (4, resolution.FEATURE_SIZE, resolution.FEATURE_SIZE, 6)
+        assert np.all(z["label"] == bo.CANDIDATES[np.argmin(z["gp_mean"], axis=1)])
+        assert z["inputs"].shape == (4, FEATURE_SIZE, FEATURE_SIZE, 6)
         assert np.all(z["pile"] == [0, 0, 1, 1]) and np.all(z["goal_shape"] == [0, 1, 0, 1])
         expect = np.vectorize(lambda w: AFFORDED[bucket_for(int(w))])(z["omega"])
         assert np.array_equal(z["adam_steps"], expect)  # every ω planned with its bucket's share of the budget
@@ -79,11 +82,18 @@ def test_labels_follow_the_bo_recipe_and_resume(labels, timing, capsys):
     assert "--seed 0 there, 5 here" in capsys.readouterr().err
 
 
+class CHere(CPhysics):
+    """C MuJoCo stepped in this process, world after world (a stand-in for an engine of C's physics without host
+    workers: Warp)."""
+
+    name, workers = "c-here", False
+
+
 def test_c_workers_label_shards_beside_an_engine_of_c_physics(labels, timing, tmp_path, monkeypatch, capsys):
     """``--cpu-workers``: C workers label shards from the same list as a JAX engine of C's physics (Warp; here a
     stand-in row: C MuJoCo in this process). Each engine labels one of the two shards and records it, and every shard
     equals the one-engine run's (the same physics, scenes and keys). Beside an engine of another physics: refused."""
-    row = engines.Engine("c-here", "mujoco", False, None, "C MuJoCo in this process, for Warp", c_physics=True)
+    row = engines.Engine("c-here", CHere, False, None, "C MuJoCo in this process, for Warp", c_physics=True)
     monkeypatch.setitem(engines.ENGINES, row.name, row)
     monkeypatch.setattr(engines, "NAMES", (*engines.NAMES, row.name))
     label_shard = labels_lib.label_shard

@@ -7,7 +7,9 @@ import jax.numpy as jnp
 import numpy as np
 from flax import nnx
 
-from dynres_jax.control import resolution as res
+from dynres_jax.config import OMEGA_MAX, OMEGA_MIN
+from dynres_jax.resolution import bo as res
+from dynres_jax.resolution import regressor as g
 
 
 def matern_np(a, b, ls, var):
@@ -83,7 +85,7 @@ def test_regressor_input_channels_and_distance_transform_by_brute_force():
     cur = np.zeros((64, 64), bool)
     cur[8:20, 30:50] = True
     goal = rng.uniform(size=(64, 64)) > 0.995
-    x = np.asarray(res.regressor_input(cur, goal, size=16))
+    x = np.asarray(g.regressor_input(cur, goal, size=16))
     assert x.shape == (16, 16, 6)
     cells = cur.reshape(16, 4, 16, 4).mean(axis=(1, 3))
     np.testing.assert_allclose(x[..., 0], cells)
@@ -96,13 +98,13 @@ def test_regressor_input_channels_and_distance_transform_by_brute_force():
 
 
 def test_regressor_range_and_choose_omega_batches():
-    model = res.Regressor(width=4, rngs=nnx.Rngs(0))
+    model = g.Regressor(width=4, rngs=nnx.Rngs(0))
     masks = jnp.asarray(np.random.default_rng(1).uniform(size=(3, 64, 64)) > 0.7)
-    omega = res.choose_omega(*nnx.split(model), jax.vmap(res.regressor_input)(masks, masks[::-1]))
+    omega = g.choose_omega(*nnx.split(model), jax.vmap(g.regressor_input)(masks, masks[::-1]))
     assert omega.shape == (3,) and omega.dtype == jnp.int32
-    assert np.all((np.asarray(omega) >= res.OMEGA_MIN) & (np.asarray(omega) <= res.OMEGA_MAX))
-    x = res.regressor_input(masks[1], masks[1])
-    one = res.choose_omega(*nnx.split(model), x)
+    assert np.all((np.asarray(omega) >= OMEGA_MIN) & (np.asarray(omega) <= OMEGA_MAX))
+    x = g.regressor_input(masks[1], masks[1])
+    one = g.choose_omega(*nnx.split(model), x)
     assert int(one) == int(np.clip(np.round(float(model(x))), 2, 100))
 
 

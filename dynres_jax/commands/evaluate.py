@@ -68,7 +68,7 @@ from dynres_jax.commands.planner_args import (
 )
 from dynres_jax.commands.task import check_pile, check_visible, objective_default, objectives_text, resolve_objective
 from dynres_jax.config import DEFAULT_PIECES, KINDS, CameraConfig, PileConfig, SceneConfig, SimConfig
-from dynres_jax.control import resolution, tasks
+from dynres_jax.control import tasks
 from dynres_jax.control.goals import OBJECTIVES, make_goals, with_objective
 from dynres_jax.control.mpc import run
 from dynres_jax.control.sort import ARRIVED, MIXING
@@ -77,6 +77,7 @@ from dynres_jax.io import ckpt, files
 from dynres_jax.io.draw import evaluation_plots
 from dynres_jax.io.frames import load_goal
 from dynres_jax.models.registry import SHIPPED_CNN_DYNAMICS, SHIPPED_REGRESSOR, shipped_dynamics
+from dynres_jax.resolution.regressor import load_regressor
 from dynres_jax.sim import engines
 from dynres_jax.sim.camera import Camera
 from dynres_jax.sim.env import PileEnv
@@ -240,7 +241,7 @@ def check_args(parser, args):
             parser.error(f"method {m}: ω = {omega} exceeds the model's n_max = {main_model.n_max}")
     if "adaptive" in args.methods:
         try:
-            resolution.load_regressor(args.regressor, Camera.top_down(camera))
+            load_regressor(args.regressor, Camera.top_down(camera))
         except ckpt.CheckpointError as e:
             parser.error(f"--regressor (method adaptive): {e}")
     env = PileEnv(sim, backend="mujoco")

@@ -15,7 +15,6 @@ from dataclasses import dataclass
 import numpy as np
 
 from dynres_jax.config import OMEGA_MAX, OMEGA_MIN
-from dynres_jax.control import resolution
 from dynres_jax.control.choosers import (
     ORACLE_OMEGAS,
     PROBE_OMEGAS,
@@ -29,6 +28,7 @@ from dynres_jax.control.choosers import (
     on_ladder,
 )
 from dynres_jax.control.judge import JudgeScored
+from dynres_jax.resolution.regressor import load_regressor
 
 
 @dataclass(frozen=True)
@@ -60,7 +60,7 @@ LADDER = Method(chooser=lambda name, goals, args, camera, judge: climb(FixedOmeg
                                             {"sim": "simulator chooses among samples",
                                              "rerank": "simulator ranks the model's plans"}[name]))
 METHODS: dict[str, Method] = {
-    "adaptive": Method(lambda name, goals, args, camera, judge: AdaptiveOmega(goals, resolution.load_regressor(
+    "adaptive": Method(lambda name, goals, args, camera, judge: AdaptiveOmega(goals, load_regressor(
         args.regressor, camera)), omega=lambda name, args: None, label=lambda name, omegas: "adaptive",
         needs="--regressor"),
     "probe": Method(lambda name, goals, args, camera, judge: ProbeOmega(goals), omega=lambda name, args: None,

@@ -46,7 +46,6 @@ from dynres_jax.control.goals import OBJECTIVES, make_goal, with_objective
 from dynres_jax.control.mpc import MPCConfig, measure_timing, run_episode
 from dynres_jax.control.objective import inside_share
 from dynres_jax.control.planner import planner_config
-from dynres_jax.control.resolution import load_regressor
 from dynres_jax.errors import InputError
 from dynres_jax.io import files
 from dynres_jax.io.ckpt import CheckpointError
@@ -59,6 +58,7 @@ from dynres_jax.models.registry import (
 )
 from dynres_jax.perception import visible_points
 from dynres_jax.progress import at_terminal
+from dynres_jax.resolution.regressor import load_regressor
 from dynres_jax.sim.camera import Camera
 from dynres_jax.sim.env import PileEnv, make_env
 

@@ -50,10 +50,10 @@ from dynres_jax.control.goals import make_goals
 from dynres_jax.control.mpc import MPCConfig, measure_timing
 from dynres_jax.control.objective import distribution_distance
 from dynres_jax.control.planner import planner_config
-from dynres_jax.control.resolution import CANDIDATES
 from dynres_jax.io import files
 from dynres_jax.io.shards import complete_shards, read_shard, save_npz
 from dynres_jax.models.registry import SHIPPED_DYNAMICS, LoadedDynamics
+from dynres_jax.resolution.bo import CANDIDATES
 from dynres_jax.sim.pool import WorldPool, process_pool
 from dynres_jax.stats import wilson
 

@@ -19,7 +19,7 @@ import os
 
 from dynres_jax import distributed
 from dynres_jax.commands import checks
-from dynres_jax.control.resolution import OMEGA_MAX, OMEGA_MIN
+from dynres_jax.config import OMEGA_MAX, OMEGA_MIN
 from dynres_jax.io import ckpt, files
 from dynres_jax.learn.regressor import load_labels, train_regressor
 

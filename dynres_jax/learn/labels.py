@@ -14,11 +14,13 @@ import jax.numpy as jnp
 import numpy as np
 
 from dynres_jax.config import CameraConfig, PileConfig, PushConfig, SceneConfig, SimConfig, check_fields
-from dynres_jax.control import budget, mpc, resolution, tasks
+from dynres_jax.control import budget, mpc, tasks
 from dynres_jax.control.choosers import FixedOmega
 from dynres_jax.control.decision import Situation
 from dynres_jax.control.goals import make_goals
 from dynres_jax.control.objective import distribution_distance
+from dynres_jax.resolution import bo
+from dynres_jax.resolution.regressor import observation_input
 from dynres_jax.sim import engines
 from dynres_jax.sim.env import PileEnv
 from dynres_jax.sim.pool import make_pool
@@ -135,7 +137,7 @@ def label_shard(cfg: LabelConfig, shard: int, dynamics, planner: Callable[[PileE
     target, c_stars, adam_steps = jnp.zeros((b, k)), jnp.zeros((b, k)), np.zeros((b, k), np.int32)
     repeat_var = np.zeros((b, k))  # the measured variance of each evaluation: the GP's noise floor is its mean
     mask = jnp.zeros((b, k), bool)
-    propose = jax.jit(jax.vmap(resolution.next_omega))
+    propose = jax.jit(jax.vmap(bo.next_omega))
     for i in range(k):
         if i < len(FIRST):
             w = jnp.full(b, FIRST[i], jnp.int32)
@@ -144,10 +146,10 @@ def label_shard(cfg: LabelConfig, shard: int, dynamics, planner: Callable[[PileE
                         jnp.asarray(repeat_var[:, :i].mean(axis=1)))
         c, repeat_var[:, i], adam_steps[:, i] = c_star(w)
         omega, mask = omega.at[:, i].set(w), mask.at[:, i].set(True)
-        c_stars, target = c_stars.at[:, i].set(c), target.at[:, i].set(resolution.penalised(c, d0, w))
-    label, mean = jax.jit(jax.vmap(resolution.best_omega))(omega, target, mask, jax.random.split(
+        c_stars, target = c_stars.at[:, i].set(c), target.at[:, i].set(bo.penalised(c, d0, w))
+    label, mean = jax.jit(jax.vmap(bo.best_omega))(omega, target, mask, jax.random.split(
         jax.random.fold_in(jax.random.PRNGKey(plan_seed), 100_000 + shard), b), jnp.asarray(repeat_var.mean(axis=1)))
-    inputs = jax.vmap(lambda o, m: resolution.observation_input(o, m, camera))(start.obs, jnp.asarray(goal_masks))
+    inputs = jax.vmap(lambda o, m: observation_input(o, m, camera))(start.obs, jnp.asarray(goal_masks))
     return dict(inputs=np.asarray(inputs), label=np.asarray(label), gp_mean=np.asarray(mean),
                 omega=np.asarray(omega), c_plus=np.asarray(target), c_star=np.asarray(c_stars), d0=np.asarray(d0),
                 adam_steps=adam_steps, repeat_var=repeat_var,

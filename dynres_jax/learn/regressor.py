@@ -20,8 +20,9 @@ import optax
 from flax import nnx
 
 from dynres_jax import distributed, progress
-from dynres_jax.control.resolution import OMEGA_MAX, OMEGA_MIN, Regressor
+from dynres_jax.config import OMEGA_MAX, OMEGA_MIN
 from dynres_jax.io.shards import complete_shards, read_shard
+from dynres_jax.resolution.regressor import Regressor
 
 
 def load_labels(folders: list[str]) -> dict:

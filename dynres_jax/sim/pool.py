@@ -269,10 +269,10 @@ class Worlds(Protocol):
 
 def make_pool(config: SimConfig, backend: str, processes=None) -> WorldPool | MJXPool | SizedPool:
     """Worlds of ``config`` in the engine ``backend`` (``engines.NAMES``), as that engine simulates the scene, read
-    from its physics (``sim.physics.Physics``): ``WorldPool`` on ``processes`` where it steps in worker processes (C
-    MuJoCo), ``SizedPool`` where its capacities depend on the batch (MuJoCo Warp), else ``MJXPool`` (MJX, on the fast
-    scene's physics for "mjx-fast")."""
+    from its physics (``sim.physics.Physics``): ``WorldPool`` where it runs on the host (C MuJoCo; on ``processes``
+    where it steps in worker processes, else in this one), ``SizedPool`` where its capacities depend on the batch
+    (MuJoCo Warp), else ``MJXPool`` (MJX, on the fast scene's physics for "mjx-fast")."""
     physics, config = engines.ENGINES[engines.resolve(backend)].physics, engines.sim_config(config, backend)
-    if physics.workers:
-        return WorldPool(config, processes, physics.name)
+    if not physics.traced:
+        return WorldPool(config, processes if physics.workers else None, physics.name)
     return (SizedPool if physics.per_batch else MJXPool)(config, physics.name)
