@@ -176,6 +176,7 @@ def test_a_task_command_refuses_its_folder_and_goal_before_building_the_scene(tm
     out, small = str(tmp_path / "run"), str(tmp_path / "goal64.png")
     checks.claim(out, "gather", {"seed": -1})
     save_goal(small, disc_goal(Camera.top_down(CameraConfig(width=64, height=64)), np.zeros(2), 0.05))
+    save_goal(str(tmp_path / "goal.png"), disc_goal(Camera.top_down(CameraConfig()), np.zeros(2), 0.05))
     tiny = ["--mpc-steps", "1", "--samples", "4", "--adam-steps", "1", "--dynamics", "sweep", "--pieces", "20"]
     for main, argv, words in [(gather.main, ["--out", out], "of other settings"),
                               (redistribute.main, ["--goal-png", small, "--out", str(tmp_path / "r")],
@@ -184,3 +185,8 @@ def test_a_task_command_refuses_its_folder_and_goal_before_building_the_scene(tm
             main([*tiny, *argv])
         err = capsys.readouterr().err
         assert e.value.code == 2 and err.count("\n") == 1 and words in err, err
+    inputs = {}
+    monkeypatch.setattr(checks, "check_out", lambda out, command, config, fresh, given: inputs.update(given))
+    with pytest.raises(AssertionError, match="scene was built"):  # the goal PNG is among the inputs a resume proves
+        redistribute.main([*tiny, "--goal-png", str(tmp_path / "goal.png"), "--out", str(tmp_path / "g")])
+    assert inputs["--goal-png"] == str(tmp_path / "goal.png")

@@ -194,9 +194,10 @@ class Loop:
         return judged(self.choose, self.judge)(goals)
 
 
-def build_loop(args, sim: SimConfig, parser: argparse.ArgumentParser, task: str, read: dict | None = None) -> Loop:
-    """The ``Loop`` of ``task``'s loop flags; parser.error naming a bad flag, and --out's refusal (``read``: the
-    command's own input files, by flag), before any work (the scene is built last)."""
+def build_loop(args, sim: SimConfig, parser: argparse.ArgumentParser, task: str, own_inputs: dict | None = None
+               ) -> Loop:
+    """The ``Loop`` of ``task``'s loop flags; parser.error naming a bad flag, and --out's refusal (``own_inputs``: the
+    command's own input files, by flag, hashed with the loop's), before any work (the scene is built last)."""
     resolve_objective(parser, args, task, sim.scene.kinds)
     model = load_model(parser, args.dynamics, args.ckpt, sim.scene.plate_half_width, shipped_dynamics(task))
     if isinstance(args.resolution, int):  # Sort: one ω, a SortPolicy plans at it
@@ -210,7 +211,7 @@ def build_loop(args, sim: SimConfig, parser: argparse.ArgumentParser, task: str,
               "--timing": args.timing, **read}
     judge = load_judge(parser, args, sim.scene.plate_half_width, inputs) if hasattr(args, "judge") else None
     backend = checks.engine(parser, args.backend)
-    inputs.update(read or {})
+    inputs.update(own_inputs or {})
     checks.check_out(args.out, task, checks.settings(args), args.fresh, inputs)
     at_terminal(checks.prog(task), "building the scene: the simulator and its camera (seconds on a CPU)")
     env = make_env(sim, backend)
