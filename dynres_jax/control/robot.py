@@ -60,11 +60,12 @@ STOP_SHARE = 0.97  # stop at this share of the frame's foreground inside the goa
 
 
 class FrameSource(Protocol):
-    """A camera: ``camera`` (intrinsics and pose in the table frame) and ``read()``, the next frame."""
+    """A camera: ``camera`` (intrinsics and pose in the table frame) and ``read()``, the next frame (None when it has
+    no more: a replay's end, where the loop stops)."""
 
     camera: Camera
 
-    def read(self) -> Observation: ...
+    def read(self) -> Observation | None: ...
 
 
 class Pusher(Protocol):
@@ -122,9 +123,10 @@ class ReplaySource:
                 for name in names]
         self.frames, self.camera, self.next = [obs for obs, _ in read], read[0][1], 0
 
-    def read(self) -> Observation:
+    def read(self) -> Observation | None:
+        """The next frame, or None after the last (the replay ends there, as its recording did)."""
         if self.next >= len(self.frames):
-            raise InputError(f"replay: all {len(self.frames)} frames were read")
+            return None
         self.next += 1
         return self.frames[self.next - 1]
 
@@ -190,6 +192,8 @@ def run_robot(source: FrameSource, pusher: Pusher, goal_mask, dynamics, cfg: MPC
     with the ``Progress`` after every push (its states None: the world is the source's)."""
     camera = source.camera
     obs = source.read()
+    if obs is None:
+        raise InputError("the frame source gave no frame to start from")
     if bin_size is not None:
         camera = calibrate(obs, camera, bin_half_width=bin_size[0], wall_height=bin_size[1])
         moved = 1000 * np.linalg.norm(np.asarray(camera.centre) - np.asarray(source.camera.centre))
@@ -238,4 +242,7 @@ def run_robot(source: FrameSource, pusher: Pusher, goal_mask, dynamics, cfg: MPC
         if on_progress:
             on_progress(Progress(records, None, init, warm, np.zeros(1, bool)))
         obs = source.read()
+        if obs is None:
+            log(f"the source has no frame after push {t + 1}: stopping")
+            return records
     return records
