@@ -20,6 +20,7 @@ import numpy as np
 import pytest
 
 from dynres_jax.config import CameraConfig, SceneConfig, SimConfig
+from dynres_jax.errors import InputError
 from dynres_jax.io import files, shards
 from dynres_jax.learn import data, targets
 from dynres_jax.perception import sample_particles
@@ -545,3 +546,16 @@ def test_check_helpers(monkeypatch):
     with pytest.raises(ValueError, match="random pushes only"):
         data.check_helpers(data.replace(QUICK, planned=0.5), 2)
     assert data.check_helpers(data.replace(QUICK, planned=0.5), 0) is None
+
+
+
+def test_a_damaged_or_other_config_json_is_refused_by_name(tmp_path):
+    """A data folder whose config.json was edited (another DataConfig) or truncated: an InputError (one line at the
+    command) naming it, before any shard is simulated."""
+    for i, (text, words) in enumerate([('{"seed": 12345}', "another DataConfig"), ('{"seed": 0, "worl', "damaged")]):
+        out = tmp_path / f"d{i}"
+        out.mkdir()
+        (out / "config.json").write_text(text)
+        with pytest.raises(InputError, match=words):
+            data.generate(QUICK, str(out), progress=False)
+        assert not list(out.glob("shard_*"))

@@ -11,8 +11,7 @@ the same folder. An episode is ``pushes`` random pushes through the pile (``Pile
 pile (with ``DataConfig.planned`` > 0, a share of them chosen by the closed loop's planner instead:
 ``learn.on_policy``); frame 0 is the settled pile, frame ``t + 1`` the pile after action ``t``. The worlds of an MJX
 batch are sharded over the process's devices (a 1-D ``Mesh`` named ``"worlds"``), so more GPUs go faster. Results are
-bit-identical for the same seed, machine and device count; with another device count XLA compiles a different per-device
-batch and values agree to float32 rounding (then drift apart, as chaotic piles do).
+bit-identical for the same seed, machine and device count (with another, to float32 rounding, then chaos).
 
 On-disk format: ``DIR/shard_00000.npz`` ... (one zip of ``.npy`` members, deflated, fixed timestamps, so equal
 content gives equal bytes), ``DIR/config.json`` (the DataConfig, checked on resume), ``DIR/summary.json``. Shard
@@ -30,9 +29,7 @@ members, with E kept episodes, F = pushes + 1 frames, N pieces, H x W pixels:
     shard, simulated, dropped [] int64
 
 Colour images are not stored: ``Renderer`` redraws them from the poses. Broken episodes are dropped by default
-(``DataConfig.drop_broken``): ``dropped`` counts them per shard and the summary in total.
-
-Loading the shards and the training targets: ``dynres_jax.learn.targets``.
+(``DataConfig.drop_broken``): ``dropped`` counts them per shard and the summary in total. Loading: ``learn.targets``.
 """
 
 from __future__ import annotations
@@ -56,6 +53,7 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from dynres_jax import distributed
 from dynres_jax.config import KINDS, PushConfig, SimConfig, check_fields, check_kind_names, replace
+from dynres_jax.errors import InputError
 from dynres_jax.io.files import leftovers, read_json, write_json, write_text
 from dynres_jax.io.shards import SHARD_GLOB, fill, read_shard, save_npz, shard_path
 from dynres_jax.learn import on_policy
@@ -319,16 +317,14 @@ def by_scene(config: DataConfig, todo: list[int]) -> list[int]:
 
 def generate(config: DataConfig, out_dir: str, devices=None, progress: bool = True, workers: int | None = None,
              part: tuple[int, int] | None = None, cpu_workers: int = 0) -> dict:
-    """Simulate ``config`` into ``out_dir`` (shards, config.json, summary.json), resuming a killed run: shard files
-    that exist are kept, the missing ones simulated. Returns the summary (also written to summary.json): totals over
-    all shards, and this run's shards written, seconds and ``samples_per_s`` (frames written per second of this
-    run, compiles included). ValueError when ``out_dir`` holds a run of another DataConfig, or worlds does not
-    divide by the device count. ``workers``: C processes for backend "mujoco" (default every host core).
-    ``part`` (I, K): make only the shards with index I modulo K (default ``distributed.part()``: process I of a job
-    of K; they share the folder). In a job, every process waits for the others before the summary, which process 0
-    writes; each returns it with its own shards' counts and speed. ``cpu_workers`` K > 0: C MuJoCo on K worker
-    processes fills shards beside a JAX engine of C's physics (``engines.Engine.c_physics``: Warp), each shard taken
-    by whichever engine is free; a shard depends on (seed, shard) alone and records its ``engine``."""
+    """Simulate ``config`` into ``out_dir`` (shards, config.json, summary.json), resuming a killed run (shard files
+    that exist are kept). Returns the summary (also summary.json): totals over all shards, and this run's shards
+    written, seconds and ``samples_per_s`` (frames a second, compiles included). InputError when ``out_dir`` holds a
+    run of another DataConfig or a damaged config.json; ValueError when worlds does not divide by the device count.
+    ``workers``: C processes for "mujoco" (default every core). ``part`` (I, K): only the shards I modulo K (default
+    ``distributed.part()``); in a job every process waits for the others before the summary, which process 0 writes.
+    ``cpu_workers`` K > 0: C MuJoCo on K processes fills shards beside a JAX engine of C's physics (Warp), each shard
+    taken by whichever engine is free; a shard depends on (seed, shard) alone and records its ``engine``."""
     config = concrete(config)
     devices = check_devices(config, devices)
     helper = check_helpers(config, cpu_workers)
@@ -338,10 +334,14 @@ def generate(config: DataConfig, out_dir: str, devices=None, progress: bool = Tr
         os.unlink(leftover)  # half-written shards of a killed run of this part
     config_path = os.path.join(out_dir, "config.json")
     if os.path.exists(config_path):
-        with open(config_path) as f:  # a field added since the run began counts as its default
-            if {**json.loads(DataConfig().to_json()), **json.load(f)} != json.loads(config.to_json()):
-                raise ValueError(f"{out_dir} holds data of another DataConfig (see its config.json); resume with "
-                                 "the same config or write to a new folder")
+        try:  # a field added since the run began counts as its default
+            with open(config_path) as f:
+                same = {**json.loads(DataConfig().to_json()), **json.load(f)} == json.loads(config.to_json())
+        except (OSError, ValueError, TypeError) as e:
+            raise InputError(f"{out_dir}: config.json damaged ({type(e).__name__}); write to a new folder") from None
+        if not same:
+            raise InputError(f"{out_dir} holds data of another DataConfig (see its config.json); resume with the same "
+                             "config or write to a new folder")
     else:
         write_text(config_path, config.to_json())
 
