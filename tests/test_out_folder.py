@@ -190,3 +190,26 @@ def test_a_task_command_refuses_its_folder_and_goal_before_building_the_scene(tm
     with pytest.raises(AssertionError, match="scene was built"):  # the goal PNG is among the inputs a resume proves
         redistribute.main([*tiny, "--goal-png", str(tmp_path / "goal.png"), "--out", str(tmp_path / "g")])
     assert inputs["--goal-png"] == str(tmp_path / "goal.png")
+
+
+def test_an_output_file_never_overwrites_the_commands_input(tmp_path, capsys):
+    """--out naming one of the command's own inputs (the frame plan reads, the mask goal reads, a file the export's
+    sidecar would replace) is refused in one line, and the input is left as it was."""
+    from dynres_jax.commands import goal
+    from dynres_jax.config import CameraConfig
+    from dynres_jax.control.goals import disc_goal
+    from dynres_jax.io.frames import save_goal
+    from dynres_jax.sim.camera import Camera
+
+    mask = str(tmp_path / "mask.png")
+    save_goal(mask, disc_goal(Camera.top_down(CameraConfig()), np.zeros(2), 0.05))
+    before = open(mask, "rb").read()
+    with pytest.raises(SystemExit) as e:
+        goal.main(["--mask", mask, "--out", mask])
+    err = capsys.readouterr().err
+    assert e.value.code == 2 and err.count("\n") == 1 and "is the command's input --mask" in err, err
+    assert open(mask, "rb").read() == before
+    camera = str(tmp_path / "d.jaxexport.json")
+    with pytest.raises(InputError, match="input --camera"):
+        checks.out_file(str(tmp_path / "d.jaxexport"), (".jaxexport",), beside=".json", inputs={"--camera": camera})
+    assert checks.out_file(str(tmp_path / "e.jaxexport"), (".jaxexport",), beside=".json", inputs={"--camera": camera})

@@ -119,10 +119,16 @@ def text(value: str) -> str:
     return value
 
 
-def out_file(text: str, suffixes: tuple[str, ...], beside: str = "", flag: str = "--out") -> str:
+def out_file(text: str, suffixes: tuple[str, ...], beside: str = "", flag: str = "--out",
+             inputs: dict | None = None) -> str:
     """An output file path given as ``flag``: not a folder, ending in one of ``suffixes``, a name the file system
     takes (with ``beside``, the suffix of a second file written next to it, e.g. ".json"), in a folder that exists
-    and is writable or can be made (nothing is created here)."""
+    and is writable or can be made (nothing is created here), and none of the command's ``inputs`` ({flag: path or
+    None}: writing there would destroy it)."""
+    for name, path in (inputs or {}).items():
+        if path is not None and os.path.realpath(path) in {os.path.realpath(text), os.path.realpath(text + beside)}:
+            raise InputError(f"{flag} {text!r} is the command's input {name}; writing there would destroy it: give "
+                             "another file name")
     if os.path.isdir(text) or text.endswith(os.sep):
         raise InputError(f"{flag} {text!r} is a folder; give a file name ending in {' or '.join(suffixes)}")
     if not text.lower().endswith(suffixes):

@@ -88,7 +88,7 @@ def main(argv=None):
     except ValueError as e:
         parser.error(str(e))
     camera = Camera.top_down(CameraConfig()) if args.camera is None else frames.load_camera(args.camera)
-    checks.out_file(args.out, (".jaxexport",), beside=".json")
+    checks.out_file(args.out, (".jaxexport",), beside=".json", inputs={"--camera": args.camera})
     spec = DecisionSpec(bucket_for(args.resolution), config, real_depth=args.real_depth)
     try:
         exported, info = export.export_checkpoint(args.ckpt, spec, camera, goal_samples=args.goal_samples,

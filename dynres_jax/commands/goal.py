@@ -56,7 +56,7 @@ def main(argv=None):
                         help="shapes must lie within ±this of the bin's centre, m")
     parser.add_argument("--out", required=True, help="the goal PNG to write")
     args = parser.parse_args(argv)
-    checks.out_file(args.out, (".png",))
+    checks.out_file(args.out, (".png",), inputs={"--mask": args.mask, "--camera": args.camera})
     camera = load_camera(args.camera) if args.camera else Camera.top_down(CameraConfig())
     try:
         if args.disc:

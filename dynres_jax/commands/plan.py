@@ -81,7 +81,8 @@ def main(argv=None):
         goal = make_goal(goal_mask, camera)
     except ValueError as e:
         parser.error(f"--goal {args.goal}: {e}")
-    checks.out_file(args.out, (".png", ".jpg"))
+    checks.out_file(args.out, (".png", ".jpg"), inputs={"--depth": args.depth, "--rgb": args.rgb,
+                                                        "--camera": args.camera, "--goal": args.goal})
     if SENSORS[args.sensor] is not None:
         sensor = SENSORS[args.sensor]
         obs = sensor.observe(obs, jax.random.PRNGKey(args.seed + 1))
