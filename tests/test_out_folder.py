@@ -213,3 +213,19 @@ def test_an_output_file_never_overwrites_the_commands_input(tmp_path, capsys):
     with pytest.raises(InputError, match="input --camera"):
         checks.out_file(str(tmp_path / "d.jaxexport"), (".jaxexport",), beside=".json", inputs={"--camera": camera})
     assert checks.out_file(str(tmp_path / "e.jaxexport"), (".jaxexport",), beside=".json", inputs={"--camera": camera})
+
+
+def test_a_folder_and_a_link_to_it_are_one_input(tmp_path, capsys):
+    """Data, labels or label runs named twice, once through a symbolic link, are refused as named twice (training
+    on them counted every episode twice; a run's reliability against itself read as Spearman 1)."""
+    from dynres_jax.commands import tradeoff, train_dynamics, train_regressor
+
+    (tmp_path / "d").mkdir()
+    os.symlink(tmp_path / "d", tmp_path / "link")
+    d, link = str(tmp_path / "d"), str(tmp_path / "link")
+    for main, argv in [(train_dynamics.main, ["--data", d, link]), (train_regressor.main, ["--labels", d, link]),
+                       (tradeoff.main, ["--reliability", d, link])]:
+        with pytest.raises(SystemExit) as e:
+            main([*argv, "--out", str(tmp_path / "out")])
+        err = capsys.readouterr().err
+        assert e.value.code == 2 and "twice" in err, err

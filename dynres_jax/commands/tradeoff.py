@@ -101,7 +101,7 @@ def main(argv=None):
         return surface(args, model)
     if args.reliability:
         first, second = args.reliability
-        if os.path.abspath(first) == os.path.abspath(second):
+        if os.path.realpath(first) == os.path.realpath(second):  # a link to the same run too
             parser.error(f"--reliability needs two label runs of the same scenes, got {first} twice")
         for folder in (first, second):
             complete_shards(folder, "--reliability", "labels")

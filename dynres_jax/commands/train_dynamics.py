@@ -117,7 +117,7 @@ def main(argv=None):
         distributed.check_batch(cfg.batch, distributed.batch_mesh())
     except (ValueError, TypeError) as e:
         parser.error(str(e))
-    absolute = [os.path.abspath(f) for f in args.data]
+    absolute = [os.path.realpath(f) for f in args.data]  # a link to a folder named beside it is the same data
     twice = sorted({f for f, a in zip(args.data, absolute, strict=True) if absolute.count(a) > 1})
     if twice:
         parser.error(f"--data names {', '.join(twice)} twice: its episodes would count twice")

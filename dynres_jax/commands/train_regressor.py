@@ -43,7 +43,7 @@ def main(argv=None):
         distributed.check_batch(args.batch, distributed.batch_mesh())
     except ValueError as e:
         parser.error(str(e))
-    if len({os.path.abspath(folder) for folder in args.labels}) < len(args.labels):
+    if len({os.path.realpath(folder) for folder in args.labels}) < len(args.labels):  # links too
         parser.error(f"--labels names a folder twice: {' '.join(args.labels)}")
     labels = load_labels(args.labels)
     checks.claim(args.out, "train_regressor", checks.settings(args), args.fresh, {"--labels": args.labels})
