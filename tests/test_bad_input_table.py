@@ -65,6 +65,7 @@ def fx(tmp_path_factory):
     for name, image in {"goal": goal, "empty_goal": np.zeros_like(goal), "small_goal": goal[:64, :64],
                         "corner_goal": np.pad(np.full((6, 6), 255, np.uint8), ((0, h - 6), (0, w - 6))),
                         "depth_metres": np.ones((h, w), np.uint16), "zero_depth": np.zeros((h, w), np.uint16),
+                        "bare_table": np.full((h, w), 1000, np.uint16),
                         "small_rgb": np.zeros((64, 64, 3), np.uint8), "wide_goal": np.pad(goal, ((0, 0), (0, w))),
                         "full_goal": np.full((h, w), 255, np.uint8)}.items():
         p[name] = str(root / f"{name}.png")
@@ -183,6 +184,7 @@ FRAME = ["--depth", "{depth}", "--rgb", "{rgb}", "--camera", "{camera}", "--goal
 P = [  # plan: one frame of a real camera
     (["--depth", "/nonexistent"], "depth file"), (["--depth", "{rgb}"], "depth file"),
     (["--depth", "{depth_metres}"], "depth file"), (["--depth", "{zero_depth}"], "depth file"),
+    (["--depth", "{bare_table}"], "shows no pile"),
     (["--depth", "{text}"], "depth file"), (["--rgb", "/nonexistent"], "colour file"), (["--rgb", "{text}"], "colour file"),
     (["--rgb", "{small_rgb}"], "colour"), (["--camera", "/nonexistent"], "camera file"),
     (["--camera", "{cam_negative_f}"], "focal"), (["--camera", "{cam_not_rotation}"], "rotation"),

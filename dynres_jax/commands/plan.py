@@ -27,7 +27,7 @@ from dynres_jax.control.planner import PlannerConfig
 from dynres_jax.io import files, frames
 from dynres_jax.io.draw import overlay
 from dynres_jax.models.registry import SHIPPED_DYNAMICS, SWEEP_NAME
-from dynres_jax.perception import WORKSPACE_HALF_WIDTH, calibrate
+from dynres_jax.perception import WORKSPACE_HALF_WIDTH, calibrate, visible_points
 from dynres_jax.sim.pushes import wall_reach
 from dynres_jax.sim.sensor import SENSORS
 
@@ -92,6 +92,9 @@ def main(argv=None):
             camera = calibrate(obs, camera, bin_half_width=args.bin_half_width, wall_height=args.wall_height)
         except ValueError as e:
             parser.error(f"--calibrate: {e}")
+    if visible_points(obs, camera, DecisionSpec.max_points, args.real_depth) == 0:  # before the model and compiling
+        parser.error(f"--depth {args.depth}: the frame shows no pile (no point above the table, inside the "
+                     "workspace): nothing to push")
     plate = SceneConfig.plate_half_width if args.plate_half_width is None else args.plate_half_width
     dynamics, n_max, name = load_model(parser, args.dynamics, args.ckpt, plate)
     if args.plate_half_width is not None and name != SWEEP_NAME:
@@ -104,11 +107,11 @@ def main(argv=None):
                                reach=reach)
     except ValueError as e:
         parser.error(f"--bound {args.bound} with pushes from outside the walls (--no-wall-pushes to plan without): {e}")
+    spec = DecisionSpec(bucket_for(args.resolution), config, real_depth=args.real_depth)
     print(f"planning at ω = {args.resolution}, {args.samples} samples x {args.adam_steps} Adam steps (compiling the "
           "planner first: tens of seconds on a CPU)", file=sys.stderr, flush=True)  # stdout stays the JSON alone
     # the decision the closed loop and the exported file make (decision.perceive_and_decide): the same push for the
     # same frame, goal and key
-    spec = DecisionSpec(bucket_for(args.resolution), config, real_depth=args.real_depth)
     try:
         particles, _, result = decide_batch(batch(obs), batch(goal), batch(jax.random.PRNGKey(args.seed)),
                                             np.zeros((1, config.horizon, 4), np.float32), False, [args.resolution],
