@@ -208,10 +208,9 @@ def build_loop(args, sim: SimConfig, parser: argparse.ArgumentParser, task: str,
         omega, choose, read = resolution_chooser(parser, args, Camera.top_down(sim.camera), model.n_max)
     timing = load_timing(parser, args)
     inputs = {"--ckpt": None if args.dynamics == "sweep" else args.ckpt or shipped_dynamics(task),
-              "--timing": args.timing, **read}
+              "--timing": args.timing, **read, **(own_inputs or {})}
     judge = load_judge(parser, args, sim.scene.plate_half_width, inputs) if hasattr(args, "judge") else None
     backend = checks.engine(parser, args.backend)
-    inputs.update(own_inputs or {})
     checks.check_out(args.out, task, checks.settings(args), args.fresh, inputs)
     at_terminal(checks.prog(task), "building the scene: the simulator and its camera (seconds on a CPU)")
     env = make_env(sim, backend)
