@@ -6,7 +6,11 @@ d's mean difference with its bootstrap interval); Sort's failures by cause.
     python scripts/variants.py --runs RUNS/variants --variants base mix10 --out docs/sort/mixing/fresh.md
     python scripts/variants.py --runs RUNS/variants --task redistribute --letters F2O7 --variants s20 s40
 
-RUNS holds VARIANT/TASK-KIND/METHOD.json or .json.gz (``--method``, default 50). ``--at VARIANT=T`` or
+RUNS holds VARIANT/TASK-KIND/METHOD.json or .json.gz (``--method``, default 50). Several RUNS are blocks of one
+experiment run in turn (the second's SEED following on the first's episodes), read as one run, episode after episode:
+
+    python scripts/variants.py --runs docs/sort/kind_hinge/fresh docs/sort/kind_hinge/fresh2 --variants paper kind
+ ``--at VARIANT=T`` or
 ``VARIANT=T:SHARE`` reads a variant as its first T MPC steps (``tasks.first_steps``), with the stop rule at SHARE
 replayed (``tasks.stopped``): one run at the most steps, without a rule, gives every shorter or stopped setting.
 
@@ -47,6 +51,32 @@ def read_results(path: str) -> dict:
         return json.load(f)
 
 
+FINAL_KEYS = ("final_distance", "final_inside", "final_kind_inside", "final_mixing", "broken", "success")  # [E, ...]
+STEP_KEYS = ("distance", "inside", "omega", "adam_steps", "seen_inside", "mixing", "kind_inside")  # [T, E, ...]
+
+
+def joined(blocks: list[dict]) -> dict:
+    """Results of one method over blocks of episodes (each a METHOD.json, the same MPC steps) -> one result, episode
+    after episode: the final values [E, ...] and the per-step ones [T, E, ...] concatenated, the per-step means
+    recomputed; the other fields (seconds, the model) the first block's."""
+    if len(blocks) == 1:
+        return blocks[0]
+    steps = {len(b["distance"]) for b in blocks}
+    if len(steps) > 1:
+        raise ValueError(f"blocks of different MPC steps ({sorted(steps)}) cannot be read as one run")
+    out = dict(blocks[0])
+    for key in FINAL_KEYS + STEP_KEYS:
+        if all(key in b for b in blocks):
+            out[key] = np.concatenate([np.asarray(b[key]) for b in blocks], axis=int(key in STEP_KEYS)).tolist()
+        else:
+            out.pop(key, None)
+    for key in ("distance", "inside", "mixing"):
+        if key in out:
+            out["mean_" + key] = np.mean(out[key], axis=1).tolist()
+    out.pop("start_pieces", None), out.pop("final_pieces", None)
+    return out
+
+
 def groups(n: int, letters: str | None) -> dict[str, np.ndarray]:
     """The rows of a kind's table: every episode, then, with letters, each character's episodes."""
     rows = {"all": np.ones(n, bool)}
@@ -74,23 +104,24 @@ def cut(results: dict, setting: tuple[int, float | None] | None) -> dict:
     return results if share is None else stopped(results, share)
 
 
-def table(runs: str, task: str, variants: list[str], method: str, letters: str | None = None,
+def table(runs: list[str], task: str, variants: list[str], method: str, letters: str | None = None,
           settings: dict | None = None) -> str:
     """The Markdown table: rows (kind, goal character, variant); settings: {variant: (T, share)} (``cut``)."""
     sort = task == "sort"
     lines = ["| kind | goal | variant | success (95 % CI) |" + (" failures: mixing / short / both |" if sort else "")
              + f" against {variants[0]}: only here / only there (McNemar p) | Δ final d (95 % CI) |",
              "|---|---|---|---:|" + ("---:|" if sort else "") + "---:|---:|"]
-    kinds = sorted({os.path.basename(p)[len(task) + 1:] for p in glob.glob(os.path.join(runs, "*", f"{task}-*"))
+    kinds = sorted({os.path.basename(p)[len(task) + 1:] for p in glob.glob(os.path.join(runs[0], "*", f"{task}-*"))
                     if os.path.isdir(p)})
     for kind in kinds:
         results = {}
         for v in variants:
-            path = os.path.join(runs, v, f"{task}-{kind}", f"{method}.json")
-            for name in (path, path + ".gz"):
-                if os.path.exists(name):
-                    results[v] = cut(read_results(name), (settings or {}).get(v))
-                    break
+            blocks = [read_method(block, v, task, kind, method) for block in runs]
+            if all(b is not None for b in blocks):
+                results[v] = cut(joined(blocks), (settings or {}).get(v))
+            elif any(b is not None for b in blocks):
+                missing = [block for block, b in zip(runs, blocks, strict=True) if b is None]
+                raise SystemExit(f"variants.py: {v}/{task}-{kind}/{method}.json is missing from {', '.join(missing)}")
         if variants[0] not in results:
             continue
         first = results[variants[0]]
@@ -117,6 +148,15 @@ def table(runs: str, task: str, variants: list[str], method: str, letters: str |
                                          np.asarray(first["final_distance"])[:n][rows])
                 lines.append(row + f" {delta['mean']:+.2f} [{delta['ci95'][0]:+.2f}, {delta['ci95'][1]:+.2f}] |")
     return "\n".join(lines) + "\n"
+
+
+def read_method(runs: str, variant: str, task: str, kind: str, method: str) -> dict | None:
+    """RUNS/VARIANT/TASK-KIND/METHOD.json (or .json.gz), or None where there is none."""
+    path = os.path.join(runs, variant, f"{task}-{kind}", f"{method}.json")
+    for name in (path, path + ".gz"):
+        if os.path.exists(name):
+            return read_results(name)
+    return None
 
 
 def plot(runs: str, task: str, variants: list[str], method: str, path: str) -> None:
@@ -147,7 +187,8 @@ def plot(runs: str, task: str, variants: list[str], method: str, path: str) -> N
 
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--runs", required=True, help="the variants folder of the variants recipe")
+    parser.add_argument("--runs", required=True, nargs="+",
+                        help="the variants folder of the variants recipe; several: blocks of episodes read in turn")
     parser.add_argument("--variants", nargs="+", required=True, help="variant folders; the first is the reference")
     parser.add_argument("--task", default="sort", choices=("gather", "redistribute", "sort"))
     parser.add_argument("--method", default="50")
@@ -162,7 +203,7 @@ def main(argv=None):
         os.makedirs(os.path.dirname(args.out) or ".", exist_ok=True)
         files.write_text(args.out, text)
     if args.plot:
-        plot(args.runs, args.task, args.variants, args.method, args.plot)
+        plot(args.runs[0], args.task, args.variants, args.method, args.plot)
     print(text)
 
 

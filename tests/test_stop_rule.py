@@ -59,12 +59,39 @@ def test_variants_compares_each_variant_at_its_own_steps_and_share(script, tmp_p
     for name in ("a", "b"):
         (tmp_path / name / "redistribute-coffee").mkdir(parents=True)
         (tmp_path / name / "redistribute-coffee" / "50.json").write_text(json.dumps(_results()))
-    text = variants.table(str(tmp_path), "redistribute", ["a", "b"], "50", settings=dict(a=(4, 0.94), b=(2, None)))
+    text = variants.table([str(tmp_path)], "redistribute", ["a", "b"], "50", settings=dict(a=(4, 0.94), b=(2, None)))
     a, b = (line for line in text.splitlines() if line.startswith("| coffee | all |"))
     assert "| a | 67% " in a and "| b | 33% " in b and "| 0 / 1 " in b  # only in b / only in a
     assert variants.at("hinge=90") == ("hinge", (90, None)) and variants.at("base=80:0.92") == ("base", (80, 0.92))
     with pytest.raises(Exception, match="VARIANT=T"):
         variants.at("base80")
+
+
+def test_variants_reads_blocks_of_episodes_as_one_run(script, tmp_path):
+    """scripts/variants.py --runs A B: a run split into two blocks of episodes (episode 0 in A, 1 and 2 in B) gives
+    the table of the whole run, the per-step means recomputed over the three episodes; blocks of other steps are
+    refused."""
+    import json
+
+    variants = script("variants")
+    whole, cols = _results(), {"A": [0], "B": [1, 2]}
+    for block, keep in cols.items():
+        part = {k: (np.asarray(v)[keep] if k.startswith("final") else np.asarray(v)[:, keep]).tolist()
+                for k, v in whole.items()}
+        for name in ("a", "b"):
+            (tmp_path / block / name / "redistribute-coffee").mkdir(parents=True)
+            (tmp_path / block / name / "redistribute-coffee" / "50.json").write_text(json.dumps(part))
+    for name in ("a", "b"):
+        (tmp_path / "W" / name / "redistribute-coffee").mkdir(parents=True)
+        (tmp_path / "W" / name / "redistribute-coffee" / "50.json").write_text(json.dumps(whole))
+    settings = dict(a=(4, 0.94), b=(2, None))
+    blocks = [str(tmp_path / "A"), str(tmp_path / "B")]
+    assert variants.table(blocks, "redistribute", ["a", "b"], "50", settings=settings) == variants.table(
+        [str(tmp_path / "W")], "redistribute", ["a", "b"], "50", settings=settings)
+    one = variants.joined([variants.read_method(b, "a", "redistribute", "coffee", "50") for b in blocks])
+    assert one["mean_inside"] == pytest.approx(np.mean(whole["inside"], axis=1))
+    with pytest.raises(ValueError, match="different MPC steps"):
+        variants.joined([whole, tasks.first_steps(whole, 2)])
 
 
 def test_stop_share_reads_off_in_any_case_and_names_it_when_wrong():
