@@ -3,7 +3,7 @@ int32 atomics"). Each variant replaces ``models.propagation.exact_scatter_add`` 
 shipped model on 1,500 candidates (50 pushes x 30 re-samplings) at the buckets 32, 64 and 100, and two plans of the
 same inputs are compared bit for bit.
 
-    PYTHONPATH=. python scripts/profile_scatter.py [VARIANT ...] [--steps 100] [--profile]
+    PYTHONPATH=. python scripts/profile_scatter.py [VARIANT ...] [--steps 100] [--profile] [--slots 32 64 100]
 
 Variants: float (a plain float scatter-add: the speed to beat; does not repeat), int30 (the library's: 30-bit fixed
 point summed as int32), int30pad (the same into one more row), int30t (the same with the channels leading),
@@ -204,6 +204,9 @@ def main():
     parser.add_argument("--steps", type=int, default=100)
     parser.add_argument("--profile", action="store_true")
     parser.add_argument("--dump", metavar="DIR", default=None)
+    parser.add_argument("--slots", type=int, nargs="+", default=[32, 64, 100],
+                        help="particle slots of the plans (the buckets; any size: 60 tells whether 64's layout is "
+                             "the size's)")
     args = parser.parse_args()
     from benchmarks.bench_planner import PARTICLE_RADIUS, _camera_and_goal, _piles
     from benchmarks.bench_resolution import _ms_per_step
@@ -228,7 +231,7 @@ def main():
         propagation.exact_scatter_add = VARIANTS[name]
         propagation.incoming_effects.defvjp(propagation._incoming_fwd, PAIR_BWD.get(name, LIBRARY_BWD))
         jax.clear_caches()
-        for slots in (32, 64, 100):
+        for slots in args.slots:
             positions, mask = _piles(slots, 30, seed=slots), np.ones((30, slots), bool)
             cost = goal_cost(goal, camera, slots)
             ms = _ms_per_step(dynamics, cost, positions, mask, config, args.steps, 5)

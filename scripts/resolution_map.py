@@ -28,23 +28,29 @@ RESAMPLES = 2000
 
 
 def load(run: str) -> dict:
-    """A surface run: its summary and c*[ω, N, S] and d0 [S] over every scene of both kinds."""
+    """A surface run: its summary, c*[ω, N, S] and d0 [S] over every scene of both kinds, and with --repeats R > 1
+    draws, c*[R, ω, N, S] of every plan draw."""
     with open(os.path.join(run, "surface.json")) as f:
         summary = json.load(f)
     raws = [np.load(os.path.join(run, f"surface_{k}.npz")) for k in range(len(summary["kinds"]))]
-    return dict(summary=summary, c_star=np.concatenate([r["c_star"] for r in raws], axis=-1),
-                d0=np.concatenate([r["d0"] for r in raws]))
+    out = dict(summary=summary, c_star=np.concatenate([r["c_star"] for r in raws], axis=-1),
+               d0=np.concatenate([r["d0"] for r in raws]))
+    if all("c_star_draws" in r for r in raws):
+        out["draws"] = np.concatenate([r["c_star_draws"] for r in raws], axis=-1)
+    return out
 
 
-def priced(run: dict, budget: float) -> np.ndarray:
-    """c*[ω, S] at ``budget`` seconds a decision: each ω at the most steps of the surface that fit (see above)."""
+def priced(run: dict, budget: float, c: np.ndarray | None = None, timing: TimingTable | None = None) -> np.ndarray:
+    """c*[..., ω, S] at ``budget`` seconds a decision: each ω at the most steps of the surface that fit (see above).
+    c: [..., ω, N, S] (default: the run's c_star); timing: the table that prices a step (default: the run's own)."""
     s = run["summary"]
-    timing = TimingTable(**s["timing"])
-    out = np.empty((len(s["omegas"]), run["d0"].shape[0]))
+    c = run["c_star"] if c is None else c
+    timing = TimingTable(**s["timing"]) if timing is None else timing
+    out = np.empty(c.shape[:-2] + c.shape[-1:])
     for i, omega in enumerate(s["omegas"]):
         key = timing.key(omega, s["buckets"])
         fits = [j for j, n in enumerate(s["steps"]) if timing.seconds(key, n) <= budget]
-        out[i] = run["c_star"][i, max(fits)] if fits else run["d0"]
+        out[..., i, :] = c[..., i, max(fits), :] if fits else run["d0"]
     return out
 
 

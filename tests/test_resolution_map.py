@@ -79,3 +79,64 @@ def test_samples_or_steps_pairs_equal_work_by_hand(script, tmp_path):
     for r, omega in zip(rows, range(2), strict=True):
         assert r["samples_minus_steps"] == 1.0 and r["ci95"] == [1.0, 1.0]
         assert r["means"] == {"2x2": small[omega, 1].mean(), "4x1": small[omega, 1].mean() + 1.0}
+
+
+def _loop_cross_fitted(c):
+    """The cross-fitted oracle as loops: per scene and held-out draw, the ω of the others' lowest mean."""
+    r, w, s = c.shape
+    out, pick = np.zeros(s), np.zeros((r, s), int)
+    for scene in range(s):
+        for held in range(r):
+            means = [np.mean([c[d, o, scene] for d in range(r) if d != held]) for o in range(w)]
+            pick[held, scene] = int(np.argmin(means))
+            out[scene] += c[held, pick[held, scene], scene] / r
+    return out, pick
+
+
+def test_the_cross_fitted_oracle_equals_its_loops_and_removes_the_winners_curse(script):
+    """On random c* the vectorised choice equals the loops. On c* where ω does not matter (every ω the same
+    distribution, plan noise only) the cross-fitted oracle is no better than one plan at a fixed ω, while the
+    single-plan oracle (min over ω of one draw) looks better: the winner's curse it removes. Where one ω is truly
+    better on half the scenes, the cross-fitted oracle finds it: a positive gap."""
+    m = script("crossfit")
+    rng = np.random.default_rng(1)
+    c = rng.normal(10, 1, size=(5, 3, 40))
+    mine, pick = m.cross_fitted(c)
+    loops = _loop_cross_fitted(c)
+    np.testing.assert_allclose(mine, loops[0])
+    np.testing.assert_array_equal(pick, loops[1])
+    tune = np.arange(400) % 2 == 0
+    noise = rng.normal(10, 1, size=(5, 3, 400))
+    flat = m.compare(noise, tune, (25, 50, 100), rng)
+    assert abs(flat["gap"]) < 0.15 and flat["gap_ci95"][0] < 0 < flat["gap_ci95"][1]
+    assert flat["single_oracle"] < flat["fixed"] - 0.5 and flat["best_of_r"] < flat["fixed"] - 0.5
+    assert abs(flat["label_spearman"]) < 0.2
+    real = noise.copy()
+    real[:, 2, 1::4] -= 3.0  # ω = 100 better by 3 px on half the test scenes
+    found = m.compare(real, tune, (25, 50, 100), rng)
+    assert found["gap"] > 1.0 and found["gap_ci95"][0] > 0.5 and found["label_spearman"] > 0.5
+    with np.testing.assert_raises(ValueError):
+        m.cross_fitted(c[:1])
+
+
+def test_crossfit_reads_draws_priced_and_refuses_a_run_of_one_plan(script, tmp_path, capsys):
+    """main on a surface folder with c_star_draws: the table is written; a folder without draws is refused."""
+    import pytest
+
+    m = script("crossfit")
+    folder = _surface(tmp_path / "one", C_STAR, D0, TABLE)
+    with pytest.raises(SystemExit):
+        m.main([folder, "--out", str(tmp_path / "x")])
+    assert "--repeats 3" in capsys.readouterr().err
+    draws = np.stack([C_STAR + d for d in (0.0, 0.5, 1.0)])  # [R, ω, N, S]
+    rich = tmp_path / "rich"
+    os.makedirs(rich)
+    for k, cols in enumerate((slice(0, 2), slice(2, None))):
+        np.savez(rich / f"surface_{k}.npz", c_star=C_STAR[..., cols], d0=D0[cols], c_star_draws=draws[..., cols])
+    with open(rich / "surface.json", "w") as f:
+        json.dump(dict(omegas=[25, 50], steps=[1, 10], buckets=[25, 50], samples=4, device="test", scenes=2,
+                       timing=TABLE.to_json(), kinds={"a": {}, "b": {}}), f)
+    m.main([str(rich), "--out", str(tmp_path / "cf"), "--budgets", "1.0"])
+    row = json.load(open(tmp_path / "cf" / "crossfit.json"))["rich (M = 4, test)"][0]
+    # at 1 s both ω afford 10 steps: ω = 50 is 0 on every scene (plus the draw's offset), best fixed and chosen
+    assert row["best_fixed"] == 50 and row["gap"] == 0 and row["moved"] == 0 and row["scenes"] == 2

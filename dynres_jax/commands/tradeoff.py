@@ -1,7 +1,7 @@
 """The resolution trade-off: the paper's Fig. 4 from Bayesian-optimisation labels, and the anytime surface.
 
     python -m experiments.tradeoff --labels runs/labels --out runs/tradeoff
-    python -m experiments.tradeoff --surface --out runs/surface [--scenes 128]
+    python -m experiments.tradeoff --surface --out runs/surface [--scenes 128] [--repeats 5]
     python -m experiments.tradeoff --reliability runs/labels_a runs/labels_b --out runs/reliability
 
 Fig. 4 (``--labels``, from experiments.label_resolution): c+(ω) for the same pile with a disc vs a letter goal of the
@@ -15,7 +15,10 @@ and N of a scene plans from the same key, so the same starting pushes (common ra
 device's timing table (seconds per decision at each bucket, one scene, the task batch), so c* can be read against
 seconds. Writes ``surface.json`` (mean c* per scene kind, ω and N with 95 % intervals, the planner's own predicted c,
 d before the push, the timing table) and ``surface.png``; each scene kind's raw values are saved as it finishes
-(``surface_KIND.npz``) and a rerun skips finished kinds.
+(``surface_KIND.npz``) and a rerun skips finished kinds. ``--repeats R`` plans every scene, ω and N R times from
+independent keys (draw 0 the common key above, draw r the key with ``mpc.PLAN_DRAWS + r`` folded in), kept as
+c_star_draws [R, ω, N, S] beside c_star (draw 0): what a cross-fitted oracle over ω needs
+(``scripts/crossfit.py``).
 
 Label reliability (``--reliability A B``): two label runs of the same scenes (``label_resolution`` with the same
 ``--seed`` and another ``--plan-seed``), scene by scene: the rank (Spearman) and Pearson correlations of the two
@@ -45,9 +48,9 @@ from dynres_jax.commands.task import check_pile
 from dynres_jax.config import CameraConfig, PileConfig, PushConfig, SceneConfig, SimConfig
 from dynres_jax.control import tasks
 from dynres_jax.control.budget import BUCKETS, TimingTable, bucket_for
-from dynres_jax.control.decision import decide_batch, episode
+from dynres_jax.control.decision import decide_batch, episode, fold
 from dynres_jax.control.goals import make_goals
-from dynres_jax.control.mpc import MPCConfig, measure_timing
+from dynres_jax.control.mpc import PLAN_DRAWS, MPCConfig, measure_timing
 from dynres_jax.control.objective import distribution_distance
 from dynres_jax.control.planner import planner_config
 from dynres_jax.io import files
@@ -82,6 +85,8 @@ def main(argv=None):
     parser.add_argument("--scenes", type=checks.count(2), default=128, help="surface: scenes of each kind")
     parser.add_argument("--samples", type=checks.samples, default=50, help="surface: pushes optimised at once (M)")
     parser.add_argument("--pieces", type=checks.count(1), default=100, help="surface: pieces in a pile")
+    parser.add_argument("--repeats", type=checks.count(1), default=1,
+                        help="surface: independent plans of every scene, ω and N (a cross-fitted oracle needs >= 3)")
     parser.add_argument("--ckpt", default=None, help="surface: dynamics checkpoint (default: the shipped one)")
     parser.add_argument("--workers", type=checks.workers(), default=None,
                         help="surface: C engine processes (default: every core)")
@@ -232,24 +237,31 @@ def _scenes(kind: int, args, pool):
     return starts, np.stack(masks)
 
 
-def _surface_scenes(pool, starts, goals, keys, dynamics, cfg, omegas, steps, scene_name: str) -> dict:
+def _surface_scenes(pool, starts, goals, keys, dynamics, cfg, omegas, steps, scene_name: str, repeats: int = 1
+                    ) -> dict:
     """c* and the predicted c [ω, N, S] and d before the push [S] of the scenes ``starts`` [S] with ``goals`` [S], each
-    planned from its own key in ``keys`` [S] at every ω and N (common random numbers)."""
+    planned from its own key in ``keys`` [S] at every ω and N (common random numbers); with repeats R > 1 also
+    c_star_draws [R, ω, N, S], draw r planned from the keys with ``PLAN_DRAWS + r`` folded in (draw 0: ``keys``)."""
     camera = pool.camera
     measure = jax.jit(jax.vmap(lambda obs, goal: distribution_distance(obs, goal, camera)))
-    c_star = np.zeros((len(omegas), len(steps), len(keys)))
-    predicted = np.zeros_like(c_star)
+    draws = np.zeros((repeats, len(omegas), len(steps), len(keys)))
+    predicted = np.zeros(draws.shape[1:])
     init = jnp.zeros((len(keys), cfg.planner.horizon, 4), jnp.float32)  # no warm start
-    for i, omega in enumerate(omegas):
-        for j, n in enumerate(steps):
-            result = decide_batch(starts.obs, goals, keys, init, False, np.full(len(keys), omega),
-                                  np.full(len(keys), n), spec=cfg.spec(bucket_for(omega, cfg.buckets)),
-                                  dynamics=dynamics, camera=camera)[2]
-            after = pool.push(starts, result.best[:, 0])
-            c_star[i, j], predicted[i, j] = measure(after.obs, goals), result.best_cost
-        print(f"  {scene_name}: ω = {omega:3d}: mean c* over N = {steps}: "
-              f"{np.round(c_star[i].mean(axis=1), 2).tolist()}", flush=True)
-    return dict(c_star=c_star, predicted=predicted, d0=np.asarray(measure(starts.obs, goals)))
+    for r in range(repeats):
+        drawn = keys if r == 0 else fold(keys, PLAN_DRAWS + r)
+        for i, omega in enumerate(omegas):
+            for j, n in enumerate(steps):
+                result = decide_batch(starts.obs, goals, drawn, init, False, np.full(len(keys), omega),
+                                      np.full(len(keys), n), spec=cfg.spec(bucket_for(omega, cfg.buckets)),
+                                      dynamics=dynamics, camera=camera)[2]
+                after = pool.push(starts, result.best[:, 0])
+                draws[r, i, j] = measure(after.obs, goals)
+                if r == 0:
+                    predicted[i, j] = result.best_cost
+            print(f"  {scene_name}{f', plan draw {r}' if repeats > 1 else ''}: ω = {omega:3d}: mean c* over N = "
+                  f"{steps}: {np.round(draws[r, i].mean(axis=1), 2).tolist()}", flush=True)
+    out = dict(c_star=draws[0], predicted=predicted, d0=np.asarray(measure(starts.obs, goals)))
+    return dict(out, c_star_draws=draws) if repeats > 1 else out
 
 
 def surface(args, model: LoadedDynamics) -> dict:
@@ -281,10 +293,12 @@ def surface(args, model: LoadedDynamics) -> dict:
                 raw[kind] = dict(np.load(path))
                 continue
             keys = jax.random.split(jax.random.PRNGKey(args.seed + 100 + kind), args.scenes)  # per scene, every ω, N
-            raw[kind] = _surface_scenes(pool, starts, goals, keys, dynamics, cfg, omegas, steps, scene_name)
+            raw[kind] = _surface_scenes(pool, starts, goals, keys, dynamics, cfg, omegas, steps, scene_name,
+                                        args.repeats)
             save_npz(path, raw[kind])
-    summary = dict(dynamics=name, device=timing.device, scenes=args.scenes, samples=args.samples, omegas=omegas,
-                   steps=steps, buckets=list(cfg.buckets), timing=timing.to_json(), kinds={})
+    summary = dict(dynamics=name, device=timing.device, scenes=args.scenes, samples=args.samples,
+                   repeats=args.repeats, omegas=omegas, steps=steps, buckets=list(cfg.buckets),
+                   timing=timing.to_json(), kinds={})
     for kind, scene_name in enumerate(SURFACE_SCENES):
         r = raw[kind]
         n = r["c_star"].shape[-1]
