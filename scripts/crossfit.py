@@ -10,9 +10,10 @@ one out). Against it, on the same scenes: one plan at the best fixed ω (chosen 
 indices of each kind; every figure below on the odd ones), best-of-R plans at that ω (plan selection alone), and the
 single-plan oracle (min over ω of one draw, as the open-loop map took it). The gap "fixed - cross-fitted" with a
 95 % bootstrap interval over test scenes is what choosing ω per scene buys with the plan noise removed. Labels
-repeat: Spearman of the ω* that disjoint halves of the draws choose, over test scenes. Each ω affords the most of the
-surface's Adam steps its price fits (``resolution_map.priced``): the run's own table or ``--timing``'s (e.g. the
-2-core CPU's, docs/budget/timing_cpu.json). Writes crossfit.json and crossfit.md to DIR and prints the table.
+repeat: Spearman of the ω* that disjoint halves of the draws choose, over test scenes. Rows for all scenes and for
+each scene kind of the surface (the best fixed ω chosen again on that kind's tuning scenes). Each ω affords the most
+of the surface's Adam steps its price fits (``resolution_map.priced``): the run's own table or ``--timing``'s (e.g.
+the 2-core CPU's, docs/budget/timing_cpu.json). Writes crossfit.json and crossfit.md to DIR and prints the table.
 """
 
 from __future__ import annotations
@@ -23,6 +24,7 @@ import os
 import numpy as np
 from resolution_map import load, name, priced
 
+from dynres_jax.commands.tradeoff import SURFACE_SCENES, ranks
 from dynres_jax.control.budget import TimingTable
 from dynres_jax.io import files
 from dynres_jax.stats import bootstrap_mean
@@ -44,8 +46,6 @@ def cross_fitted(c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 def spearman(a, b) -> float:
     """Rank correlation of a and b [S] (ties given their mean rank); NaN where either is constant."""
-    from dynres_jax.commands.tradeoff import ranks
-
     ra, rb = ranks(a), ranks(b)
     if ra.std() == 0 or rb.std() == 0:
         return float("nan")
@@ -101,16 +101,21 @@ def main(argv=None):
             parser.error(f"--timing {args.timing} prices {timing.samples} samples x horizon {timing.horizon}; "
                          f"{path} planned {s['samples']} samples")
         label = name(run, path) + (f", priced by {timing.device}" if timing else "")
-        rows = [dict(budget=b, **compare(priced(run, b, run["draws"], timing), tuning_scenes(run), s["omegas"],
-                                         rng)) for b in args.budgets]
+        tune, per_kind = tuning_scenes(run), s["scenes"]
+        groups = {"all": slice(None)} | {SURFACE_SCENES[i]: slice(i * per_kind, (i + 1) * per_kind)
+                                         for i in range(len(s["kinds"]))}  # surface_i.npz's order, not the JSON's
+        rows = [dict(budget=b, scenes_of=g, **compare(c[:, :, cols], tune[cols], s["omegas"], rng))
+                for b in args.budgets for c in [priced(run, b, run["draws"], timing)] for g, cols in groups.items()]
         result[label] = rows
         lines += [f"## {label}, R = {run['draws'].shape[0]} plans a scene, {rows[0]['scenes']} test scenes", "",
-                  "| budget (s) | best fixed ω (tuning) | one plan at it | cross-fitted ω | fixed - cross-fitted "
-                  "(95 %) | scenes moved off it | best of R at it | single-plan oracle | labels repeat (Spearman) |",
-                  "|---:|---:|---:|---:|---|---:|---:|---:|---:|"]
-        lines += [f"| {r['budget']:g} | {r['best_fixed']} | {r['fixed']:.3f} | {r['crossfit']:.3f} | "
-                  f"{r['gap']:+.3f} [{r['gap_ci95'][0]:+.3f}, {r['gap_ci95'][1]:+.3f}] | {r['moved']:.0%} | "
-                  f"{r['best_of_r']:.3f} | {r['single_oracle']:.3f} | {r['label_spearman']:.2f} |" for r in rows]
+                  "| budget (s) | scenes | best fixed ω (tuning) | one plan at it | cross-fitted ω | "
+                  "fixed - cross-fitted (95 %) | scenes moved off it | best of R at it | single-plan oracle | "
+                  "labels repeat (Spearman) |",
+                  "|---:|---|---:|---:|---:|---|---:|---:|---:|---:|"]
+        lines += [f"| {r['budget']:g} | {r['scenes_of']} ({r['scenes']}) | {r['best_fixed']} | {r['fixed']:.3f} | "
+                  f"{r['crossfit']:.3f} | {r['gap']:+.3f} [{r['gap_ci95'][0]:+.3f}, {r['gap_ci95'][1]:+.3f}] | "
+                  f"{r['moved']:.0%} | {r['best_of_r']:.3f} | {r['single_oracle']:.3f} | {r['label_spearman']:.2f} |"
+                  for r in rows]
         lines.append("")
     os.makedirs(args.out, exist_ok=True)
     files.write_json(os.path.join(args.out, "crossfit.json"), result)

@@ -137,6 +137,8 @@ def test_crossfit_reads_draws_priced_and_refuses_a_run_of_one_plan(script, tmp_p
         json.dump(dict(omegas=[25, 50], steps=[1, 10], buckets=[25, 50], samples=4, device="test", scenes=2,
                        timing=TABLE.to_json(), kinds={"a": {}, "b": {}}), f)
     m.main([str(rich), "--out", str(tmp_path / "cf"), "--budgets", "1.0"])
-    row = json.load(open(tmp_path / "cf" / "crossfit.json"))["rich (M = 4, test)"][0]
+    rows = json.load(open(tmp_path / "cf" / "crossfit.json"))["rich (M = 4, test)"]
+    assert [r["scenes_of"] for r in rows] == ["all", *m.SURFACE_SCENES] and [r["scenes"] for r in rows] == [2, 1, 1]
+    row = rows[0]
     # at 1 s both ω afford 10 steps: ω = 50 is 0 on every scene (plus the draw's offset), best fixed and chosen
     assert row["best_fixed"] == 50 and row["gap"] == 0 and row["moved"] == 0 and row["scenes"] == 2
