@@ -80,6 +80,26 @@ def report_table(results: dict) -> str:
     return "\n".join(lines)
 
 
+USES = dict(variants=("sim", "all"), worlds=("sim", "warp", "all"), graph_modes=("warp",), full_sweep=("sim", "all"),
+            pieces=("sim", "warp", "all"), batch=("resolution",))  # which benchmarks read each option
+
+
+def check_flags(parser, args) -> None:
+    """parser.error, before any timing, for an option the chosen benchmark does not read, or a scene variant it does
+    not have (--variants, --full-sweep)."""
+    for name, used_by in USES.items():
+        if getattr(args, name) not in (None, parser.get_default(name)) and args.what not in used_by:
+            parser.error(f"--{name.replace('_', '-')} is read by benchmark {' and '.join(used_by)}, not {args.what}")
+    if args.variants is not None or args.full_sweep is not None:
+        from benchmarks.bench_sim import VARIANTS
+
+        for flag, names in (("--variants", args.variants), ("--full-sweep", args.full_sweep)):
+            unknown = [n for n in names or () if n not in VARIANTS]
+            if unknown:
+                parser.error(f"{flag}: no scene variant {', '.join(map(repr, unknown))} (the variants: "
+                             f"{', '.join(VARIANTS)})")
+
+
 @checks.guarded("benchmark")
 def main(argv=None):
     parser = checks.parser("benchmark", __doc__)
@@ -87,7 +107,8 @@ def main(argv=None):
     parser.add_argument("--json", help="write the results here (atomically)")
     parser.add_argument("--quick", action="store_true", help="tiny sizes: checks the benchmark runs, in seconds")
     parser.add_argument("--variants", nargs="*", help="sim: scene variants (default: all)")
-    parser.add_argument("--worlds", nargs="*", type=int, help="sim: world counts (default 1 16 256 1024 4096); warp: "
+    parser.add_argument("--worlds", nargs="*", type=checks.count(1, 1 << 20),
+                        help="sim: world counts (default 1 16 256 1024 4096); warp: "
                         "batch sizes (default 1024 2048 4096 8192)")
     parser.add_argument("--graph-modes", nargs="*", choices=["WARP", "JAX", "NONE"], help="warp: CUDA graph modes")
     parser.add_argument("--full-sweep", nargs="*", help="sim: variants timed at every world count")
@@ -95,6 +116,7 @@ def main(argv=None):
     parser.add_argument("--batch", choices=["benchmark", "task"], help="resolution: 1,500 candidates (benchmark) or "
                         "50 (task); default benchmark on a GPU, task on a CPU")
     args = parser.parse_args(argv)
+    check_flags(parser, args)
     if args.json is not None:  # before minutes of timing, not after (the audit: a folder lost a whole run)
         checks.out_file(args.json, (".json",), beside=".md" if args.what == "all" else "", flag="--json")
     if args.what == "all":

@@ -263,7 +263,7 @@ def save(exported: jax_export.Exported, path: str, info: dict | None = None) -> 
 def load(path: str) -> jax_export.Exported:
     """An exported decision from ``path`` (``jax.export.deserialize``; needs only JAX); call it with ``.call``. When
     its sidecar (``path + ".json"``) names a SHA-256, the file must match it: ValueError for a damaged or replaced
-    file."""
+    file; ValueError too for a file ``jax.export`` cannot read (truncated, or not an export)."""
     with open(path, "rb") as f:
         data = bytearray(f.read())
     sidecar = path + ".json"
@@ -276,6 +276,8 @@ def load(path: str) -> jax_export.Exported:
         return jax_export.deserialize(data)
     except ImportError as e:
         raise _serialization_error(e) from e
+    except Exception as e:  # a truncated or foreign file fails inside flatbuffers (struct.error, IndexError, ...)
+        raise ValueError(f"{path!r} is not a whole exported decision ({type(e).__name__}: {e}); export it again") from e
 
 
 def call(exported: jax_export.Exported, depth, goal_mask, key, omega: int, adam_steps: int | None = None,

@@ -29,6 +29,7 @@ from dynres_jax.sim.camera import Camera, Observation, neighbourhoods, rotation_
 from dynres_jax.sim.sensor import NO_READING, is_reading, readings
 
 FOREGROUND_MARGIN = 0.003  # m: a pixel is foreground when its point is this far above the table (z = 0)
+PILE_CEILING = 0.15  # m: and at most this far: higher is no pile (an arm, a hand, a reading next to the lens)
 WALL_BAND = 0.01  # m: with real_depth, the workspace shrinks by this much: calibration errors bring wall tops inside
 TABLE_BAND = 0.004  # m: ``table_height`` fits the plane through points this close to the median height
 WORKSPACE_HALF_WIDTH = 0.199  # m: default bin half-width (0.2) less 1 mm, so wall tops and inner faces never count
@@ -89,11 +90,12 @@ def foreground(observation: Observation, camera: Camera, *, margin: float = FORE
                workspace: float = WORKSPACE_HALF_WIDTH, kind=None, colour=None, colour_tol: float = COLOUR_TOL,
                real_depth: bool = False):
     """All pixels as world points and their foreground mask: (points [H*W, 3] m, zero where not foreground,
-    valid [H*W] bool). kind: keep only pixels of this kind index (``observation.kind``); colour: keep only pixels
-    whose chromaticity is within ``colour_tol`` of this RGB's (any scale: [0, 1] or [0, 255]); real_depth: a real
-    camera's depth (``sim.sensor``): its 3 x 3 median first (``median_depth``), heights over the table plane fitted
-    from the frame (``table_height``) instead of over z = 0, and a workspace WALL_BAND narrower (a few millimetres of
-    calibration error put wall tops inside it)."""
+    valid [H*W] bool): inside the workspace, more than ``margin`` and at most PILE_CEILING above the table. kind:
+    keep only pixels of this kind index (``observation.kind``); colour: keep only pixels whose chromaticity is within
+    ``colour_tol`` of this RGB's (any scale: [0, 1] or [0, 255]); real_depth: a real camera's depth
+    (``sim.sensor``): its 3 x 3 median first (``median_depth``), heights over the table plane fitted from the frame
+    (``table_height``) instead of over z = 0, and a workspace WALL_BAND narrower (a few millimetres of calibration
+    error put wall tops inside it)."""
     depth = readings(jnp.asarray(observation.depth, jnp.float32))  # the one rule of what is a reading
     depth = (median_depth(depth) if real_depth else depth).reshape(-1)
     uv = jnp.asarray(camera.pixel_centres(), jnp.float32).reshape(-1, 2)
@@ -101,7 +103,7 @@ def foreground(observation: Observation, camera: Camera, *, margin: float = FORE
     points = camera.pixel_to_world(uv, jnp.where(seen, depth, 0.0)).astype(jnp.float32)
     inside = seen & jnp.all(jnp.abs(points[:, :2]) <= workspace - (WALL_BAND if real_depth else 0.0), axis=-1)
     height = points[:, 2] - table_height(points, inside) if real_depth else points[:, 2]
-    valid = inside & (height > margin)
+    valid = inside & (height > margin) & (height <= PILE_CEILING)
     if kind is not None:
         valid &= jnp.asarray(observation.kind).reshape(-1) == kind
     if colour is not None:

@@ -135,3 +135,20 @@ def test_a_json_path_that_cannot_take_the_result_is_refused_before_timing(tmp_pa
         with pytest.raises(SystemExit) as ended:
             benchmark.main(["planner", "--quick", "--json", bad])
         assert ended.value.code == 2 and "--json" in capsys.readouterr().err
+
+
+def test_options_the_benchmark_does_not_read_or_unknown_variants_are_refused_before_timing(monkeypatch, capsys):
+    """--variants with planner (read by sim only), an unknown scene variant (a KeyError after compiling) and a world
+    count of 0 are one line, exit 2, before any timing."""
+    from benchmarks import bench_sim
+
+    monkeypatch.setattr(bench_planner, "run", lambda quick: pytest.fail("timed before checking the options"))
+    monkeypatch.setattr(bench_sim, "run", lambda *a, **k: pytest.fail("timed before checking the options"))
+    for argv, says in ((["planner", "--variants", "fast"], "--variants is read by benchmark sim and all"),
+                       (["sim", "--variants", "nope"], "no scene variant 'nope'"),
+                       (["sim", "--full-sweep", "fast", "x"], "--full-sweep: no scene variant 'x'"),
+                       (["sim", "--worlds", "0"], "--worlds"), (["planner", "--batch", "task"], "--batch")):
+        with pytest.raises(SystemExit) as ended:
+            benchmark.main(argv)
+        err = capsys.readouterr().err
+        assert ended.value.code == 2 and says in err and err.count("\n") == 1, err

@@ -32,7 +32,8 @@ def scene():
 
 
 def test_bucket_choice():
-    assert [bucket_for(w) for w in (1, 16, 17, 32, 33, 64, 65, 100)] == [16, 16, 32, 32, 64, 64, 100, 100]
+    assert [bucket_for(w) for w in (1, 16, 17, 32, 33, 50, 51, 64, 75, 76, 100)] == [16, 16, 32, 32, 50, 50, 75, 75,
+                                                                                     75, 100, 100]
     assert bucket_for(5, (4, 8)) == 8 and bucket_for(4, (4, 8)) == 4
     for bad in (0, -3, 2.5):
         with pytest.raises(ValueError, match="positive integer"):
@@ -217,7 +218,7 @@ def test_reference_planner_flags_resolve_to_the_authors_options_and_a_flag_besid
     assert one.planner.resamples == 1 and not one.planner.vote and one.planner.starts == "fixed"
     ours = mpc_config(env, parsed())
     assert (ours.planner.starts, ours.planner.resamples, ours.planner.vote, ours.warm_start) == ("pile", 1, False, True)
-    assert ours.planner.lr == 0.02 and ours.buckets == (16, 32, 64, 100) and parsed().pricing == "measured"
+    assert ours.planner.lr == 0.02 and ours.buckets == (16, 32, 50, 75, 100) and parsed().pricing == "measured"
     for bad, says in ((["--vote"], "--vote needs --resamples"), (["--lr", "-1"], "--lr"),
                       (["--reference-planner", "--resamples", "1", "--vote"], "--vote needs --resamples"),
                       (["--buckets", "50", "25"], "--buckets"),
@@ -225,6 +226,40 @@ def test_reference_planner_flags_resolve_to_the_authors_options_and_a_flag_besid
         with pytest.raises(SystemExit):
             parsed(*bad)
         assert says in capsys.readouterr().err
+
+
+def test_a_run_spending_a_saved_table_plans_at_its_buckets(tmp_path, capsys):
+    """--timing FILE of a table measured at other buckets (16 32 64 100, before buckets 50 and 75): the run plans at
+    the table's buckets, so it reproduces the runs that table priced; --buckets beside it must be the table's; without
+    --timing the default buckets."""
+    import argparse
+
+    from dynres_jax.commands.planner_args import (
+        add_budget_args,
+        add_reference_planner_args,
+        load_timing,
+        resolve_planner_args,
+    )
+
+    old = (16, 32, 64, 100)
+    path = str(tmp_path / "timing.json")
+    TimingTable("cpu", 50, 1, {b: 0.01 for b in old}, {b: 0.02 for b in old}).save(path)
+
+    def loaded(*flags):
+        parser = argparse.ArgumentParser()
+        add_budget_args(parser)
+        add_reference_planner_args(parser)
+        args = parser.parse_args(list(flags))
+        resolve_planner_args(parser, args)
+        load_timing(parser, args)
+        return args
+
+    assert loaded("--time-budget", "1", "--timing", path).buckets == old
+    assert loaded("--time-budget", "1", "--timing", path, "--buckets", "16", "32", "64", "100").buckets == old
+    assert loaded("--time-budget", "1").buckets == budget.BUCKETS == (16, 32, 50, 75, 100)
+    with pytest.raises(SystemExit):
+        loaded("--time-budget", "1", "--timing", path, "--buckets", "16", "32", "50", "100")
+    assert "prices buckets 16 32 64 100; give those" in capsys.readouterr().err
 
 
 @pytest.mark.slow

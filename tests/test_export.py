@@ -179,6 +179,10 @@ def test_a_damaged_file_is_refused_by_its_sidecars_checksum(exported_file, tmp_p
     (tmp_path / "decision.jaxexport.json").write_text(json.dumps(info))
     with pytest.raises(ValueError, match="SHA-256"):
         ex.load(str(damaged))
+    truncated = tmp_path / "cut.jaxexport"  # no sidecar to check: jax.export's own reading fails
+    truncated.write_bytes(bytes(data[: len(data) // 3]))
+    with pytest.raises(ValueError, match="not a whole exported decision"):
+        ex.load(str(truncated))
 
 
 def test_convenience_call_and_key_types(reloaded):
@@ -232,6 +236,11 @@ def test_cli_refuses_before_work(tiny_ckpt, tmp_path, capsys):
         export_cli.main(["--ckpt", tiny_ckpt, "--resolution", "20", "--out", str(tmp_path / "p.jaxexport")])
     assert exit_info.value.code == 2 and "n_max = 16" in capsys.readouterr().err
     assert not (tmp_path / "p.jaxexport").exists()
+    (tmp_path / "p.jaxexport.json").write_text('{"mine": 1}')  # a user's file where the sidecar would go
+    with pytest.raises(SystemExit) as exit_info:
+        export_cli.main(["--ckpt", tiny_ckpt, "--resolution", "12", "--out", str(tmp_path / "p.jaxexport")])
+    assert exit_info.value.code == 2 and "is not an export's description" in capsys.readouterr().err
+    assert (tmp_path / "p.jaxexport.json").read_text() == '{"mine": 1}' and not (tmp_path / "p.jaxexport").exists()
     with pytest.raises(SystemExit) as exit_info:
         export_cli.main(["--help"])
     assert exit_info.value.code == 0 and "pip install jax flatbuffers" in capsys.readouterr().out

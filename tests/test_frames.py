@@ -128,6 +128,8 @@ def test_implausible_frames_are_refused_before_planning(saved, tmp_path):
                                     (depth, low, "median point lies")):
         with pytest.raises(frames.FrameError, match=says):
             load(depth_mm, **changes)
+    with pytest.raises(frames.FrameError, match="must be an 8-bit image, got uint16 \\(a depth frame\\?\\)"):
+        frames.load_frame(paths["depth.png"], paths["depth.png"], paths["camera.json"])  # the depth as colour
 
 
 def _exif_rotated(path, image, orientation=6):
@@ -142,35 +144,39 @@ def _exif_rotated(path, image, orientation=6):
 
 
 @pytest.mark.parametrize("suffix", [".png", ".jpg"])
-def test_images_are_read_as_stored_whatever_their_orientation_tag(saved, tmp_path, suffix):
-    """A goal, a mask and a colour frame with an EXIF orientation tag are read with the pixels as stored, not turned
-    as OpenCV turns them by default (the depth frame, which has no tag, would no longer match them)."""
+def test_an_image_with_an_orientation_tag_is_refused_naming_it(saved, tmp_path, suffix):
+    """A goal, a mask and a colour frame with an EXIF orientation tag other than "as stored" are refused, naming the
+    tag: read as stored they lie turned against what a viewer showed; turned, against the depth frame (no tag). The
+    same pixels without a tag (or tagged "as stored", 1) are read."""
     pytest.importorskip("PIL")
     env, state, paths = saved
     goal = disc_goal(env.camera, np.array([0.05, 0.02]), 0.06)
     tagged = _exif_rotated(str(tmp_path / f"goal{suffix}"), goal.astype(np.uint8) * 255)
-    np.testing.assert_array_equal(frames.load_goal(tagged, env.camera), goal)
-    wide = np.zeros((32, 64), np.uint8)
-    wide[:, :16] = 255
-    np.testing.assert_array_equal(frames.read_image(_exif_rotated(str(tmp_path / f"w{suffix}"), wide), "x",
-                                                    cv2.IMREAD_GRAYSCALE) > 127, wide > 127)
-    if suffix == ".png":  # lossless: the colour frame read back pixel for pixel
-        rgb = np.asarray(state.obs.rgb)
-        _exif_rotated(str(tmp_path / "rgb.png"), rgb)
-        obs, _ = frames.load_frame(paths["depth.png"], str(tmp_path / "rgb.png"), paths["camera.json"])
-        np.testing.assert_array_equal(obs.rgb, rgb)
+    with pytest.raises(frames.FrameError, match="EXIF orientation tag \\(6"):
+        frames.load_goal(tagged, env.camera)
+    plain = str(tmp_path / f"plain{suffix}")
+    from PIL import Image
+
+    exif = Image.Exif()
+    exif[0x0112] = 1
+    Image.fromarray(goal.astype(np.uint8) * 255).save(plain, exif=exif.tobytes(),
+                                                     **({"quality": 100} if suffix == ".jpg" else {}))
+    np.testing.assert_array_equal(frames.load_goal(plain, env.camera), goal)
+    if suffix == ".png":
+        _exif_rotated(str(tmp_path / "rgb.png"), np.asarray(state.obs.rgb))
+        with pytest.raises(frames.FrameError, match="colour file .* EXIF orientation"):
+            frames.load_frame(paths["depth.png"], str(tmp_path / "rgb.png"), paths["camera.json"])
 
 
-def test_goal_mask_with_an_orientation_tag_is_not_turned(saved, tmp_path, capsys):
+def test_goal_mask_with_an_orientation_tag_is_one_line(saved, tmp_path, capsys):
     pytest.importorskip("PIL")
-    from dynres_jax.commands import goal as goal_command
-
     env, _, paths = saved
-    want = disc_goal(env.camera, np.array([0.08, 0.0]), 0.05)
-    big = cv2.resize(want.astype(np.uint8) * 255, (128, 128), interpolation=cv2.INTER_NEAREST)
+    big = cv2.resize(disc_goal(env.camera, np.array([0.08, 0.0]), 0.05).astype(np.uint8) * 255, (128, 128),
+                     interpolation=cv2.INTER_NEAREST)
     tagged = _exif_rotated(str(tmp_path / "mask.png"), big, orientation=8)
-    goal_command.main(["--mask", tagged, "--camera", paths["camera.json"], "--out", str(tmp_path / "g.png")])
-    np.testing.assert_array_equal(frames.load_goal(str(tmp_path / "g.png"), env.camera), want)
+    err = _one_line_error(["--mask", tagged, "--camera", paths["camera.json"], "--out", str(tmp_path / "g.png")],
+                          capsys)
+    assert "EXIF orientation tag (8" in err and not (tmp_path / "g.png").exists()
 
 
 def _one_line_error(argv, capsys):
@@ -225,6 +231,7 @@ def test_a_fifo_a_device_or_a_folder_is_named_not_read(saved, tmp_path, capsys):
     ("[" * 100_000 + "]" * 100_000, "nested too deeply"), ('{"K": ' + "[" * 5000 + "]" * 5000 + "}", "nested"),
     ("{WIDTH9}", "width must be a finite number"), ("{CENTRE}", "centre"), ("{K_STRINGS}", "K must be"),
     ("{NO_HEIGHT}", "lacks"), ("{HUGE}", "image size"), ("{BOOL}", "width must be"),
+    ("{DISTORTED}", "lens distortion is not modelled"),
 ])
 def test_bad_camera_json_is_one_line(saved, tmp_path, capsys, text, says):
     """Camera JSON that is not an object, nested deeply, with a 400-digit number, a camera 10^300 m away, strings,
@@ -235,7 +242,8 @@ def test_bad_camera_json_is_one_line(saved, tmp_path, capsys, text, says):
             "{K_STRINGS}": json.dumps({**good, "K": [["1", "0", "0"]] * 3}),
             "{NO_HEIGHT}": json.dumps({k: v for k, v in good.items() if k != "height"}),
             "{HUGE}": json.dumps({**good, "width": 10**12}),
-            "{BOOL}": json.dumps({**good, "width": True})}.get(text, text)
+            "{BOOL}": json.dumps({**good, "width": True}),
+            "{DISTORTED}": json.dumps({**good, "coeffs": [0.1, -0.05, 0, 0, 0]})}.get(text, text)
     path = tmp_path / "cam.json"
     path.write_text(text)
     with pytest.raises(frames.FrameError, match=says):

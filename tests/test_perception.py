@@ -305,6 +305,26 @@ def test_no_reading_is_never_a_point(env, states, real_depth):
             np.testing.assert_array_equal(np.asarray(out.positions), np.asarray(whole.positions))
 
 
+@pytest.mark.parametrize("real_depth", [False, True])
+def test_a_reading_far_above_the_table_is_no_pile(env, states, real_depth):
+    """A patch read 5 cm below the camera (an arm, a hand, a reading next to the lens: about 1 m above the table)
+    is not foreground: the cloud is the frame's without it, and no particle lies above PILE_CEILING (it became a
+    particle 1 m up); a patch 5 cm above the table (under the ceiling) on free table is foreground."""
+    obs, cam = states[0].obs, env.camera
+    valid = np.asarray(point_cloud(obs, cam, real_depth=real_depth)[1]).reshape(cam.height, cam.width)
+    free = next((r, c) for r in range(8, cam.height - 28) for c in range(8, cam.width - 28)
+                if not valid[r:r + 20, c:c + 20].any())
+    table = float(np.median(np.asarray(obs.depth)))
+    near_lens = obs._replace(depth=_patch(obs.depth, *free, 0.05))
+    got = np.asarray(point_cloud(near_lens, cam, real_depth=real_depth)[1]).reshape(valid.shape)
+    np.testing.assert_array_equal(got, valid)
+    out = sample_particles(near_lens, cam, omega=8, key=jax.random.PRNGKey(0), capacity=N_MAX, real_depth=real_depth)
+    assert bool(out.ok) and np.all(np.asarray(out.positions)[:, 2] <= perception.PILE_CEILING)
+    raised = np.asarray(point_cloud(obs._replace(depth=_patch(obs.depth, *free, table - 0.05)), cam,
+                                    real_depth=real_depth)[1]).reshape(valid.shape)
+    assert raised[free[0] + 5:free[0] + 15, free[1] + 5:free[1] + 15].all()
+
+
 def test_is_reading_is_the_one_rule():
     depth = np.array([0.0, np.nan, np.inf, -np.inf, -0.2, NO_READING, 2 * NO_READING, 0.5, 1.2], np.float32)
     want = [False] * 7 + [True, True]

@@ -97,7 +97,7 @@ def test_resumed_run_equals_an_uninterrupted_one(shards, run, tmp_path):
 def test_eval_reports_every_method_and_resolution(run, shards, tmp_path):
     out, _ = run
     result = eval_dynamics.main(["--ckpt", f"{out}/ckpt", "--data", shards, "--out", str(tmp_path),
-                                 "--omegas", "2", "8", "--windows", "6"])
+                                 "--omegas", "2", "8", "--windows", "4"])
     assert set(result["omegas"]) == {"2", "8"}
     for r in result["omegas"].values():
         for method in eval_dynamics.METHODS:
@@ -110,6 +110,20 @@ def test_eval_reports_every_method_and_resolution(run, shards, tmp_path):
                 assert mean == pytest.approx(r[method][0], rel=1e-4)
         assert set(r["per_region"]) <= set(SWEEP_REGIONS) and "swept" in r["per_region"]
     assert (tmp_path / "eval.md").read_text().startswith("| ω |")
+
+
+def test_held_out_windows_are_distinct_and_too_many_are_refused(shards, monkeypatch, tmp_path, capsys):
+    """eval_dynamics' windows: every (episode, start frame) pair at most once (it drew with replacement: "256
+    held-out windows" held repeats); asking more than the held-out episodes hold is one line before the folder."""
+    val = targets.load_shards(shards, "val")
+    starts = val.pushes - CFG.horizon + 1
+    drawn = []
+    monkeypatch.setattr(targets, "windows", lambda data, rows, first, horizon: drawn.append((rows, first)))
+    targets.random_windows(val, np.random.default_rng(0), len(val) * starts, CFG.horizon)
+    pairs = set(zip(drawn[0][0].tolist(), drawn[0][1].tolist(), strict=True))
+    assert len(pairs) == len(val) * starts and all(0 <= s < starts for _, s in pairs)
+    with pytest.raises(ValueError, match="different windows"):
+        targets.random_windows(val, np.random.default_rng(0), len(val) * starts + 1, CFG.horizon)
 
 
 def test_eval_table_marks_held_out_kinds_and_weighs_omegas_by_particles():

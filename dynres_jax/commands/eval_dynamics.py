@@ -144,11 +144,14 @@ def main(argv=None):
     if len(set(args.omegas)) < len(args.omegas):
         parser.error(f"--omegas names an ω twice: {args.omegas}")
     val = targets.load_shards(args.data, "val")
+    rng = np.random.default_rng(args.seed)
+    try:
+        windows = targets.random_windows(val, rng, args.windows, tcfg["horizon"])
+    except ValueError as e:
+        parser.error(f"--windows {args.windows}: the held-out episodes of {args.data}: {e}")
     checks.claim(args.out, "eval_dynamics", checks.settings(args), args.fresh,
                  {"--ckpt": args.ckpt, "--data": args.data})
     graphdef, state = nnx.split(model)
-    rng = np.random.default_rng(args.seed)
-    windows = targets.random_windows(val, rng, args.windows, tcfg["horizon"])
     cfg = train.TrainConfig(**{k: v for k, v in tcfg.items() if k in ("n_max", "max_points")})
     make = jax.jit(jax.vmap(functools.partial(train.make_sample, camera=val.camera, cfg=cfg), in_axes=(0, None, 0)))
     keys = jax.random.split(jax.random.PRNGKey(args.seed), args.windows)

@@ -36,6 +36,13 @@ def check_methods(parser, args, sort: bool) -> None:
         parser.error(f"--methods names a method twice: {' '.join(args.methods)}")
     if ("judge" in args.methods) != (args.judge is not None):
         parser.error("method 'judge' and --judge CKPT (the judge's checkpoint) go together; give both or neither")
+    readers = {"best_omega": lambda m: on_ladder(m) or m == "judge", "cnn_omega": lambda m: m == "cnn",
+               "cnn_ckpt": lambda m: m == "cnn", "regressor": lambda m: m == "adaptive"}
+    for dest, reads in readers.items():
+        if not any(map(reads, args.methods)) and getattr(args, dest) != parser.get_default(dest):
+            what = {"best_omega": "bestK, sim, rerank and judge", "regressor": "adaptive"}.get(dest, "cnn")
+            parser.error(f"--{dest.replace('_', '-')} is read by method {what}; --methods {' '.join(args.methods)} "
+                         "runs none of them")
     if not sort:
         for flag in SORT_ONLY:
             if getattr(args, flag) is not None:

@@ -43,6 +43,16 @@ from dynres_jax.sim.pushes import wall_reach
 PLATFORMS = ("cpu", "cuda", "rocm", "tpu")
 
 
+def _read_json_or_none(path: str):
+    """The JSON object in ``path``, or None where it holds none (not JSON, not an object, unreadable)."""
+    try:
+        with open(path) as f:
+            data = json.load(f)
+    except (OSError, ValueError):
+        return None
+    return data if isinstance(data, dict) else None
+
+
 @checks.guarded("export")
 def main(argv=None):
     parser = checks.parser("export", __doc__)
@@ -89,6 +99,10 @@ def main(argv=None):
         parser.error(str(e))
     camera = Camera.top_down(CameraConfig()) if args.camera is None else frames.load_camera(args.camera)
     checks.out_file(args.out, (".jaxexport",), beside=".json", inputs={"--camera": args.camera})
+    sidecar = args.out + ".json"
+    if os.path.lexists(sidecar) and "sha256" not in (_read_json_or_none(sidecar) or {}):
+        parser.error(f"--out {args.out}: {sidecar} exists and is not an export's description (the file export writes "
+                     "beside it); move it or give another --out")
     spec = DecisionSpec(bucket_for(args.resolution), config, real_depth=args.real_depth)
     try:
         exported, info = export.export_checkpoint(args.ckpt, spec, camera, goal_samples=args.goal_samples,

@@ -30,7 +30,7 @@ def mask_goal(path: str, camera: Camera) -> np.ndarray:
     """A mask image of any size (white, > 127, is the goal) resized to the camera's [H, W] bool. InputError for an
     unreadable file or one that is not a regular file (a FIFO, a device, a folder), another aspect ratio or no goal
     pixel after resizing."""
-    image = read_image(path, "--mask", cv2.IMREAD_GRAYSCALE)  # a regular file, its EXIF orientation ignored
+    image = read_image(path, "--mask", cv2.IMREAD_GRAYSCALE)  # a regular file, no EXIF orientation tag
     (h, w), (ch, cw) = image.shape, (camera.height, camera.width)
     if abs(h * cw - w * ch) > max(h, w):  # a pixel of slack
         raise InputError(f"--mask {path!r} is {w} x {h} pixels, not the camera's aspect ratio ({cw} x {ch})")

@@ -32,16 +32,24 @@ def add_budget_args(parser: argparse.ArgumentParser) -> None:
 
 
 def load_timing(parser: argparse.ArgumentParser, args) -> budget.TimingTable | None:
-    """The --timing table (frozen), or None; parser.error naming a bad --timing, before any work."""
+    """The --timing table (frozen), or None; parser.error naming a bad --timing, before any work. A run spending a
+    table plans at the buckets it prices (args.buckets set to them; a table of older buckets reproduces its runs);
+    --buckets, where given, must be those."""
     if args.timing is None:
         return None
     if args.time_budget is None:
         parser.error("--timing needs --time-budget (the table spends a time budget)")
     files.check_input(args.timing, "--timing")  # a FIFO would block the read; one line naming what it is
     try:
-        return budget.TimingTable.load(args.timing)
+        table = budget.TimingTable.load(args.timing)
     except (OSError, ValueError, TypeError) as e:
         parser.error(f"--timing {args.timing}: {e}")
+    given = getattr(args, "buckets", None)
+    if table.buckets is not None and given is not None and tuple(given) != table.buckets:
+        parser.error(f"--buckets {' '.join(map(str, given))}: the timing table {args.timing} prices buckets "
+                     f"{' '.join(map(str, table.buckets))}; give those, or no --buckets (the run plans at the table's)")
+    args.buckets = table.buckets or given or budget.BUCKETS
+    return table
 
 
 def check_budget(cfg: MPCConfig, table: budget.TimingTable | None, omegas) -> None:
@@ -100,8 +108,8 @@ def resolve_planner_args(parser: argparse.ArgumentParser, args) -> None:
     preset = REFERENCE_PLANNER if args.reference_planner else PLANNER_OPTIONS
     vote_given = args.vote is not None
     for name, value in preset.items():
-        if getattr(args, name) is None:
-            setattr(args, name, value)
+        if getattr(args, name) is None and not (name == "buckets" and getattr(args, "timing", None)):
+            setattr(args, name, value)  # a --timing table's buckets are the run's (``load_timing``)
     if args.vote and args.resamples < 2:
         if vote_given:
             parser.error(f"--vote needs --resamples of 2 or more, got {args.resamples}")
@@ -112,7 +120,7 @@ def resolve_planner_args(parser: argparse.ArgumentParser, args) -> None:
         except argparse.ArgumentTypeError as e:
             parser.error(f"--lr: {e} (or 'reference')")
     try:
-        args.buckets = budget.check_buckets(args.buckets)
+        args.buckets = None if args.buckets is None else budget.check_buckets(args.buckets)
     except ValueError as e:
         parser.error(f"--buckets: {e}")
     if args.pricing == "reference" and getattr(args, "timing", None):

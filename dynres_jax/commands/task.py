@@ -217,7 +217,8 @@ def build_loop(args, sim: SimConfig, parser: argparse.ArgumentParser, task: str,
     try:
         planner = planner_config(env, samples=args.samples, adam_steps=args.adam_steps, seed=args.seed)
         cfg = MPCConfig(mpc_steps=args.mpc_steps, planner=planner, time_budget=args.time_budget,
-                        stop_share=checks.stop_rule(args.stop_share))
+                        stop_share=checks.stop_rule(args.stop_share),
+                        buckets=getattr(args, "buckets", None) or MPCConfig.buckets)  # --timing's (``load_timing``)
     except ValueError as e:
         parser.error(str(e))
     check_budget(cfg, timing, [methods.coarsest(str(args.resolution), args)])

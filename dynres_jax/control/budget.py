@@ -28,7 +28,9 @@ import jax
 from dynres_jax.config import OMEGA_MAX
 from dynres_jax.io import files
 
-BUCKETS = (16, 32, 64, OMEGA_MAX)  # particle capacities; the last is OMEGA_MAX, so ω = OMEGA_MAX pads nothing
+BUCKETS = (16, 32, 50, 75, OMEGA_MAX)  # particle capacities; the last is OMEGA_MAX, so ω = OMEGA_MAX pads nothing.
+# 50 and 75, not 64: at 64 slots, the model's channel count, XLA strides the exact sums' scatter and an Adam step cost
+# 0.98 of bucket 100's on an H200; at 50 it costs 0.55 (docs/repeat, "It is the size 64, not the ω")
 REFINE_WEIGHT = 0.5  # weight of a decision's own step time when a table is refined from it
 REFINE_CLIP = 2.0  # a decision's own step time counts within [1/2, 2] x the table's (one slow outlier moves it little)
 
@@ -81,6 +83,11 @@ class TimingTable:
         bad |= {b: s for b, s in self.fixed_s.items() if not (math.isfinite(s) and s >= 0)}
         if bad:
             raise ValueError(f"timing table: times must be finite, step_s > 0 and fixed_s >= 0; got {bad}")
+
+    @property
+    def buckets(self) -> tuple[int, ...] | None:
+        """The buckets the table prices, None where it prices by ω."""
+        return None if self.by_omega else tuple(sorted(self.step_s))
 
     def key(self, omega: int, buckets: Sequence[int]) -> int:
         """What a decision at ``omega`` is priced by: ω where the table prices by ω, else its bucket in ``buckets``."""

@@ -55,14 +55,30 @@ def check_file(path: str, what: str) -> None:
 
 
 def read_image(path: str, what: str, flags: int) -> np.ndarray:
-    """``cv2.imread(path, flags)`` of a regular file (``check_file``), its pixels as the camera stored them: an EXIF
-    orientation tag is ignored (OpenCV rotates by it otherwise, turning a goal or a colour frame against its depth
-    frame, which has no such tag). FrameError naming ``what`` ("goal file") when it is not a readable image."""
+    """``cv2.imread(path, flags)`` of a regular file (``check_file``), its pixels as the camera stored them. FrameError
+    naming ``what`` ("goal file") when it is not a readable image, or when it carries an EXIF orientation other than
+    "as stored": OpenCV would rotate it, its stored pixels would lie turned against the depth frame (which has no such
+    tag), and neither is what a viewer that honours the tag showed the user."""
     check_file(path, what)
     image = cv2.imread(path, flags if flags == cv2.IMREAD_UNCHANGED else flags | cv2.IMREAD_IGNORE_ORIENTATION)
     if image is None:
         raise FrameError(f"{what} {path!r} is not a readable image")
+    turned = _exif_orientation(path)
+    if turned not in (None, 1):
+        raise FrameError(f"{what} {path!r} carries an EXIF orientation tag ({turned}: shown rotated or mirrored); "
+                         "save its pixels the way they should lie, without the tag")
     return image
+
+
+def _exif_orientation(path: str) -> int | None:
+    """The EXIF orientation tag (0x0112) of an image file, or None where it has none or Pillow cannot read it."""
+    from PIL import Image, UnidentifiedImageError
+
+    try:
+        with Image.open(path) as im:
+            return im.getexif().get(0x0112)
+    except (OSError, UnidentifiedImageError, ValueError):
+        return None
 
 
 MAX_CAMERA_BYTES = 1 << 20  # a camera's JSON is a few hundred bytes
@@ -84,16 +100,20 @@ def load_camera(path: str) -> Camera:
 
 def load_frame(depth_path: str, rgb_path: str, camera_path: str) -> tuple[Observation, Camera]:
     """Read a recorded frame. Depth must be a single-channel 16-bit PNG in millimetres (0, no reading, becomes
-    ``sim.sensor.NO_READING`` metres, never foreground: ``sim.sensor.is_reading``; EXIF orientation ignored);
-    colour an 8-bit image of the same size; the camera's width and height must match. Segmentation is unknown
-    (-1). Raises FrameError (MissingFrame, a FileNotFoundError, for a missing file) naming the file and the problem,
-    also for depths no table-top camera sees (a median reading outside [MIN_DEPTH, MAX_DEPTH] m: metres saved as
-    millimetres, or the reverse)."""
+    ``sim.sensor.NO_READING`` metres, never foreground: ``sim.sensor.is_reading``); colour an 8-bit image of the
+    same size (neither with an EXIF orientation tag: ``read_image``); the camera's width and height must match.
+    Segmentation is unknown (-1). Raises FrameError (MissingFrame, a FileNotFoundError, for a missing file) naming
+    the file and the problem, also for depths no table-top camera sees (a median reading outside [MIN_DEPTH,
+    MAX_DEPTH] m: metres saved as millimetres, or the reverse)."""
     camera = load_camera(camera_path)
     depth = read_image(depth_path, "depth file", cv2.IMREAD_UNCHANGED)
     if depth.dtype != np.uint16 or depth.ndim != 2:
         raise FrameError(f"depth file {depth_path!r} must be a single-channel 16-bit PNG in millimetres, got "
                          f"{depth.dtype} with shape {depth.shape}")
+    stored = read_image(rgb_path, "colour file", cv2.IMREAD_UNCHANGED)
+    if stored.dtype != np.uint8:  # IMREAD_COLOR would scale a 16-bit image (a depth frame given twice) to 8 bits
+        raise FrameError(f"colour file {rgb_path!r} must be an 8-bit image, got {stored.dtype}"
+                         f"{' (a depth frame?)' if stored.dtype == np.uint16 else ''}")
     rgb = cv2.cvtColor(read_image(rgb_path, "colour file", cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB)
     if depth.shape != (camera.height, camera.width) or rgb.shape[:2] != depth.shape:
         raise FrameError(f"image sizes differ: depth {depth_path!r} {depth.shape}, colour {rgb_path!r} "

@@ -192,9 +192,15 @@ def _cut(data, rows, t, horizon: int) -> Window:
 
 
 def random_windows(data: Dataset, rng: np.random.Generator, batch: int, horizon: int = 5) -> Window:
-    """``batch`` windows, rows and start frames uniform."""
-    return windows(data, rng.integers(0, len(data), batch), rng.integers(0, data.pushes - horizon + 1, batch),
-                   horizon)
+    """``batch`` different windows (row, start frame), drawn uniformly without replacement; ValueError where the data
+    hold fewer."""
+    starts = data.pushes - horizon + 1
+    total = len(data) * starts
+    if batch > total:
+        raise ValueError(f"the data hold {total} different windows of {horizon} pushes ({len(data)} episodes x "
+                         f"{starts} start frames), fewer than {batch}")
+    flat = rng.choice(total, batch, replace=False)
+    return windows(data, flat // starts, flat % starts, horizon)
 
 
 class Frames(NamedTuple):

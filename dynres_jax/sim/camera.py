@@ -58,6 +58,8 @@ def check_image_size(width: int, height: int) -> None:
 
 MAX_CENTRE = 100.0  # m: a camera's centre lies this close to the table's origin along each axis (a table-top camera:
 #   about 1 m above it)
+DISTORTION_FIELDS = {"distortion", "dist", "D", "coeffs", "dist_coeffs", "distortion_coeffs",
+                     "distortion_coefficients"}  # a camera JSON's lens distortion, under the names tools write it
 
 
 def _short(value, limit: int = 80) -> str:
@@ -153,8 +155,8 @@ class Camera:
     @classmethod
     def from_json(cls, text: str) -> Camera:
         """A camera from its JSON; ValueError naming a missing field, one of the wrong shape or with a value that is
-        not a finite number, an image size outside [MIN_IMAGE, MAX_IMAGE], or geometry no camera has
-        (``check_geometry``)."""
+        not a finite number, distortion coefficients other than zeros (``DISTORTION_FIELDS``: not modelled), an image
+        size outside [MIN_IMAGE, MAX_IMAGE], or geometry no camera has (``check_geometry``)."""
         try:
             d = json.loads(text)
         except RecursionError:
@@ -173,6 +175,12 @@ class Camera:
                 wanted = f"finite numbers of shape {shape}" if shape else "a finite number"
                 raise ValueError(f"camera JSON: {name} must be {wanted}, got {_short(d[name])}")
             arrays[name] = a
+        for name in DISTORTION_FIELDS & set(d):
+            coeffs = _numbers(d[name], 1)
+            if coeffs is None or np.any(coeffs != 0):
+                raise ValueError(f"camera JSON: {name} {_short(d[name])}: lens distortion is not modelled (a pinhole "
+                                 "camera); give undistorted frames (a RealSense's rectified streams) and zeros or no "
+                                 f"{name}")
         if not np.all(np.abs(arrays["centre"]) <= MAX_CENTRE):
             raise ValueError(f"camera JSON: centre {_short(d['centre'])} lies more than {MAX_CENTRE:g} m from the "
                              "table's origin along an axis (metres expected)")
