@@ -77,7 +77,8 @@ DEFAULT_GOAL_SAMPLES = 500  # Q: goals.make_goal's default n_samples
 GOAL_EMPTY = 16  # error bit: the goal mask has no pixel
 GOAL_FULL = 32  # error bit: the goal mask covers the whole image
 NOT_A_TABLE = 2048  # error bit: the frame shows no table where the camera puts it (``io.frames.table_fit``)
-ERRORS = {NO_DEPTH: "the depth image has no reading (every pixel 0, NaN or infinite)",
+ERRORS = {NO_DEPTH: "the depth image has no reading (every pixel 0, NaN, infinite, negative or beyond 100 m: a depth "
+                    "in millimetres reads as none; give metres)",
           EMPTY_FOREGROUND: "no foreground: nothing stands above the table inside the workspace",
           BAD_OMEGA: "omega outside [1, capacity]",
           TOO_FEW_POINTS: "fewer foreground points than omega",

@@ -309,7 +309,8 @@ def describe_error(error: int, omega=None, capacity=None, n_points=None) -> str:
     """A readable list of the problems in a concrete ``Particles.error`` ('' when 0)."""
     problems = []
     if error & NO_DEPTH:
-        problems.append("the depth image has no reading (every pixel 0, NaN or infinite)")
+        problems.append(f"the depth image has no reading (every pixel 0, NaN, infinite, negative or beyond "
+                        f"{NO_READING:g} m: a depth in millimetres reads as none; give metres)")
     if error & EMPTY_FOREGROUND:
         problems.append("empty foreground: no point is above the table margin (within the workspace, of the "
                         "requested kind / colour)")

@@ -325,6 +325,14 @@ def test_a_reading_far_above_the_table_is_no_pile(env, states, real_depth):
     assert raised[free[0] + 5:free[0] + 15, free[1] + 5:free[1] + 15].all()
 
 
+def test_a_depth_in_millimetres_is_named(env, states):
+    """A frame in millimetres (every reading beyond NO_READING m) is no reading, and the error says millimetres."""
+    obs, cam = states[0].obs, env.camera
+    with pytest.raises(ValueError, match="no reading .* a depth in millimetres reads as none; give metres"):
+        sample_particles(obs._replace(depth=obs.depth * 1000), cam, omega=8, key=jax.random.PRNGKey(0),
+                         capacity=N_MAX)
+
+
 def test_is_reading_is_the_one_rule():
     depth = np.array([0.0, np.nan, np.inf, -np.inf, -0.2, NO_READING, 2 * NO_READING, 0.5, 1.2], np.float32)
     want = [False] * 7 + [True, True]
