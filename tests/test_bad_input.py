@@ -191,6 +191,20 @@ def test_a_platform_jax_cannot_start_is_one_line_naming_jax_platforms(tmp_path, 
     assert not out.exists()
 
 
+def test_a_jax_environment_variable_jax_cannot_read_is_one_line(tmp_path):
+    """JAX_DEFAULT_MATMUL_PRECISION=bogus was JAX's traceback on import; now one line naming the variable, exit 2."""
+    import subprocess
+    import sys
+
+    out = tmp_path / "run"
+    done = subprocess.run([sys.executable, "-m", "experiments.gather", "--out", str(out)],
+                          env={**os.environ, "JAX_DEFAULT_MATMUL_PRECISION": "bogus"}, capture_output=True, text=True,
+                          timeout=300, cwd=os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+    lines = [line for line in done.stderr.splitlines() if line.strip()]
+    assert done.returncode == 2 and len(lines) == 1, done.stderr[-2000:]
+    assert "the environment variable JAX_DEFAULT_MATMUL_PRECISION" in lines[0] and not out.exists()
+
+
 def test_a_closed_standard_output_ends_a_command_quietly():
     """`... | head -c 0`: a command whose stdout closes ends with status 1 and nothing on stderr (was a BrokenPipeError
     traceback), as Unix tools do."""

@@ -17,6 +17,7 @@ from __future__ import annotations
 import ast
 import importlib
 import importlib.util
+import re
 import sys
 
 COMMANDS = ("gather", "redistribute", "sort", "plan", "goal", "robot", "evaluate", "eval_dynamics", "tradeoff",
@@ -62,6 +63,15 @@ def entry(name: str):
         precheck(name, args)
         if sys.stderr.isatty() and not {"-h", "--help"} & set(args):
             print(f"{prog(name)}: starting (loading JAX and MuJoCo)", file=sys.stderr, flush=True)
-        return importlib.import_module(f"dynres_jax.commands.{name}").main(argv)
+        try:
+            command = importlib.import_module(f"dynres_jax.commands.{name}")
+        except ValueError as e:  # JAX reads its JAX_* environment variables on import
+            flag = re.search(r"JAX flag (\w+)", str(e))
+            if flag is None:
+                raise
+            print(f"{prog(name)}: error: the environment variable {flag.group(1).upper()}: {e}; unset it or give "
+                  "a value JAX takes", file=sys.stderr)
+            raise SystemExit(2) from None
+        return command.main(argv)
 
     return main
