@@ -33,9 +33,10 @@ both models: best and best_cost are then the judge's choice among the planner's 
 (``judge_pick``); the sidecar's ``judge`` names it.
 
 A frame that shows no table where the camera puts it (a depth scaled or shifted, another camera's intrinsics or pose)
-sets ``NOT_A_TABLE``, by the rule ``plan`` refuses such frames with (``io.frames.table_fit``). The sidecar records the
-file's SHA-256 (``sha256``); ``load`` refuses a file that does not match it, and a robot without this package checks
-``hashlib.sha256(open(FILE, "rb").read()).hexdigest()`` against it.
+sets ``NOT_A_TABLE``, by the rule ``plan`` refuses such frames with (``io.frames.table_fit``); a goal pixel outside
+the workspace (an inverted mask, a goal on the walls) sets ``GOAL_OUTSIDE``, as ``plan`` refuses it. The sidecar
+records the file's SHA-256 (``sha256``); ``load`` refuses a file that does not match it, and a robot without this
+package checks ``hashlib.sha256(open(FILE, "rb").read()).hexdigest()`` against it.
 
 On the CPU the file decides bit for bit what the library's closed loop decides on the same frame, goal and key
 (``decision.decide_batch``, as ``control.robot.run_robot`` calls it; tests/test_export.py, in an environment with only
@@ -61,14 +62,14 @@ from jax import export as jax_export
 
 from dynres_jax.config import CameraConfig, SceneConfig
 from dynres_jax.control.decision import DecisionSpec, perceive_and_decide
-from dynres_jax.control.goals import goal_fields
+from dynres_jax.control.goals import goal_fields, table_xy
 from dynres_jax.control.judge import judged_costs, lowest_judged
 from dynres_jax.control.planner import BAD_START, BAD_STEPS, NOT_FINITE, PlannerConfig
 from dynres_jax.io import ckpt, files
 from dynres_jax.io.frames import on_a_table, table_fit
 from dynres_jax.models.graph import no_gpu_kernels
 from dynres_jax.models.registry import load_dynamics
-from dynres_jax.perception import BAD_OMEGA, EMPTY_FOREGROUND, NO_DEPTH, TOO_FEW_POINTS
+from dynres_jax.perception import BAD_OMEGA, EMPTY_FOREGROUND, NO_DEPTH, TOO_FEW_POINTS, WORKSPACE_HALF_WIDTH
 from dynres_jax.sim.camera import Camera, Observation
 from dynres_jax.sim.sensor import is_reading
 
@@ -77,6 +78,7 @@ DEFAULT_GOAL_SAMPLES = 500  # Q: goals.make_goal's default n_samples
 GOAL_EMPTY = 16  # error bit: the goal mask has no pixel
 GOAL_FULL = 32  # error bit: the goal mask covers the whole image
 NOT_A_TABLE = 2048  # error bit: the frame shows no table where the camera puts it (``io.frames.table_fit``)
+GOAL_OUTSIDE = 4096  # error bit: a goal pixel lies outside the workspace (``goals.check_within``, as plan refuses it)
 ERRORS = {NO_DEPTH: "the depth image has no reading (every pixel 0, NaN, infinite, negative or beyond 100 m: a depth "
                     "in millimetres reads as none; give metres)",
           EMPTY_FOREGROUND: "no foreground: nothing stands above the table inside the workspace",
@@ -84,6 +86,8 @@ ERRORS = {NO_DEPTH: "the depth image has no reading (every pixel 0, NaN, infinit
           TOO_FEW_POINTS: "fewer foreground points than omega",
           GOAL_EMPTY: "the goal mask has no pixel",
           GOAL_FULL: "the goal mask covers the whole image",
+          GOAL_OUTSIDE: f"a goal pixel lies outside the workspace (table square ±{WORKSPACE_HALF_WIDTH:g} m: pieces "
+                        "cannot be pushed there; an inverted mask?), as plan refuses it",
           BAD_STEPS: "adam_steps outside [0, the planner's adam_steps]",
           BAD_START: "warm is set and init (the warm start) has NaN or infinite values",
           NOT_A_TABLE: "the frame shows no table where the camera puts it (its median point off the table plane, too "
@@ -120,6 +124,9 @@ def decision_step(dynamics: Callable, camera: Camera, spec: DecisionSpec, goal_s
         raise ValueError(f"the exported decision takes one particle set: PlannerConfig.resamples must be 1, got "
                          f"{spec.planner.resamples}")
 
+    xy = table_xy(camera)  # [H, W, 2]: where each pixel's ray meets the table (NaN: never)
+    workspace = jnp.asarray(np.all(np.abs(xy) <= WORKSPACE_HALF_WIDTH, axis=-1))  # NaN is outside
+
     def step(depth, goal_mask, key, omega, adam_steps, init, warm):
         goal_mask = jnp.asarray(goal_mask, bool)
         goal = goal_fields(goal_mask, camera, goal_samples)
@@ -134,7 +141,8 @@ def decision_step(dynamics: Callable, camera: Camera, spec: DecisionSpec, goal_s
         table_ok = on_a_table(*table_fit(depth, camera)) | ~jnp.any(is_reading(depth))  # none at all: NO_DEPTH
         error = (particles.error | jnp.where(~jnp.any(goal_mask), GOAL_EMPTY, 0) | jnp.where(table_ok, 0, NOT_A_TABLE)
                  | jnp.where(jnp.all(goal_mask), GOAL_FULL, 0) | jnp.where(steps_ok, 0, BAD_STEPS)
-                 | jnp.where(init_ok, 0, BAD_START)).astype(jnp.int32)
+                 | jnp.where(init_ok, 0, BAD_START)
+                 | jnp.where(jnp.any(goal_mask & ~workspace), GOAL_OUTSIDE, 0)).astype(jnp.int32)
         error = error | jnp.where((error == 0) & ~jnp.all(jnp.isfinite(best)), NOT_FINITE, 0)  # never a NaN push
         best = jnp.where(error == 0, best, jnp.nan)
         return dict(push=best[0], best=best, best_cost=best_cost, objective=c_now.astype(jnp.float32),
@@ -308,6 +316,6 @@ def signature(exported: jax_export.Exported) -> str:
 
 
 __all__ = ["BAD_START", "BAD_STEPS", "DEFAULT_GOAL_SAMPLES", "ERRORS", "FORMAT", "GOAL_EMPTY", "GOAL_FULL",
-           "INPUT_NAMES", "NOT_A_TABLE", "NOT_FINITE", "OUTPUT_NAMES", "call", "decision_step", "describe",
-           "describe_error", "export_checkpoint", "export_decision", "input_specs", "judge_pick", "load",
+           "GOAL_OUTSIDE", "INPUT_NAMES", "NOT_A_TABLE", "NOT_FINITE", "OUTPUT_NAMES", "call", "decision_step",
+           "describe", "describe_error", "export_checkpoint", "export_decision", "input_specs", "judge_pick", "load",
            "output_specs", "save", "signature"]

@@ -124,6 +124,10 @@ def test_bad_input_is_flagged_and_gives_no_push(reloaded):
     cases = {
         "empty goal": ((depth, np.zeros_like(goal_mask), key, omega, steps, init, warm), ex.GOAL_EMPTY),
         "whole-image goal": ((depth, np.ones_like(goal_mask), key, omega, steps, init, warm), ex.GOAL_FULL),
+        "inverted goal": ((depth, ~goal_mask, key, omega, steps, init, warm), ex.GOAL_OUTSIDE),
+        "a goal pixel in the image's corner": ((depth, goal_mask | (np.arange(goal_mask.size).reshape(goal_mask.shape)
+                                                                    == 0), key, omega, steps, init, warm),
+                                               ex.GOAL_OUTSIDE),
         "no depth reading": ((np.full_like(depth, np.nan), goal_mask, key, omega, steps, init, warm), NO_DEPTH),
         "omega 0": ((depth, goal_mask, key, np.int32(0), steps, init, warm), BAD_OMEGA),
         "omega above capacity": ((depth, goal_mask, key, np.int32(SPEC.capacity + 1), steps, init, warm), BAD_OMEGA),

@@ -386,9 +386,10 @@ def test_every_error_bit_is_one_cause():
 
     bits = {name: getattr(m, name) for m in (perception, planner, export)
             for name in ("NO_DEPTH", "EMPTY_FOREGROUND", "BAD_OMEGA", "TOO_FEW_POINTS", "GOAL_EMPTY", "GOAL_FULL",
-                         "BAD_STEPS", "BAD_START", "NOT_A_TABLE", "NOT_FINITE", "NO_PARTICLES", "BAD_POSITIONS")
+                         "BAD_STEPS", "BAD_START", "NOT_A_TABLE", "NOT_FINITE", "NO_PARTICLES", "BAD_POSITIONS",
+                         "GOAL_OUTSIDE")
             if hasattr(m, name)}
-    assert len(bits) == 12 and len(set(bits.values())) == 12, bits
+    assert len(bits) == 13 and len(set(bits.values())) == 13, bits
     assert all(b > 0 and b & (b - 1) == 0 for b in bits.values()), bits
     assert set(planner.PLAN_ERRORS) <= set(bits.values()) and len(planner.PLAN_ERRORS) == 5
-    assert len(export.ERRORS) == 10 and set(export.ERRORS) <= set(bits.values())
+    assert len(export.ERRORS) == 11 and set(export.ERRORS) <= set(bits.values())

@@ -118,7 +118,7 @@ def stack_goals(goals, hold=None, avoid=None, mixing: float = 0.0) -> KindGoals:
 # ---------------------------------------------------------------------------------------------------------------
 
 @functools.lru_cache(maxsize=4)
-def _table_xy(camera: Camera) -> np.ndarray:
+def table_xy(camera: Camera) -> np.ndarray:
     """[H, W, 2] world (x, y) in metres where each pixel centre's ray meets the table (NaN where it never does);
     computed once per camera, read-only."""
     d = np.asarray(camera.ray_directions(camera.pixel_centres()), np.float64)
@@ -131,7 +131,7 @@ def _table_xy(camera: Camera) -> np.ndarray:
 
 def check_within(mask, camera: Camera, half_width: float) -> None:
     """ValueError when a goal pixel of mask [H, W] lies outside the table square ±half_width (m) or off the table."""
-    xy = _table_xy(camera)[np.asarray(mask, bool)]
+    xy = table_xy(camera)[np.asarray(mask, bool)]
     outside = ~np.all(np.abs(xy) <= half_width, axis=-1)  # NaN (off the table) is outside too
     if outside.any():
         raise ValueError(f"{int(outside.sum())} of the goal's {len(xy)} pixels lie outside the workspace (table "
@@ -184,7 +184,7 @@ def disc_goal(camera: Camera, centre_xy, radius: float, *, bin_half_width: float
     angle = np.linspace(0, 2 * np.pi, 256, endpoint=False)
     outline = centre + radius * np.stack([np.cos(angle), np.sin(angle)], -1)
     _check_in_view("disc goal", camera, outline, bin_half_width)  # the outline holds the 4 axis extremes
-    inside = np.linalg.norm(_table_xy(camera) - centre, axis=-1) <= radius
+    inside = np.linalg.norm(table_xy(camera) - centre, axis=-1) <= radius
     return _check_nonempty("disc goal", inside)
 
 
@@ -196,7 +196,7 @@ def polygon_goal(camera: Camera, vertices_xy, *, bin_half_width: float = BIN_HAL
     if v.ndim != 2 or v.shape[1] != 2 or len(v) < 3:
         raise ValueError(f"polygon vertices must be [K >= 3, 2], got shape {v.shape}")
     _check_in_view("polygon goal", camera, v, bin_half_width)
-    xy = _table_xy(camera)
+    xy = table_xy(camera)
     x, y = xy[..., 0], xy[..., 1]
     inside = np.zeros(x.shape, bool)
     for (x0, y0), (x1, y1) in zip(v, np.roll(v, -1, axis=0), strict=True):
@@ -269,7 +269,7 @@ def text_goal(camera: Camera, text: str, centre_xy, height_m: float, font: int =
     half = np.array([cols[-1] - cols[0] + 1, rows[-1] - rows[0] + 1]) * res / 2  # ink half-extent (x, y), m
     corners = centre + half * np.array([[-1, -1], [-1, 1], [1, -1], [1, 1]])
     _check_in_view(f"text goal {text!r}", camera, corners, bin_half_width)
-    xy = _table_xy(camera)
+    xy = table_xy(camera)
     col = np.round((cols[0] + cols[-1]) / 2 + (xy[..., 0] - centre[0]) / res)
     row = np.round((rows[0] + rows[-1]) / 2 - (xy[..., 1] - centre[1]) / res)
     on_canvas = (col >= 0) & (col < ink.shape[1]) & (row >= 0) & (row < ink.shape[0])
