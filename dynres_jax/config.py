@@ -25,9 +25,9 @@ def check_omega(omega, what: str = "omega") -> int:
 
 def check_fields(cfg) -> None:
     """Check a config dataclass's fields against their annotations: TypeError naming the field when an ``int``,
-    ``float``, ``bool`` or ``str`` field holds another type (a float field takes whole numbers; a number field never a
-    bool), ValueError for a number that is not finite. Other annotations (tuples, nested configs) are left to the
-    class."""
+    ``float``, ``bool`` or ``str`` field, or an element of a ``tuple[T, ...]`` of them, holds another type (a float
+    takes whole numbers; a number is never a bool; a tuple is not a string), ValueError for a number that is not
+    finite. Other annotations (nested configs) are left to the class."""
     for f in dataclasses.fields(cfg):
         value, kind = getattr(cfg, f.name), str(f.type)
         if kind.endswith(" | None"):
@@ -35,15 +35,26 @@ def check_fields(cfg) -> None:
                 continue
             kind = kind.removesuffix(" | None")
         where = f"{type(cfg).__name__}.{f.name}"
-        numeric = isinstance(value, numbers.Real) and not isinstance(value, bool)
-        ok = {"int": numeric and isinstance(value, numbers.Integral), "float": numeric,
-              "bool": isinstance(value, bool) or type(value).__name__ == "bool_", "str": isinstance(value, str)}
-        if kind not in ok:
-            continue
-        if not ok[kind]:
-            raise TypeError(f"{where} must be {'an' if kind == 'int' else 'a'} {kind}, got {value!r}")
-        if kind == "float" and not math.isfinite(value):
-            raise ValueError(f"{where} must be a finite number, got {value!r}")
+        if kind.startswith("tuple[") and kind.endswith(", ...]") and kind[6:-6] in ("int", "float", "bool", "str"):
+            if isinstance(value, str | bytes) or not isinstance(value, tuple | list):
+                raise TypeError(f"{where} must be a tuple of {kind[6:-6]}s, got {value!r}")
+            for i, item in enumerate(value):
+                _check_value(f"{where}[{i}]", kind[6:-6], item)
+        else:
+            _check_value(where, kind, value)
+
+
+def _check_value(where: str, kind: str, value) -> None:
+    """``check_fields``' rule for one value annotated ``kind`` ("int", "float", "bool", "str"; others pass)."""
+    numeric = isinstance(value, numbers.Real) and not isinstance(value, bool)
+    ok = {"int": numeric and isinstance(value, numbers.Integral), "float": numeric,
+          "bool": isinstance(value, bool) or type(value).__name__ == "bool_", "str": isinstance(value, str)}
+    if kind not in ok:
+        return
+    if not ok[kind]:
+        raise TypeError(f"{where} must be {'an' if kind == 'int' else 'a'} {kind}, got {value!r}")
+    if kind == "float" and not math.isfinite(value):
+        raise ValueError(f"{where} must be a finite number, got {value!r}")
 
 
 @dataclass(frozen=True)

@@ -37,6 +37,7 @@ COLOUR_TOL = 0.05  # chromaticity distance (r, g, b) / (r + g + b) to the refere
 R_CENTER_MAX = 0.008  # m: the reference's 0.02 normalised units of its 1-unit bin, on our 0.4 m bin
 WALL_SEARCH = 0.02  # m: ``calibrate`` looks for the bin's walls this close to where they should be
 MIN_WALL_POINTS = 10  # ``calibrate`` needs this many points on each wall
+MAX_CAPACITY = 4096  # particle slots a call of h may ask for (the models take at most OMEGA_MAX = 100)
 PERMUTATION_SEED = 0  # seed of the fixed pixel permutation that subsamples the foreground under ``max_points``
 
 # Bit flags of ``Particles.error``.
@@ -312,8 +313,8 @@ def describe_error(error: int, omega=None, capacity=None, n_points=None) -> str:
         problems.append(f"the depth image has no reading (every pixel 0, NaN, infinite, negative or beyond "
                         f"{NO_READING:g} m: a depth in millimetres reads as none; give metres)")
     if error & EMPTY_FOREGROUND:
-        problems.append("empty foreground: no point is above the table margin (within the workspace, of the "
-                        "requested kind / colour)")
+        problems.append(f"empty foreground: no point is above the table margin and at most {PILE_CEILING:g} m above "
+                        "the table (within the workspace, of the requested kind / colour)")
     if error & BAD_OMEGA:
         problems.append(f"omega={omega} is outside [1, capacity={capacity}]")
     if error & TOO_FEW_POINTS:
@@ -346,8 +347,17 @@ def sample_particles(observation: Observation, camera: Camera, omega, key, capac
     problem when the result is concrete and the input bad (no depth reading at all, empty foreground, ω outside [1,
     capacity], fewer foreground points than ω); traced, ``Particles.error`` says it.
     """
-    if not isinstance(capacity, int | np.integer) or capacity < 1:
-        raise ValueError(f"capacity must be a positive int, got {capacity!r}")
+    if not isinstance(capacity, int | np.integer) or not 1 <= capacity <= MAX_CAPACITY:
+        raise ValueError(f"capacity must be an int in [1, {MAX_CAPACITY}], got {capacity!r}")
+    if np.ndim(omega):
+        raise ValueError(f"omega must be one count of particles (jax.vmap over several), got shape {np.shape(omega)}")
+    for name, value, low in (("margin", margin, 0.0), ("workspace", workspace, 0.0), ("colour_tol", colour_tol, 0.0),
+                             ("r_center", r_center, 0.0)):
+        if value is not None and not isinstance(value, jax.core.Tracer) and not (
+                np.ndim(value) == 0 and np.isfinite(value) and value >= low):
+            raise ValueError(f"{name} must be a finite number >= {low:g} (m), got {value!r}")
+    if kind is not None and not isinstance(kind, int | np.integer | jax.Array):
+        raise ValueError(f"kind must be a piece kind's index (an int, as observation.kind holds), got {kind!r}")
     if max_points is not None and (not isinstance(max_points, int | np.integer) or max_points < 1):
         raise ValueError(f"max_points must be None or a positive int, got {max_points!r}")
     if isinstance(omega, jax.core.Tracer):

@@ -1,5 +1,6 @@
-"""Planner cost of each dynamics processor shape (docs/dynamics_scale): one 50 x 100 plan at ω = 50 (bucket 64) with
-untrained weights of each shape, timed after its compile, on this machine's JAX device.
+"""Planner cost of each dynamics processor shape (docs/dynamics_scale): one 50 x 100 plan at ω = 50 in 64 slots (its
+bucket until 2026-11-29; since then 50) with untrained weights of each shape, timed after its compile, on this
+machine's JAX device.
 
     python scripts/processor_cost.py
 """

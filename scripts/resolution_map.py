@@ -48,7 +48,7 @@ def priced(run: dict, budget: float, c: np.ndarray | None = None, timing: Timing
     timing = TimingTable(**s["timing"]) if timing is None else timing
     out = np.empty(c.shape[:-2] + c.shape[-1:])
     for i, omega in enumerate(s["omegas"]):
-        key = timing.key(omega, s["buckets"])
+        key = timing.key(omega, timing.buckets or s["buckets"])  # another device's table: priced at its buckets
         fits = [j for j, n in enumerate(s["steps"]) if timing.seconds(key, n) <= budget]
         out[..., i, :] = c[..., i, max(fits), :] if fits else run["d0"]
     return out

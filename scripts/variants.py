@@ -10,9 +10,10 @@ RUNS holds VARIANT/TASK-KIND/METHOD.json or .json.gz (``--method``, default 50).
 experiment run in turn (the second's SEED following on the first's episodes), read as one run, episode after episode:
 
     python scripts/variants.py --runs docs/sort/kind_hinge/fresh docs/sort/kind_hinge/fresh2 --variants paper kind
- ``--at VARIANT=T`` or
-``VARIANT=T:SHARE`` reads a variant as its first T MPC steps (``tasks.first_steps``), with the stop rule at SHARE
-replayed (``tasks.stopped``): one run at the most steps, without a rule, gives every shorter or stopped setting.
+
+``--at VARIANT=T`` or ``VARIANT=T:SHARE`` reads a variant as its first T MPC steps (``tasks.first_steps``), with
+the stop rule at SHARE replayed (``tasks.stopped``): one run at the most steps, without a rule, gives every shorter or
+stopped setting.
 
     python scripts/variants.py --runs RUNS --task redistribute --variants base hinge --at base=80:0.92 hinge=90
 
@@ -198,6 +199,11 @@ def main(argv=None):
     parser.add_argument("--out", default=None, help="write the table here (Markdown)")
     parser.add_argument("--plot", default=None, metavar="PNG", help="draw the variants' means over the MPC steps here")
     args = parser.parse_args(argv)
+    real = [os.path.realpath(r) for r in args.runs]
+    if len(set(real)) < len(real):
+        parser.error(f"--runs names a folder twice (through a link too): {' '.join(args.runs)}")
+    if args.plot and len(args.runs) > 1:
+        parser.error("--plot draws one folder's runs; give one --runs folder")
     text = table(args.runs, args.task, args.variants, args.method, args.letters, dict(args.at))
     if args.out:
         os.makedirs(os.path.dirname(args.out) or ".", exist_ok=True)

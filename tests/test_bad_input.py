@@ -149,6 +149,58 @@ def test_absurd_image_sizes_are_refused_with_the_limit():
         make_goal(disc_goal(cam, (0.0, 0.0), 0.05), cam, 10**7)  # ran for minutes without a word
 
 
+def _library_cases():
+    """(call, message) pairs: the library's functions called with odd arguments (the 2026-11-29 audit: NumPy or JAX
+    internals, or silently accepted)."""
+    from dynres_jax import perception
+    from dynres_jax.config import CameraConfig
+    from dynres_jax.control.goals import disc_goal, make_goal, text_goal
+    from dynres_jax.control.objective import objective
+    from dynres_jax.control.task_env import TaskEnv
+    from dynres_jax.models.registry import SHIPPED_DYNAMICS, load_dynamics
+    from dynres_jax.sim.camera import Camera, Observation
+
+    cam = Camera.top_down(CameraConfig(width=32, height=32))
+    goal = make_goal(disc_goal(cam, (0.0, 0.0), 0.08), cam)
+    obs = Observation(np.ones((32, 32), np.float32), None, None, None)
+    sample = lambda **kw: perception.sample_particles(obs, cam, kw.pop("omega", 4), jax.random.PRNGKey(0),  # noqa: E731
+                                                      kw.pop("capacity", 16), **kw)
+    return [
+        (lambda: disc_goal(cam, [0, 0, 0], 0.05), r"disc centre must be a finite \(x, y\)"),
+        (lambda: disc_goal(cam, [0, 0], "0.05"), "disc radius must be positive: one finite number, got '0.05'"),
+        (lambda: disc_goal(cam, [0, 0], np.array([0.05, 0.06])), "disc radius must be positive"),
+        (lambda: disc_goal(cam, [0, 0], 0.05, bin_half_width=float("nan")), "bin_half_width must be positive"),
+        (lambda: text_goal(cam, "A", (0, 0, 1), 0.1), "text centre must be"),
+        (lambda: objective(np.zeros((0, 3)), np.zeros(0, bool), goal, cam), r"positions must be \[N >= 1, 3\]"),
+        (lambda: objective(np.zeros((5, 2)), np.ones(5, bool), goal, cam), r"positions must be \[N >= 1, 3\]"),
+        (lambda: sample(omega=np.array([4, 8])), "omega must be one count of particles"),
+        (lambda: sample(kind="pebble"), "kind must be a piece kind's index"),
+        (lambda: sample(margin=float("nan")), "margin must be a finite number >= 0"),
+        (lambda: sample(margin=-0.5), "margin must be a finite number >= 0"),
+        (lambda: sample(r_center=-1.0), "r_center must be a finite number >= 0"),
+        (lambda: sample(capacity=10**7), r"capacity must be an int in \[1, 4096\]"),
+        (lambda: load_dynamics("sweep", SHIPPED_DYNAMICS, -0.04), "plate_half_width must be a positive number"),
+        (lambda: load_dynamics("sweep", SHIPPED_DYNAMICS, float("nan")), "plate_half_width must be a positive"),
+        (lambda: TaskEnv(episode_length=2.5), "episode_length must be a whole number"),
+    ]
+
+
+def test_the_library_names_an_odd_argument_before_any_work():
+    """Each call, with one argument of the wrong shape, type or value, is a ValueError naming that argument (they
+    were NumPy or JAX internals, a ZeroDivisionError, or silently accepted); the same calls with good arguments
+    work (the disc and the sweep model are built, so the checks are not refusing everything)."""
+    for call, message in _library_cases():
+        with pytest.raises(ValueError, match=message):
+            call()
+    from dynres_jax.config import CameraConfig
+    from dynres_jax.control.goals import disc_goal
+    from dynres_jax.models.registry import SHIPPED_DYNAMICS, load_dynamics
+    from dynres_jax.sim.camera import Camera
+
+    assert disc_goal(Camera.top_down(CameraConfig(width=32, height=32)), [0.0, 0.0], np.float32(0.05)).any()
+    assert load_dynamics("sweep", SHIPPED_DYNAMICS, 0.04).name == "sweep heuristic"
+
+
 def test_a_number_flag_says_finite_without_infinite_bounds():
     import argparse
 
@@ -166,6 +218,9 @@ def test_a_number_flag_says_finite_without_infinite_bounds():
     (lambda: SceneConfig(bin_half_width="0.2"), "SceneConfig.bin_half_width must be a float"),
     (lambda: DynamicsConfig(push_frame=1), "DynamicsConfig.push_frame must be a bool"),
     (lambda: TrainConfig(steps=True), "TrainConfig.steps must be an int"),
+    (lambda: SceneConfig(kinds="coffee", pieces=(10,)), "SceneConfig.kinds must be a tuple of strs, got 'coffee'"),
+    (lambda: SceneConfig(pieces=(10.0,)), r"SceneConfig.pieces\[0\] must be an int, got 10.0"),
+    (lambda: SceneConfig(pieces=(True,)), r"SceneConfig.pieces\[0\] must be an int, got True"),
 ])
 def test_the_python_api_names_a_field_of_the_wrong_type(make, message):
     with pytest.raises((TypeError, ValueError), match=message):
@@ -191,18 +246,20 @@ def test_a_platform_jax_cannot_start_is_one_line_naming_jax_platforms(tmp_path, 
     assert not out.exists()
 
 
-def test_a_jax_environment_variable_jax_cannot_read_is_one_line(tmp_path):
-    """JAX_DEFAULT_MATMUL_PRECISION=bogus was JAX's traceback on import; now one line naming the variable, exit 2."""
+@pytest.mark.parametrize("variable", ["JAX_DEFAULT_MATMUL_PRECISION", "JAX_ENABLE_X64"])
+def test_a_jax_environment_variable_jax_cannot_read_is_one_line(tmp_path, variable):
+    """JAX_DEFAULT_MATMUL_PRECISION=bogus (an enum) or JAX_ENABLE_X64=bogus (a truth value) was JAX's traceback on
+    import; now one line naming the variable, exit 2."""
     import subprocess
     import sys
 
     out = tmp_path / "run"
     done = subprocess.run([sys.executable, "-m", "experiments.gather", "--out", str(out)],
-                          env={**os.environ, "JAX_DEFAULT_MATMUL_PRECISION": "bogus"}, capture_output=True, text=True,
+                          env={**os.environ, variable: "bogus"}, capture_output=True, text=True,
                           timeout=300, cwd=os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
     lines = [line for line in done.stderr.splitlines() if line.strip()]
     assert done.returncode == 2 and len(lines) == 1, done.stderr[-2000:]
-    assert "the environment variable JAX_DEFAULT_MATMUL_PRECISION" in lines[0] and not out.exists()
+    assert f"the environment variable {variable}" in lines[0] and not out.exists()
 
 
 def test_a_closed_standard_output_ends_a_command_quietly():

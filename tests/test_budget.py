@@ -237,9 +237,11 @@ def test_a_run_spending_a_saved_table_plans_at_its_buckets(tmp_path, capsys):
     from dynres_jax.commands.planner_args import (
         add_budget_args,
         add_reference_planner_args,
+        check_budget,
         load_timing,
         resolve_planner_args,
     )
+    from dynres_jax.errors import InputError
 
     old = (16, 32, 64, 100)
     path = str(tmp_path / "timing.json")
@@ -260,6 +262,20 @@ def test_a_run_spending_a_saved_table_plans_at_its_buckets(tmp_path, capsys):
     with pytest.raises(SystemExit):
         loaded("--time-budget", "1", "--timing", path, "--buckets", "16", "32", "50", "100")
     assert "prices buckets 16 32 64 100; give those" in capsys.readouterr().err
+    # a fixed-ω run's table (its one bucket) keeps the run's buckets, and a run that may plan where it has no price
+    # is told so before any step (it failed mid-episode: "omega=75 exceeds the largest resolution bucket 50")
+    partial = str(tmp_path / "partial.json")
+    TimingTable("cpu", 50, 1, {50: 0.01}, {50: 0.02}).save(partial)
+    assert loaded("--time-budget", "1", "--timing", partial).buckets == budget.BUCKETS
+    cfg = MPCConfig(planner=PlannerConfig(samples=50, adam_steps=10), time_budget=1.0)
+    table = TimingTable.load(partial)
+    check_budget(cfg, table, [50])  # a fixed ω = 50 finds its price
+    with pytest.raises(InputError, match="prices buckets 50; this run plans at ω 10-100, in buckets 16 32 50 75 100"):
+        check_budget(cfg, table, [10], finest=100)  # adaptive
+    per_omega = str(tmp_path / "per_omega.json")  # a table priced by ω (the reference's): the preset's buckets stay
+    budget.reference_table((25, 50, 75, 100), 50, 1).save(per_omega)
+    assert loaded("--time-budget", "1", "--timing", per_omega, "--reference-planner", "--pricing",
+                  "measured").buckets == (25, 50, 75, 100)
 
 
 @pytest.mark.slow

@@ -92,6 +92,8 @@ def test_variants_reads_blocks_of_episodes_as_one_run(script, tmp_path):
     assert one["mean_inside"] == pytest.approx(np.mean(whole["inside"], axis=1))
     with pytest.raises(ValueError, match="different MPC steps"):
         variants.joined([whole, tasks.first_steps(whole, 2)])
+    with pytest.raises(SystemExit):  # the same block twice would double the episodes and shrink the p-values
+        variants.main(["--runs", blocks[0], blocks[0], "--variants", "a", "b", "--task", "redistribute"])
 
 
 def test_stop_share_reads_off_in_any_case_and_names_it_when_wrong():

@@ -66,11 +66,11 @@ def entry(name: str):
         try:
             command = importlib.import_module(f"dynres_jax.commands.{name}")
         except ValueError as e:  # JAX reads its JAX_* environment variables on import
-            flag = re.search(r"JAX flag (\w+)", str(e))
+            flag = re.search(r"JAX flag (\w+)|for environment '(\w+)'", str(e))
             if flag is None:
                 raise
-            print(f"{prog(name)}: error: the environment variable {flag.group(1).upper()}: {e}; unset it or give "
-                  "a value JAX takes", file=sys.stderr)
+            print(f"{prog(name)}: error: the environment variable {(flag.group(1) or flag.group(2)).upper()}: {e}; "
+                  "unset it or give a value JAX takes", file=sys.stderr)
             raise SystemExit(2) from None
         return command.main(argv)
 

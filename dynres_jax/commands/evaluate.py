@@ -259,7 +259,7 @@ def check_args(parser, args):
             parser.error(f"--pieces: {e}")
     cfg = mpc_config(env, args, args.mpc_steps)
     if table is not None:  # a given table must afford every method a step, before the first method runs
-        check_budget(cfg, table, method_omegas(args))
+        check_budget(cfg, table, method_omegas(args), max(methods.reach(m, args) for m in args.methods))
     finest = max(methods.finest(m, args) for m in args.methods)
     check_visible(parser, env.reset(tasks.episode_keys(args.seed, [0])[0][0]).obs, env.camera, finest, cfg)
     return rank, size, sim, main_model, cnn_model, judge

@@ -44,7 +44,10 @@ PLATFORMS = ("cpu", "cuda", "rocm", "tpu")
 
 
 def _read_json_or_none(path: str):
-    """The JSON object in ``path``, or None where it holds none (not JSON, not an object, unreadable)."""
+    """The JSON object in ``path``, or None where it holds none (not a regular file of at most a megabyte, not JSON,
+    not an object, unreadable)."""
+    if not os.path.isfile(path) or os.path.getsize(path) > 1 << 20:  # a FIFO would block the read
+        return None
     try:
         with open(path) as f:
             data = json.load(f)

@@ -99,6 +99,13 @@ def finest(name: str, args) -> int:
     return coarsest(name, args) if row.finest is None else row.finest(name, args)
 
 
+def reach(name: str, args) -> int:
+    """The finest ω method ``name`` may ever plan at: ``finest``'s, but OMEGA_MAX for one that may choose any ω (the
+    regressor's adaptive): what a timing table must price (``planner_args.check_budget``)."""
+    row = method(name)
+    return OMEGA_MAX if row.omega(name, args) is None and row.finest is None else finest(name, args)
+
+
 def by_model(name: str) -> bool:
     """Whether ``name`` is a method a task command or the robot can run: its orders need no simulator and it reads no
     model of its own beyond the regressor (``--resolution``'s choices)."""

@@ -33,8 +33,9 @@ def add_budget_args(parser: argparse.ArgumentParser) -> None:
 
 def load_timing(parser: argparse.ArgumentParser, args) -> budget.TimingTable | None:
     """The --timing table (frozen), or None; parser.error naming a bad --timing, before any work. A run spending a
-    table plans at the buckets it prices (args.buckets set to them; a table of older buckets reproduces its runs);
-    --buckets, where given, must be those."""
+    table that prices every ω (its largest bucket OMEGA_MAX) plans at its buckets (args.buckets set to them: a table
+    of older buckets reproduces its runs), and --buckets, where given, must be those; a table of a fixed-ω run (a few
+    buckets) leaves the buckets as they are (``check_budget`` then says which it lacks)."""
     if args.timing is None:
         return None
     if args.time_budget is None:
@@ -45,18 +46,31 @@ def load_timing(parser: argparse.ArgumentParser, args) -> budget.TimingTable | N
     except (OSError, ValueError, TypeError) as e:
         parser.error(f"--timing {args.timing}: {e}")
     given = getattr(args, "buckets", None)
-    if table.buckets is not None and given is not None and tuple(given) != table.buckets:
+    full = table.buckets is not None and table.buckets[-1] == OMEGA_MAX
+    if full and given is not None and tuple(given) != table.buckets:
         parser.error(f"--buckets {' '.join(map(str, given))}: the timing table {args.timing} prices buckets "
                      f"{' '.join(map(str, table.buckets))}; give those, or no --buckets (the run plans at the table's)")
-    args.buckets = table.buckets or given or budget.BUCKETS
+    preset = REFERENCE_PLANNER if getattr(args, "reference_planner", False) else PLANNER_OPTIONS
+    args.buckets = table.buckets if full else given or preset["buckets"]
     return table
 
 
-def check_budget(cfg: MPCConfig, table: budget.TimingTable | None, omegas) -> None:
+def check_budget(cfg: MPCConfig, table: budget.TimingTable | None, omegas, finest: int | None = None) -> None:
     """InputError naming --time-budget when it affords no Adam step at some ω of ``omegas`` by ``table`` (a chooser
-    among ω passes the coarsest: a budget may leave the finest ω without steps, which is what it trades)."""
+    among ω passes the coarsest: a budget may leave the finest ω without steps, which is what it trades), and naming
+    the table when it lacks a bucket the run may plan at (the buckets of ``omegas`` up to ``finest``'s)."""
     if cfg.time_budget is None or table is None:
         return
+    if table.buckets is not None:
+        low, high = min(omegas), max(omegas) if finest is None else max(max(omegas), finest)
+        needed = [b for b in cfg.buckets if budget.bucket_for(low, cfg.buckets) <= b
+                  <= budget.bucket_for(high, cfg.buckets)]
+        missing = [b for b in needed if b not in table.buckets]
+        if missing:
+            raise InputError(f"the timing table ({table.device}) prices buckets {' '.join(map(str, table.buckets))}; "
+                             f"this run plans at ω {low}-{high}, in buckets {' '.join(map(str, needed))}: measure a "
+                             "table for it (run without --timing; an interrupted episode begun before the buckets "
+                             "changed: --fresh)")
     afforded = {}
     for omega in sorted(set(omegas)):
         key = table.key(omega, cfg.buckets)
@@ -95,16 +109,16 @@ def add_reference_planner_args(parser) -> None:
     g.add_argument("--lr", default=None, help="the Adam step, m, or 'reference' (the authors' step relative to the "
                    f"action range, {REFERENCE_LR_SHARE} of its width); default {PlannerConfig.lr}")
     g.add_argument("--buckets", type=checks.count(1, OMEGA_MAX), nargs="+", default=None,
-                   help=f"resolution buckets (default {' '.join(map(str, budget.BUCKETS))}): each ω is priced as the "
-                        "smallest bucket holding it")
+                   help=f"resolution buckets (default {' '.join(map(str, budget.BUCKETS))}; with --timing, the "
+                        "table's): each ω is priced as the smallest bucket holding it")
     g.add_argument("--pricing", choices=["measured", "reference"], default=None,
                    help="the price of an Adam step under --time-budget: a timing table measured here (default), or "
                         "the authors' fitted step time at each ω, whatever its bucket (no measuring)")
 
 
 def resolve_planner_args(parser: argparse.ArgumentParser, args) -> None:
-    """Fill the reference-planner options left unset from --reference-planner's values, else ours; parser.error
-    naming a bad combination, before any work."""
+    """Fill the reference-planner options left unset from --reference-planner's values, else ours (the buckets, with
+    --timing, from its table: ``load_timing``); parser.error naming a bad combination, before any work."""
     preset = REFERENCE_PLANNER if args.reference_planner else PLANNER_OPTIONS
     vote_given = args.vote is not None
     for name, value in preset.items():

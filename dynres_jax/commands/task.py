@@ -221,7 +221,8 @@ def build_loop(args, sim: SimConfig, parser: argparse.ArgumentParser, task: str,
                         buckets=getattr(args, "buckets", None) or MPCConfig.buckets)  # --timing's (``load_timing``)
     except ValueError as e:
         parser.error(str(e))
-    check_budget(cfg, timing, [methods.coarsest(str(args.resolution), args)])
+    name = str(args.resolution)
+    check_budget(cfg, timing, [methods.coarsest(name, args)], methods.reach(name, args))
     return Loop(env, model, cfg, timing, omega, choose, inputs, judge)
 
 
@@ -263,6 +264,7 @@ def run_resumable(out: str, fresh: bool, env: PileEnv, state, chooser: Chooser, 
         frames.last = resume.records[-1]
         if cfg.time_budget is not None and os.path.isfile(table):  # refined as it was unless given frozen (--timing)
             timing = budget.TimingTable.load(table, frozen=timing is not None and timing.frozen)
+            check_budget(cfg, timing, omegas or [min(cfg.buckets)])  # a table of other buckets: said before a step
         print(f"resuming the interrupted episode after step {len(resume.records)} of {cfg.mpc_steps} ({saved})")
         guard.kept(guard.span("the episode's step", len(resume.records), cfg.mpc_steps))
     if cfg.time_budget is not None and timing is None:

@@ -146,8 +146,25 @@ def _project(camera: Camera, xy) -> np.ndarray:
 
 
 def _check_positive(name: str, value) -> None:
-    if not np.isfinite(value) or value <= 0:
-        raise ValueError(f"{name} must be positive, got {value}")
+    """ValueError naming ``name`` unless value is one finite positive real number (not a string, a bool or an array
+    of several)."""
+    try:
+        number = None if isinstance(value, (bool, np.bool_, str, bytes)) or np.ndim(value) else float(value)
+    except (TypeError, ValueError):
+        number = None
+    if number is None or not np.isfinite(number) or number <= 0:
+        raise ValueError(f"{name} must be positive: one finite number, got {value!r}")
+
+
+def _point(name: str, xy) -> np.ndarray:
+    """xy as a finite table point [2] (m); ValueError naming ``name`` for another shape or a non-number."""
+    try:
+        point = np.asarray(xy, np.float64)
+    except (TypeError, ValueError):
+        point = None
+    if point is None or point.shape != (2,) or not np.all(np.isfinite(point)):
+        raise ValueError(f"{name} must be a finite (x, y) in metres, got {xy!r}")
+    return point
 
 
 def _check_in_view(what: str, camera: Camera, outline_xy, bin_half_width: float) -> None:
@@ -155,6 +172,7 @@ def _check_in_view(what: str, camera: Camera, outline_xy, bin_half_width: float)
     outline_xy = np.asarray(outline_xy, np.float64)
     if not np.all(np.isfinite(outline_xy)):
         raise ValueError(f"{what}: coordinates must be finite")
+    _check_positive(f"{what}: bin_half_width", bin_half_width)
     reach = float(np.max(np.abs(outline_xy)))
     if reach > bin_half_width + 1e-9:
         raise ValueError(f"{what} reaches outside the bin: |x| or |y| up to {reach:.4f} m > {bin_half_width} m")
@@ -180,7 +198,7 @@ def disc_goal(camera: Camera, centre_xy, radius: float, *, bin_half_width: float
     """Gather goal: pixels whose centre's table point lies within ``radius`` (m) of ``centre_xy`` [2] (m).
     -> [H, W] bool. ValueError for radius <= 0, a disc reaching outside the bin or image, or one with no pixels."""
     _check_positive("disc radius", radius)
-    centre = np.asarray(centre_xy, np.float64).reshape(2)
+    centre = _point("disc centre", centre_xy)
     angle = np.linspace(0, 2 * np.pi, 256, endpoint=False)
     outline = centre + radius * np.stack([np.cos(angle), np.sin(angle)], -1)
     _check_in_view("disc goal", camera, outline, bin_half_width)  # the outline holds the 4 axis extremes
@@ -254,7 +272,7 @@ def text_goal(camera: Camera, text: str, centre_xy, height_m: float, font: int =
     _check_positive("text height_m", height_m)
     thickness_m = height_m / 5 if thickness_m is None else thickness_m
     _check_positive("text thickness_m", thickness_m)
-    centre = np.asarray(centre_xy, np.float64).reshape(2)
+    centre = _point("text centre", centre_xy)
     # the ink is height_m tall: text that cannot fit fails before it is drawn (the drawing costs most for large text)
     _check_in_view(f"text goal {text!r}", camera, centre + [[0, -0.45 * height_m], [0, 0.45 * height_m]],
                    bin_half_width)

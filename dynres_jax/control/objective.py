@@ -104,7 +104,12 @@ def objective(positions, mask, goal: Goal, camera: Camera):
 
     c = (Σ_p SDF(p) + Σ_{q∈Q'} min_p |p − q|) / ω over the ω valid particles projected by ``camera``, Q' the first
     min(5 ω, Q) valid goal samples. Masked particles are inert (any value, NaN included); 0 when ω = 0.
-    Differentiable w.r.t. positions; ``jax.vmap`` over particle sets and goals."""
+    Differentiable w.r.t. positions; ``jax.vmap`` over particle sets and goals. ValueError (at trace time) for
+    positions not [N >= 1, 3] or a mask not [N]."""
+    if jnp.ndim(positions) != 2 or jnp.shape(positions)[-1] != 3 or jnp.shape(positions)[0] < 1 or jnp.shape(
+            mask) != jnp.shape(positions)[:1]:
+        raise ValueError(f"objective: positions must be [N >= 1, 3] (m) and mask [N], got {jnp.shape(positions)} "
+                         f"and {jnp.shape(mask)}")
     mask = jnp.asarray(mask, bool)
     positions = jnp.where(mask[:, None], jnp.asarray(positions, jnp.float32), 0.0)
     uv, _ = camera.world_to_pixel(positions)

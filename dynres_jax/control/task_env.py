@@ -49,8 +49,10 @@ class TaskEnv:
 
     def __init__(self, sim: SimConfig | None = None, goal_mask=None, *, backend: str = "mjx",
                  episode_length: int = 20, success: float = 0.9):
-        if episode_length < 1 or not 0 < success <= 1:
-            raise ValueError(f"episode_length must be >= 1 and success in (0, 1], got {episode_length}, {success}")
+        if (isinstance(episode_length, bool) or not isinstance(episode_length, int | np.integer) or episode_length < 1
+                or not 0 < success <= 1):
+            raise ValueError(f"episode_length must be a whole number >= 1 and success in (0, 1], got "
+                             f"{episode_length!r}, {success!r}")
         self.pile = sim_env.PileEnv(sim or SimConfig(), backend=backend)
         camera = self.pile.camera
         mask = disc_goal(camera, np.zeros(2), 0.08) if goal_mask is None else np.asarray(goal_mask, bool)

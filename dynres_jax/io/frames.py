@@ -64,20 +64,21 @@ def read_image(path: str, what: str, flags: int) -> np.ndarray:
     if image is None:
         raise FrameError(f"{what} {path!r} is not a readable image")
     turned = _exif_orientation(path)
-    if turned not in (None, 1):
+    if turned in range(2, 9):  # 1: as stored; 0 or none: undefined
         raise FrameError(f"{what} {path!r} carries an EXIF orientation tag ({turned}: shown rotated or mirrored); "
                          "save its pixels the way they should lie, without the tag")
     return image
 
 
 def _exif_orientation(path: str) -> int | None:
-    """The EXIF orientation tag (0x0112) of an image file, or None where it has none or Pillow cannot read it."""
-    from PIL import Image, UnidentifiedImageError
+    """The EXIF orientation tag (0x0112) of an image file, or None where it has none or Pillow cannot read it (OpenCV
+    has read the pixels; a malformed EXIF block raises anything from Pillow, SyntaxError included)."""
+    from PIL import Image
 
     try:
         with Image.open(path) as im:
             return im.getexif().get(0x0112)
-    except (OSError, UnidentifiedImageError, ValueError):
+    except Exception:
         return None
 
 

@@ -11,6 +11,7 @@ from dataclasses import dataclass
 from typing import NamedTuple
 
 import jax.numpy as jnp
+import numpy as np
 from flax import nnx
 from jax.tree_util import Partial
 
@@ -153,6 +154,9 @@ def load_dynamics(choice: str, ckpt_dir: str, plate_half_width: float, edge_dtyp
     missing checkpoint, ``ckpt.CheckpointError`` for a damaged one."""
     if choice not in ("auto", "learned", "sweep"):
         raise ValueError(f"dynamics must be 'auto', 'learned' or 'sweep', got {choice!r}")
+    if isinstance(plate_half_width, bool) or not (np.ndim(plate_half_width) == 0 and np.isfinite(plate_half_width)
+                                                  and plate_half_width > 0):
+        raise ValueError(f"plate_half_width must be a positive number of metres, got {plate_half_width!r}")
     if choice == "auto" and ckpt.latest_step(ckpt_dir) is None and os.path.abspath(ckpt_dir) in (
             SHIPPED_DYNAMICS, SHIPPED_SORT_DYNAMICS):
         warnings.warn(f"no shipped checkpoint in {ckpt_dir}: planning with the sweep heuristic", stacklevel=2)
