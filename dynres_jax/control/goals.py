@@ -29,8 +29,7 @@ class Goal(NamedTuple):
     mask [H, W] bool: goal pixels; distance [H, W] float32: signed distance field in pixels (negative inside, positive
     outside; a pixel's distance to the nearest pixel centre of the other set); samples [Q, 2] float32: pixel
     coordinates (u, v) of an FPS subsample of the goal pixels' centres, in FPS order; sample_mask [Q] bool: valid
-    samples (all but the tail when the goal has fewer than Q pixels).
-    """
+    samples (all but the tail when the goal has fewer than Q pixels)."""
 
     mask: jax.Array
     distance: jax.Array
@@ -146,8 +145,7 @@ def _project(camera: Camera, xy) -> np.ndarray:
 
 
 def _check_positive(name: str, value) -> None:
-    """ValueError naming ``name`` unless value is one finite positive real number (not a string, a bool or an array
-    of several)."""
+    """ValueError naming ``name`` unless value is one finite positive number (not a string, bool or several)."""
     try:
         number = None if isinstance(value, (bool, np.bool_, str, bytes)) or np.ndim(value) else float(value)
     except (TypeError, ValueError):
@@ -161,8 +159,8 @@ def _point(name: str, xy) -> np.ndarray:
     try:
         point = np.asarray(xy, np.float64)
     except (TypeError, ValueError):
-        point = None
-    if point is None or point.shape != (2,) or not np.all(np.isfinite(point)):
+        point = np.full(0, np.nan)
+    if point.shape != (2,) or not np.all(np.isfinite(point)):
         raise ValueError(f"{name} must be a finite (x, y) in metres, got {xy!r}")
     return point
 
