@@ -166,7 +166,7 @@ def test_evaluation_fixed_and_adaptive(regressor, timing, tmp_path):
         with open(tmp_path / f"{method}.json") as f:
             runs[method] = json.load(f)
         omega, steps = np.array(runs[method]["omega"]), np.array(runs[method]["adam_steps"])
-        assert np.array_equal(steps, np.vectorize(lambda w: AFFORDED[bucket_for(int(w))])(omega))
+        assert np.array_equal(steps, np.vectorize(lambda w: AFFORDED[bucket_for(int(w), TABLE.buckets)])(omega))
     assert np.all(np.array(runs["10"]["omega"]) == 10) and len(runs["10"]["final_distance"]) == 2
     assert np.all(np.array(runs["75"]["adam_steps"]) == 1)  # a fine ω affords fewer steps under the same budget
     assert summary["reference"] == "adaptive" and set(summary["paired"]) == {"10", "75"}

@@ -97,8 +97,8 @@ def test_resumed_run_equals_an_uninterrupted_one(shards, run, tmp_path):
 def test_eval_reports_every_method_and_resolution(run, shards, tmp_path):
     out, _ = run
     result = eval_dynamics.main(["--ckpt", f"{out}/ckpt", "--data", shards, "--out", str(tmp_path),
-                                 "--omegas", "2", "8", "--windows", "4"])
-    assert set(result["omegas"]) == {"2", "8"}
+                                 "--omegas", "2", "8", "--windows", "6"])
+    assert set(result["omegas"]) == {"2", "8"} and result["windows"] == 4  # the held-out episodes hold 4 windows
     for r in result["omegas"].values():
         for method in eval_dynamics.METHODS:
             assert len(r[method]) == CFG.horizon and all(np.isfinite(r[method]))

@@ -128,7 +128,9 @@ def main(argv=None):
     parser.add_argument("--omegas", nargs="+", type=checks.omega, default=None,
                         help=f"the resolutions ω to measure at (default {' '.join(map(str, OMEGAS))}, those up to the "
                              "model's n_max, or n_max alone when none is)")
-    parser.add_argument("--windows", type=checks.count(1), default=256, help="held-out windows per ω")
+    parser.add_argument("--windows", type=checks.count(1), default=256,
+                        help="different held-out windows per ω, at most what the held-out episodes hold (all of "
+                             "them where they hold fewer, said in a line)")
     parser.add_argument("--seed", type=checks.seed, default=0)
     args = parser.parse_args(argv)
     try:
@@ -145,18 +147,22 @@ def main(argv=None):
         parser.error(f"--omegas names an ω twice: {args.omegas}")
     val = targets.load_shards(args.data, "val")
     rng = np.random.default_rng(args.seed)
-    try:
-        windows = targets.random_windows(val, rng, args.windows, tcfg["horizon"])
-    except ValueError as e:
-        parser.error(f"--windows {args.windows}: the held-out episodes of {args.data}: {e}")
+    available = targets.window_count(val, tcfg["horizon"])
+    if available == 0:
+        parser.error(f"--data {args.data}: its held-out episodes hold no window of {tcfg['horizon']} pushes")
+    count = min(args.windows, available)
+    if count < args.windows:
+        print(f"the held-out episodes of {args.data} hold {available} different windows of {tcfg['horizon']} pushes: "
+              f"measuring all {available} (--windows {args.windows})")
+    windows = targets.random_windows(val, rng, count, tcfg["horizon"])
     checks.claim(args.out, "eval_dynamics", checks.settings(args), args.fresh,
                  {"--ckpt": args.ckpt, "--data": args.data})
     graphdef, state = nnx.split(model)
     cfg = train.TrainConfig(**{k: v for k, v in tcfg.items() if k in ("n_max", "max_points")})
     make = jax.jit(jax.vmap(functools.partial(train.make_sample, camera=val.camera, cfg=cfg), in_axes=(0, None, 0)))
-    keys = jax.random.split(jax.random.PRNGKey(args.seed), args.windows)
+    keys = jax.random.split(jax.random.PRNGKey(args.seed), count)
     hw = meta["dynamics"]["plate_half_width"]
-    result = {"horizon": tcfg["horizon"], "windows": args.windows, "step": meta.get("step"),
+    result = {"horizon": tcfg["horizon"], "windows": count, "step": meta.get("step"),
               "held_out_kinds": list(tcfg.get("held_out_kinds", ())), "omegas": {}}
     for omega in args.omegas:
         result["omegas"][str(omega)] = errors(graphdef, state, make(windows, omega, keys), hw)
@@ -164,7 +170,7 @@ def main(argv=None):
     plot(result, os.path.join(args.out, "eval.png"))
     text = table(result)
     files.write_text(os.path.join(args.out, "eval.md"), text)
-    print(f"one-step and multi-step errors of {args.ckpt} (step {result['step']}) on {args.windows} held-out windows "
+    print(f"one-step and multi-step errors of {args.ckpt} (step {result['step']}) on {count} held-out windows "
           f"of {result['horizon']} pushes, mm:\n{text}")
     print(f"wrote {', '.join(os.path.join(args.out, n) for n in ('eval.json', 'eval.md', 'eval.png'))}")
     return result

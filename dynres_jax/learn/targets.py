@@ -191,11 +191,15 @@ def _cut(data, rows, t, horizon: int) -> Window:
                   data.action[r, span[:, :-1]])
 
 
+def window_count(data: Dataset, horizon: int) -> int:
+    """How many different windows of ``horizon`` pushes the data hold: episodes x start frames."""
+    return len(data) * max(data.pushes - horizon + 1, 0)
+
+
 def random_windows(data: Dataset, rng: np.random.Generator, batch: int, horizon: int = 5) -> Window:
     """``batch`` different windows (row, start frame), drawn uniformly without replacement; ValueError where the data
-    hold fewer."""
-    starts = data.pushes - horizon + 1
-    total = len(data) * starts
+    hold fewer (``window_count``)."""
+    starts, total = data.pushes - horizon + 1, window_count(data, horizon)
     if batch > total:
         raise ValueError(f"the data hold {total} different windows of {horizon} pushes ({len(data)} episodes x "
                          f"{starts} start frames), fewer than {batch}")
