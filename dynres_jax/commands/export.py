@@ -34,26 +34,13 @@ from dynres_jax.control.budget import bucket_for
 from dynres_jax.control.decision import DecisionSpec
 from dynres_jax.control.goals import MAX_GOAL_SAMPLES
 from dynres_jax.control.planner import PlannerConfig
-from dynres_jax.io import frames
+from dynres_jax.io import files, frames
 from dynres_jax.io.ckpt import CheckpointError
 from dynres_jax.models.registry import SHIPPED_DYNAMICS
 from dynres_jax.sim.camera import Camera
 from dynres_jax.sim.pushes import wall_reach
 
 PLATFORMS = ("cpu", "cuda", "rocm", "tpu")
-
-
-def _read_json_or_none(path: str):
-    """The JSON object in ``path``, or None where it holds none (not a regular file of at most a megabyte, not JSON,
-    not an object, unreadable)."""
-    if not os.path.isfile(path) or os.path.getsize(path) > 1 << 20:  # a FIFO would block the read
-        return None
-    try:
-        with open(path) as f:
-            data = json.load(f)
-    except (OSError, ValueError):
-        return None
-    return data if isinstance(data, dict) else None
 
 
 @checks.guarded("export")
@@ -102,8 +89,9 @@ def main(argv=None):
         parser.error(str(e))
     camera = Camera.top_down(CameraConfig()) if args.camera is None else frames.load_camera(args.camera)
     checks.out_file(args.out, (".jaxexport",), beside=".json", inputs={"--camera": args.camera})
-    sidecar = args.out + ".json"
-    if os.path.lexists(sidecar) and "sha256" not in (_read_json_or_none(sidecar) or {}):
+    sidecar = args.out + ".json"  # read only a small regular file: a FIFO would block the read
+    earlier = files.read_json(sidecar) if os.path.isfile(sidecar) and os.path.getsize(sidecar) <= 1 << 20 else None
+    if os.path.lexists(sidecar) and not (isinstance(earlier, dict) and "sha256" in earlier):
         parser.error(f"--out {args.out}: {sidecar} exists and is not an export's description (the file export writes "
                      "beside it); move it or give another --out")
     spec = DecisionSpec(bucket_for(args.resolution), config, real_depth=args.real_depth)
