@@ -16,7 +16,7 @@ device's timing table (seconds per decision at each bucket, one scene, the task 
 seconds. Writes ``surface.json`` (mean c* per scene kind, ω and N with 95 % intervals, the planner's own predicted c,
 d before the push, the timing table) and ``surface.png``; each scene kind's raw values are saved as it finishes
 (``surface_KIND.npz``) and a rerun skips finished kinds. ``--repeats R`` plans every scene, ω and N R times from
-independent keys (draw 0 the common key above, draw r the key with ``mpc.PLAN_DRAWS + r`` folded in), kept as
+independent keys (``mpc.draw_keys``: draw 0 the common key above, as the closed loop's plan draws), kept as
 c_star_draws [R, ω, N, S] beside c_star (draw 0): what a cross-fitted oracle over ω needs
 (``scripts/crossfit.py``).
 
@@ -48,9 +48,9 @@ from dynres_jax.commands.task import check_pile
 from dynres_jax.config import CameraConfig, PileConfig, PushConfig, SceneConfig, SimConfig
 from dynres_jax.control import tasks
 from dynres_jax.control.budget import BUCKETS, TimingTable, bucket_for
-from dynres_jax.control.decision import decide_batch, episode, fold
+from dynres_jax.control.decision import decide_batch, episode
 from dynres_jax.control.goals import make_goals
-from dynres_jax.control.mpc import PLAN_DRAWS, MPCConfig, measure_timing
+from dynres_jax.control.mpc import MPCConfig, draw_keys, measure_timing
 from dynres_jax.control.objective import distribution_distance
 from dynres_jax.control.planner import planner_config
 from dynres_jax.io import files
@@ -241,14 +241,14 @@ def _surface_scenes(pool, starts, goals, keys, dynamics, cfg, omegas, steps, sce
                     ) -> dict:
     """c* and the predicted c [ω, N, S] and d before the push [S] of the scenes ``starts`` [S] with ``goals`` [S], each
     planned from its own key in ``keys`` [S] at every ω and N (common random numbers); with repeats R > 1 also
-    c_star_draws [R, ω, N, S], draw r planned from the keys with ``PLAN_DRAWS + r`` folded in (draw 0: ``keys``)."""
+    c_star_draws [R, ω, N, S], draw r planned from ``mpc.draw_keys(keys, r)``."""
     camera = pool.camera
     measure = jax.jit(jax.vmap(lambda obs, goal: distribution_distance(obs, goal, camera)))
     draws = np.zeros((repeats, len(omegas), len(steps), len(keys)))
     predicted = np.zeros(draws.shape[1:])
     init = jnp.zeros((len(keys), cfg.planner.horizon, 4), jnp.float32)  # no warm start
     for r in range(repeats):
-        drawn = keys if r == 0 else fold(keys, PLAN_DRAWS + r)
+        drawn = draw_keys(keys, r)
         for i, omega in enumerate(omegas):
             for j, n in enumerate(steps):
                 result = decide_batch(starts.obs, goals, drawn, init, False, np.full(len(keys), omega),

@@ -302,9 +302,12 @@ def _holding(held, record: dict) -> dict:
 
 def _drawn(now: Situation, draw: int) -> Situation:
     """``now`` with the keys of independent plan ``draw`` (0: the step's own)."""
-    if draw == 0:
-        return now
-    return now._replace(keys=fold(now.keys, PLAN_DRAWS + draw))
+    return now if draw == 0 else now._replace(keys=draw_keys(now.keys, draw))
+
+
+def draw_keys(keys, draw: int):
+    """keys [B] of independent plan ``draw``: the keys themselves for draw 0, else with PLAN_DRAWS + draw folded in."""
+    return keys if draw == 0 else fold(keys, PLAN_DRAWS + draw)
 
 
 def shift(best):
