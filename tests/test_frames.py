@@ -251,3 +251,35 @@ def test_bad_camera_json_is_one_line(saved, tmp_path, capsys, text, says):
     err = _one_line_error(["--disc", "0", "0", "0.05", "--camera", str(path), "--out", str(tmp_path / "g.png")],
                           capsys)
     assert "camera file" in err and len(err) < 400, err
+
+
+def test_goal_masks_read_as_gray_levels_in_every_layout_and_odd_ones_refused(saved, tmp_path, capsys):
+    """The same disc saved as 8-bit gray, BGR, opaque BGRA and opaque gray + alpha reads as the same mask (by
+    ``load_goal`` and by ``goal --mask``); a 16-bit mask (OpenCV would scale 0/1 to 0: "no goal pixel") and a shape
+    drawn in transparency (white everywhere, the disc in alpha: "outside the workspace") are refused, naming why."""
+    env, _, paths = saved
+    goal = disc_goal(env.camera, np.array([0.02, -0.01]), 0.05)
+    gray = goal.astype(np.uint8) * 255
+    opaque = np.full_like(gray, 255)
+    layouts = {"gray": gray, "bgr": np.dstack([gray] * 3), "bgra": np.dstack([gray] * 3 + [opaque]),
+               "gray_alpha": np.dstack([gray, opaque])}
+    for name, image in layouts.items():
+        path = str(tmp_path / f"{name}.png")
+        if name == "gray_alpha":  # OpenCV writes no two-channel PNG: Pillow's LA mode
+            from PIL import Image
+            Image.fromarray(image, "LA").save(path)
+            assert cv2.imread(path, cv2.IMREAD_UNCHANGED).shape[-1] in (2, 4)
+        else:
+            cv2.imwrite(path, image)
+        np.testing.assert_array_equal(frames.load_goal(path, env.camera), goal, err_msg=name)
+    wide = str(tmp_path / "sixteen.png")
+    cv2.imwrite(wide, goal.astype(np.uint16))  # 0 / 1 in 16 bits
+    with pytest.raises(frames.FrameError, match="16-bit image"):
+        frames.load_goal(wide, env.camera)
+    drawn = str(tmp_path / "alpha.png")
+    cv2.imwrite(drawn, np.dstack([opaque] * 3 + [gray]))  # white, the disc opaque, the rest transparent
+    with pytest.raises(frames.FrameError, match="transparent pixels"):
+        frames.load_goal(drawn, env.camera)
+    err = _one_line_error(["--mask", drawn, "--camera", paths["camera.json"], "--out", str(tmp_path / "g.png")],
+                          capsys)
+    assert "transparent pixels" in err and not (tmp_path / "g.png").exists()

@@ -22,7 +22,7 @@ from dynres_jax.commands import checks
 from dynres_jax.config import CameraConfig
 from dynres_jax.control.goals import BIN_HALF_WIDTH, check_within, disc_goal, text_goal
 from dynres_jax.errors import InputError
-from dynres_jax.io.frames import load_camera, read_image, save_goal
+from dynres_jax.io.frames import load_camera, read_mask, save_goal
 from dynres_jax.sim.camera import Camera
 
 
@@ -30,7 +30,7 @@ def mask_goal(path: str, camera: Camera) -> np.ndarray:
     """A mask image of any size (white, > 127, is the goal) resized to the camera's [H, W] bool. InputError for an
     unreadable file or one that is not a regular file (a FIFO, a device, a folder), another aspect ratio or no goal
     pixel after resizing."""
-    image = read_image(path, "--mask", cv2.IMREAD_GRAYSCALE)  # a regular file, no EXIF orientation tag
+    image = read_mask(path, "--mask")  # a regular file, 8-bit, opaque, no EXIF orientation tag
     (h, w), (ch, cw) = image.shape, (camera.height, camera.width)
     if abs(h * cw - w * ch) > max(h, w):  # a pixel of slack
         raise InputError(f"--mask {path!r} is {w} x {h} pixels, not the camera's aspect ratio ({cw} x {ch})")

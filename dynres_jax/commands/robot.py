@@ -23,7 +23,6 @@ from __future__ import annotations
 import json
 import os
 
-import cv2
 import jax
 import numpy as np
 
@@ -47,7 +46,7 @@ from dynres_jax.control.planner import planner_config
 from dynres_jax.control.robot import STOP_SHARE, DryRun, ReplaySource, SimulatedRobot, Workspace, run_robot
 from dynres_jax.control.tasks import succeeded
 from dynres_jax.io.draw import caption, overlay
-from dynres_jax.io.frames import load_goal, read_image, save_frame
+from dynres_jax.io.frames import load_goal, read_mask, save_frame
 from dynres_jax.models.registry import SHIPPED_DYNAMICS
 from dynres_jax.sim.camera import MAX_IMAGE, MIN_IMAGE
 from dynres_jax.sim.env import PileEnv
@@ -102,7 +101,7 @@ def main(argv=None):
         goal_mask = load_goal(args.goal, camera) if args.goal else disc_goal(camera, np.zeros(2), 0.08)
         make_goal(goal_mask, camera)
     except ValueError as e:
-        size = read_image(args.goal, "goal file", cv2.IMREAD_GRAYSCALE).shape if "camera's images are" in str(e) else ()
+        size = read_mask(args.goal, "goal file").shape if "camera's images are" in str(e) else ()
         hint = (f" (--image-size {size[0]}: the simulator's frames at the goal's size)"
                 if len(size) == 2 and size[0] == size[1] and not args.replay else "")
         parser.error(f"--goal: {e}{hint}")

@@ -70,6 +70,25 @@ def read_image(path: str, what: str, flags: int) -> np.ndarray:
     return image
 
 
+def read_mask(path: str, what: str) -> np.ndarray:
+    """A goal mask image as gray levels [H, W] uint8 (``read_image``'s checks): 8-bit gray, colour (its luminance) or
+    opaque colour with alpha. FrameError naming ``what`` for a 16-bit or float image (its levels are not a mask's
+    0-255: OpenCV would scale them to 0, and white would read as no goal) and for an alpha channel that is not fully
+    opaque (a shape drawn in transparency; the goal is read from white on black, not from alpha)."""
+    image = read_image(path, what, cv2.IMREAD_UNCHANGED)
+    if image.dtype != np.uint8:
+        raise FrameError(f"{what} {path!r} is a {image.dtype.itemsize * 8}-bit image; a goal mask is 8-bit, white "
+                         "(> 127) on black")
+    channels = 1 if image.ndim == 2 else image.shape[2]
+    if channels in (2, 4) and (image[..., -1] < 255).any():
+        raise FrameError(f"{what} {path!r} has transparent pixels (alpha); a goal mask is read from its gray levels, "
+                         "white (> 127) on black: save the shape opaque, without transparency")
+    if channels == 1:
+        return image.reshape(image.shape[:2])
+    return cv2.cvtColor(image[..., :3] if channels == 4 else image[..., :1].repeat(3, axis=2) if channels == 2
+                        else image, cv2.COLOR_BGR2GRAY)
+
+
 def _exif_orientation(path: str) -> int | None:
     """The EXIF orientation tag (0x0112) of an image file, or None where it has none or Pillow cannot read it (OpenCV
     has read the pixels; a malformed EXIF block raises anything from Pillow, SyntaxError included)."""
@@ -175,7 +194,7 @@ def save_goal(path: str, mask) -> str:
 
 def load_goal(path: str, camera: Camera) -> np.ndarray:
     """A goal mask [H, W] bool from a PNG (white = goal) of the camera's size."""
-    image = read_image(path, "goal file", cv2.IMREAD_GRAYSCALE)
+    image = read_mask(path, "goal file")
     if image.shape != (camera.height, camera.width):
         raise FrameError(f"goal file {path!r} is {image.shape}, the camera's images are "
                          f"{(camera.height, camera.width)}")
