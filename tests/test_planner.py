@@ -308,21 +308,28 @@ def test_config_errors():
 
 
 def test_particles_no_plan_can_start_from_are_refused_by_name():
-    """NaN or infinite valid positions, no valid particle, integer positions (millimetres?) and a config that is not
-    a PlannerConfig are one-line InputErrors before any work; garbage in masked slots stays allowed."""
+    """NaN or infinite valid positions, no valid particle, integer positions (millimetres?), a valid particle out of
+    every push's reach (metres taken for another unit or frame) and a config that is not a PlannerConfig are one-line
+    InputErrors before any work; a particle at the reach itself and garbage in masked slots stay allowed."""
     from dynres_jax.errors import InputError
 
     positions, mask = pile(jax.random.PRNGKey(2), n=6)
     small = PlannerConfig(samples=2, adam_steps=1, bound=BOUND)
     cases = {"NaN or infinite": np.asarray(positions).copy(), "no valid particle": positions,
-             "floating-point metres": np.round(np.asarray(positions) * 1000).astype(np.int32)}
+             "floating-point metres": np.round(np.asarray(positions) * 1000).astype(np.int32),
+             "beyond any push's reach": np.asarray(positions).copy()}
     cases["NaN or infinite"][0, 0] = np.nan
+    reach = small.bound + small.max_length
+    cases["beyond any push's reach"][0, 1] = reach + 0.001  # a particle a millimetre past the farthest push
     for match, p in cases.items():
         m = np.zeros_like(mask) if match == "no valid particle" else mask
         with pytest.raises(InputError, match=match):
             plan(sweep_dynamics, centroid_cost, p, m, None, small)
     with pytest.raises(InputError, match="must be a PlannerConfig"):
         plan(sweep_dynamics, centroid_cost, positions, mask, None, {"samples": 2})
+    edge = np.asarray(positions).copy()
+    edge[0, 1] = -reach
+    assert np.isfinite(float(plan(sweep_dynamics, centroid_cost, edge, mask, None, small).best_cost))
     mask = np.asarray(mask).copy()
     mask[-2:] = False
     garbage = np.asarray(positions).copy()

@@ -20,9 +20,10 @@ import numpy as np
 
 from dynres_jax.commands import checks
 from dynres_jax.config import CameraConfig
-from dynres_jax.control.goals import BIN_HALF_WIDTH, check_within, disc_goal, text_goal
+from dynres_jax.control.goals import check_within, disc_goal, text_goal
 from dynres_jax.errors import InputError
 from dynres_jax.io.frames import load_camera, read_mask, save_goal
+from dynres_jax.perception import WORKSPACE_HALF_WIDTH
 from dynres_jax.sim.camera import Camera
 
 
@@ -52,8 +53,9 @@ def main(argv=None):
     parser.add_argument("--centre", nargs=2, type=checks.number(-1.0, 1.0), default=(0.0, 0.0), metavar=("X", "Y"),
                         help="--letter: the centre of its ink, m")
     parser.add_argument("--camera", default=None, help="camera JSON (default: the simulator's top-down camera)")
-    parser.add_argument("--bin-half-width", type=checks.number(0.01, 1.0), default=BIN_HALF_WIDTH,
-                        help="shapes must lie within ±this of the bin's centre, m")
+    parser.add_argument("--bin-half-width", type=checks.number(0.01, 1.0), default=WORKSPACE_HALF_WIDTH,
+                        help="shapes must lie within ±this of the bin's centre, m (default: the workspace plan, "
+                             "robot and the exported decision accept, the bin's inner faces less 1 mm)")
     parser.add_argument("--out", required=True, help="the goal PNG to write")
     args = parser.parse_args(argv)
     checks.out_file(args.out, (".png",), inputs={"--mask": args.mask, "--camera": args.camera})

@@ -192,9 +192,11 @@ def sample_pushes(key, points, valid, config: PlannerConfig):
                           None if c.starts == "fixed" else c.reach, wall)
 
 
-def _check_particles(positions, mask) -> None:
+def _check_particles(positions, mask, config: PlannerConfig) -> None:
     """InputError, before any work, for particles no plan can start from: positions not floating-point (metres),
-    a valid one NaN or infinite, or a particle set with no valid particle. Traced arguments are not checked."""
+    a valid one NaN or infinite or out of every push's reach (x or y beyond the pushes' ends, ±max(bound, reach),
+    plus a push's length: millimetres or another frame's coordinates), or a particle set with no valid particle.
+    Traced arguments are not checked."""
     if isinstance(positions, jax.core.Tracer) or isinstance(mask, jax.core.Tracer):
         return
     positions, mask = np.asarray(positions), np.asarray(mask)
@@ -205,6 +207,11 @@ def _check_particles(positions, mask) -> None:
     mask = mask.astype(bool)
     if not np.all(np.isfinite(positions[mask])):
         raise InputError("positions of valid particles are NaN or infinite")
+    reach = max(config.bound, config.reach or 0.0) + config.max_length
+    far = np.abs(positions[mask][:, :2]).max(initial=0.0)
+    if far > reach:
+        raise InputError(f"a valid particle lies {far:g} m from the workspace centre in x or y, beyond any push's "
+                         f"reach (±{reach:g} m): positions are metres in the table frame (origin at the bin's centre)")
     if not np.all(mask.reshape(-1, mask.shape[-1]).any(axis=-1)):
         raise InputError("no valid particle to plan with (the mask is all False)")
 
@@ -318,7 +325,7 @@ def plan(dynamics_fn, cost_fn, positions, mask, key, config: PlannerConfig = Pla
     """
     if not isinstance(config, PlannerConfig):
         raise InputError(f"config must be a PlannerConfig, got {type(config).__name__}")
-    _check_particles(positions, mask)
+    _check_particles(positions, mask, config)
     positions, mask = _batched(positions, mask, config.resamples)
     if adam_steps is None:
         adam_steps = config.adam_steps
