@@ -109,6 +109,19 @@ def test_a_folder_holding_only_a_lock_counts_as_empty(tmp_path):
         checks.claim(out, "demo", {})
 
 
+def test_a_dangling_link_as_out_is_refused_before_any_work(tmp_path):
+    """--out a symbolic link to a folder that does not exist: refused by check_out (what commands call before their
+    set-up) naming the link's target, and nothing made; a link to an existing folder is that folder."""
+    out = tmp_path / "run"
+    os.symlink(tmp_path / "gone", out)
+    with pytest.raises(InputError, match="symbolic link to .*gone.*does not exist"):
+        checks.check_out(str(out), "demo", {})
+    assert sorted(os.listdir(tmp_path)) == ["run"]
+    os.makedirs(tmp_path / "gone")
+    assert not checks.claim(str(out), "demo", {})
+    assert os.path.isfile(tmp_path / "gone" / checks.RUN)
+
+
 def test_a_255_byte_name_writes_atomically(tmp_path):
     path = str(tmp_path / ("é" * 125 + "x.txt"))  # 255 bytes in UTF-8
     assert len(os.fsencode(os.path.basename(path))) == 255

@@ -249,6 +249,9 @@ def check_out(out: str, command: str, config: dict, fresh: bool = False, inputs:
     scene built); the inputs' hashes as run.json keeps them."""
     if os.path.exists(out) and not os.path.isdir(out):
         raise InputError(f"--out {out!r} is a file, not a folder")
+    if os.path.islink(out) and not os.path.exists(out):
+        raise InputError(f"--out {out!r} is a symbolic link to {os.readlink(out)!r}, which does not exist: make that "
+                         "folder or give another --out")
     _check_can_create(out)
     _check_name_length(os.path.abspath(os.path.join(out, RUN)))
     if os.path.isdir(out) and not os.path.isfile(os.path.join(out, RUN)) and set(os.listdir(out)) - {LOCK}:
