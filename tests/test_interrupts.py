@@ -162,3 +162,33 @@ def test_the_interrupt_line_says_what_was_kept_and_nothing_when_nothing_was(tmp_
                                                  "command to resume")
     guard.kept(guard.span("the episode's step", 3, 6))
     assert "(the episode's steps 1-3 of 6)" in guard._interrupted("gather")
+
+
+def test_a_program_whose_clean_up_hangs_after_a_signal_still_ends(tmp_path):
+    """A clean-up that waits forever once the command is ending (a process pool's lock held by a killed worker:
+    ``evaluate`` stopped mid-compile hung so) cannot keep a program alive: EXIT_GRACE after the signal it exits with
+    the signal's status and the one line. The probe's clean-up hangs inside the exception's handling, where the resent
+    signal is ignored; without the deadline it would never end."""
+    probe = ("import os, signal, sys, threading, time\n"
+             "signal.signal(signal.SIGINT, signal.default_int_handler)\n"
+             "from dynres_jax.commands import guard\n"
+             "guard.EXIT_GRACE = 2.0\n"
+             "stuck = threading.Lock(); stuck.acquire()\n"
+             "def main(argv=None):\n"
+             "    try:\n"
+             "        os.kill(os.getpid(), signal.SIGTERM)\n"
+             "        time.sleep(60)\n"
+             "    except KeyboardInterrupt:\n"
+             "        print('cleaning up', flush=True)\n"
+             "        stuck.acquire()  # never given: the resent signal is ignored while one is handled\n"
+             "guard.guarded('evaluate')(main)()\n")
+    t0 = time.monotonic()
+    done = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, timeout=120,
+                          env=dict(os.environ, JAX_PLATFORMS="cpu"))
+    assert "cleaning up" in done.stdout, done.stderr  # it did hang in its clean-up
+    assert done.returncode == 143, done.stderr
+    assert time.monotonic() - t0 < 60
+    said = [line for line in done.stderr.splitlines() if ": interrupted" in line]
+    assert said == ["python -m experiments.evaluate: interrupted before any work was kept; rerun the same command "
+                    "to start again"], done.stderr
+    assert "Traceback" not in done.stderr, done.stderr

@@ -35,6 +35,7 @@ class Terminated(KeyboardInterrupt):
 
 
 _signalled: list[int] = []  # the signal a command is ending on, until guarded's except clause takes it (then cleared)
+EXIT_GRACE = 30.0  # s: a command run as a program that has not exited this long after a signal exits anyway
 
 
 def _on_signal(signum, frame):
@@ -46,7 +47,21 @@ def _on_signal(signum, frame):
     if not _signalled:
         _signalled.append(signum)
         threading.Thread(target=_resend, args=(signum,), daemon=True).start()
+        if running.get("program") and not running.get("deadline"):
+            running["deadline"] = True
+            threading.Thread(target=_exit_at_deadline, args=(signum,), daemon=True).start()
     raise Terminated if signum == signal.SIGTERM else KeyboardInterrupt
+
+
+def _exit_at_deadline(signum: int) -> None:
+    """EXIT_GRACE after the first signal, end a program still running: a clean-up that waits on a lock a killed
+    worker held (a process pool shut down mid-compile) or on a worker that never answers would hang it for good.
+    Finished work is on disk already (every file is written whole, atomically); the line says so unless said."""
+    time.sleep(EXIT_GRACE)
+    if not running.get("said"):
+        print(_interrupted(running["name"]), file=sys.stderr)
+    sys.stderr.flush()
+    os._exit(143 if signum == signal.SIGTERM else 130)
 
 
 def _resend(signum: int) -> None:
@@ -96,7 +111,8 @@ def guarded(name: str):
     def wrap(main):
         @functools.wraps(main)
         def run(argv=None):
-            running.update(out=None, kept=None)
+            running.update(out=None, kept=None, name=name, said=False, deadline=False,
+                           program=argv is None)  # run as a program (its own process), not called by a test
             for stream in (sys.stdout, sys.stderr):  # "ω" on an ASCII terminal (PYTHONIOENCODING=ascii): \u03c9
                 if hasattr(stream, "reconfigure"):
                     stream.reconfigure(errors="backslashreplace")
@@ -118,6 +134,7 @@ def guarded(name: str):
                 for s in previous:  # a second Ctrl-C while the line prints is ignored
                     signal.signal(s, signal.SIG_IGN)
                 print(("\n" if sys.stderr.isatty() else "") + _interrupted(name), file=sys.stderr)  # past a bar
+                running["said"] = True
                 raise SystemExit(143 if isinstance(e, Terminated) else 130) from None
             except (InputError, JobError) as e:
                 print(f"{prog(name)}: error: {' '.join(str(e).split())}", file=sys.stderr)
