@@ -284,7 +284,11 @@ def test_padding_is_inert(disc):
     (c0, g0), (c1, g1) = f(pos, mask, disc, CAM), f(padded, mask, disc, CAM)
     assert float(c0) == float(c1)
     np.testing.assert_array_equal(np.asarray(g0), np.asarray(g1))
-    assert float(obj.objective(pos, np.zeros_like(mask), disc, CAM)) == 0.0
+    from dynres_jax.errors import InputError
+
+    with pytest.raises(InputError, match="no valid particle"):  # a concrete empty set: undefined, said
+        obj.objective(pos, np.zeros_like(mask), disc, CAM)
+    assert float(jax.jit(obj.objective, static_argnums=3)(pos, np.zeros_like(mask), disc, CAM)) == 0.0  # traced
 
 
 def test_vmap_equals_loop(disc):

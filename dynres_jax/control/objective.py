@@ -27,8 +27,10 @@ from typing import TYPE_CHECKING
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jax.tree_util import Partial
 
+from dynres_jax.errors import InputError
 from dynres_jax.models.propagation import gather_rows
 from dynres_jax.perception import foreground
 from dynres_jax.sim.camera import Camera, Observation
@@ -98,18 +100,25 @@ def _cost(pixels, valid, goal: Goal):
     return (sdf_term + coverage_term) / jnp.maximum(omega, 1)
 
 
-@functools.partial(jax.jit, static_argnames="camera")
 def objective(positions, mask, goal: Goal, camera: Camera):
     """Task objective c: particles positions [N, 3] (world, m) with mask [N] bool -> scalar (pixels).
 
     c = (Σ_p SDF(p) + Σ_{q∈Q'} min_p |p − q|) / ω over the ω valid particles projected by ``camera``, Q' the first
-    min(5 ω, Q) valid goal samples. Masked particles are inert (any value, NaN included); 0 when ω = 0.
-    Differentiable w.r.t. positions; ``jax.vmap`` over particle sets and goals. ValueError (at trace time) for
-    positions not [N >= 1, 3] or a mask not [N]."""
+    min(5 ω, Q) valid goal samples. Masked particles are inert (any value, NaN included). Differentiable w.r.t.
+    positions; ``jax.vmap`` over particle sets and goals. ValueError (at trace time) for positions not [N >= 1, 3]
+    or a mask not [N]; InputError for a concrete mask with no valid particle (traced, ω = 0 gives 0: a jitted
+    caller masks such sets itself, as the planner's error bits do)."""
     if jnp.ndim(positions) != 2 or jnp.shape(positions)[-1] != 3 or jnp.shape(positions)[0] < 1 or jnp.shape(
             mask) != jnp.shape(positions)[:1]:
         raise ValueError(f"objective: positions must be [N >= 1, 3] (m) and mask [N], got {jnp.shape(positions)} "
                          f"and {jnp.shape(mask)}")
+    if not isinstance(mask, jax.core.Tracer) and not np.asarray(mask, bool).any():
+        raise InputError("objective: no valid particle (the mask is all False); c of an empty set is undefined")
+    return _objective(positions, mask, goal, camera)
+
+
+@functools.partial(jax.jit, static_argnames="camera")
+def _objective(positions, mask, goal: Goal, camera: Camera):
     mask = jnp.asarray(mask, bool)
     positions = jnp.where(mask[:, None], jnp.asarray(positions, jnp.float32), 0.0)
     uv, _ = camera.world_to_pixel(positions)
