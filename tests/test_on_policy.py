@@ -127,7 +127,9 @@ def test_only_planned_worlds_are_planned_warm_after_a_planned_push():
     worlds = EnvWorlds(PileEnv(sim, backend="mujoco"))
     keys = jax.random.split(jax.random.PRNGKey(7), WORLDS)
     dynamics = sweep_dynamics(sim.scene.plate_half_width)
-    calls, decide = [], on_policy.decide_batch
+    from dynres_jax.control import mpc
+
+    calls, decide = [], mpc.decide_batch  # every decision of the loop (``mpc.propose``)
 
     def spy(obs, goals, step_keys, init, warm, *args, **kwargs):
         calls.append((np.asarray(step_keys), np.asarray(warm)))
@@ -135,7 +137,7 @@ def test_only_planned_worlds_are_planned_warm_after_a_planned_push():
 
     saved, chunk_size = dict(on_policy.PLANNER), on_policy._chunk_size
     on_policy.PLANNER.update(samples=8, adam_steps=4)
-    on_policy.decide_batch = spy
+    mpc.decide_batch = spy
     try:
         runs = {}
         for size in (None, 1):  # the rule's chunks (all the worlds here), chunks of one world
@@ -144,7 +146,7 @@ def test_only_planned_worlds_are_planned_warm_after_a_planned_push():
             runs[size] = on_policy.planned_episodes(worlds, keys, 3, 0.5, dynamics, 8, data.frame_record)
     finally:
         on_policy.PLANNER.update(saved)
-        on_policy.decide_batch, on_policy._chunk_size = decide, chunk_size
+        mpc.decide_batch, on_policy._chunk_size = decide, chunk_size
     run = runs[1]
     planned_before = np.zeros(WORLDS, bool)
     for t in range(3):

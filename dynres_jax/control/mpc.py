@@ -149,13 +149,13 @@ def act(worlds: Worlds, now: Situation, omega, *, cfg: MPCConfig, timing: budget
 
 class Progress(NamedTuple):
     """Where a closed loop stands after a step, enough to go on from it: the records so far (``run``'s), the worlds
-    after the last push, the next decision's warm start init [B, T, 4] and whether to use it, and held [B] (the stop
-    rule's)."""
+    after the last push, the next decision's warm start init [B, T, 4] and whether to use it (one for all, or [B]),
+    and held [B] (the stop rule's)."""
 
     records: list[dict]
     states: State
     init: jax.Array
-    warm: bool
+    warm: bool | np.ndarray
     held: np.ndarray
 
 
@@ -171,7 +171,8 @@ def run(worlds: Worlds, states: State, chooser: Chooser, dynamics, cfg: MPCConfi
         resume: Progress | None = None, on_progress: Callable[[Progress], None] | None = None) -> Episodes:
     """The closed loop over a batch of episodes: states [B] in ``worlds``, keys [B]; every MPC step the chooser's
     orders (``choosers.Orders``), one compiled decision over all episodes per candidate (``propose``) and, per
-    episode, the proposal the orders' keep rule keeps (``KEEPS``). dynamics: ``registry`` (radius -> the planner's
+    episode, the proposal the orders' keep rule keeps (``KEEPS``; one that returns warm [B] says which episodes' next
+    decisions start from the kept plan, else cfg.warm_start for all). dynamics: ``registry`` (radius -> the planner's
     model); timing: the table a time budget is spent by (required with cfg.time_budget; a batch of one refines it
     from its decisions' wall times unless frozen); view: what the planner sees (``ExactView``; ``SensorView``);
     on_step: callbacks ``(t, states before the push, kept Particles [B], record)`` (GIF frames: ``io.draw.Frames``);
@@ -231,7 +232,7 @@ def run(worlds: Worlds, states: State, chooser: Chooser, dynamics, cfg: MPCConfi
                       **{k: np.asarray(v) for k, v in chooser.score(kept["states"]).items()})
         for callback in on_step:
             callback(t, states, kept["particles"], record)
-        states, init, warm = kept["states"], shift(kept["best"]), cfg.warm_start
+        states, init, warm = kept["states"], shift(kept["best"]), kept.get("warm", cfg.warm_start)
         records.append(dict(record, seconds=time.perf_counter() - t0))
         _log_step(log, records[-1], cfg.mpc_steps)
         if on_progress is not None:

@@ -42,8 +42,8 @@ def load(path: str, template) -> tuple[Progress, list[np.ndarray]]:
                 raise ValueError("its worlds have other shapes")
             records = [{k: v if k in SCALARS else np.asarray(v) for k, v in r.items()}
                        for r in json.loads(str(data["records"]))]
-            progress = Progress(records, jax.tree.unflatten(treedef, leaves), data["init"], bool(data["warm"]),
-                                data["held"].copy())
+            warm = bool(data["warm"]) if data["warm"].ndim == 0 else data["warm"].copy()  # one for all, or [B]
+            progress = Progress(records, jax.tree.unflatten(treedef, leaves), data["init"], warm, data["held"].copy())
             return progress, list(data["frames"])
     except (OSError, KeyError, ValueError, zipfile.BadZipFile) as e:
         raise InputError(f"{path!r}: an interrupted episode's progress that cannot be read ({e}); delete it or run "

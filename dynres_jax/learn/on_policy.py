@@ -25,9 +25,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from dynres_jax.control import budget, tasks
-from dynres_jax.control.decision import decide_batch, fold
+from dynres_jax.control.choosers import Candidate, Chooser, Orders
+from dynres_jax.control.decision import Situation, fold
 from dynres_jax.control.goals import disc_goal, make_goals
-from dynres_jax.control.mpc import MPCConfig, shift
+from dynres_jax.control.mpc import MPCConfig, propose, run
 from dynres_jax.control.planner import planner_config
 from dynres_jax.models.registry import SHIPPED_DYNAMICS, load_dynamics
 from dynres_jax.perception import visible_count
@@ -106,34 +107,58 @@ def planned_episodes(worlds, keys, pushes: int, planned: float, dynamics, omega:
 
 
 def _episodes(worlds, keys, goals, pushes: int, planned: float, dynamics, omega: int, record) -> dict:
-    """``planned_episodes`` of one group of worlds: keys [B, 2], goals (Goal [B]). A push plans only for the worlds
-    whose push it plans, in chunks of one size (``_chunk_size``: one compile); a world's plan starts from its previous
-    one (warm start) where its previous push was planned too."""
-    env, camera, b = worlds.env, worlds.camera, len(keys)
-    cfg = MPCConfig(planner=planner_config(env, **PLANNER))
-    spec = cfg.spec(budget.bucket_for(omega, cfg.buckets))
-    size = _chunk_size(b, planned)
-    steps = np.full(size, cfg.planner.adam_steps, np.int32)
-    states = worlds.reset(fold(keys, 1))
-    frames, actions = [jax.device_get(record(states))], []
-    plans, warm = np.zeros((b, cfg.planner.horizon, 4), np.float32), np.zeros(b, bool)
-    for t in range(pushes):
-        step_keys = fold(fold(keys, 2), t)
-        chosen = np.asarray(jax.vmap(jax.random.uniform)(fold(step_keys, 2)) < planned)
-        action = np.array(_random_pushes(fold(step_keys, 1), states.pos, env=env), np.float32)
-        for rows, n in _chunks(np.flatnonzero(chosen), size):
-            obs = jax.tree.map(lambda x, r=rows: x[r], states.obs)
-            visible = np.asarray(_visible_points(obs, camera=camera, max_points=cfg.max_points))
-            best = np.asarray(decide_batch(obs, jax.tree.map(lambda x, r=rows: x[r], goals), step_keys[rows],
-                                           plans[rows], warm[rows], np.minimum(omega, visible),
-                                           steps, spec=spec, dynamics=dynamics, camera=camera)[2].best)
-            action[rows[:n]], plans[rows[:n]] = best[:n, 0], np.asarray(shift(best))[:n]
-        warm = chosen
-        states = worlds.push(states, action)
-        frames.append(jax.device_get(record(states)))
-        actions.append(action)
+    """``planned_episodes`` of one group of worlds: keys [B, 2], goals (Goal [B]), through the closed loop
+    (``mpc.run``) with the ``OnPolicy`` chooser."""
+    env, b = worlds.env, len(keys)
+    cfg = MPCConfig(mpc_steps=pushes, planner=planner_config(env, **PLANNER))
+    frames = []
+    chooser = OnPolicy(goals, env, omega, planned, _chunk_size(b, planned), cfg, dynamics)
+    final, steps = run(worlds, worlds.reset(fold(keys, 1)), chooser, dynamics, cfg, fold(keys, 2),
+                       on_step=[lambda t, before, particles, r: frames.append(jax.device_get(record(before)))],
+                       log=lambda line: None)
+    frames.append(jax.device_get(record(final)))
+    actions = [r["action"] for r in steps]
+    while len(actions) < pushes:  # the loop stops once every world broke: its last frame stands (broken is sticky)
+        frames.append(frames[-1])
+        actions.append(np.zeros_like(actions[-1]))
     out = {name: np.stack([f[name] for f in frames], axis=1) for name in frames[0]}
-    return dict(out, action=np.stack(actions, axis=1))
+    return dict(out, action=np.stack(actions, axis=1).astype(np.float32))
+
+
+class OnPolicy(Chooser):
+    """Each push of each world the planner's with probability ``planned``, else random (``PileEnv.sample_push``),
+    against goals [B]. Its orders ask the loop for no plan: its keep rule plans only the worlds it draws, in chunks of
+    ``size`` (one compile; ``_chunks``) at ``omega`` (or the frame's foreground points where fewer), each from its last
+    plan where its last push was planned too (warm start), and pushes every world."""
+
+    def __init__(self, goals, env, omega: int, planned: float, size: int, cfg: MPCConfig, dynamics):
+        self.goals, self.env, self.omega, self.planned, self.size = goals, env, omega, planned, size
+        self.cfg, self.dynamics = cfg, dynamics
+
+    def __call__(self, t, obs) -> Orders:
+        return Orders(self.goals, (), keep=self.keep)
+
+    def keep(self, worlds, now: Situation, plans, score, timing) -> dict:
+        """``mpc.run``'s keep rule (``Orders.keep``): the pushes above; records no score (NaN), warm [B] the worlds
+        planned."""
+        chosen = np.asarray(jax.vmap(jax.random.uniform)(fold(now.keys, 2)) < self.planned)
+        action = np.array(_random_pushes(fold(now.keys, 1), now.states.pos, env=self.env), np.float32)
+        best = np.array(now.init, np.float32)  # where planned, replaced by the plan (the next step's warm start)
+        omega, warm = np.zeros(len(chosen), np.int32), np.broadcast_to(np.asarray(now.warm, bool), chosen.shape)
+        for rows, n in _chunks(np.flatnonzero(chosen), self.size):
+            seen = jax.tree.map(lambda x, r=rows: x[r], now.seen)
+            visible = np.asarray(_visible_points(seen, camera=now.camera, max_points=self.cfg.max_points))
+            part = Situation(None, seen, now.camera, jax.tree.map(lambda x, r=rows: x[r], now.goals), None,
+                             now.keys[rows], now.init[rows], warm[rows])
+            plan = propose(part, Candidate(np.minimum(self.omega, visible)), cfg=self.cfg, timing=None,
+                           dynamics=self.dynamics)
+            action[rows[:n]], best[rows[:n]] = plan["proposals"][:n, 0, 0], plan["proposals"][:n, 0]
+            omega[rows[:n]] = plan["omega"][:n]
+        nothing = np.full(len(chosen), np.nan)
+        return dict(omega=omega, bucket=np.array([budget.bucket_for(w, self.cfg.buckets) if w else 0 for w in omega]),
+                    adam_steps=np.where(chosen, self.cfg.planner.adam_steps, 0), objective=nothing,
+                    predicted_objective=nothing, distance=nothing, inside=nothing, action=action, best=best,
+                    states=worlds.push(now.states, action), particles=None, wall=nothing, warm=chosen)
 
 
 def _chunk_size(b: int, planned: float) -> int:
