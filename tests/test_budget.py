@@ -222,7 +222,8 @@ def test_reference_planner_flags_resolve_to_the_authors_options_and_a_flag_besid
     for bad, says in ((["--vote"], "--vote needs --resamples"), (["--lr", "-1"], "--lr"),
                       (["--reference-planner", "--resamples", "1", "--vote"], "--vote needs --resamples"),
                       (["--buckets", "50", "25"], "--buckets"),
-                      (["--pricing", "reference", "--time-budget", "1", "--timing", "t.json"], "--timing and")):
+                      (["--pricing", "reference", "--time-budget", "1", "--timing", "t.json"], "--timing and"),
+                      (["--pricing", "reference"], "prices the Adam steps of a --time-budget")):
         with pytest.raises(SystemExit):
             parsed(*bad)
         assert says in capsys.readouterr().err

@@ -121,6 +121,9 @@ def resolve_planner_args(parser: argparse.ArgumentParser, args) -> None:
     --timing, from its table: ``load_timing``); parser.error naming a bad combination, before any work."""
     preset = REFERENCE_PLANNER if args.reference_planner else PLANNER_OPTIONS
     vote_given = args.vote is not None
+    if args.pricing is not None and getattr(args, "time_budget", "") is None:  # a command with a budget, none given
+        parser.error(f"--pricing {args.pricing} prices the Adam steps of a --time-budget; without one every decision "
+                     "runs --adam-steps: give --time-budget S or leave --pricing out")
     for name, value in preset.items():
         if getattr(args, name) is None and not (name == "buckets" and getattr(args, "timing", None)):
             setattr(args, name, value)  # a --timing table's buckets are the run's (``load_timing``)
