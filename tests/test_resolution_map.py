@@ -4,6 +4,7 @@ import json
 import os
 
 import numpy as np
+import pytest
 
 from dynres_jax.control.budget import TimingTable, reference_table
 
@@ -142,3 +143,36 @@ def test_crossfit_reads_draws_priced_and_refuses_a_run_of_one_plan(script, tmp_p
     row = rows[0]
     # at 1 s both ω afford 10 steps: ω = 50 is 0 on every scene (plus the draw's offset), best fixed and chosen
     assert row["best_fixed"] == 50 and row["gap"] == 0 and row["moved"] == 0 and row["scenes"] == 2
+
+
+@pytest.mark.slow
+def test_a_killed_surface_goes_on_from_its_last_plan_draw_and_omega(tmp_path, monkeypatch):
+    """``tradeoff --surface --repeats 2`` stopped after its third decision (a kill mid-kind) and run again: the rerun
+    does not plan again the (draw, ω) saved in surface_0.partial.npz, and ends with the raw values an uninterrupted
+    run writes, byte for byte; the partial file is gone."""
+    from dynres_jax.commands import tradeoff
+
+    monkeypatch.setattr(tradeoff, "SURFACE_SCENES", tradeoff.SURFACE_SCENES[:1])  # one scene kind: half the work
+    argv = ["--surface", "--quick", "--repeats", "2", "--workers", "1"]
+    whole = tmp_path / "whole"
+    tradeoff.main(argv + ["--out", str(whole)])
+    decide, calls = tradeoff.decide_batch, []
+
+    def stops_at_the_third(*args, **kwargs):
+        calls.append(1)
+        if len(calls) == 3:
+            raise RuntimeError("killed")
+        return decide(*args, **kwargs)
+
+    monkeypatch.setattr(tradeoff, "decide_batch", stops_at_the_third)
+    resumed = tmp_path / "resumed"
+    with pytest.raises(RuntimeError, match="killed"):
+        tradeoff.main(argv + ["--out", str(resumed)])
+    with np.load(resumed / "surface_0.partial.npz") as partial:
+        assert partial["done"].tolist() == [[True, False], [False, False]]  # ω = 10 of draw 0: its two N
+    calls.clear()
+    monkeypatch.setattr(tradeoff, "decide_batch", lambda *a, **k: (calls.append(1), decide(*a, **k))[1])
+    tradeoff.main(argv + ["--out", str(resumed)])
+    assert len(calls) == 2 * 2 * 2 - 2  # draws x ω x N, less the two kept
+    assert (resumed / "surface_0.npz").read_bytes() == (whole / "surface_0.npz").read_bytes()
+    assert not (resumed / "surface_0.partial.npz").exists()

@@ -15,7 +15,8 @@ and N of a scene plans from the same key, so the same starting pushes (common ra
 device's timing table (seconds per decision at each bucket, one scene, the task batch), so c* can be read against
 seconds. Writes ``surface.json`` (mean c* per scene kind, ω and N with 95 % intervals, the planner's own predicted c,
 d before the push, the timing table) and ``surface.png``; each scene kind's raw values are saved as it finishes
-(``surface_KIND.npz``) and a rerun skips finished kinds. ``--repeats R`` plans every scene, ω and N R times from
+(``surface_KIND.npz``; within a kind, each finished plan draw and ω in ``surface_KIND.partial.npz``) and a rerun goes
+on where the last stopped. ``--repeats R`` plans every scene, ω and N R times from
 independent keys (``mpc.draw_keys``: draw 0 the common key above, as the closed loop's plan draws), kept as
 c_star_draws [R, ω, N, S] beside c_star (draw 0): what a cross-fitted oracle over ω needs
 (``scripts/crossfit.py``).
@@ -237,19 +238,27 @@ def _scenes(kind: int, args, pool):
     return starts, np.stack(masks)
 
 
-def _surface_scenes(pool, starts, goals, keys, dynamics, cfg, omegas, steps, scene_name: str, repeats: int = 1
-                    ) -> dict:
+def _surface_scenes(pool, starts, goals, keys, dynamics, cfg, omegas, steps, scene_name: str, repeats: int = 1,
+                    partial: str | None = None) -> dict:
     """c* and the predicted c [ω, N, S] and d before the push [S] of the scenes ``starts`` [S] with ``goals`` [S], each
     planned from its own key in ``keys`` [S] at every ω and N (common random numbers); with repeats R > 1 also
-    c_star_draws [R, ω, N, S], draw r planned from ``mpc.draw_keys(keys, r)``."""
+    c_star_draws [R, ω, N, S], draw r planned from ``mpc.draw_keys(keys, r)``. partial: a file the finished (draw, ω)
+    are saved to as they finish (atomically) and read back from, so a killed run goes on where it stopped (the
+    caller's run.json vouches for the same settings)."""
     camera = pool.camera
     measure = jax.jit(jax.vmap(lambda obs, goal: distribution_distance(obs, goal, camera)))
     draws = np.zeros((repeats, len(omegas), len(steps), len(keys)))
-    predicted = np.zeros(draws.shape[1:])
+    predicted, done = np.zeros(draws.shape[1:]), np.zeros((repeats, len(omegas)), bool)
+    if partial and os.path.exists(partial):
+        with np.load(partial) as saved:
+            draws, predicted, done = saved["draws"], saved["predicted"], saved["done"]
+        print(f"  {scene_name}: {int(done.sum())} of {done.size} (plan draw, ω) kept from {partial}", flush=True)
     init = jnp.zeros((len(keys), cfg.planner.horizon, 4), jnp.float32)  # no warm start
     for r in range(repeats):
         drawn = draw_keys(keys, r)
         for i, omega in enumerate(omegas):
+            if done[r, i]:
+                continue
             for j, n in enumerate(steps):
                 result = decide_batch(starts.obs, goals, drawn, init, False, np.full(len(keys), omega),
                                       np.full(len(keys), n), spec=cfg.spec(bucket_for(omega, cfg.buckets)),
@@ -258,6 +267,9 @@ def _surface_scenes(pool, starts, goals, keys, dynamics, cfg, omegas, steps, sce
                 draws[r, i, j] = measure(after.obs, goals)
                 if r == 0:
                     predicted[i, j] = result.best_cost
+            done[r, i] = True
+            if partial:
+                save_npz(partial, dict(draws=draws, predicted=predicted, done=done))
             print(f"  {scene_name}{f', plan draw {r}' if repeats > 1 else ''}: ω = {omega:3d}: mean c* over N = "
                   f"{steps}: {np.round(draws[r, i].mean(axis=1), 2).tolist()}", flush=True)
     out = dict(c_star=draws[0], predicted=predicted, d0=np.asarray(measure(starts.obs, goals)))
@@ -293,9 +305,11 @@ def surface(args, model: LoadedDynamics) -> dict:
                 raw[kind] = dict(np.load(path))
                 continue
             keys = jax.random.split(jax.random.PRNGKey(args.seed + 100 + kind), args.scenes)  # per scene, every ω, N
+            partial = os.path.join(args.out, f"surface_{kind}.partial.npz")
             raw[kind] = _surface_scenes(pool, starts, goals, keys, dynamics, cfg, omegas, steps, scene_name,
-                                        args.repeats)
+                                        args.repeats, partial)
             save_npz(path, raw[kind])
+            os.remove(partial)
     summary = dict(dynamics=name, device=timing.device, scenes=args.scenes, samples=args.samples,
                    repeats=args.repeats, omegas=omegas, steps=steps, buckets=list(cfg.buckets),
                    timing=timing.to_json(), kinds={})
