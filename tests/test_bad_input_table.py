@@ -205,6 +205,8 @@ P = [  # plan: one frame of a real camera
     (["--out", "push.txt"], "--out"), (["--out", "{file}/x.png"], "--out"), (["--sensor", "kinect"], "--sensor"),
     (["--bin-half-width", "0"], "--bin-half-width"), (["--wall-height", "-1"], "--wall-height"),
     (["--stop-share", "0"], "--stop-share"), (["--stop-share", "1.5"], "--stop-share"),
+    (["--wall-height", "0.5"], "--wall-height is read by --calibrate only"),  # was silently unread
+    (["--no-wall-pushes", "--bin-half-width", "0.3"], "nothing reads it"),
 ]
 E = [  # evaluate
     (["--episodes", "0"], "--episodes"), (["--episodes", "x"], "--episodes"), (["--mpc-steps", "0"], "--mpc-steps"),
@@ -324,6 +326,9 @@ GO = [  # goal
     ([], "--disc"), (["--disc", "0", "0"], "--disc"), (["--disc", "0", "0", "0"], "radius"),
     (["--disc", "0", "0", "0.5"], "outside the bin"), (["--disc", "0", "0", "0.1", "--letter", "T"], "not allowed"),
     (["--letter", " "], "--letter"), (["--letter", "T", "--height", "0.9"], "outside"),
+    (["--disc", "0", "0", "0.08", "--centre", "0.05", "0"], "--centre is --letter's"),  # was silently unread
+    (["--disc", "0", "0", "0.08", "--height", "0.1"], "--height is --letter's"),
+    (["--disc", "0", "0", "0.1995"], "outside the bin"),  # beyond the workspace plan accepts (the bin's 0.2 took it)
     (["--mask", "/nonexistent"], "--mask"), (["--mask", "{wide_goal}"], "aspect ratio"), (["--mask", "{empty_goal}"], "no goal"),
     (["--mask", "{full_goal}"], "outside the workspace"),  # goal pixels beyond the bin, as a disc there is refused
     (["--disc", "0", "0", "0.05", "--camera", "{cam_negative_f}"], "camera file"),

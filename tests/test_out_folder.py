@@ -122,6 +122,17 @@ def test_a_dangling_link_as_out_is_refused_before_any_work(tmp_path):
     assert os.path.isfile(tmp_path / "gone" / checks.RUN)
 
 
+def test_a_folder_that_takes_no_new_folder_is_refused_before_any_work():
+    """An output under a folder that refuses new entries even to root (/proc): refused by the checks a command makes
+    before its work (it planned 20 s and ended in a FileNotFoundError traceback), and nothing is left there."""
+    if not os.path.isdir("/proc"):
+        pytest.skip("no /proc here")
+    with pytest.raises(InputError, match="cannot make .*takes no new folder"):
+        checks.out_file("/proc/dynres-nope/push.png", (".png",))
+    with pytest.raises(InputError, match="takes no new folder"):
+        checks.check_out("/proc/dynres-nope/run", "demo", {})
+
+
 def test_a_255_byte_name_writes_atomically(tmp_path):
     path = str(tmp_path / ("é" * 125 + "x.txt"))  # 255 bytes in UTF-8
     assert len(os.fsencode(os.path.basename(path))) == 255

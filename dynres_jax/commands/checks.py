@@ -15,6 +15,7 @@ import json
 import math
 import os
 import sys
+import tempfile
 
 from dynres_jax import distributed
 from dynres_jax.commands import docstring, guard
@@ -347,6 +348,12 @@ def _check_can_create(path: str, flag: str = "--out") -> None:
     if not os.path.isdir(folder) or not os.access(folder, os.W_OK):
         why = "a file" if os.path.isfile(folder) else "not writable"
         raise InputError(f"{flag}: cannot write to {path!r} ({folder!r} is {why})")
+    if folder != os.path.abspath(path):  # folders to make: try one (and remove it), as /proc refuses even root
+        try:
+            os.rmdir(tempfile.mkdtemp(prefix=".dynres-probe-", dir=folder))
+        except OSError as e:
+            raise InputError(f"{flag}: cannot make {path!r} ({folder!r} takes no new folder: "
+                             f"{e.strerror or e})") from None
 
 
 def _differences(earlier: dict, now: dict) -> str:

@@ -49,15 +49,21 @@ def main(argv=None):
                        help="a disc centred at (X, Y) m of RADIUS m")
     shape.add_argument("--letter", type=checks.text, help="characters OpenCV draws (Redistribute's J, T, U)")
     shape.add_argument("--mask", help="an image of any size in the camera's aspect ratio (white = goal)")
-    parser.add_argument("--height", type=checks.number(0.005, 1.0), default=0.15, help="--letter: ink height, m")
-    parser.add_argument("--centre", nargs=2, type=checks.number(-1.0, 1.0), default=(0.0, 0.0), metavar=("X", "Y"),
-                        help="--letter: the centre of its ink, m")
+    parser.add_argument("--height", type=checks.number(0.005, 1.0), default=None,
+                        help="--letter: ink height, m (default 0.15)")
+    parser.add_argument("--centre", nargs=2, type=checks.number(-1.0, 1.0), default=None, metavar=("X", "Y"),
+                        help="--letter: the centre of its ink, m (default 0 0)")
     parser.add_argument("--camera", default=None, help="camera JSON (default: the simulator's top-down camera)")
     parser.add_argument("--bin-half-width", type=checks.number(0.01, 1.0), default=WORKSPACE_HALF_WIDTH,
                         help="shapes must lie within ±this of the bin's centre, m (default: the workspace plan, "
                              "robot and the exported decision accept, the bin's inner faces less 1 mm)")
     parser.add_argument("--out", required=True, help="the goal PNG to write")
     args = parser.parse_args(argv)
+    for flag, value in (("--height", args.height), ("--centre", args.centre)):
+        if value is not None and not args.letter:
+            where = "--disc X Y RADIUS places a disc" if args.disc else "a --mask is drawn where it is"
+            parser.error(f"{flag} is --letter's; {where}")
+    args.height, args.centre = args.height or 0.15, args.centre or (0.0, 0.0)
     checks.out_file(args.out, (".png",), inputs={"--mask": args.mask, "--camera": args.camera})
     camera = load_camera(args.camera) if args.camera else Camera.top_down(CameraConfig())
     try:

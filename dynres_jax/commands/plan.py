@@ -60,12 +60,13 @@ def build_parser():
     parser.add_argument("--calibrate", action="store_true",
                         help="refine the camera's pose from the bin in the frame before planning (perception.calibrate:"
                              " the table plane and the walls of a bin of --bin-half-width and --wall-height)")
-    parser.add_argument("--bin-half-width", type=checks.number(0.02, 2.0), default=SceneConfig().bin_half_width,
-                        help="m")
+    parser.add_argument("--bin-half-width", type=checks.number(0.02, 2.0), default=None,
+                        help=f"m (default {SceneConfig().bin_half_width}; read by --calibrate and --wall-pushes)")
     parser.add_argument("--wall-pushes", action=argparse.BooleanOptionalAction, default=True,
                         help="pushes may start outside a wall of a bin of --bin-half-width, as the closed loop's do "
                              "(PileEnv.reach), to sweep pieces off the walls")
-    parser.add_argument("--wall-height", type=checks.number(0.005, 1.0), default=SceneConfig().wall_height, help="m")
+    parser.add_argument("--wall-height", type=checks.number(0.005, 1.0), default=None,
+                        help=f"m (default {SceneConfig().wall_height}; read by --calibrate)")
     return parser
 
 
@@ -73,6 +74,13 @@ def build_parser():
 def main(argv=None):
     parser = build_parser()
     args = parser.parse_args(argv)
+    if args.wall_height is not None and not args.calibrate:
+        parser.error("--wall-height is read by --calibrate only (the bin's walls it fits the camera's pose to)")
+    if args.bin_half_width is not None and not (args.calibrate or args.wall_pushes):
+        parser.error("--bin-half-width is read by --calibrate and --wall-pushes only; with --no-wall-pushes and no "
+                     "--calibrate nothing reads it")
+    args.bin_half_width = args.bin_half_width or SceneConfig().bin_half_width
+    args.wall_height = args.wall_height or SceneConfig().wall_height
 
     obs, camera = frames.load_frame(args.depth, args.rgb, args.camera)
     goal_mask = frames.load_goal(args.goal, camera)
