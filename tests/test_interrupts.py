@@ -67,7 +67,9 @@ def test_a_signal_python_drops_inside_a_destructor_still_ends_the_command(capsys
         main([])
     assert ended.value.code == 143
     assert laps and laps[-1] - laps[0] < 5  # ended by the resent signal, not by running to its end
-    assert "interrupted" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert "interrupted" in err
+    assert "Exception ignored" not in err and "Traceback" not in err, err  # the dropped one is not printed either
     assert signal.getsignal(signal.SIGTERM) is not guard._on_signal  # the handler is given back
 
 
@@ -192,3 +194,36 @@ def test_a_program_whose_clean_up_hangs_after_a_signal_still_ends(tmp_path):
     assert said == ["python -m experiments.evaluate: interrupted before any work was kept; rerun the same command "
                     "to start again"], done.stderr
     assert "Traceback" not in done.stderr, done.stderr
+
+
+def test_standard_output_that_takes_nothing_is_named_not_a_full_disk(tmp_path):
+    """A command whose record cannot be printed (stdout is /dev/full) says so in one line, status 1, its file written;
+    it said "No space left on device; free space and rerun", as if its files had not been written."""
+    if not os.path.exists("/dev/full"):
+        pytest.skip("no /dev/full here")
+    with open("/dev/full", "w") as full:
+        done = subprocess.run([sys.executable, "-m", "experiments.goal", "--disc", "0", "0", "0.08", "--out",
+                               str(tmp_path / "g.png")], stdout=full, stderr=subprocess.PIPE, text=True, timeout=300,
+                              env=dict(os.environ, JAX_PLATFORMS="cpu"))
+    assert done.returncode == 1 and (tmp_path / "g.png").is_file(), done.stderr
+    assert done.stderr.strip().splitlines()[-1] == ("python -m experiments.goal: error: cannot write to standard "
+                                                    "output (No space left on device); the command's files are "
+                                                    "written"), done.stderr
+    assert "Traceback" not in done.stderr and "free space" not in done.stderr
+
+
+def test_an_interrupted_evaluation_names_the_methods_it_kept(tmp_path, monkeypatch):
+    """evaluate keeps a method whole (METHOD.json): interrupted in its first, nothing was kept (it said "finished work
+    is kept" and a rerun started from step 1); after one, that one."""
+    from dynres_jax.commands import evaluate, guard
+
+    (tmp_path / guard.RUN).write_text("{}")
+    monkeypatch.setitem(guard.running, "out", str(tmp_path))
+    monkeypatch.setitem(guard.running, "kept", None)
+    evaluate._say_kept(["50", "100", "adaptive"], ["50", "100", "adaptive"])
+    assert "interrupted before any work was kept" in guard._interrupted("evaluate")
+    evaluate._say_kept(["50", "100", "adaptive"], ["100", "adaptive"])
+    assert f"kept in {tmp_path} (method 50; a rerun runs the others from their first step)" in guard._interrupted(
+        "evaluate")
+    evaluate._say_kept(["50", "100", "adaptive"], ["adaptive"])
+    assert "(methods 50, 100;" in guard._interrupted("evaluate")

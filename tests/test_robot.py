@@ -51,6 +51,7 @@ def test_the_recorded_frames_replay_as_a_dry_run(episode, tmp_path):
     out, summary = episode
     replay = robot.main([*TINY, "--replay", os.path.join(out, "frames"), "--calibrate", "--out", str(tmp_path)])
     assert replay["dry_run"] and replay["pushes"] == 2 and "true_inside" not in replay
+    assert replay["sensor"] is None and summary["sensor"] == "realsense"  # a replay is as recorded, no profile
     longer = robot.main([*TINY, "--steps", "5", "--replay", os.path.join(out, "frames"), "--out",
                          str(tmp_path / "longer")])  # more steps than frames: the replay ends with its last frame
     assert longer["pushes"] == 3 and os.path.isfile(tmp_path / "longer" / "metrics.json")

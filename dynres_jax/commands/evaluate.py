@@ -44,7 +44,7 @@ import numpy as np
 from jax._src import xla_bridge  # whether the backends have started: XLA reads XLA_FLAGS when they do
 
 from dynres_jax import distributed, progress
-from dynres_jax.commands import checks, methods
+from dynres_jax.commands import checks, guard, methods
 from dynres_jax.commands.evaluate_methods import (
     DEFAULT_METHODS,
     SORT_DEFAULT,
@@ -282,6 +282,7 @@ def run_methods(args, rank: int, size: int, sim, main_model, cnn_model, judge=No
         # depends on (seed, i) alone: each process draws its own
         pile_keys, keys = tasks.episode_keys(args.seed, mine)
         todo = [m for m in args.methods if not os.path.exists(os.path.join(args.out, f"{m}.json"))]
+        _say_kept(args.methods, todo)
         cfg = mpc_config(pool.env, args, mpc_steps=args.mpc_steps, real_depth=args.sensor != "none",
                          stop_share=args.stop_share)
         timing = None
@@ -323,7 +324,16 @@ def run_methods(args, rank: int, size: int, sim, main_model, cnn_model, judge=No
             results[method]["success"] = tasks.episode_success(args.task, results[method]).tolist()
             if distributed.is_writer():
                 files.write_json(path, results[method])
+            _say_kept(args.methods, todo[todo.index(method) + 1:])
     return results
+
+
+def _say_kept(methods: list[str], todo: list[str]) -> None:
+    """What an interrupt's line says was kept: the finished methods (a method is kept whole, ``METHOD.json``), or
+    nothing (an interrupted method starts again on a rerun)."""
+    finished = [m for m in methods if m not in todo]
+    guard.kept(f"method{'s' * (len(finished) > 1)} {', '.join(finished)}; a rerun runs the others from their first "
+               "step" if finished else "")
 
 
 @checks.guarded("evaluate")

@@ -64,6 +64,14 @@ def _exit_at_deadline(signum: int) -> None:
     os._exit(143 if signum == signal.SIGTERM else 130)
 
 
+def _quiet_unraisable(unraisable) -> None:
+    """``sys.unraisablehook`` while a command runs: the signal's exception Python drops inside a garbage-collection
+    callback or a ``__del__`` is not printed ("Exception ignored in: <function _xla_gc_callback>", a traceback, then
+    the one line): the signal is sent again until it ends the command (``_resend``). Anything else as Python has it."""
+    if not isinstance(unraisable.exc_value, KeyboardInterrupt):
+        sys.__unraisablehook__(unraisable)
+
+
 def _resend(signum: int) -> None:
     while True:
         time.sleep(1.0)
@@ -127,6 +135,7 @@ def guarded(name: str):
             ours = [signal.SIGTERM] + ([signal.SIGINT] if signal.getsignal(signal.SIGINT)
                                        is signal.default_int_handler else [])
             previous = {s: signal.signal(s, _on_signal) for s in ours} if in_main else {}
+            sys.unraisablehook = _quiet_unraisable
             try:
                 return main(argv)
             except KeyboardInterrupt as e:
@@ -149,6 +158,11 @@ def guarded(name: str):
                     print(f"{prog(name)}: error: JAX_PLATFORMS={os.environ.get('JAX_PLATFORMS', '')!r}: {why}",
                           file=sys.stderr)
                     raise SystemExit(2) from None
+                if isinstance(e, OSError) and e.filename is None and _printing(e):  # stdout, not a file
+                    print(f"{prog(name)}: error: cannot write to standard output ({e.strerror or e}); the command's "
+                          "files are written", file=sys.stderr)
+                    os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # no second error at exit
+                    raise SystemExit(1) from None
                 full = _disk_full(e)
                 if full is None:
                     raise
@@ -164,6 +178,14 @@ def guarded(name: str):
         return run
 
     return wrap
+
+
+def _printing(e: OSError) -> bool:
+    """Whether ``e`` was raised by a ``print`` to standard output (its innermost frame's line prints, to no file=):
+    the failed write was the command's record on stdout (/dev/full, a full disk behind a redirection), not a file."""
+    frames = traceback.extract_tb(e.__traceback__)
+    line = (frames[-1].line or "") if frames else ""
+    return line.startswith("print(") and "file=" not in line
 
 
 def compilation_cache_dir() -> str | None:

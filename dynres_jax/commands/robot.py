@@ -62,7 +62,8 @@ def build_parser():
                                                      "bin's centre)")
     parser.add_argument("--kind", default="coffee", choices=sorted(KINDS), help="the simulator's pieces")
     parser.add_argument("--pieces", type=checks.count(1), default=None, help="default: the kind's count")
-    parser.add_argument("--sensor", default="realsense", choices=sorted(SENSORS), help="the simulator's camera profile")
+    parser.add_argument("--sensor", default=None, choices=sorted(SENSORS),
+                        help="the simulator's camera profile (default realsense; a --replay's frames are as recorded)")
     parser.add_argument("--image-size", type=checks.count(MIN_IMAGE, MAX_IMAGE), default=CameraConfig().width,
                         help="the simulator camera's width and height, pixels (a goal PNG's size: 256 for one "
                              "`goal` made from `simulate`'s frame)")
@@ -88,6 +89,9 @@ def main(argv=None):
     parser = build_parser()
     args = parser.parse_args(argv)
     resolve_pieces(parser, args)
+    if args.replay and args.sensor is not None:
+        parser.error("--sensor is the simulator's camera; a --replay's frames are read as they were recorded")
+    args.sensor = None if args.replay else args.sensor or "realsense"
     sim = SimConfig(scene=SceneConfig(kinds=(args.kind,), pieces=(args.pieces,)), pile=PileConfig(layout="spread"),
                     camera=CameraConfig(width=args.image_size, height=args.image_size))
     model = load_model(parser, args.dynamics, args.ckpt, sim.scene.plate_half_width)
@@ -122,7 +126,8 @@ def main(argv=None):
         frames.append(overlay(np.asarray(obs.rgb), goal_mask, particles, camera, label=label,
                               push=step.get("action")))
 
-    print(f"robot: {'replay of ' + args.replay if args.replay else 'the simulator'} ({args.sensor} camera), "
+    print(f"robot: {'replay of ' + args.replay + ' (recorded frames)' if args.replay else 'the simulator'}"
+          f"{'' if args.replay else f' ({args.sensor} camera)'}, "
           f"{'dry run' if isinstance(pusher, DryRun) else 'pushing'}; dynamics {model.name}"
           f"{'' if judge is None else '; judge ' + judge.name}; ω = {args.resolution}")
     steps = run_robot(source, pusher, goal_mask, model.dynamics, cfg, judged(choose, judge),
