@@ -368,6 +368,8 @@ def sample_particles(observation: Observation, camera: Camera, omega, key, capac
     if tuple(np.shape(observation.depth)) != (camera.height, camera.width):
         raise ValueError(f"depth image has shape {np.shape(observation.depth)}, the camera expects "
                          f"{(camera.height, camera.width)} (vmap sample_particles over a batch of observations)")
+    observation = observation._replace(**{name: jnp.asarray(x) for name, x in observation._asdict().items()
+                                          if isinstance(x, list | tuple)})  # nested lists: arrays, as jit needs
     foreground_kw = dict(margin=margin, workspace=workspace, kind=kind, colour=colour, colour_tol=colour_tol)
     out = _sample_particles(observation, camera, omega, key, int(capacity), max_points and int(max_points), r_center,
                             foreground_kw, bool(real_depth))

@@ -180,6 +180,8 @@ def _library_cases():
         (lambda: sample(r_center=-1.0), "r_center must be a finite number >= 0"),
         (lambda: sample(capacity=10**7), r"capacity must be an int in \[1, 4096\]"),
         (lambda: load_dynamics("sweep", SHIPPED_DYNAMICS, -0.04), "plate_half_width must be a positive number"),
+        (lambda: load_dynamics("learned", SHIPPED_DYNAMICS, 0.04).dynamics(float("nan")),  # a NaN push before
+         "radius must be the particles' spacing, a positive number of metres"),
         (lambda: load_dynamics("sweep", SHIPPED_DYNAMICS, float("nan")), "plate_half_width must be a positive"),
         (lambda: TaskEnv(episode_length=2.5), "episode_length must be a whole number"),
     ]

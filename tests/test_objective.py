@@ -440,3 +440,25 @@ def test_bad_input_raises_naming_it():
         polygon_goal(CAM, [[0.0, 0.0], [0.3, 0.0], [0.0, 0.1]])
     with pytest.raises(ValueError, match="overlap"):
         sort_goals(CAM, [[0.0, 0.0], [0.05, 0.0]], 0.04)
+
+
+def test_scores_name_a_goal_of_another_camera_and_positions_of_another_shape(disc):
+    """A goal made for other images and pieces not [N, 3]: a ValueError naming them (JAX's broadcasting message
+    before), from distribution_distance, seen_inside and inside_share, under vmap too."""
+    from dynres_jax.control.goals import disc_goal, make_goal
+    from dynres_jax.sim.camera import Camera
+
+    other = Camera.top_down(CameraConfig(width=2 * CAM.width, height=2 * CAM.height))
+    big = make_goal(disc_goal(other, (0.0, 0.0), 0.05), other)
+    frame = np.zeros((CAM.height, CAM.width), bool)
+    for score in (obj.distribution_distance, obj.seen_inside):
+        with pytest.raises(ValueError, match="goal was made for .* images, the camera's are"):
+            score(frame, big, CAM)
+    pos, mask = random_particles(5)
+    with pytest.raises(ValueError, match="goal was made for"):
+        obj.inside_share(pos, mask, big, CAM)
+    with pytest.raises(ValueError, match="piece_pos must be \\[N, 3\\]"):
+        obj.inside_share(pos[:, :2], mask, disc, CAM)
+    with pytest.raises(ValueError, match="goal was made for"):
+        jax.vmap(obj.distribution_distance, in_axes=(0, None, None))(frame[None], big, CAM)
+    assert 0 <= float(obj.inside_share(pos, mask, disc, CAM)) <= 1

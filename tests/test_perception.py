@@ -208,6 +208,16 @@ def test_vmap_over_observations_equals_loop(env, states):
             np.testing.assert_allclose(np.asarray(a), np.asarray(b)[i], rtol=1e-6, atol=1e-7)
 
 
+def test_a_frame_given_as_nested_lists_is_the_same_frame(env, states):
+    """Depth and colour as Python lists (JSON, a notebook) sample the particles their arrays do (a list ended in a
+    TracerArrayConversionError inside the sensor's code)."""
+    obs, key = states[0].obs, jax.random.PRNGKey(3)
+    listed = obs._replace(depth=np.asarray(obs.depth).tolist(), rgb=np.asarray(obs.rgb).tolist())
+    for a, b in zip(sample_particles(obs, env.camera, 9, key, N_MAX), sample_particles(listed, env.camera, 9, key,
+                                                                                         N_MAX), strict=True):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+
+
 def test_sample_particles_padding_inert(env, states):
     """Pixels outside the requested kind never matter: scrambling their depth and colour changes nothing."""
     obs = states[0].obs

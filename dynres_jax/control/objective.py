@@ -187,7 +187,15 @@ def distribution_distance(observation_or_mask, goal: Goal, camera: Camera, **for
     the reference divides c by ω: a mean per foreground pixel. observation_or_mask: an Observation (its foreground by
     ``perception.foreground``, ``foreground_kw`` passed on: kind= for one kind of a Sort scene) or a foreground
     mask [H, W] bool. +inf when there is no foreground pixel. ``jax.vmap`` over observations and goals."""
+    _check_goal_size(goal, camera)
     return _mask_distance(_foreground_mask(observation_or_mask, camera, foreground_kw), goal.mask)
+
+
+def _check_goal_size(goal: Goal, camera: Camera) -> None:
+    """ValueError when the goal's mask is not the camera's image size (a goal made for another camera)."""
+    if jnp.shape(goal.mask)[-2:] != (camera.height, camera.width):
+        raise ValueError(f"the goal was made for {jnp.shape(goal.mask)[-1]} x {jnp.shape(goal.mask)[-2]} images, the "
+                         f"camera's are {camera.width} x {camera.height}: make the goal with this camera")
 
 
 def _foreground_mask(observation_or_mask, camera: Camera, foreground_kw: dict):
@@ -206,6 +214,7 @@ def seen_inside(observation_or_mask, goal: Goal, camera: Camera, **foreground_kw
     """What a camera can tell of success: the share of the frame's foreground pixels that lie on goal pixels -> scalar
     in [0, 1] (0 without foreground). observation_or_mask: as ``distribution_distance`` takes it (``foreground_kw``:
     real_depth= for a real camera's frame). ``jax.vmap`` over observations and goals."""
+    _check_goal_size(goal, camera)
     current = _foreground_mask(observation_or_mask, camera, foreground_kw)
     return jnp.sum(current & goal.mask) / jnp.maximum(jnp.sum(current), 1)
 
@@ -214,7 +223,12 @@ def seen_inside(observation_or_mask, goal: Goal, camera: Camera, **foreground_kw
 def inside_share(piece_pos, piece_mask, goal: Goal, camera: Camera):
     """Success share: pieces piece_pos [N, 3] (world centres, m) with piece_mask [N] bool -> scalar in [0, 1], the
     share of valid pieces whose centre projects to a goal pixel (0 when no piece is valid; NaN when a valid piece's
-    position is NaN or infinite: no share to read)."""
+    position is NaN or infinite: no share to read). ValueError (at trace time) for positions not [N, 3], a mask not
+    [N] or a goal of another camera's size."""
+    if jnp.ndim(piece_pos) != 2 or jnp.shape(piece_pos)[-1] != 3 or jnp.shape(piece_mask) != jnp.shape(piece_pos)[:1]:
+        raise ValueError(f"inside_share: piece_pos must be [N, 3] (m) and piece_mask [N], got {jnp.shape(piece_pos)} "
+                         f"and {jnp.shape(piece_mask)}")
+    _check_goal_size(goal, camera)
     piece_mask = jnp.asarray(piece_mask, bool)
     finite = jnp.all(jnp.isfinite(jnp.asarray(piece_pos)) | ~piece_mask[:, None])
     uv, _ = camera.world_to_pixel(jnp.where(piece_mask[:, None], jnp.asarray(piece_pos, jnp.float32), 0.0))

@@ -10,12 +10,14 @@ import warnings
 from dataclasses import dataclass
 from typing import NamedTuple
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 from flax import nnx
 from jax.tree_util import Partial
 
 from dynres_jax.config import OMEGA_MAX
+from dynres_jax.errors import InputError
 from dynres_jax.io import ckpt
 from dynres_jax.models.cnn_dynamics import CNNDynamics, CNNDynamicsConfig
 from dynres_jax.models.dynamics import Dynamics, DynamicsConfig, edge_table, resolution_code, rollout
@@ -114,7 +116,18 @@ def learned_dynamics(model: Dynamics, edge_dtype: str = "float32"):
         raise ValueError(f"edge_dtype={edge_dtype!r} needs the graph network (Dynamics), got {type(model).__name__}")
     pair_table = isinstance(model, Dynamics) and model.config.pair_table
     graphdef, state = nnx.split(model)
-    return lambda radius: Partial(_Learned(edge_dtype, pair_table), graphdef, state, resolution_code(radius))
+    return lambda radius: Partial(_Learned(edge_dtype, pair_table), graphdef, state,
+                                  resolution_code(_checked_radius(radius)))
+
+
+def _checked_radius(radius):
+    """radius itself; InputError for a concrete one that is not a positive finite number of metres (a NaN radius gave
+    a NaN code and a NaN push). A traced radius is not checked."""
+    if not isinstance(radius, jax.core.Tracer):
+        value = np.asarray(radius)
+        if value.dtype.kind not in "fiu" or not np.all(np.isfinite(value) & (value > 0)):
+            raise InputError(f"radius must be the particles' spacing, a positive number of metres, got {radius!r}")
+    return radius
 
 
 @functools.cache
