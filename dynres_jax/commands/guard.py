@@ -35,7 +35,7 @@ class Terminated(KeyboardInterrupt):
 
 
 _signalled: list[int] = []  # the signal a command is ending on, until guarded's except clause takes it (then cleared)
-EXIT_GRACE = 30.0  # s: a command run as a program that has not exited this long after a signal exits anyway
+EXIT_GRACE = 10.0  # s: a command run as a program that has not exited this long after a signal exits anyway
 
 
 def _on_signal(signum, frame):
