@@ -18,4 +18,4 @@ propagation.exact_scatter_add = plain_float  # in every process that imports thi
 if __name__ == "__main__":  # spawned workers import this file as __mp_main__: they must not evaluate
     from dynres_jax.commands import evaluate
 
-    evaluate.main(sys.argv[1:])
+    evaluate.main()  # reads sys.argv: runs as the program

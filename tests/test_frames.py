@@ -255,8 +255,9 @@ def test_bad_camera_json_is_one_line(saved, tmp_path, capsys, text, says):
 
 def test_goal_masks_read_as_gray_levels_in_every_layout_and_odd_ones_refused(saved, tmp_path, capsys):
     """The same disc saved as 8-bit gray, BGR, opaque BGRA and opaque gray + alpha reads as the same mask (by
-    ``load_goal`` and by ``goal --mask``); a 16-bit mask (OpenCV would scale 0/1 to 0: "no goal pixel") and a shape
-    drawn in transparency (white everywhere, the disc in alpha: "outside the workspace") are refused, naming why."""
+    ``load_goal`` and by ``goal --mask``), as does 16-bit white on black; a 16-bit 0 / 1 mask (OpenCV would scale it
+    to 0: "no goal pixel") and a shape drawn in transparency (white everywhere, the disc in alpha: "outside the
+    workspace") are refused, naming why."""
     env, _, paths = saved
     goal = disc_goal(env.camera, np.array([0.02, -0.01]), 0.05)
     gray = goal.astype(np.uint8) * 255
@@ -274,8 +275,10 @@ def test_goal_masks_read_as_gray_levels_in_every_layout_and_odd_ones_refused(sav
         np.testing.assert_array_equal(frames.load_goal(path, env.camera), goal, err_msg=name)
     wide = str(tmp_path / "sixteen.png")
     cv2.imwrite(wide, goal.astype(np.uint16))  # 0 / 1 in 16 bits
-    with pytest.raises(frames.FrameError, match="16-bit image"):
+    with pytest.raises(frames.FrameError, match="16-bit image with levels 0-1"):
         frames.load_goal(wide, env.camera)
+    cv2.imwrite(wide, goal.astype(np.uint16) * 65535)  # white on black in 16 bits: the mask (as OpenCV read it)
+    np.testing.assert_array_equal(frames.load_goal(wide, env.camera), goal)
     drawn = str(tmp_path / "alpha.png")
     cv2.imwrite(drawn, np.dstack([opaque] * 3 + [gray]))  # white, the disc opaque, the rest transparent
     with pytest.raises(frames.FrameError, match="transparent pixels"):

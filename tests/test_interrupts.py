@@ -213,8 +213,8 @@ def test_standard_output_that_takes_nothing_is_named_not_a_full_disk(tmp_path):
 
 
 def test_an_interrupted_evaluation_names_the_methods_it_kept(tmp_path, monkeypatch):
-    """evaluate keeps a method whole (METHOD.json): interrupted in its first, nothing was kept (it said "finished work
-    is kept" and a rerun started from step 1); after one, that one."""
+    """evaluate keeps a method whole (METHOD.json; a job's processes their parts): interrupted in its first, nothing
+    was kept (it said "finished work is kept" and a rerun started from step 1); after one, that one."""
     from dynres_jax.commands import evaluate, guard
 
     (tmp_path / guard.RUN).write_text("{}")
@@ -223,7 +223,21 @@ def test_an_interrupted_evaluation_names_the_methods_it_kept(tmp_path, monkeypat
     evaluate._say_kept(["50", "100", "adaptive"], ["50", "100", "adaptive"])
     assert "interrupted before any work was kept" in guard._interrupted("evaluate")
     evaluate._say_kept(["50", "100", "adaptive"], ["100", "adaptive"])
-    assert f"kept in {tmp_path} (method 50; a rerun runs the others from their first step)" in guard._interrupted(
+    assert f"kept in {tmp_path} (method 50 finished; a rerun goes on with the others)" in guard._interrupted(
         "evaluate")
     evaluate._say_kept(["50", "100", "adaptive"], ["adaptive"])
-    assert "(methods 50, 100;" in guard._interrupted("evaluate")
+    assert "(methods 50, 100 finished;" in guard._interrupted("evaluate")
+
+
+def test_the_console_script_runs_its_command_as_the_program(tmp_path, monkeypatch, capsys):
+    """``dynres NAME ...`` (commands.main without arguments: the console script) runs the command as the program, so a
+    signal's deadline (EXIT_GRACE) is armed; called with a list (a test, a notebook), it is not."""
+    from dynres_jax import commands
+    from dynres_jax.commands import guard
+
+    argv = ["goal", "--disc", "0", "0", "0.05", "--out", str(tmp_path / "g.png")]
+    monkeypatch.setattr(sys, "argv", ["dynres", *argv])
+    commands.main()
+    assert guard.running["program"] and (tmp_path / "g.png").is_file()
+    commands.main(argv)
+    assert not guard.running["program"]

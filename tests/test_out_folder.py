@@ -114,8 +114,11 @@ def test_a_dangling_link_as_out_is_refused_before_any_work(tmp_path):
     set-up) naming the link's target, and nothing made; a link to an existing folder is that folder."""
     out = tmp_path / "run"
     os.symlink(tmp_path / "gone", out)
-    with pytest.raises(InputError, match="symbolic link to .*gone.*does not exist"):
-        checks.check_out(str(out), "demo", {})
+    for given in (str(out), str(out) + os.sep, str(out / "sub")):  # the link itself, with a slash, above the folder
+        with pytest.raises(InputError, match="symbolic link to .*gone.*does not exist"):
+            checks.check_out(given, "demo", {})
+    with pytest.raises(InputError, match="symbolic link to"):
+        checks.out_file(str(out / "push.png"), (".png",))
     assert sorted(os.listdir(tmp_path)) == ["run"]
     os.makedirs(tmp_path / "gone")
     assert not checks.claim(str(out), "demo", {})

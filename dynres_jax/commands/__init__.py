@@ -40,7 +40,7 @@ def docstring(module: str) -> str:
 def main(argv=None) -> None:
     """``dynres COMMAND ...``: run ``dynres_jax.commands.COMMAND.main`` on the rest of the arguments (its result, a
     summary the command has printed, is not returned: a console script's return value is its exit status)."""
-    argv = sys.argv[1:] if argv is None else list(argv)
+    program, argv = argv is None, sys.argv[1:] if argv is None else list(argv)
     if not argv or argv[0] in ("-h", "--help"):
         print(docstring(__name__).strip())
         return
@@ -48,7 +48,11 @@ def main(argv=None) -> None:
     if name not in COMMANDS:
         print(f"dynres: error: unknown command {argv[0]!r}; the commands: {', '.join(COMMANDS)}", file=sys.stderr)
         raise SystemExit(2)
-    entry(name)(argv[1:])
+    if program:  # the console script: the command reads sys.argv, so it runs as the program (guard's deadline)
+        sys.argv = [sys.argv[0], *argv[1:]]
+        entry(name)()
+    else:
+        entry(name)(argv[1:])
 
 
 def entry(name: str):

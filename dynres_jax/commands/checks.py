@@ -124,7 +124,7 @@ def out_file(text: str, suffixes: tuple[str, ...], beside: str = "", flag: str =
              inputs: dict | None = None) -> str:
     """An output file path given as ``flag``: not a folder, ending in one of ``suffixes``, a name the file system
     takes (with ``beside``, the suffix of a second file written next to it, e.g. ".json"), in a folder that exists
-    and is writable or can be made (nothing is created here), and none of the command's ``inputs`` ({flag: path or
+    and is writable or can be made (``_check_can_create``), and none of the command's ``inputs`` ({flag: path or
     None}: writing there would destroy it)."""
     for name, path in (inputs or {}).items():
         if path is not None and os.path.realpath(path) in {os.path.realpath(text), os.path.realpath(text + beside)}:
@@ -250,9 +250,6 @@ def check_out(out: str, command: str, config: dict, fresh: bool = False, inputs:
     scene built); the inputs' hashes as run.json keeps them."""
     if os.path.exists(out) and not os.path.isdir(out):
         raise InputError(f"--out {out!r} is a file, not a folder")
-    if os.path.islink(out) and not os.path.exists(out):
-        raise InputError(f"--out {out!r} is a symbolic link to {os.readlink(out)!r}, which does not exist: make that "
-                         "folder or give another --out")
     _check_can_create(out)
     _check_name_length(os.path.abspath(os.path.join(out, RUN)))
     if os.path.isdir(out) and not os.path.isfile(os.path.join(out, RUN)) and set(os.listdir(out)) - {LOCK}:
@@ -343,12 +340,19 @@ def _nearest_existing(path: str) -> str:
 
 def _check_can_create(path: str, flag: str = "--out") -> None:
     """InputError naming ``flag`` unless ``path`` exists as a writable folder, or the nearest folder above it that
-    exists is writable and no file stands in the way (nothing is created here)."""
-    folder = _nearest_existing(path)
+    exists is writable, takes a new folder (one is made and removed at once: /proc refuses even root) and no file or
+    dangling symbolic link stands in the way."""
+    target = os.path.normpath(os.path.abspath(path))  # "run/" is "run"
+    folder = target
+    while not os.path.exists(folder):
+        if os.path.islink(folder):
+            raise InputError(f"{flag} {path!r}: {folder!r} is a symbolic link to {os.readlink(folder)!r}, which does "
+                             f"not exist: make that folder or give another {flag}")
+        folder = os.path.dirname(folder)
     if not os.path.isdir(folder) or not os.access(folder, os.W_OK):
         why = "a file" if os.path.isfile(folder) else "not writable"
         raise InputError(f"{flag}: cannot write to {path!r} ({folder!r} is {why})")
-    if folder != os.path.abspath(path):  # folders to make: try one (and remove it), as /proc refuses even root
+    if folder != target:  # folders to make: try one
         try:
             os.rmdir(tempfile.mkdtemp(prefix=".dynres-probe-", dir=folder))
         except OSError as e:

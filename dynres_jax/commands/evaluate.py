@@ -332,8 +332,8 @@ def _say_kept(methods: list[str], todo: list[str]) -> None:
     """What an interrupt's line says was kept: the finished methods (a method is kept whole, ``METHOD.json``), or
     nothing (an interrupted method starts again on a rerun)."""
     finished = [m for m in methods if m not in todo]
-    guard.kept(f"method{'s' * (len(finished) > 1)} {', '.join(finished)}; a rerun runs the others from their first "
-               "step" if finished else "")
+    guard.kept(f"method{'s' * (len(finished) > 1)} {', '.join(finished)} finished; a rerun goes on with the others"
+               if finished else "")
 
 
 @checks.guarded("evaluate")

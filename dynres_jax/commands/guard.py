@@ -35,7 +35,7 @@ class Terminated(KeyboardInterrupt):
 
 
 _signalled: list[int] = []  # the signal a command is ending on, until guarded's except clause takes it (then cleared)
-EXIT_GRACE = 10.0  # s: a command run as a program that has not exited this long after a signal exits anyway
+EXIT_GRACE = 20.0  # s: a command run as a program that has not exited this long after a signal exits anyway
 
 
 def _on_signal(signum, frame):
@@ -58,9 +58,10 @@ def _exit_at_deadline(signum: int) -> None:
     worker held (a process pool shut down mid-compile) or on a worker that never answers would hang it for good.
     Finished work is on disk already (every file is written whole, atomically); the line says so unless said."""
     time.sleep(EXIT_GRACE)
-    if not running.get("said"):
-        print(_interrupted(running["name"]), file=sys.stderr)
-    sys.stderr.flush()
+    try:  # to the file descriptor: the stream's lock may be held by the stuck main thread
+        os.write(2, ("" if running.get("said") else _interrupted(running["name"]) + "\n").encode())
+    except OSError:
+        pass
     os._exit(143 if signum == signal.SIGTERM else 130)
 
 
@@ -119,7 +120,7 @@ def guarded(name: str):
     def wrap(main):
         @functools.wraps(main)
         def run(argv=None):
-            running.update(out=None, kept=None, name=name, said=False, deadline=False,
+            running.update(out=None, kept=None, name=name, said=False, deadline=False, stdout_failed=False,
                            program=argv is None)  # run as a program (its own process), not called by a test
             for stream in (sys.stdout, sys.stderr):  # "ω" on an ASCII terminal (PYTHONIOENCODING=ascii): \u03c9
                 if hasattr(stream, "reconfigure"):
@@ -135,7 +136,8 @@ def guarded(name: str):
             ours = [signal.SIGTERM] + ([signal.SIGINT] if signal.getsignal(signal.SIGINT)
                                        is signal.default_int_handler else [])
             previous = {s: signal.signal(s, _on_signal) for s in ours} if in_main else {}
-            sys.unraisablehook = _quiet_unraisable
+            unraisable, sys.unraisablehook = sys.unraisablehook, _quiet_unraisable
+            stdout, sys.stdout = sys.stdout, _Watched(sys.stdout)
             try:
                 return main(argv)
             except KeyboardInterrupt as e:
@@ -158,7 +160,7 @@ def guarded(name: str):
                     print(f"{prog(name)}: error: JAX_PLATFORMS={os.environ.get('JAX_PLATFORMS', '')!r}: {why}",
                           file=sys.stderr)
                     raise SystemExit(2) from None
-                if isinstance(e, OSError) and e.filename is None and _printing(e):  # stdout, not a file
+                if isinstance(e, OSError) and running["stdout_failed"]:  # stdout, not a file
                     print(f"{prog(name)}: error: cannot write to standard output ({e.strerror or e}); the command's "
                           "files are written", file=sys.stderr)
                     os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # no second error at exit
@@ -171,6 +173,7 @@ def guarded(name: str):
                       "same command", file=sys.stderr)
                 raise SystemExit(1) from None
             finally:
+                sys.unraisablehook, sys.stdout = unraisable, stdout
                 _signalled.clear()
                 for s, handler in previous.items():  # None: a handler set outside Python
                     signal.signal(s, handler if handler is not None else signal.SIG_DFL)
@@ -180,12 +183,29 @@ def guarded(name: str):
     return wrap
 
 
-def _printing(e: OSError) -> bool:
-    """Whether ``e`` was raised by a ``print`` to standard output (its innermost frame's line prints, to no file=):
-    the failed write was the command's record on stdout (/dev/full, a full disk behind a redirection), not a file."""
-    frames = traceback.extract_tb(e.__traceback__)
-    line = (frames[-1].line or "") if frames else ""
-    return line.startswith("print(") and "file=" not in line
+class _Watched:
+    """sys.stdout while a command runs: the stream itself, except that a write or flush that fails says so
+    (``running["stdout_failed"]``), so an OSError from standard output (/dev/full, a full disk behind a redirection)
+    is told apart from one writing a file."""
+
+    def __init__(self, stream):
+        self._stream = stream
+
+    def write(self, text):
+        return self._watched(self._stream.write, text)
+
+    def flush(self):
+        return self._watched(self._stream.flush)
+
+    def _watched(self, call, *args):
+        try:
+            return call(*args)
+        except OSError:
+            running["stdout_failed"] = True
+            raise
+
+    def __getattr__(self, name):
+        return getattr(self._stream, name)
 
 
 def compilation_cache_dir() -> str | None:

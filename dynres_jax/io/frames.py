@@ -72,10 +72,16 @@ def read_image(path: str, what: str, flags: int) -> np.ndarray:
 
 def read_mask(path: str, what: str) -> np.ndarray:
     """A goal mask image as gray levels [H, W] uint8 (``read_image``'s checks): 8-bit gray, colour (its luminance) or
-    opaque colour with alpha. FrameError naming ``what`` for a 16-bit or float image (its levels are not a mask's
-    0-255: OpenCV would scale them to 0, and white would read as no goal) and for an alpha channel that is not fully
-    opaque (a shape drawn in transparency; the goal is read from white on black, not from alpha)."""
+    opaque colour with alpha; 16-bit white on black (0 / 65535) as its 8 high bits, as OpenCV reads it. FrameError
+    naming ``what`` for a 16-bit image whose levels all lie below 256 (0 / 1, 0 / 255: OpenCV scales them to 0, and
+    its white would read as no goal), one of another depth, and an alpha channel that is not fully opaque (a shape
+    drawn in transparency; the goal is read from white on black, not from alpha)."""
     image = read_image(path, what, cv2.IMREAD_UNCHANGED)
+    if image.dtype == np.uint16:
+        if image.max() < 256:
+            raise FrameError(f"{what} {path!r} is a 16-bit image with levels 0-{int(image.max())}: read as 16 bits "
+                             "they are all black; save the mask 8-bit, white (> 127) on black")
+        image = (image >> 8).astype(np.uint8)
     if image.dtype != np.uint8:
         raise FrameError(f"{what} {path!r} is a {image.dtype.itemsize * 8}-bit image; a goal mask is 8-bit, white "
                          "(> 127) on black")

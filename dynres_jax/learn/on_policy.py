@@ -128,7 +128,8 @@ def _episodes(worlds, keys, goals, pushes: int, planned: float, dynamics, omega:
 class OnPolicy(Chooser):
     """Each push of each world the planner's with probability ``planned``, else random (``PileEnv.sample_push``),
     against goals [B]. Its orders ask the loop for no plan: its keep rule plans only the worlds it draws, in chunks of
-    ``size`` (one compile; ``_chunks``) at ``omega`` (or the frame's foreground points where fewer), each from its last
+    ``size`` (one compile a bucket; ``_chunks``) at ``omega`` (or the frame's foreground points where fewer: a chunk
+    of such frames may plan in a smaller bucket), each from its last
     plan where its last push was planned too (warm start), and pushes every world."""
 
     def __init__(self, goals, env, omega: int, planned: float, size: int, cfg: MPCConfig, dynamics):
