@@ -99,7 +99,7 @@ def test_an_out_nobody_can_create_is_refused_before_the_episode(tmp_path, capsys
     for main in (gather.main, evaluate.main):
         with pytest.raises(SystemExit) as exit_:
             main(["--out", "/proc/dynres-no-such/run"])
-        assert exit_.value.code == 2 and "--out: cannot write" in capsys.readouterr().err
+        assert exit_.value.code == 2 and "--out: cannot make" in capsys.readouterr().err
 
 
 def test_the_default_model_still_loads(tmp_path):
