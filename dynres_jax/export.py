@@ -277,8 +277,12 @@ def load(path: str) -> jax_export.Exported:
         data = bytearray(f.read())
     sidecar = path + ".json"
     if os.path.isfile(sidecar):
-        expected = (files.read_json(sidecar) or {}).get("sha256")
-        if expected is not None and hashlib.sha256(data).hexdigest() != expected:
+        record = files.read_json(sidecar)
+        expected = record.get("sha256") if isinstance(record, dict) else None
+        if not isinstance(expected, str):  # a damaged sidecar cannot vouch for the file: say so, do not skip it
+            raise ValueError(f"the sidecar {sidecar!r} of {path!r} is damaged (no SHA-256 to check the file by); "
+                             "export it again, or remove the sidecar to load the file unchecked")
+        if hashlib.sha256(data).hexdigest() != expected:
             raise ValueError(f"{path!r} does not match the SHA-256 its sidecar {sidecar!r} records: the file is "
                              "damaged or another export's; export it again")
     try:
@@ -299,6 +303,9 @@ def call(exported: jax_export.Exported, depth, goal_mask, key, omega: int, adam_
     horizon = exported.in_avals[INPUT_NAMES.index("init")].shape[0]
     if adam_steps is None:
         adam_steps = exported.out_avals[sorted(OUTPUT_NAMES).index("history")].shape[0]  # dict leaves: key order
+    for name, value in (("omega", omega), ("adam_steps", adam_steps)):
+        if isinstance(value, bool | str) or np.ndim(value) or not float(value).is_integer():
+            raise ValueError(f"{name} must be a whole number, got {value!r}")
     warm = init is not None
     init = jnp.zeros((horizon, 4), jnp.float32) if init is None else jnp.asarray(init, jnp.float32)
     return exported.call(jnp.asarray(depth, jnp.float32), jnp.asarray(goal_mask, bool), key, jnp.int32(omega),

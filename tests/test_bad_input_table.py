@@ -340,6 +340,7 @@ RO = [  # robot: a goal of another size than the simulator's frames names --imag
     (["--image-size", "8"], "--image-size"), (["--steps", "0"], "--steps"),
     (["--replay", "{replay_damaged}", "--goal", "{goal}"], "001"),  # refused before planning frame 000
     (["--replay", "{replay_damaged}", "--sensor", "realsense"], "a --replay's frames are read as they were recorded"),
+    (["--replay", "{replay_damaged}", "--image-size", "256", "--pieces", "50"], "--pieces, --image-size: the"),
     (["--resolution", "oracle"], "--resolution"), (["--resolution", "best5"], "--resolution"),  # need the simulator
     (["--regressor", "{regressor}"], "--regressor"),  # a fixed ω reads no regressor
     (["--resolution", "adaptive", "--regressor", "/nonexistent"], "--regressor"), (["--judge", "/nonexistent"], "--judge"),

@@ -183,6 +183,10 @@ def test_a_damaged_file_is_refused_by_its_sidecars_checksum(exported_file, tmp_p
     (tmp_path / "decision.jaxexport.json").write_text(json.dumps(info))
     with pytest.raises(ValueError, match="SHA-256"):
         ex.load(str(damaged))
+    for sidecar in (json.dumps(info)[:12], "[1, 2]", "{}"):  # a damaged sidecar no longer skips the check
+        (tmp_path / "decision.jaxexport.json").write_text(sidecar)
+        with pytest.raises(ValueError, match="sidecar .* is damaged"):
+            ex.load(str(damaged))
     truncated = tmp_path / "cut.jaxexport"  # no sidecar to check: jax.export's own reading fails
     truncated.write_bytes(bytes(data[: len(data) // 3]))
     with pytest.raises(ValueError, match="not a whole exported decision"):
@@ -194,6 +198,9 @@ def test_convenience_call_and_key_types(reloaded):
     full = reloaded.call(depth, goal_mask, key, omega, np.int32(SPEC.planner.adam_steps), init, np.bool_(True))
     again = ex.call(reloaded, depth, goal_mask, jax.random.wrap_key_data(jnp.asarray(key)), int(omega), init=init)
     np.testing.assert_array_equal(np.asarray(full["push"]), np.asarray(again["push"]))
+    for bad in ({"omega": int(omega) + 0.7}, {"omega": int(omega), "adam_steps": 2.5}):  # truncated to int before
+        with pytest.raises(ValueError, match="must be a whole number"):
+            ex.call(reloaded, depth, goal_mask, key, **bad)
 
 
 def test_one_file_for_cpu_and_cuda(tiny_ckpt):

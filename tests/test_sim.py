@@ -204,3 +204,14 @@ def test_rendered_depth_matches_mujoco_ray_casts(joints):
         assert abs(t - float(obs.depth[r, c])) < 1e-3
         assert piece_of_geom[int(geomid[0])] == int(obs.piece[r, c])
     assert np.all(np.asarray(obs.kind)[rows, cols] == env.scene.kind[np.asarray(obs.piece)[rows, cols]])
+
+
+def test_place_refuses_pieces_outside_the_bin_or_not_finite(envs):
+    """Hand-placed pieces beyond the bin's walls or at NaN: a ValueError naming it (MuJoCo put them somewhere else, or
+    reset the world to its default pose, and said nothing)."""
+    env = next(iter(envs.values()))
+    for xy, says in ((np.full((len(XY), 2), 0.5), "outside the bin"), (np.full((len(XY), 2), np.nan), "finite xy")):
+        with pytest.raises(ValueError, match=says):
+            env.place(xy)
+    with pytest.raises(ValueError, match="finite xy and yaw"):
+        env.place(XY, yaw=np.array([0.0, np.inf, 0.0]))

@@ -60,13 +60,13 @@ def build_parser():
     parser.add_argument("--dry-run", action="store_true", help="plan and record, push nothing")
     parser.add_argument("--goal", default=None, help="goal PNG of the camera's size (default: a disc of 8 cm at the "
                                                      "bin's centre)")
-    parser.add_argument("--kind", default="coffee", choices=sorted(KINDS), help="the simulator's pieces")
+    parser.add_argument("--kind", default=None, choices=sorted(KINDS), help="the simulator's pieces (default coffee)")
     parser.add_argument("--pieces", type=checks.count(1), default=None, help="default: the kind's count")
     parser.add_argument("--sensor", default=None, choices=sorted(SENSORS),
                         help="the simulator's camera profile (default realsense; a --replay's frames are as recorded)")
-    parser.add_argument("--image-size", type=checks.count(MIN_IMAGE, MAX_IMAGE), default=CameraConfig().width,
-                        help="the simulator camera's width and height, pixels (a goal PNG's size: 256 for one "
-                             "`goal` made from `simulate`'s frame)")
+    parser.add_argument("--image-size", type=checks.count(MIN_IMAGE, MAX_IMAGE), default=None,
+                        help=f"the simulator camera's width and height, pixels (default {CameraConfig().width}; a goal "
+                             "PNG's size: 256 for one `goal` made from `simulate`'s frame)")
     parser.add_argument("--calibrate", action="store_true", help="refine the camera's pose from the first frame")
     parser.add_argument("--steps", type=checks.count(1), default=20, help="pushes at most (default 20)")
     parser.add_argument("--success", type=checks.number(0.01, 1.0), default=STOP_SHARE,
@@ -88,9 +88,13 @@ def build_parser():
 def main(argv=None):
     parser = build_parser()
     args = parser.parse_args(argv)
+    if args.replay:
+        given = [flag for flag in ("--sensor", "--kind", "--pieces", "--image-size")
+                 if getattr(args, flag[2:].replace("-", "_")) is not None]
+        if given:
+            parser.error(f"{', '.join(given)}: the simulator's; a --replay's frames are read as they were recorded")
+    args.kind, args.image_size = args.kind or "coffee", args.image_size or CameraConfig().width
     resolve_pieces(parser, args)
-    if args.replay and args.sensor is not None:
-        parser.error("--sensor is the simulator's camera; a --replay's frames are read as they were recorded")
     args.sensor = None if args.replay else args.sensor or "realsense"
     sim = SimConfig(scene=SceneConfig(kinds=(args.kind,), pieces=(args.pieces,)), pile=PileConfig(layout="spread"),
                     camera=CameraConfig(width=args.image_size, height=args.image_size))

@@ -131,10 +131,10 @@ def table_xy(camera: Camera) -> np.ndarray:
 def check_within(mask, camera: Camera, half_width: float) -> None:
     """ValueError when a goal pixel of mask [H, W] lies outside the table square ±half_width (m) or off the table."""
     xy = table_xy(camera)[np.asarray(mask, bool)]
-    outside = ~np.all(np.abs(xy) <= half_width, axis=-1)  # NaN (off the table) is outside too
-    if outside.any():
+    if (outside := ~np.all(np.abs(xy) <= half_width, axis=-1)).any():  # NaN (off the table) is outside too
+        hint = "; if the mask is right, the camera's pose is not the one that frames it" if outside.all() else ""
         raise ValueError(f"{int(outside.sum())} of the goal's {len(xy)} pixels lie outside the workspace (table "
-                         f"square ±{half_width:g} m); pieces cannot be pushed there")
+                         f"square ±{half_width:g} m); pieces cannot be pushed there{hint}")
 
 
 def _project(camera: Camera, xy) -> np.ndarray:

@@ -244,6 +244,12 @@ class PileEnv:
         if xy.shape != (self.scene.n_pieces, 2):
             raise ValueError(f"place needs xy of shape ({self.scene.n_pieces}, 2), got {xy.shape}")
         yaw = jnp.zeros(len(xy)) if yaw is None else jnp.asarray(yaw, jnp.float32)
+        if not isinstance(xy, jax.core.Tracer) and not (np.all(np.isfinite(xy)) and np.all(np.isfinite(yaw))):
+            raise ValueError("place needs finite xy and yaw (MuJoCo resets a world with NaN to its default pose)")
+        if not isinstance(xy, jax.core.Tracer) and (far := float(np.abs(np.asarray(xy)).max())) > (
+                wall := self.config.scene.bin_half_width):
+            raise ValueError(f"place: a piece centre lies {far:g} m from the bin's centre in x or y, outside the bin "
+                             f"(±{wall:g} m)")
         zero = jnp.zeros(self.scene.model.nv, jnp.float32)
         settled = State(self._qpos_from(xy, yaw), zero, None, None, None, jnp.array(False))
         return self.simulate(settled, *self._parked(self.n_reset))
