@@ -47,8 +47,9 @@ def add_args(parser) -> None:
                        help="address of process 0's coordinator service")
     group.add_argument("--num-processes", type=int, default=None, metavar="K", help="processes in the job")
     group.add_argument("--process-id", type=int, default=None, metavar="I", help="this process, in [0, K)")
-    group.add_argument("--join-timeout", type=float, default=JOIN_TIMEOUT_S, metavar="S",
-                       help="seconds to wait for every process to start; then the missing ones are named")
+    group.add_argument("--join-timeout", type=float, default=None, metavar="S",
+                       help=f"seconds to wait for every process to start (default {JOIN_TIMEOUT_S}); then the missing "
+                            "ones are named")
 
 
 def launcher() -> str | None:
@@ -216,8 +217,12 @@ def leave() -> None:
 
 def from_args(parser, args) -> tuple[int, int]:
     """``initialize`` from a command's flags (``add_args``); a bad combination is a parser error."""
+    if args.join_timeout is not None and args.coordinator is None and launcher() is None:
+        parser.error("--join-timeout is read when joining a job (--coordinator, --num-processes, --process-id, or "
+                     "a launcher such as srun); this process runs alone")
     try:
-        return initialize(args.coordinator, args.num_processes, args.process_id, args.join_timeout)
+        return initialize(args.coordinator, args.num_processes, args.process_id,
+                          JOIN_TIMEOUT_S if args.join_timeout is None else args.join_timeout)
     except ValueError as e:
         parser.error(str(e))
 

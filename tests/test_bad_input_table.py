@@ -209,6 +209,7 @@ P = [  # plan: one frame of a real camera
     (["--no-wall-pushes", "--bin-half-width", "0.3"], "nothing reads it"),
 ]
 E = [  # evaluate
+    (["--join-timeout", "5"], "--join-timeout is read when joining a job"),  # alone: silently unread
     (["--episodes", "0"], "--episodes"), (["--episodes", "x"], "--episodes"), (["--mpc-steps", "0"], "--mpc-steps"),
     (["--methods", "0"], "--methods"), (["--methods", "101"], "--methods"), (["--methods", "foo"], "--methods"),
     (["--methods", "best0"], "--methods"), (["--methods", "50", "50"], "--methods"), (["--methods", "sim", "sim"], "--methods"),

@@ -111,6 +111,11 @@ def test_timing_table_formula_refine_and_round_trip(tmp_path):
         json.dump({"samples": 3}, f)
     with pytest.raises(ValueError, match="not a timing table"):
         TimingTable.load(str(tmp_path / "other.json"))
+    quoted = dict(json.load(open(path)), samples=str(table.samples))  # "50": the refusal named "50 x 1 against 50 x 1"
+    with open(tmp_path / "quoted.json", "w") as f:
+        json.dump(quoted, f)
+    with pytest.raises(ValueError, match="samples must be an integer, got '"):
+        TimingTable.load(str(tmp_path / "quoted.json"))
     with pytest.raises(ValueError, match="step_s > 0"):
         TimingTable("x", 1, 1, fixed_s={16: 0.0}, step_s={16: float("nan")})
 

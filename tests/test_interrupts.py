@@ -241,3 +241,22 @@ def test_the_console_script_runs_its_command_as_the_program(tmp_path, monkeypatc
     assert guard.running["program"] and (tmp_path / "g.png").is_file()
     commands.main(argv)
     assert not guard.running["program"]
+
+
+def test_a_file_size_limit_is_one_line_like_a_full_disk(capsys):
+    """A write past ``ulimit -f`` (EFBIG) ends a command in one line naming the limit, as a full disk does (a
+    20-line traceback before)."""
+    import errno
+
+    from dynres_jax.commands import checks
+
+    @checks.guarded("export")
+    def main(argv):
+        raise OSError(errno.EFBIG, "File too large")
+
+    with pytest.raises(SystemExit) as ended:
+        main([])
+    err = capsys.readouterr().err
+    assert ended.value.code == 1 and "Traceback" not in err
+    assert err.strip() == ("python -m experiments.export: error: File too large; raise the file-size limit (ulimit -f) "
+                           "and rerun the same command")

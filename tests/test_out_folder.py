@@ -35,9 +35,12 @@ def test_fresh_deletes_only_the_runs_files(tmp_path):
     assert not checks.claim(out, "demo", {"a": 1})
     files.write_json(os.path.join(out, "result.json"), {"x": 1})
     files.write_text(os.path.join(out, "parts", "0.json"), "{}")
-    files.record(os.path.join(out, "ckpt"), whole=True)  # as ckpt.save does: orbax writes inside
+    files.record(os.path.join(out, "ckpt", "3"), whole=True)  # as ckpt.save does: orbax writes the step's folder
     os.makedirs(os.path.join(out, "ckpt", "3"))
     open(os.path.join(out, "ckpt", "3", "data"), "w").close()
+    os.makedirs(os.path.join(out, "ckpt", "best_by_hand"))  # the user's own, beside the steps
+    with open(os.path.join(out, "ckpt", "best_by_hand", "weights.txt"), "w") as f:
+        f.write("mine")
     killed = files.tmp_prefix(os.path.join(out, "result.json")) + "a1b2"
     open(os.path.join(out, killed), "w").close()
     with open(os.path.join(out, "notes.txt"), "w") as f:  # the user's own
@@ -46,7 +49,8 @@ def test_fresh_deletes_only_the_runs_files(tmp_path):
     with pytest.raises(InputError, match="other settings"):
         checks.claim(out, "demo", {"a": 2})
     assert not checks.claim(out, "demo", {"a": 2}, fresh=True)
-    assert sorted(os.listdir(out)) == sorted(["notes.txt", checks.RUN, checks.LOCK, files.OWN])
+    assert sorted(os.listdir(out)) == sorted(["notes.txt", "ckpt", checks.RUN, checks.LOCK, files.OWN])
+    assert os.listdir(os.path.join(out, "ckpt")) == ["best_by_hand"]  # the step went, the user's folder stayed
     with open(os.path.join(out, checks.RUN)) as f:
         assert json.load(f)["config"] == {"a": 2}
     files.write_text(os.path.join(out, "result.json"), "new")

@@ -168,8 +168,9 @@ def guarded(name: str):
                 full = _disk_full(e)
                 if full is None:
                     raise
+                remedy = "raise the file-size limit (ulimit -f)" if full.errno == errno.EFBIG else "free space"
                 print(f"{prog(name)}: error: {full.strerror or 'no space left'}"
-                      f"{f' writing {full.filename!r}' if full.filename else ''}; {_kept()}free space and rerun the "
+                      f"{f' writing {full.filename!r}' if full.filename else ''}; {_kept()}{remedy} and rerun the "
                       "same command", file=sys.stderr)
                 raise SystemExit(1) from None
             finally:
@@ -239,11 +240,12 @@ def use_compilation_cache() -> None:
 
 
 def _disk_full(e: BaseException) -> OSError | None:
-    """The OSError of a full disk or quota (ENOSPC, EDQUOT) in ``e``'s chain of causes (a library may wrap it)."""
+    """The OSError of a full disk, a quota or a file-size limit (ENOSPC, EDQUOT, EFBIG: ``ulimit -f``) in ``e``'s chain
+    of causes (a library may wrap it)."""
     seen = set()
     while e is not None and id(e) not in seen:
         seen.add(id(e))
-        if isinstance(e, OSError) and e.errno in (errno.ENOSPC, errno.EDQUOT):
+        if isinstance(e, OSError) and e.errno in (errno.ENOSPC, errno.EDQUOT, errno.EFBIG):
             return e
         e = e.__cause__ or e.__context__
     return None

@@ -79,9 +79,11 @@ def check_budget(cfg: MPCConfig, table: budget.TimingTable | None, omegas, fines
             raise InputError(f"--time-budget {cfg.time_budget} s affords no Adam step at ω = {omega} on "
                              f"{table.device}: a decision's fixed part takes {table.fixed_s[key]:.3g} s and each "
                              f"step {table.step_s[key]:.3g} s; give a larger budget")
+    refined = "a table read from a file stays as it is" if table.frozen else "the timing table refines this as " \
+        "decisions are timed"
     print(f"--time-budget {cfg.time_budget} s on {table.device} affords "
           f"{', '.join(f'{n} Adam step(s) at ω = {w}' for w, n in afforded.items())} a decision (without a budget: "
-          f"{cfg.planner.adam_steps}; the timing table refines this as decisions are timed)", flush=True)
+          f"{cfg.planner.adam_steps}; {refined})", flush=True)
 
 
 PLANNER_OPTIONS = dict(starts=PlannerConfig.starts, resamples=PlannerConfig.resamples, vote=PlannerConfig.vote,

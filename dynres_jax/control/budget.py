@@ -138,6 +138,9 @@ class TimingTable:
         missing = {"device", "samples", "horizon", "fixed_s", "step_s"} - set(data)
         if missing:
             raise ValueError(f"{path} is not a timing table: it lacks {sorted(missing)}")
+        for name in ("samples", "horizon"):
+            if isinstance(data[name], bool) or not isinstance(data[name], int):
+                raise ValueError(f"{path}: {name} must be an integer, got {data[name]!r}")
         return cls(**data, frozen=frozen)
 
 

@@ -125,10 +125,10 @@ def latest_step(directory) -> int | None:
 
 def save(directory, step: int, state: dict[str, Any], meta: dict, keep: int | None = 3) -> None:
     """Write pytrees ``state`` (e.g. {"model": nnx.State, "opt": ...}) and JSON ``meta`` as ``step``; keeps the
-    newest ``keep`` steps. ``directory`` is listed whole as a claimed folder's own (``files.record``): orbax writes
-    there, not through ``files``."""
-    files.record(directory, whole=True)
+    newest ``keep`` steps. The step's folder is listed whole as a claimed folder's own (``files.record``: orbax writes
+    it, not through ``files``), not ``directory``: a file of the user's beside the steps stays on ``--fresh``."""
     unsealed = os.path.join(directory, str(step))
+    files.record(unsealed, whole=True)
     if os.path.isdir(unsealed) and step not in _steps(directory):
         shutil.rmtree(unsealed)  # a save killed between orbax's rename and the manifest: unfinished
     with _manager(directory, keep) as mngr:
