@@ -23,6 +23,7 @@ from dynres_jax.sim.env import PileEnv
 pytestmark = pytest.mark.slow  # end to end: CI's second tier (python -m pytest -m slow)
 
 TINY = ["--steps", "2", "--samples", "4", "--adam-steps", "3", "--dynamics", "sweep", "--pieces", "30"]
+REPLAY = TINY[:-2]  # a replay's frames are as recorded: the simulator's --pieces is refused beside --replay
 
 
 @pytest.fixture(scope="module")
@@ -49,10 +50,10 @@ def test_the_recorded_frames_replay_as_a_dry_run(episode, tmp_path):
     """The frames the simulator's episode saved, read back: the robot plans a push for each but sends none, and
     each frame's d is what the episode saw (depth kept to a millimetre)."""
     out, summary = episode
-    replay = robot.main([*TINY, "--replay", os.path.join(out, "frames"), "--calibrate", "--out", str(tmp_path)])
+    replay = robot.main([*REPLAY, "--replay", os.path.join(out, "frames"), "--calibrate", "--out", str(tmp_path)])
     assert replay["dry_run"] and replay["pushes"] == 2 and "true_inside" not in replay
     assert replay["sensor"] is None and summary["sensor"] == "realsense"  # a replay is as recorded, no profile
-    longer = robot.main([*TINY, "--steps", "5", "--replay", os.path.join(out, "frames"), "--out",
+    longer = robot.main([*REPLAY, "--steps", "5", "--replay", os.path.join(out, "frames"), "--out",
                          str(tmp_path / "longer")])  # more steps than frames: the replay ends with its last frame
     assert longer["pushes"] == 3 and os.path.isfile(tmp_path / "longer" / "metrics.json")
     for seen, live in zip(replay["steps"], summary["steps"], strict=True):
