@@ -24,7 +24,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from dynres_jax.control import budget, tasks
+from dynres_jax.control import tasks
 from dynres_jax.control.choosers import Candidate, Chooser, Orders
 from dynres_jax.control.decision import Situation, fold
 from dynres_jax.control.goals import disc_goal, make_goals
@@ -129,8 +129,8 @@ class OnPolicy(Chooser):
     """Each push of each world the planner's with probability ``planned``, else random (``PileEnv.sample_push``),
     against goals [B]. Its orders ask the loop for no plan: its keep rule plans only the worlds it draws, in chunks of
     ``size`` (one compile a bucket; ``_chunks``) at ``omega`` (or the frame's foreground points where fewer: a chunk
-    of such frames may plan in a smaller bucket), each from its last
-    plan where its last push was planned too (warm start), and pushes every world."""
+    of such frames may plan in a smaller bucket), each from its last plan where its last push was planned too (warm
+    start), and pushes every world."""
 
     def __init__(self, goals, env, omega: int, planned: float, size: int, cfg: MPCConfig, dynamics):
         self.goals, self.env, self.omega, self.planned, self.size = goals, env, omega, planned, size
@@ -145,7 +145,8 @@ class OnPolicy(Chooser):
         chosen = np.asarray(jax.vmap(jax.random.uniform)(fold(now.keys, 2)) < self.planned)
         action = np.array(_random_pushes(fold(now.keys, 1), now.states.pos, env=self.env), np.float32)
         best = np.array(now.init, np.float32)  # where planned, replaced by the plan (the next step's warm start)
-        omega, warm = np.zeros(len(chosen), np.int32), np.broadcast_to(np.asarray(now.warm, bool), chosen.shape)
+        omega, bucket = np.zeros(len(chosen), np.int32), np.zeros(len(chosen), np.int32)  # 0: a random push
+        warm = np.broadcast_to(np.asarray(now.warm, bool), chosen.shape)
         for rows, n in _chunks(np.flatnonzero(chosen), self.size):
             seen = jax.tree.map(lambda x, r=rows: x[r], now.seen)
             visible = np.asarray(_visible_points(seen, camera=now.camera, max_points=self.cfg.max_points))
@@ -154,11 +155,11 @@ class OnPolicy(Chooser):
             plan = propose(part, Candidate(np.minimum(self.omega, visible)), cfg=self.cfg, timing=None,
                            dynamics=self.dynamics)
             action[rows[:n]], best[rows[:n]] = plan["proposals"][:n, 0, 0], plan["proposals"][:n, 0]
-            omega[rows[:n]] = plan["omega"][:n]
+            omega[rows[:n]], bucket[rows[:n]] = plan["omega"][:n], plan["bucket"][:n]
         nothing = np.full(len(chosen), np.nan)
-        return dict(omega=omega, bucket=np.array([budget.bucket_for(w, self.cfg.buckets) if w else 0 for w in omega]),
-                    adam_steps=np.where(chosen, self.cfg.planner.adam_steps, 0), objective=nothing,
-                    predicted_objective=nothing, distance=nothing, inside=nothing, action=action, best=best,
+        return dict(omega=omega, bucket=bucket, adam_steps=np.where(chosen, self.cfg.planner.adam_steps, 0),
+                    objective=nothing, predicted_objective=nothing, distance=nothing, inside=nothing, action=action,
+                    best=best,
                     states=worlds.push(now.states, action), particles=None, wall=nothing, warm=chosen)
 
 
